@@ -1,0 +1,34 @@
+# Two commands on a fresh machine (each does its own setup):
+#   make full-comparison      # DEM -> tables -> PBM -> report (PRESET=reduced by default)
+#   make test                 # the test suite, including a real LIGGGHTS smoke run
+PYTHON ?= python3
+PRESET ?= reduced
+NP ?= 2
+FRESH ?=
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: setup setup-system setup-python test full-comparison bench clean
+
+setup: setup-system setup-python
+
+# apt only when something is missing, so reruns cost nothing.
+setup-system:
+	@if ! command -v liggghts >/dev/null || ! command -v mpirun >/dev/null; then \
+		$(SUDO) apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends liggghts openmpi-bin; \
+	fi
+
+setup-python:
+	$(PYTHON) -m pip install -q -e '.[test]'
+
+test: setup
+	$(PYTHON) -m pytest
+
+full-comparison: setup
+	$(PYTHON) -m workflows.cli compare --preset $(PRESET) --np $(NP) $(if $(FRESH),--fresh)
+
+bench: setup
+	$(PYTHON) -m workflows.bench
+
+clean:
+	rm -rf results build *.egg-info .pytest_cache

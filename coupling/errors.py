@@ -1,0 +1,56 @@
+"""The project's exceptions, shared by every stage.
+
+Library code raises these; only the CLI (``workflows.cli``) turns them into a message and
+an exit code. Each message names the offending value and what would have been valid.
+"""
+
+
+class PbmDemError(Exception):
+    """Base class of every error this project raises on purpose."""
+
+
+class ConfigError(PbmDemError, ValueError):
+    """A configuration value, file, preset or key is invalid."""
+
+
+class GeometryError(ConfigError):
+    """The blender geometry is impossible or fails LIGGGHTS' mesh checks."""
+
+
+class DeckError(PbmDemError):
+    """A LIGGGHTS input deck could not be built from the configuration."""
+
+
+class SolverNotFoundError(PbmDemError):
+    """``liggghts`` or the MPI launcher is not installed."""
+
+
+class SolverRunError(PbmDemError):
+    """LIGGGHTS failed: an ERROR line, a non-zero exit or missing output.
+
+    ``run_dir`` and ``log_tail`` tell the user where to look.
+    """
+
+    def __init__(self, message: str, run_dir=None, log_tail: str = ""):
+        self.run_dir = run_dir
+        self.log_tail = log_tail
+        text = message
+        if run_dir is not None:
+            text += f"\n  run directory: {run_dir}"
+        if log_tail:
+            text += "\n  last lines of the solver log:\n" + "\n".join(
+                "    " + line for line in log_tail.rstrip().splitlines()
+            )
+        super().__init__(text)
+
+
+class DumpFormatError(PbmDemError, ValueError):
+    """A LIGGGHTS dump file is malformed (the message names the file and line)."""
+
+
+class TableError(PbmDemError, ValueError):
+    """A velocity table is missing a dataset, has a wrong shape or invalid values."""
+
+
+class CacheError(PbmDemError):
+    """A cache file is corrupt, foreign or could not be written."""

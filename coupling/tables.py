@@ -1,0 +1,323 @@
+"""Velocity tables: the schema that carries DEM particle velocities to the PBM.
+
+A table holds, for each velocity window k (from ``t[k]`` to ``t[k] + window_s``) and each
+compartment (i, j) -- i axial from the inlet, j along y from y = -D/2 -- the means over every
+dumped particle seen in that compartment during the window (ratio of sums):
+
+=============  ==========  ===============================================================
+dataset        shape       meaning
+=============  ==========  ===============================================================
+t              (K,)        window start times [s]
+x_edges        (NX+1,)     axial compartment edges [m], 0 at the inlet wall
+y_edges        (NY+1,)     transverse compartment edges [m], centred on the impeller axis
+vx_pos         (K,NX,NY)   mean of max(vx, 0) [m/s]
+vx_neg         (K,NX,NY)   mean of max(-vx, 0) [m/s]
+vy_pos         (K,NX,NY)   mean of max(vy, 0) [m/s]
+vy_neg         (K,NX,NY)   mean of max(-vy, 0) [m/s]
+count_A        (K,NX,NY)   mean number of A particles in the compartment per snapshot
+count_B        (K,NX,NY)   mean number of B particles in the compartment per snapshot
+n_samples      (K,NX,NY)   particle-snapshots behind the velocity means (int)
+=============  ==========  ===============================================================
+
+Root attributes of the group: ``schema_version`` (this module's :data:`SCHEMA_VERSION`),
+``window_s``, ``min_samples`` (a compartment-window with fewer samples carries no velocity
+information: see :attr:`VelocityTable.valid`), ``units`` (JSON) and free provenance
+(``input_hash``, ``liggghts_version``, ``preset``, ``created``...).
+
+Velocities of compartments without samples are stored as 0 *and* flagged by ``n_samples``;
+the PBM decides how to fill them, never reading the 0 as a measured velocity.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from coupling.errors import TableError
+
+SCHEMA_VERSION = 1
+GROUP = "velocity_table"
+VELOCITY_NAMES = ("vx_pos", "vx_neg", "vy_pos", "vy_neg")
+FIELD_NAMES = (*VELOCITY_NAMES, "count_A", "count_B", "n_samples")
+UNITS = {
+    "t": "s",
+    "x_edges": "m",
+    "y_edges": "m",
+    **{name: "m/s" for name in VELOCITY_NAMES},
+    "count_A": "particles",
+    "count_B": "particles",
+    "n_samples": "particle-snapshots",
+    "window_s": "s",
+}
+
+
+@dataclass(frozen=True)
+class VelocityTable:
+    """Compartment velocities per window; validated on construction (raises TableError)."""
+
+    t: np.ndarray
+    x_edges: np.ndarray
+    y_edges: np.ndarray
+    vx_pos: np.ndarray
+    vx_neg: np.ndarray
+    vy_pos: np.ndarray
+    vy_neg: np.ndarray
+    count_A: np.ndarray
+    count_B: np.ndarray
+    n_samples: np.ndarray
+    window_s: float
+    min_samples: int = 1
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("t", "x_edges", "y_edges", *VELOCITY_NAMES, "count_A", "count_B"):
+            object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), dtype=float))
+        object.__setattr__(self, "n_samples", np.ascontiguousarray(self.n_samples, dtype=np.int64))
+        object.__setattr__(self, "window_s", float(self.window_s))
+        object.__setattr__(self, "min_samples", int(self.min_samples))
+        _validate(self)
+
+    @property
+    def nx(self) -> int:
+        return self.x_edges.size - 1
+
+    @property
+    def ny(self) -> int:
+        return self.y_edges.size - 1
+
+    @property
+    def n_windows(self) -> int:
+        return self.t.size
+
+    @property
+    def dx(self) -> np.ndarray:
+        """Axial compartment widths [m], shape (NX,)."""
+        return np.diff(self.x_edges)
+
+    @property
+    def dy(self) -> np.ndarray:
+        """Transverse compartment widths [m], shape (NY,)."""
+        return np.diff(self.y_edges)
+
+    @property
+    def t_end(self) -> float:
+        """End of the last window [s]."""
+        return float(self.t[-1] + self.window_s)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(K, NX, NY) bool: the compartment-window has enough samples to trust its velocity."""
+        return self.n_samples >= self.min_samples
+
+    def window_index(self, time_s: float) -> int:
+        """Index of the window in force at ``time_s`` (the last one beyond the table's end)."""
+        return int(np.clip(np.searchsorted(self.t, time_s, side="right") - 1, 0, self.n_windows - 1))
+
+    def replace(self, **changes: Any) -> "VelocityTable":
+        """A copy with some fields changed, validated again."""
+        return replace(self, **changes)
+
+
+def _validate(table: VelocityTable) -> None:
+    t = table.t
+    if t.ndim != 1 or t.size == 0:
+        raise TableError(f"dataset 't' must be a non-empty 1-D array of window start times, got shape {t.shape}")
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise TableError(f"dataset 't' must be finite and strictly increasing, got {t[:6]}...")
+    if not (np.isfinite(table.window_s) and table.window_s > 0):
+        raise TableError(f"attribute 'window_s' must be > 0 s, got {table.window_s}")
+    if table.min_samples < 1:
+        raise TableError(f"attribute 'min_samples' must be >= 1, got {table.min_samples}")
+    for name in ("x_edges", "y_edges"):
+        edges = getattr(table, name)
+        if edges.ndim != 1 or edges.size < 2:
+            raise TableError(f"dataset '{name}' must be 1-D with at least 2 edges, got shape {edges.shape}")
+        if not np.all(np.isfinite(edges)) or np.any(np.diff(edges) <= 0):
+            raise TableError(f"dataset '{name}' must be finite and strictly increasing, got {edges}")
+    shape = (t.size, table.x_edges.size - 1, table.y_edges.size - 1)
+    for name in FIELD_NAMES:
+        values = getattr(table, name)
+        if values.shape != shape:
+            raise TableError(
+                f"dataset '{name}' has shape {values.shape}; expected (K, NX, NY) = {shape} "
+                "from 't', 'x_edges' and 'y_edges'"
+            )
+        if not np.all(np.isfinite(values)):
+            raise TableError(f"dataset '{name}' contains NaN or infinite values; every entry must be finite")
+        if np.any(values < 0):
+            k, i, j = np.argwhere(values < 0)[0]
+            raise TableError(
+                f"dataset '{name}' must be >= 0 everywhere; window {k}, compartment ({i}, {j}) "
+                f"holds {values[k, i, j]}"
+            )
+
+
+def make_table(
+    t,
+    x_edges,
+    y_edges,
+    vx_pos,
+    vx_neg,
+    vy_pos,
+    vy_neg,
+    count_A=None,
+    count_B=None,
+    n_samples=None,
+    window_s: float | None = None,
+    min_samples: int = 1,
+    attrs: dict[str, Any] | None = None,
+) -> VelocityTable:
+    """Build a table from arrays; scalars and (NX, NY) arrays are broadcast to every window.
+
+    Missing counts default to 0 and missing ``n_samples`` to ``min_samples`` (every
+    compartment-window trusted), which is what synthetic tables for tests and studies want.
+    ``window_s`` defaults to the spacing of ``t`` (1 s for a single window).
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    x_edges = np.asarray(x_edges, dtype=float)
+    y_edges = np.asarray(y_edges, dtype=float)
+    shape = (t.size, x_edges.size - 1, y_edges.size - 1)
+    if window_s is None:
+        window_s = float(t[1] - t[0]) if t.size > 1 else 1.0
+
+    def full(value, default):
+        value = default if value is None else value
+        try:
+            return np.broadcast_to(np.asarray(value, dtype=float), shape).copy()
+        except ValueError as exc:
+            raise TableError(f"cannot broadcast an array of shape {np.shape(value)} to (K, NX, NY) = {shape}") from exc
+
+    return VelocityTable(
+        t=t,
+        x_edges=x_edges,
+        y_edges=y_edges,
+        vx_pos=full(vx_pos, 0.0),
+        vx_neg=full(vx_neg, 0.0),
+        vy_pos=full(vy_pos, 0.0),
+        vy_neg=full(vy_neg, 0.0),
+        count_A=full(count_A, 0.0),
+        count_B=full(count_B, 0.0),
+        n_samples=full(n_samples, min_samples).astype(np.int64),
+        window_s=window_s,
+        min_samples=min_samples,
+        attrs=dict(attrs or {}),
+    )
+
+
+def table_to_group(group: h5py.Group, table: VelocityTable) -> None:
+    """Write ``table`` into an open HDF5 group (datasets and attributes)."""
+    group.create_dataset("t", data=table.t)
+    group.create_dataset("x_edges", data=table.x_edges)
+    group.create_dataset("y_edges", data=table.y_edges)
+    for name in FIELD_NAMES:
+        group.create_dataset(name, data=getattr(table, name), compression="gzip", shuffle=True)
+    for key, value in table.attrs.items():
+        group.attrs[key] = _attr_value(value)
+    group.attrs["schema_version"] = SCHEMA_VERSION
+    group.attrs["window_s"] = table.window_s
+    group.attrs["min_samples"] = table.min_samples
+    group.attrs["units"] = json.dumps(UNITS)
+
+
+def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
+    """Read and validate a table from an open HDF5 group; raises TableError naming what is wrong."""
+    where = f" in {source}" if source else ""
+    version = group.attrs.get("schema_version")
+    if version is None:
+        raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
+    if int(version) != SCHEMA_VERSION:
+        raise TableError(
+            f"unknown velocity-table schema_version {int(version)}{where}; this version reads {SCHEMA_VERSION}"
+        )
+    arrays = {}
+    for name in ("t", "x_edges", "y_edges", *FIELD_NAMES):
+        if name not in group:
+            raise TableError(f"dataset '{name}' is missing{where}; a velocity table needs {('t', 'x_edges', 'y_edges', *FIELD_NAMES)}")
+        arrays[name] = group[name][()]
+    for name in ("window_s", "min_samples"):
+        if name not in group.attrs:
+            raise TableError(f"attribute '{name}' is missing{where}")
+    reserved = {"schema_version", "window_s", "min_samples", "units"}
+    attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
+    try:
+        return VelocityTable(
+            **arrays,
+            window_s=float(group.attrs["window_s"]),
+            min_samples=int(group.attrs["min_samples"]),
+            attrs=attrs,
+        )
+    except TableError as exc:
+        raise TableError(f"{exc}{where}") from None
+
+
+def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:
+    """Write ``table`` to a new HDF5 file atomically (temporary file, then rename)."""
+    path = Path(path)
+    with atomic_h5(path) as h5:
+        table_to_group(h5.create_group(GROUP), table)
+    return path
+
+
+def read_table(path: str | os.PathLike) -> VelocityTable:
+    """Read the velocity table stored in ``path`` (its ``velocity_table`` group)."""
+    path = Path(path)
+    if not path.is_file():
+        raise TableError(f"velocity table file {path} does not exist")
+    try:
+        with h5py.File(path, "r") as h5:
+            if GROUP not in h5:
+                raise TableError(f"{path} has no '{GROUP}' group; groups present: {sorted(h5.keys())}")
+            return table_from_group(h5[GROUP], source=str(path))
+    except OSError as exc:
+        raise TableError(f"{path} is not a readable HDF5 file: {exc}") from exc
+
+
+class atomic_h5:
+    """Context manager: an h5py.File open for writing on a temporary name beside ``path``,
+    renamed onto ``path`` only when the block finishes without an exception."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+
+    def __enter__(self) -> h5py.File:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp", dir=self.path.parent)
+        os.close(fd)
+        self.tmp = Path(tmp)
+        self.h5 = h5py.File(self.tmp, "w")
+        return self.h5
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.h5.close()
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _attr_value(value: Any) -> Any:
+    if isinstance(value, (dict, list, tuple)):
+        return json.dumps(value, sort_keys=True, default=str)
+    if value is None:
+        return "null"
+    return value
+
+
+def _attr_python(value: Any) -> Any:
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, str) and value[:1] in "[{":
+        try:
+            return json.loads(value)
+        except json.JSONDecodeError:
+            return value
+    return value

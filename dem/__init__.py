@@ -1,0 +1,1 @@
+"""DEM stage: blender geometry, LIGGGHTS deck, solver runs and dump post-processing."""

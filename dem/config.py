@@ -1,0 +1,248 @@
+"""Typed, validated configuration of the DEM stage (geometry, materials, operation, numerics).
+
+Every field carries its unit in its name. Models are frozen and refuse unknown keys, so a
+typo in a TOML file is an error naming the key, not a silently ignored setting. Cross-field
+checks that need geometry (blade clearance, feed zones clear of the blades) live in
+:mod:`dem.geometry`, which refuses a bad blender before any file is written.
+"""
+
+from __future__ import annotations
+
+import math
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+def _is_prime(n: int) -> bool:
+    if n < 2:
+        return False
+    return all(n % k for k in range(2, math.isqrt(n) + 1))
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GeometryConfig(_Section):
+    """A GCM250-style horizontal bladed blender. x axial from the inlet wall, z up.
+
+    The impeller carries ``blade_stations`` stations evenly spaced from ``first_blade_x_m``
+    to ``last_blade_x_m``; each station has ``blades_per_station`` flat paddles evenly spaced
+    in azimuth, consecutive stations are turned by ``blade_azimuth_step_deg``, and the paddle
+    faces are pitched by ``blade_pitch_deg`` from the axial direction, forward (F, conveying
+    towards the outlet) or backward (B) following ``blade_pattern`` cyclically.
+    """
+
+    length_m: float = Field(0.330, gt=0)
+    diameter_m: float = Field(0.100, gt=0)
+    shaft_radius_m: float = Field(0.010, gt=0)
+    blade_stations: int = Field(8, ge=1)
+    first_blade_x_m: float = Field(0.060, gt=0)
+    last_blade_x_m: float = Field(0.300, gt=0)
+    blades_per_station: int = Field(2, ge=1, le=8)
+    blade_chord_m: float = Field(0.025, gt=0)
+    blade_tip_clearance_m: float = Field(0.005, gt=0)
+    blade_pitch_deg: float = Field(45.0, gt=0, lt=90)
+    blade_azimuth_step_deg: float = Field(90.0, ge=0, lt=360)
+    blade_pattern: str = Field("FB", pattern=r"^[FB]+$")
+    weir_height_m: float = Field(0.020, gt=0)
+    outlet_length_m: float = Field(0.040, gt=0)
+    feed_x_min_m: float = Field(0.006, ge=0)
+    feed_x_max_m: float = Field(0.030, gt=0)
+    feed_y_inner_m: float = Field(0.005, ge=0)
+    feed_y_outer_m: float = Field(0.035, gt=0)
+    feed_height_m: float = Field(0.035, description="z of the feed zones' centre [m]")
+    feed_depth_m: float = Field(0.010, gt=0, description="vertical extent of each feed zone [m]")
+
+    @model_validator(mode="after")
+    def _check(self) -> "GeometryConfig":
+        radius = self.diameter_m / 2
+        if self.shaft_radius_m + self.blade_tip_clearance_m >= radius:
+            raise ValueError(
+                f"shaft_radius_m ({self.shaft_radius_m}) + blade_tip_clearance_m ({self.blade_tip_clearance_m}) "
+                f"must be below the vessel radius ({radius}) to leave room for blades"
+            )
+        if not self.first_blade_x_m <= self.last_blade_x_m < self.length_m:
+            raise ValueError(
+                f"blade stations must satisfy first_blade_x_m ({self.first_blade_x_m}) <= last_blade_x_m "
+                f"({self.last_blade_x_m}) < length_m ({self.length_m})"
+            )
+        if self.blade_stations == 1 and self.first_blade_x_m != self.last_blade_x_m:
+            raise ValueError("with blade_stations = 1, first_blade_x_m must equal last_blade_x_m")
+        if self.weir_height_m >= self.diameter_m:
+            raise ValueError(f"weir_height_m ({self.weir_height_m}) must be below diameter_m ({self.diameter_m})")
+        if not self.feed_x_min_m < self.feed_x_max_m <= self.length_m:
+            raise ValueError(
+                f"feed zone must satisfy feed_x_min_m ({self.feed_x_min_m}) < feed_x_max_m ({self.feed_x_max_m}) "
+                f"<= length_m ({self.length_m})"
+            )
+        if not self.feed_y_inner_m < self.feed_y_outer_m < radius:
+            raise ValueError(
+                f"feed zone must satisfy feed_y_inner_m ({self.feed_y_inner_m}) < feed_y_outer_m "
+                f"({self.feed_y_outer_m}) < vessel radius ({radius})"
+            )
+        return self
+
+    @property
+    def radius_m(self) -> float:
+        return self.diameter_m / 2
+
+    @property
+    def blade_tip_radius_m(self) -> float:
+        return self.radius_m - self.blade_tip_clearance_m
+
+
+class ParticleConfig(_Section):
+    """Particles of both components (Table 1). The size distribution is normal in diameter,
+    truncated at +-3 SD and discretised into ``size_classes`` LIGGGHTS templates."""
+
+    diameter_m: float = Field(0.002, gt=0)
+    # DESIGN.md: the paper's text says SD = 5 % of the mean radius, i.e. 0.05 mm on the
+    # radius and 0.1 mm on the diameter; Table 1's "0.2" has no unit and is not used.
+    diameter_sd_m: float = Field(0.0001, ge=0)
+    size_classes: int = Field(5, ge=1, le=15)
+    shear_modulus_pa: float = Field(2.0e6, gt=0)
+    poisson_ratio: float = Field(0.33, gt=-1, lt=0.5)
+    density_kg_m3: float = Field(1500.0, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "ParticleConfig":
+        if self.diameter_m - 3 * self.diameter_sd_m <= 0:
+            raise ValueError(
+                f"diameter_sd_m ({self.diameter_sd_m}) is too wide for diameter_m ({self.diameter_m}): "
+                "the distribution truncated at 3 SD would include sizes <= 0"
+            )
+        return self
+
+    @property
+    def youngs_modulus_pa(self) -> float:
+        return 2 * self.shear_modulus_pa * (1 + self.poisson_ratio)
+
+    @property
+    def max_diameter_m(self) -> float:
+        return self.diameter_m + 3 * self.diameter_sd_m
+
+    @property
+    def min_diameter_m(self) -> float:
+        return self.diameter_m - 3 * self.diameter_sd_m
+
+
+class SteelConfig(_Section):
+    """Walls and blades (Table 1)."""
+
+    shear_modulus_pa: float = Field(7.93e10, gt=0)
+    poisson_ratio: float = Field(0.33, gt=-1, lt=0.5)
+    density_kg_m3: float = Field(8000.0, gt=0)
+
+    @property
+    def youngs_modulus_pa(self) -> float:
+        return 2 * self.shear_modulus_pa * (1 + self.poisson_ratio)
+
+
+class ContactConfig(_Section):
+    """Hertz contact coefficients (Table 1)."""
+
+    restitution: float = Field(0.1, gt=0, le=1)
+    friction_particle_particle: float = Field(0.5, ge=0)
+    friction_particle_wall: float = Field(0.4, ge=0)
+    friction_particle_blade: float = Field(0.4, ge=0)
+    rolling_friction: float = Field(0.01, ge=0)
+
+
+class OperationConfig(_Section):
+    """Operating point (paper section 3.1)."""
+
+    feed_rate_total_per_s: float = Field(1990.0, gt=0)
+    feed_fraction_a: float = Field(0.5, gt=0, lt=1, description="share of the feed that is component A")
+    impeller_rpm: float = Field(250.0, gt=0)
+    duration_s: float = Field(260.0, gt=0)
+
+    @property
+    def feed_rate_a_per_s(self) -> float:
+        return self.feed_rate_total_per_s * self.feed_fraction_a
+
+    @property
+    def feed_rate_b_per_s(self) -> float:
+        return self.feed_rate_total_per_s * (1 - self.feed_fraction_a)
+
+
+# Measured here on LIGGGHTS 3.8.0 (DESIGN.md): dt = 0.27 t_Rayleigh was stable, 0.32 gave
+# spurious speed spikes, 0.38 lost particles.
+MAX_STABLE_RAYLEIGH_FRACTION = 0.27
+
+
+class NumericsConfig(_Section):
+    timestep_rayleigh_fraction: float = Field(0.2, gt=0)
+    dump_interval_s: float = Field(0.1, gt=0, description="particle dump every this much simulated time")
+    thermo_interval_s: float = Field(0.5, gt=0)
+    restart_interval_s: float = Field(10.0, gt=0)
+    seed: int = Field(15485863, gt=10000, description="a prime > 10000 (LIGGGHTS requirement)")
+
+    @model_validator(mode="after")
+    def _check(self) -> "NumericsConfig":
+        if self.timestep_rayleigh_fraction > MAX_STABLE_RAYLEIGH_FRACTION:
+            raise ValueError(
+                f"timestep_rayleigh_fraction {self.timestep_rayleigh_fraction} is above the stable limit "
+                f"{MAX_STABLE_RAYLEIGH_FRACTION} measured for LIGGGHTS 3.8.0 (0.32 gave speed spikes); "
+                "choose a value in (0, 0.27]"
+            )
+        if not _is_prime(self.seed):
+            raise ValueError(f"seed {self.seed} is not prime; LIGGGHTS needs a prime > 10000, e.g. 15485863")
+        return self
+
+
+class RunConfig(_Section):
+    """How the solver is launched. ``launcher`` is a command prefix such as
+    ``"mpirun -np {np}"`` or ``"srun"``; empty runs ``liggghts`` directly when np == 1."""
+
+    np: int = Field(1, ge=1)
+    launcher: str = "mpirun --allow-run-as-root -np {np}"
+    liggghts: str = "liggghts"
+
+
+class TablesConfig(_Section):
+    """Binning of the dumps into velocity tables and CQA sampling (DESIGN.md)."""
+
+    nx: int = Field(10, ge=1)
+    ny: int = Field(10, ge=1)
+    window_s: float = Field(5.0, gt=0)
+    sample_interval_s: float = Field(1.0, gt=0, description="outflow / C_A / RSD sampling interval")
+    min_samples: int = Field(5, ge=1, description="fewer particle-snapshots than this marks a compartment-window")
+    rtd_tag_window_s: float = Field(1.0, gt=0)
+
+
+class DemConfig(_Section):
+    geometry: GeometryConfig = GeometryConfig()
+    particles: ParticleConfig = ParticleConfig()
+    steel: SteelConfig = SteelConfig()
+    contact: ContactConfig = ContactConfig()
+    operation: OperationConfig = OperationConfig()
+    numerics: NumericsConfig = NumericsConfig()
+    run: RunConfig = RunConfig()
+    tables: TablesConfig = TablesConfig()
+
+    @model_validator(mode="after")
+    def _check(self) -> "DemConfig":
+        g, p = self.geometry, self.particles
+        if g.blade_tip_clearance_m <= p.max_diameter_m:
+            raise ValueError(
+                f"geometry.blade_tip_clearance_m ({g.blade_tip_clearance_m}) must exceed the largest particle "
+                f"diameter ({p.max_diameter_m:.4g} m = mean + 3 SD), or particles get pinched between blade and wall"
+            )
+        if self.numerics.dump_interval_s > self.tables.window_s:
+            raise ValueError(
+                f"numerics.dump_interval_s ({self.numerics.dump_interval_s}) must not exceed tables.window_s "
+                f"({self.tables.window_s}): every velocity window needs dumps"
+            )
+        return self
+
+    @property
+    def rayleigh_time_s(self) -> float:
+        """Rayleigh time of the smallest particle [s] (the stability scale of the timestep)."""
+        p = self.particles
+        radius = p.min_diameter_m / 2
+        return math.pi * radius * math.sqrt(p.density_kg_m3 / p.shear_modulus_pa) / (0.1631 * p.poisson_ratio + 0.8766)
+
+    @property
+    def timestep_s(self) -> float:
+        return self.numerics.timestep_rayleigh_fraction * self.rayleigh_time_s
+

@@ -1,0 +1,1 @@
+"""Multidimensional compartment population balance model driven by DEM velocity tables."""

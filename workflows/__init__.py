@@ -1,0 +1,1 @@
+"""Configuration files, the ``pbmdem`` CLI and the pipelines that chain DEM, coupling and PBM."""

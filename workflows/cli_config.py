@@ -1,0 +1,23 @@
+"""``pbmdem config``: list presets, show a resolved configuration, validate a file."""
+
+from __future__ import annotations
+
+import argparse
+
+from workflows.config import dump_toml, preset_names, resolve_config
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("config", help="list presets, print or validate a configuration")
+    parser.add_argument("--preset", help=f"preset name")
+    parser.add_argument("--config", help="TOML configuration file to validate and print")
+    parser.add_argument("--list", action="store_true", help="list the preset names")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.list:
+        print("\n".join(preset_names()))
+        return 0
+    print(dump_toml(resolve_config(args.preset, args.config)), end="")
+    return 0

@@ -1,0 +1,141 @@
+"""Pipeline configuration: one TOML file with a ``[dem.*]`` part and a ``[pbm]`` part.
+
+Presets are ordinary TOML files in ``workflows/presets/``; copy one and edit it. Loading
+validates every value before anything is written; errors name the key, the bad value and
+what is allowed, and suggest the nearest valid key for a typo.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from coupling.errors import ConfigError
+from dem.config import DemConfig
+from pbm.config import PbmConfig
+
+PRESET_DIR = resources.files("workflows") / "presets"
+
+
+class Config(BaseModel):
+    """The whole pipeline's configuration."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field("custom", pattern=r"^[A-Za-z0-9_.-]+$")
+    dem: DemConfig = DemConfig()
+    pbm: PbmConfig = PbmConfig()
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+
+def preset_names() -> list[str]:
+    return sorted(p.name.removesuffix(".toml") for p in PRESET_DIR.iterdir() if p.name.endswith(".toml"))
+
+
+def preset_path(name: str) -> Path:
+    names = preset_names()
+    if name not in names:
+        hint = difflib.get_close_matches(name, names, n=1)
+        raise ConfigError(
+            f"unknown preset {name!r}; valid presets: {', '.join(names)}"
+            + (f" (did you mean {hint[0]!r}?)" if hint else "")
+        )
+    return Path(str(PRESET_DIR / f"{name}.toml"))
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML configuration file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"configuration file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path} is not valid TOML: {exc}") from exc
+    return config_from_dict(data, source=str(path))
+
+
+def load_preset(name: str) -> Config:
+    return load_config(preset_path(name))
+
+
+def resolve_config(preset: str | None = None, config: str | Path | None = None) -> Config:
+    """The CLI's rule: exactly one of a preset name or a config file."""
+    if (preset is None) == (config is None):
+        raise ConfigError("give exactly one of --preset NAME or --config FILE.toml")
+    return load_preset(preset) if preset is not None else load_config(config)
+
+
+def config_from_dict(data: dict[str, Any], source: str = "configuration") -> Config:
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_explain(exc, data, source)) from None
+
+
+def dump_toml(config: Config) -> str:
+    """TOML text of a resolved configuration (every value explicit), loadable by load_config."""
+    data = config.to_dict()
+    lines = [f"name = {json.dumps(data.pop('name'))}"]
+
+    def emit(prefix: str, table: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in table.items() if not isinstance(v, dict)}
+        if scalars:
+            lines.append(f"\n[{prefix}]")
+            for key, value in scalars.items():
+                if value is not None:
+                    lines.append(f"{key} = {_toml_value(value)}")
+        for key, value in table.items():
+            if isinstance(value, dict):
+                emit(f"{prefix}.{key}", value)
+
+    for key, value in data.items():
+        emit(key, value)
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return json.dumps(str(value))
+
+
+def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
+    problems = []
+    for err in exc.errors():
+        loc = [str(part) for part in err["loc"]]
+        key = ".".join(loc) or "(top level)"
+        if err["type"] == "extra_forbidden":
+            parent_model = _model_at(Config, loc[:-1])
+            valid = sorted(parent_model.model_fields) if parent_model else []
+            hint = difflib.get_close_matches(loc[-1], valid, n=1)
+            problems.append(
+                f"unknown key '{key}'"
+                + (f" (did you mean '{hint[0]}'?)" if hint else "")
+                + (f"; valid keys here: {', '.join(valid)}" if valid else "")
+            )
+        else:
+            msg = err["msg"].removeprefix("Value error, ")
+            problems.append(f"'{key}' = {err.get('input')!r}: {msg}")
+    return f"invalid {source}:\n  " + "\n  ".join(problems)
+
+
+def _model_at(model: type[BaseModel], path: list[str]) -> type[BaseModel] | None:
+    for part in path:
+        field = model.model_fields.get(part)
+        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
+            return None
+        model = field.annotation
+    return model
