@@ -1,0 +1,25 @@
+"""``pbmdem dem ...``: the DEM stage's subcommands (deck, run, post), one module each."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    parser = sub.add_parser("dem", help="DEM stage: write decks, run LIGGGHTS, post-process dumps")
+    dem_sub = parser.add_subparsers(dest="dem_command", required=True, metavar="DEM_COMMAND")
+    for name in ("cli_dem_deck", "cli_dem_run"):
+        try:
+            module = __import__(f"workflows.{name}", fromlist=["register"])
+        except ModuleNotFoundError as exc:
+            if exc.name != f"workflows.{name}":
+                raise
+            continue
+        module.register(dem_sub)
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """--preset NAME | --config FILE.toml, shared by every subcommand that needs a config."""
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--preset", help="preset name (see `pbmdem config --list`)")
+    group.add_argument("--config", help="TOML configuration file")
