@@ -1,0 +1,105 @@
+"""The cluster path: cost estimate from measured throughput, MPI command and Slurm script.
+
+The ``paper`` preset is a day on 2 cores; on a cluster the user wants the command, a batch
+script and an honest estimate of the core-hours before submitting.
+"""
+
+from __future__ import annotations
+
+import math
+import shlex
+from dataclasses import dataclass
+
+from coupling.errors import ConfigError
+from dem.config import DemConfig
+
+
+@dataclass(frozen=True)
+class CostEstimate:
+    """Core-hours of a DEM run from a measured throughput.
+
+    ``particle_steps_per_core_s`` is measured (``make bench``) and ``particles_held`` is the
+    mean number of particles in the domain over the run (below the steady hold-up, since the
+    blender fills first; the steady value gives a safe upper bound).
+    """
+
+    steps: int
+    particles_held: float
+    particle_steps_per_core_s: float
+    cores: int
+    parallel_efficiency: float
+
+    @property
+    def particle_steps(self) -> float:
+        return self.steps * self.particles_held
+
+    @property
+    def wall_hours(self) -> float:
+        rate = self.particle_steps_per_core_s * self.cores * self.parallel_efficiency
+        return self.particle_steps / rate / 3600.0
+
+    @property
+    def core_hours(self) -> float:
+        return self.wall_hours * self.cores
+
+
+def estimate_cost(
+    config: DemConfig,
+    particles_held: float,
+    particle_steps_per_core_s: float,
+    cores: int,
+    parallel_efficiency: float = 0.85,
+) -> CostEstimate:
+    """Estimate the cost of running ``config`` on ``cores`` cores."""
+    if particles_held <= 0 or particle_steps_per_core_s <= 0:
+        raise ConfigError(
+            f"particles_held ({particles_held}) and particle_steps_per_core_s ({particle_steps_per_core_s}) must be > 0"
+        )
+    if cores < 1 or not 0 < parallel_efficiency <= 1:
+        raise ConfigError(f"cores ({cores}) must be >= 1 and parallel_efficiency ({parallel_efficiency}) in (0, 1]")
+    steps = math.ceil(config.operation.duration_s / config.timestep_s)
+    return CostEstimate(steps, particles_held, particle_steps_per_core_s, cores, parallel_efficiency)
+
+
+def mpi_command(config: DemConfig, np: int, deck: str = "in.blender") -> list[str]:
+    """The solver command line for ``np`` ranks with the configured launcher."""
+    launcher = config.run.launcher.format(np=np) if np > 1 else ""
+    return [*shlex.split(launcher), config.run.liggghts, "-in", deck]
+
+
+def slurm_script(
+    config: DemConfig,
+    run_dir: str,
+    np: int,
+    wall_hours: float,
+    job_name: str = "pbmdem",
+    partition: str | None = None,
+) -> str:
+    """A Slurm batch script that runs the deck in ``run_dir`` on ``np`` tasks.
+
+    ``srun`` replaces the configured launcher: it is how Slurm wants MPI jobs started, and
+    it takes the task count from the allocation. The wall-time request carries a 30 % margin.
+    """
+    if np < 1:
+        raise ConfigError(f"np must be >= 1, got {np}")
+    if wall_hours <= 0:
+        raise ConfigError(f"wall_hours must be > 0, got {wall_hours}")
+    minutes = math.ceil(wall_hours * 1.3 * 60)
+    lines = [
+        "#!/bin/bash",
+        f"#SBATCH --job-name={job_name}",
+        f"#SBATCH --ntasks={np}",
+        "#SBATCH --cpus-per-task=1",
+        f"#SBATCH --time={minutes // 60:02d}:{minutes % 60:02d}:00",
+        f"#SBATCH --output={job_name}-%j.out",
+    ]
+    if partition:
+        lines.append(f"#SBATCH --partition={partition}")
+    lines += [
+        "set -euo pipefail",
+        f"cd {shlex.quote(run_dir)}",
+        "# LIGGGHTS reads its input while it runs: do not edit in.blender during the job.",
+        f"srun {shlex.quote(config.run.liggghts)} -in in.blender",
+        "",
+    ]
+    return "\n".join(lines)

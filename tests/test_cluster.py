@@ -1,0 +1,29 @@
+"""Cluster path: cost arithmetic and the batch script."""
+
+import pytest
+
+from coupling.errors import ConfigError
+from dem.cluster import estimate_cost, mpi_command, slurm_script
+from workflows.config import load_preset
+
+
+def test_cost_is_steps_times_particles_over_throughput():
+    dem = load_preset("paper").dem
+    est = estimate_cost(dem, particles_held=10_000, particle_steps_per_core_s=1e6, cores=4, parallel_efficiency=1.0)
+    steps = dem.operation.duration_s / dem.timestep_s
+    assert est.steps == pytest.approx(steps, abs=1)
+    assert est.core_hours == pytest.approx(steps * 10_000 / 1e6 / 3600, rel=1e-6)
+    assert est.wall_hours == pytest.approx(est.core_hours / 4)
+
+
+def test_mpi_command_and_slurm_script():
+    dem = load_preset("paper").dem
+    assert mpi_command(dem, 1) == ["liggghts", "-in", "in.blender"]
+    assert mpi_command(dem, 8)[:4] == ["mpirun", "--allow-run-as-root", "-np", "8"]
+    script = slurm_script(dem, "/scratch/run 1", np=16, wall_hours=10, partition="compute")
+    assert "#SBATCH --ntasks=16" in script and "#SBATCH --time=13:00:00" in script
+    assert "cd '/scratch/run 1'" in script and "srun liggghts -in in.blender" in script
+    with pytest.raises(ConfigError, match="np must be >= 1, got 0"):
+        slurm_script(dem, "/x", np=0, wall_hours=1)
+    with pytest.raises(ConfigError, match="particles_held"):
+        estimate_cost(dem, 0, 1e6, 2)

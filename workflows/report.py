@@ -1,0 +1,298 @@
+"""The side-by-side DEM / PBM report: comparison metrics, figures (paper Figs 3-10) and HTML.
+
+Both sides reach this module in one shape, :class:`SideResults`, so every figure and metric
+is computed from the same columns for DEM and PBM (the CQA definitions of DESIGN.md). The
+HTML page is self-contained apart from the PNG files written beside it.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+TIMESERIES_COLUMNS = (
+    "t_s",
+    "outflow_A_per_s",
+    "outflow_B_per_s",
+    "C_A",
+    "rsd_outlet",
+    "rsd_blender",
+    "holdup_A",
+    "holdup_B",
+)
+DEM_COLOUR, PBM_COLOUR = "#b2182b", "#2166ac"
+
+
+@dataclass
+class SideResults:
+    """One side's CQAs. ``timeseries`` has :data:`TIMESERIES_COLUMNS` (DEM may add
+    ``rsd_outlet_floor`` and ``rsd_blender_floor``, the random-mixture RSD); ``rtd`` has
+    ``t_s`` and ``E_per_s``; ``rsd_by_slice`` is the RSD of each axial slice at the end
+    (inlet to outlet), ``rsd_by_slice_floor`` its random-mixture floor (DEM only)."""
+
+    label: str
+    timeseries: pd.DataFrame
+    rtd: pd.DataFrame
+    rsd_by_slice: np.ndarray
+    summary: dict[str, Any]
+    rsd_by_slice_floor: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        missing = [c for c in TIMESERIES_COLUMNS if c not in self.timeseries.columns]
+        if missing:
+            raise ValueError(f"{self.label} timeseries lacks columns {missing}")
+        missing = [c for c in ("t_s", "E_per_s") if c not in self.rtd.columns]
+        if missing:
+            raise ValueError(f"{self.label} rtd lacks columns {missing}")
+
+
+@dataclass
+class Study:
+    """A parametric study for the report: curves keyed by the parameter's value."""
+
+    title: str
+    parameter: str
+    figure: str
+    trend: str
+    rows: list[dict[str, Any]] = field(default_factory=list)
+
+
+def rtd_overlap(dem_rtd: pd.DataFrame, pbm_rtd: pd.DataFrame) -> float:
+    """1 - 1/2 * integral |E_DEM - E_PBM| dt on the DEM's bins (1 = identical, 0 = disjoint).
+
+    Both E(t) are put on the DEM's time grid (PBM interpolated, zero outside its range) and
+    renormalised there, so a truncated tail does not count as a difference in shape."""
+    t = dem_rtd["t_s"].to_numpy(float)
+    if t.size < 2:
+        return float("nan")
+    e_dem = dem_rtd["E_per_s"].to_numpy(float)
+    e_pbm = np.interp(t, pbm_rtd["t_s"].to_numpy(float), pbm_rtd["E_per_s"].to_numpy(float), left=0.0, right=0.0)
+    dt = np.gradient(t)
+    norm_dem, norm_pbm = np.sum(e_dem * dt), np.sum(e_pbm * dt)
+    if norm_dem <= 0 or norm_pbm <= 0:
+        return float("nan")
+    return float(1.0 - 0.5 * np.sum(np.abs(e_dem / norm_dem - e_pbm / norm_pbm) * dt))
+
+
+def comparison_metrics(dem: SideResults, pbm: SideResults, feed_rate_per_s: float) -> dict[str, Any]:
+    """Every number of the report's metrics table (also written to summary.json)."""
+    d, p = dem.summary, pbm.summary
+
+    def rel(a, b):
+        return (b - a) / a if a and np.isfinite(a) and np.isfinite(b) else float("nan")
+
+    return {
+        "mean_residence_time_dem_s": d.get("mean_residence_time_s"),
+        "mean_residence_time_pbm_s": p.get("mean_residence_time_s"),
+        "mean_residence_time_rel_diff": rel(d.get("mean_residence_time_s", np.nan), p.get("mean_residence_time_s", np.nan)),
+        "rtd_variance_dem_s2": d.get("rtd_variance_s2"),
+        "rtd_variance_pbm_s2": p.get("rtd_variance_s2"),
+        "rtd_overlap": rtd_overlap(dem.rtd, pbm.rtd),
+        "rtd_recovered_fraction_dem": d.get("rtd_recovered_fraction"),
+        "rtd_recovered_fraction_pbm": p.get("rtd_recovered_fraction"),
+        "feed_rate_per_s": feed_rate_per_s,
+        "steady_outflow_dem_per_s": d.get("steady_outflow_per_s"),
+        "steady_outflow_pbm_per_s": p.get("steady_outflow_per_s"),
+        "steady_C_A_dem": d.get("steady_C_A"),
+        "steady_C_A_pbm": p.get("steady_C_A"),
+        "final_rsd_outlet_dem": d.get("final_rsd_outlet"),
+        "final_rsd_outlet_dem_floor": d.get("final_rsd_outlet_floor"),
+        "final_rsd_outlet_pbm": p.get("final_rsd_outlet"),
+        "final_rsd_blender_dem": d.get("final_rsd_blender"),
+        "final_rsd_blender_dem_floor": d.get("final_rsd_blender_floor"),
+        "final_rsd_blender_pbm": p.get("final_rsd_blender"),
+        "holdup_final_dem": d.get("holdup_final"),
+        "holdup_final_pbm": p.get("holdup_final"),
+        "dem_wall_time_s": d.get("wall_time_s"),
+        "pbm_wall_time_s": p.get("wall_time_s"),
+        "speedup_pbm_over_dem": (
+            d["wall_time_s"] / p["wall_time_s"] if d.get("wall_time_s") and p.get("wall_time_s") else None
+        ),
+    }
+
+
+# --- figures -------------------------------------------------------------------------------
+
+
+def _figure(path: Path, title: str, xlabel: str, ylabel: str):
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    return fig, ax
+
+
+def _save(fig, path: Path) -> str:
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[str, str]:
+    """The paper's Figs 7-10 plus hold-up, DEM beside PBM. Returns figure key -> file name."""
+    out_dir = Path(out_dir)
+    files: dict[str, str] = {}
+    sides = ((dem, DEM_COLOUR, "-"), (pbm, PBM_COLOUR, "-"))
+
+    fig, ax = _figure(out_dir, "Residence time distribution (paper Fig. 7)", "t - t_pulse [s]", "E(t) [1/s]")
+    for side, colour, _ in sides:
+        ax.step(side.rtd["t_s"], side.rtd["E_per_s"], where="mid", color=colour, label=side.label)
+    ax.legend()
+    files["rtd"] = _save(fig, out_dir / "rtd.png")
+
+    fig, ax = _figure(out_dir, "RSD along the blender at the end (Fig. 8a)", "axial compartment (inlet = 1)", "RSD")
+    for side, colour, _ in sides:
+        n = len(side.rsd_by_slice)
+        ax.plot(np.arange(1, n + 1), side.rsd_by_slice, "o-", color=colour, label=side.label)
+    if dem.rsd_by_slice_floor is not None:
+        n = len(dem.rsd_by_slice_floor)
+        ax.plot(np.arange(1, n + 1), dem.rsd_by_slice_floor, ":", color=DEM_COLOUR, label="DEM random-mixture floor")
+    ax.legend()
+    files["rsd_axial"] = _save(fig, out_dir / "rsd_axial.png")
+
+    fig, ax = _figure(out_dir, "RSD at the outlet (Fig. 8b)", "t [s]", "RSD across the last slice")
+    for side, colour, _ in sides:
+        ax.plot(side.timeseries["t_s"], side.timeseries["rsd_outlet"], color=colour, label=side.label)
+    if "rsd_outlet_floor" in dem.timeseries:
+        ax.plot(dem.timeseries["t_s"], dem.timeseries["rsd_outlet_floor"], ":", color=DEM_COLOUR, label="DEM random-mixture floor")
+    ax.legend()
+    files["rsd_time"] = _save(fig, out_dir / "rsd_time.png")
+
+    fig, ax = _figure(out_dir, "Fraction of A in the outflow (Fig. 9)", "t [s]", "C_A")
+    for side, colour, _ in sides:
+        ax.plot(side.timeseries["t_s"], side.timeseries["C_A"], color=colour, label=side.label)
+    ax.axhline(0.5, color="grey", lw=0.8)
+    ax.set_ylim(0, 1)
+    ax.legend()
+    files["c_a"] = _save(fig, out_dir / "c_a.png")
+
+    fig, ax = _figure(out_dir, "Outflow rate over the weir (Fig. 10)", "t [s]", "particles / s")
+    for side, colour, _ in sides:
+        ts = side.timeseries
+        ax.plot(ts["t_s"], ts["outflow_A_per_s"] + ts["outflow_B_per_s"], color=colour, label=side.label)
+    ax.legend()
+    files["outflow"] = _save(fig, out_dir / "outflow.png")
+
+    fig, ax = _figure(out_dir, "Hold-up", "t [s]", "particles in the blender")
+    for side, colour, _ in sides:
+        ts = side.timeseries
+        ax.plot(ts["t_s"], ts["holdup_A"] + ts["holdup_B"], color=colour, label=f"{side.label} A+B")
+        ax.plot(ts["t_s"], ts["holdup_A"], "--", color=colour, lw=0.8, label=f"{side.label} A")
+    ax.legend()
+    files["holdup"] = _save(fig, out_dir / "holdup.png")
+    return files
+
+
+# --- HTML ----------------------------------------------------------------------------------
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "–"
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_fmt(v) for v in value)
+    return html.escape(str(value))
+
+
+METRIC_ROWS = (
+    ("Mean residence time [s]", "mean_residence_time_dem_s", "mean_residence_time_pbm_s"),
+    ("RTD variance [s²]", "rtd_variance_dem_s2", "rtd_variance_pbm_s2"),
+    ("RTD recovered fraction", "rtd_recovered_fraction_dem", "rtd_recovered_fraction_pbm"),
+    ("Steady outflow [1/s]", "steady_outflow_dem_per_s", "steady_outflow_pbm_per_s"),
+    ("Steady C_A", "steady_C_A_dem", "steady_C_A_pbm"),
+    ("Final RSD at the outlet", "final_rsd_outlet_dem", "final_rsd_outlet_pbm"),
+    ("Final whole-blender RSD", "final_rsd_blender_dem", "final_rsd_blender_pbm"),
+    ("Final hold-up [particles]", "holdup_final_dem", "holdup_final_pbm"),
+    ("Wall time [s]", "dem_wall_time_s", "pbm_wall_time_s"),
+)
+
+
+def render_html(
+    title: str,
+    metrics: dict[str, Any],
+    figures: dict[str, str],
+    provenance: dict[str, Any],
+    studies: list[Study],
+    notes: list[str],
+) -> str:
+    """The report page. ``figures`` maps keys to PNG names beside the page."""
+    rows = "".join(
+        f"<tr><td>{label}</td><td>{_fmt(metrics.get(d))}</td><td>{_fmt(metrics.get(p))}</td></tr>"
+        for label, d, p in METRIC_ROWS
+    )
+    derived = [
+        ("Relative difference of mean residence time (PBM − DEM)/DEM", metrics.get("mean_residence_time_rel_diff")),
+        ("RTD overlap 1 − ½∫|E_DEM − E_PBM| dt", metrics.get("rtd_overlap")),
+        ("Feed rate [1/s]", metrics.get("feed_rate_per_s")),
+        ("DEM random-mixture floor of the final outlet RSD", metrics.get("final_rsd_outlet_dem_floor")),
+        ("DEM random-mixture floor of the final whole-blender RSD", metrics.get("final_rsd_blender_dem_floor")),
+        ("PBM speed-up over DEM (wall time)", metrics.get("speedup_pbm_over_dem")),
+    ]
+    derived_rows = "".join(f"<tr><td>{label}</td><td colspan=2>{_fmt(v)}</td></tr>" for label, v in derived)
+
+    def img(key: str, caption: str) -> str:
+        if key not in figures:
+            return ""
+        return f'<figure><img src="{html.escape(figures[key])}" alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
+
+    study_html = ""
+    for study in studies:
+        header = "".join(f"<th>{html.escape(k)}</th>" for k in study.rows[0]) if study.rows else ""
+        body = "".join("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row.values()) + "</tr>" for row in study.rows)
+        study_html += (
+            f"<h3>{html.escape(study.title)}</h3><p>{html.escape(study.trend)}</p>"
+            f"<table><tr>{header}</tr>{body}</table>" + img(study.figure, study.title)
+        )
+    prov_rows = "".join(
+        f"<tr><td>{html.escape(k)}</td><td>{_fmt(v) if not isinstance(v, dict) else '<pre>' + html.escape(json.dumps(v, indent=1)) + '</pre>'}</td></tr>"
+        for k, v in provenance.items()
+        if k != "config_toml"
+    )
+    config_block = f"<details><summary>Resolved configuration</summary><pre>{html.escape(provenance.get('config_toml', ''))}</pre></details>"
+    note_html = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<style>
+body {{ font-family: sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }}
+table {{ border-collapse: collapse; margin: 1em 0; }}
+td, th {{ border: 1px solid #ccc; padding: 0.3em 0.7em; text-align: left; }}
+figure {{ display: inline-block; margin: 0.5em; width: 47%; vertical-align: top; }}
+figure img {{ width: 100%; }}
+figcaption {{ font-size: 0.9em; color: #555; }}
+.notes li {{ color: #8a4b00; }}
+</style></head><body>
+<h1>{html.escape(title)}</h1>
+<ul class="notes">{note_html}</ul>
+<h2>Metrics</h2>
+<table><tr><th>quantity</th><th>DEM</th><th>PBM</th></tr>{rows}{derived_rows}</table>
+<h2>DEM and PBM side by side</h2>
+{img("geometry", "Blender geometry (impeller, weir)")}
+{img("rtd", "RTD E(t) (paper Fig. 7)")}
+{img("rsd_axial", "RSD vs axial position at the end (Fig. 8a)")}
+{img("rsd_time", "RSD vs time at the outlet (Fig. 8b)")}
+{img("c_a", "C_A vs time (Fig. 9)")}
+{img("outflow", "Outflow rate vs time (Fig. 10)")}
+{img("holdup", "Hold-up vs time")}
+<h2>Studies with the PBM on the DEM's tables (paper Figs 3-6)</h2>
+{study_html}
+<h2>Provenance</h2>
+<table>{prov_rows}</table>
+{config_block}
+</body></html>
+"""
