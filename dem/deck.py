@@ -1,0 +1,381 @@
+"""LIGGGHTS 3.8.0 input decks for the continuous blender, as pure text.
+
+:func:`build_deck` turns a :class:`~dem.config.DemConfig` into a dict *relative file name →
+text*; :func:`write_deck` is the only function here that touches the disk. Nothing is
+written unless the geometry and the deck validate (:class:`~coupling.errors.GeometryError`,
+:class:`~coupling.errors.DeckError`).
+
+File layout of a run directory (relative to the directory ``liggghts -in in.blender`` runs
+in; every name is a module constant, the runner and the post-processor use them):
+
+=====================================  ===================================================
+``in.blender`` (:data:`MAIN_DECK`)      main input deck (fresh start)
+``in.resume`` (:data:`RESUME_DECK`)     only from ``build_deck(config, resume_from=...)``:
+                                        continues from a restart file to the same end step
+``meshes/impeller.stl`` etc.           ASCII STL of the impeller (shaft + paddles), the weir
+                                        and the discharge counting face (:data:`MESH_FILES`)
+``deck.json`` (:data:`DECK_INFO`)      machine-readable facts of the deck: timestep, step
+                                        intervals, end step, thermo columns, file names
+``dumps/dump.<step>.txt``              one plain-text LIGGGHTS custom dump per snapshot
+  (:data:`DUMP_GLOB`)                   (``ITEM: ATOMS id type x y z vx vy vz radius``),
+                                        every ``dump_every_steps``; time = step × timestep
+``restart/restart.<step>.bin``         binary restart files every ``restart_every_steps``
+  (:data:`RESTART_GLOB`)
+``discharge_A.txt``, ``discharge_B.txt``  ``fix massflow/mesh`` output, one line per
+  (:data:`MASSFLOW_FILES`)              discharged particle of that component (see below);
+                                        with MPI LIGGGHTS may add a per-rank suffix
+``log.liggghts`` (:data:`LOG_FILE`)    LIGGGHTS' log (``-log`` default name)
+=====================================  ===================================================
+
+Thermo lines carry :data:`THERMO_COLUMNS` (the header LIGGGHTS prints, in order). Simulated
+time is ``v_simtime = step * dt``, not LIGGGHTS' ``time`` keyword, because ``time`` restarts
+at 0 after ``read_restart`` while steps (and so dump names) continue.
+
+Atom types: 1 = component A, 2 = component B, 3 = steel (barrel, inlet wall, weir,
+impeller). Particle IDs are never renumbered (no ``reset_timestep``, no ``compress_tags``),
+so an ID identifies one particle across dumps and the discharge files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import brentq
+
+from coupling.cache import stable_hash
+from coupling.errors import DeckError
+from dem.config import MAX_STABLE_RAYLEIGH_FRACTION, DemConfig
+from dem.geometry import Box, build_geometry, stl_text
+
+MAIN_DECK = "in.blender"
+RESUME_DECK = "in.resume"
+DECK_INFO = "deck.json"
+LOG_FILE = "log.liggghts"
+MESH_DIR = "meshes"
+MESH_FILES = {name: f"{MESH_DIR}/{name}.stl" for name in ("impeller", "weir", "discharge")}
+DUMP_DIR = "dumps"
+DUMP_PATTERN = "dumps/dump.*.txt"  # as given to LIGGGHTS' dump command
+DUMP_GLOB = "dumps/dump.*.txt"
+DUMP_COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+RESTART_DIR = "restart"
+RESTART_PATTERN = "restart/restart.*.bin"
+RESTART_GLOB = "restart/restart.*.bin"
+MASSFLOW_FILES = {"A": "discharge_A.txt", "B": "discharge_B.txt"}
+#: directories LIGGGHTS needs to exist before it starts (it does not create them)
+RUN_DIRS = (DUMP_DIR, RESTART_DIR)
+ATOM_TYPES = {"A": 1, "B": 2, "steel": 3}
+
+#: Columns of the thermo lines, exactly as LIGGGHTS prints the header:
+#: step, simulated time [s], particles in the box, particles inserted so far by feeder A and
+#: B, particles discharged so far (counted and deleted past the weir) of A and of B, and the
+#: timestep as a fraction of the Rayleigh and of the Hertz time (check/timestep/gran).
+THERMO_COLUMNS = (
+    "Step",
+    "v_simtime",
+    "Atoms",
+    "f_insA[1]",
+    "f_insB[1]",
+    "f_outA[2]",
+    "f_outB[2]",
+    "f_tscheck[1]",
+    "f_tscheck[2]",
+)
+THERMO_MEANING = {
+    "Step": "timestep number",
+    "v_simtime": "simulated time [s] (= step * dt, continuous across restarts)",
+    "Atoms": "particles in the simulation",
+    "f_insA[1]": "particles of A inserted so far",
+    "f_insB[1]": "particles of B inserted so far",
+    "f_outA[2]": "particles of A discharged over the weir so far",
+    "f_outB[2]": "particles of B discharged over the weir so far",
+    "f_tscheck[1]": "timestep / Rayleigh time",
+    "f_tscheck[2]": "timestep / Hertz time",
+}
+#: Warn (check/timestep/gran) above this fraction of the Hertz time.
+HERTZ_WARN_FRACTION = 0.2
+FEED_VELOCITY_M_S = 0.5  # downward speed given to inserted particles
+FEED_BATCH_S = 0.05  # the feeders insert a batch every this much simulated time
+
+
+# --------------------------------------------------------------------------------------
+# particle size distribution
+# --------------------------------------------------------------------------------------
+
+
+def size_classes(mean_m: float, sd_m: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Discretise a normal diameter distribution into ``n`` classes.
+
+    Returns ``(diameters_m, number_weights)`` whose number-weighted mean and SD equal
+    ``mean_m`` and ``sd_m`` exactly (to rounding). For n <= 5 the classes are the
+    Gauss-Hermite nodes (exact for all moments up to 2n-1, all within 3 SD); for more
+    classes they are evenly spaced over +-3 SD with normal weights exponentially tilted so
+    that the variance is exact. One class (diameter = mean) when ``sd_m == 0`` or n == 1.
+    """
+    if n < 1:
+        raise DeckError(f"size_classes = {n}: must be >= 1")
+    if sd_m == 0 or n == 1:
+        return np.array([mean_m]), np.array([1.0])
+    if n <= 5:
+        z, w = np.polynomial.hermite_e.hermegauss(n)
+        w = w / w.sum()
+    else:
+        z = np.linspace(-3.0, 3.0, n)
+
+        def excess_var(beta: float) -> float:
+            w = np.exp(-0.5 * z**2 + beta * z**2)
+            w /= w.sum()
+            return float(np.sum(w * z**2) - 1.0)
+
+        beta = brentq(excess_var, -20.0, 0.5)
+        w = np.exp(-0.5 * z**2 + beta * z**2)
+        w = w / w.sum()
+    return mean_m + sd_m * z, w
+
+
+def _format_weights(w: np.ndarray) -> list[str]:
+    """Weights as text summing to exactly 1 (LIGGGHTS checks the sum)."""
+    text = [f"{x:.8f}" for x in w[:-1]]
+    last = 1.0 - sum(float(t) for t in text)
+    return text + [f"{last:.8f}"]
+
+
+# --------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------
+
+
+def _primes_from(seed: int, count: int) -> list[int]:
+    """``count`` distinct primes >= seed (LIGGGHTS wants a prime > 10000 per random fix)."""
+    out, n = [], seed
+    while len(out) < count:
+        if n > 10000 and all(n % k for k in range(2, math.isqrt(n) + 1)):
+            out.append(n)
+        n += 1
+    return out
+
+
+def _g(x: float) -> str:
+    """Compact, reproducible number text."""
+    return f"{x:.10g}"
+
+
+def _steps(interval_s: float, dt: float, what: str) -> int:
+    n = round(interval_s / dt)
+    if n < 1:
+        raise DeckError(f"{what} = {interval_s} s is shorter than the timestep {dt:.4g} s")
+    return n
+
+
+def deck_parameters(config: DemConfig) -> dict:
+    """Derived numbers of the deck (timestep, step intervals, end step...), JSON-ready."""
+    n = config.numerics
+    dt = config.timestep_s
+    if dt / config.rayleigh_time_s > MAX_STABLE_RAYLEIGH_FRACTION * (1 + 1e-9):
+        raise DeckError(
+            f"timestep {dt:.4g} s is {dt / config.rayleigh_time_s:.3f} of the Rayleigh time; the measured stable "
+            f"limit is {MAX_STABLE_RAYLEIGH_FRACTION}"
+        )
+    rpm = config.operation.impeller_rpm
+    if not rpm > 0:
+        raise DeckError(f"operation.impeller_rpm = {rpm}: must be > 0")
+    for comp, rate in (("A", config.operation.feed_rate_a_per_s), ("B", config.operation.feed_rate_b_per_s)):
+        if not rate > 0:
+            raise DeckError(f"feed rate of {comp} = {rate} /s: must be > 0")
+    c = config.contact
+    if c.friction_particle_wall != c.friction_particle_blade:
+        raise DeckError(
+            f"contact.friction_particle_wall ({c.friction_particle_wall}) != friction_particle_blade "
+            f"({c.friction_particle_blade}): the deck uses one steel atom type (3) for walls and blades, so they "
+            "must be equal (Table 1: both 0.4)"
+        )
+    end_step = round(config.operation.duration_s / dt)
+    return {
+        "timestep_s": dt,
+        "rayleigh_time_s": config.rayleigh_time_s,
+        "timestep_rayleigh_fraction": dt / config.rayleigh_time_s,
+        "dump_every_steps": _steps(n.dump_interval_s, dt, "numerics.dump_interval_s"),
+        "thermo_every_steps": _steps(n.thermo_interval_s, dt, "numerics.thermo_interval_s"),
+        "restart_every_steps": _steps(n.restart_interval_s, dt, "numerics.restart_interval_s"),
+        "insert_every_steps": max(1, round(FEED_BATCH_S / dt)),
+        "end_step": end_step,
+        "impeller_period_s": 60.0 / rpm,
+        "thermo_columns": list(THERMO_COLUMNS),
+        "dump_columns": list(DUMP_COLUMNS),
+        "dump_glob": DUMP_GLOB,
+        "restart_glob": RESTART_GLOB,
+        "massflow_files": dict(MASSFLOW_FILES),
+        "atom_types": dict(ATOM_TYPES),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# the deck
+# --------------------------------------------------------------------------------------
+
+
+def _box_args(b: Box) -> str:
+    return " ".join(_g(v) for v in (b.xmin, b.xmax, b.ymin, b.ymax, b.zmin, b.zmax))
+
+
+def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
+    geo = build_geometry(config)
+    g, p, s, c, op, num = (config.geometry, config.particles, config.steel, config.contact, config.operation,
+                           config.numerics)
+    dt = info["timestep_s"]
+    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
+    n_cls = len(diam)
+    primes = _primes_from(num.seed, 2 * n_cls + 4)
+    seeds_tpl = {"A": primes[:n_cls], "B": primes[n_cls : 2 * n_cls]}
+    seed_pdd = {"A": primes[2 * n_cls], "B": primes[2 * n_cls + 1]}
+    seed_ins = {"A": primes[2 * n_cls + 2], "B": primes[2 * n_cls + 3]}
+    skin = 0.5 * p.diameter_m
+    model = "model hertz tangential history rolling_friction cdt"
+
+    e_p, e_s = p.youngs_modulus_pa, s.youngs_modulus_pa
+    mu = {(1, 1): c.friction_particle_particle, (1, 2): c.friction_particle_particle,
+          (2, 2): c.friction_particle_particle, (1, 3): c.friction_particle_wall,
+          (2, 3): c.friction_particle_wall, (3, 3): c.friction_particle_wall}
+
+    def pair_matrix(f) -> str:
+        return " ".join(_g(f(min(i, j), max(i, j))) for i in (1, 2, 3) for j in (1, 2, 3))
+
+    L: list[str] = []
+    add = L.append
+    add("# pbmdem: LIGGGHTS 3.8.0 deck for a GCM250-style continuous blender (Sen et al. 2013).")
+    add("# Generated by dem.deck.build_deck; do not edit in place during a run.")
+    add(f"# particles: d = {_g(p.diameter_m)} m (SD {_g(p.diameter_sd_m)} m, {n_cls} classes); feed "
+        f"{_g(op.feed_rate_total_per_s)} /s (A share {_g(op.feed_fraction_a)}); {_g(op.impeller_rpm)} rpm; "
+        f"{_g(op.duration_s)} s")
+    add(f"# atom types: 1 = A, 2 = B, 3 = steel. Thermo columns: {' '.join(THERMO_COLUMNS)}")
+    add("")
+    if resume_from is None:
+        add("atom_style      granular")
+        add("atom_modify     map array")
+        add("boundary        f f f")
+        add("newton          off")
+        add("communicate     single vel yes")
+        add("units           si")
+        add("processors      * 1 1")
+        add("")
+        add(f"region          domain block {_box_args(geo.box)} units box")
+        add("create_box      3 domain")
+    else:
+        add(f"# resume: state (particles, step, mesh positions, counters) from {resume_from}")
+        add("atom_modify     map array")
+        add("communicate     single vel yes")
+        add("processors      * 1 1")
+        add(f"read_restart    {resume_from}")
+        add("newton          off")
+    add("")
+    add(f"neighbor        {_g(skin)} bin")
+    add("neigh_modify    delay 0")
+    add("hard_particles  yes")
+    add("")
+    add("# Table 1. E = 2 G (1 + nu): particles (types 1, 2) and steel (type 3)")
+    add(f"fix m1 all property/global youngsModulus peratomtype {_g(e_p)} {_g(e_p)} {_g(e_s)}")
+    add(f"fix m2 all property/global poissonsRatio peratomtype {_g(p.poisson_ratio)} {_g(p.poisson_ratio)} "
+        f"{_g(s.poisson_ratio)}")
+    add(f"fix m3 all property/global coefficientRestitution peratomtypepair 3 {pair_matrix(lambda i, j: c.restitution)}")
+    add(f"fix m4 all property/global coefficientFriction peratomtypepair 3 {pair_matrix(lambda i, j: mu[(i, j)])}")
+    add(f"fix m5 all property/global coefficientRollingFriction peratomtypepair 3 "
+        f"{pair_matrix(lambda i, j: c.rolling_friction)}")
+    add("")
+    add(f"pair_style      gran {model}")
+    add("pair_coeff      * *")
+    add(f"timestep        {_g(dt)}")
+    add("fix gravi all gravity 9.81 vector 0.0 0.0 -1.0")
+    add("")
+    add("# barrel and closed inlet end: primitives (faster than STL)")
+    add(f"fix barrel all wall/gran {model} primitive type 3 xcylinder {_g(g.radius_m)} 0. 0.")
+    add(f"fix inletwall all wall/gran {model} primitive type 3 xplane 0.0")
+    add("# impeller (shaft + paddles) and weir: STL meshes; discharge face: counting only, no wall")
+    add(f"fix impeller all mesh/surface file {MESH_FILES['impeller']} type 3")
+    add(f"fix weir all mesh/surface file {MESH_FILES['weir']} type 3")
+    add(f"fix walls all wall/gran {model} mesh n_meshes 2 meshes impeller weir")
+    add(f"fix discharge all mesh/surface/planar file {MESH_FILES['discharge']} type 3")
+    add(f"fix rotor all move/mesh mesh impeller rotate origin 0. 0. 0. axis 1. 0. 0. period {_g(info['impeller_period_s'])}")
+    add("")
+    add(f"# size distribution: normal, d = {_g(p.diameter_m)} m, SD {_g(p.diameter_sd_m)} m, discretised into "
+        f"{n_cls} number-weighted classes")
+    if resume_from is None:
+        add("group           gA type 1")
+        add("group           gB type 2")
+    w_text = _format_weights(weights)
+    for comp in ("A", "B"):
+        t = ATOM_TYPES[comp]
+        for k, d in enumerate(diam):
+            add(f"fix pt{comp}{k} all particletemplate/sphere {seeds_tpl[comp][k]} atom_type {t} density constant "
+                f"{_g(p.density_kg_m3)} radius constant {_g(d / 2)}")
+        parts = " ".join(f"pt{comp}{k} {w_text[k]}" for k in range(n_cls))
+        add(f"fix pdd{comp} all particledistribution/discrete/numberbased {seed_pdd[comp]} {n_cls} {parts}")
+    add("")
+    add("# feeders: A on +y, B on -y, above the first compartment, upstream of the first blade")
+    rates = {"A": op.feed_rate_a_per_s, "B": op.feed_rate_b_per_s}
+    for comp in ("A", "B"):
+        add(f"region          feed{comp} block {_box_args(geo.feed_zones[comp])} units box")
+        add(f"fix ins{comp} g{comp} insert/rate/region seed {seed_ins[comp]} distributiontemplate pdd{comp} "
+            f"nparticles INF particlerate {_g(rates[comp])} insert_every {info['insert_every_steps']} "
+            f"overlapcheck yes all_in yes vel constant 0. 0. {_g(-FEED_VELOCITY_M_S)} region feed{comp} ntry_mc 10000")
+    add("")
+    add("# outlet: count and delete particles whose centre crosses the face past the weir, per component")
+    for comp in ("A", "B"):
+        add(f"fix out{comp} g{comp} massflow/mesh mesh discharge vec_side 1. 0. 0. count once delete_atoms yes "
+            f"file {MASSFLOW_FILES[comp]} writeTime screen no")
+    add("")
+    add("fix integr all nve/sphere")
+    add(f"fix tscheck all check/timestep/gran {info['thermo_every_steps']} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "
+        f"{_g(HERTZ_WARN_FRACTION)}")
+    add("")
+    add("# output: simulated time from the step count (thermo 'time' restarts at 0 after read_restart)")
+    add(f"variable        simtime equal step*{_g(dt)}")
+    cols = " ".join(c_.lower() if c_ in ("Step", "Atoms") else c_ for c_ in THERMO_COLUMNS)
+    add(f"thermo_style    custom {cols}")
+    add(f"thermo          {info['thermo_every_steps']}")
+    add("thermo_modify   lost warn norm no")
+    add(f"dump            dmp all custom {info['dump_every_steps']} {DUMP_PATTERN} {' '.join(DUMP_COLUMNS)}")
+    add(f"restart         {info['restart_every_steps']} {RESTART_PATTERN}")
+    add("")
+    add(f"run             {info['end_step']} upto")
+    return "\n".join(L) + "\n"
+
+
+def build_deck(config: DemConfig, resume_from: str | None = None) -> dict[str, str]:
+    """All files of a run directory as ``{relative path: text}``; nothing is written.
+
+    ``resume_from`` (a restart file path relative to the run directory, e.g.
+    ``"restart/restart.250000.bin"``) adds :data:`RESUME_DECK`, which reads it, declares
+    every fix again and runs on to the same end step (steps, and so dump names, continue).
+    Raises :class:`GeometryError` / :class:`DeckError` before anything exists.
+    """
+    info = deck_parameters(config)
+    files = {MAIN_DECK: _deck_text(config, info, None)}
+    if resume_from is not None:
+        if not str(resume_from).strip() or any(ch.isspace() for ch in str(resume_from)):
+            raise DeckError(f"resume_from = {resume_from!r}: must be a restart file path without spaces")
+        files[RESUME_DECK] = _deck_text(config, info, str(resume_from))
+    geo = build_geometry(config)
+    for name, path in MESH_FILES.items():
+        files[path] = stl_text(geo.meshes[name])
+    files[DECK_INFO] = json.dumps(info, indent=2, sort_keys=True) + "\n"
+    return files
+
+
+def deck_hash(files: dict[str, str]) -> str:
+    """Hash of the deck's file texts (key of the run; changes with any input that matters)."""
+    return stable_hash({name: files[name] for name in sorted(files)})
+
+
+def write_deck(files: dict[str, str], out_dir: str | Path) -> Path:
+    """Write the files (creating ``meshes/``, ``dumps/``, ``restart/``) under ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for d in RUN_DIRS:
+        (out / d).mkdir(exist_ok=True)
+    for name, text in files.items():
+        path = out / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return out
