@@ -382,7 +382,7 @@ def postprocess(
         nsnap[kk] += window_snaps[k]
     nsamp = acc[:, 4]
     with np.errstate(invalid="ignore", divide="ignore"):
-        means = np.where(nsamp > 0, acc[:, :4] / np.maximum(nsamp, 1)[:, None, :], 0.0)
+        means = np.where(nsamp[:, None, :] > 0, acc[:, :4] / np.maximum(nsamp, 1)[:, None, :], 0.0)
         per_snap = np.where(nsnap[:, None, None] > 0, acc[:, 5:7] / np.maximum(nsnap, 1)[:, None, None], 0.0)
     shape = (n_windows, nx, ny)
     attrs = dict(provenance or {})
@@ -516,8 +516,8 @@ def postprocess(
         residence = particles.exit_t[rec] - first[rec]
     recovered_fraction = residence.size / n_tagged if n_tagged else float("nan")
     if residence.size:
-        edges = np.arange(0.0, math.floor(residence.max()) + 2.0, 1.0)
-        counts, _ = np.histogram(residence, bins=edges)
+        edges = np.arange(0.0, math.floor(residence.max() + tol) + 2.0, 1.0)
+        counts, _ = np.histogram(residence + tol, bins=edges)  # on an edge = in the bin above
         rtd = pd.DataFrame({"t_s": edges[:-1] + 0.5, "E_per_s": counts / (residence.size * 1.0), "count": counts})
         mean_rt, var_rt = float(residence.mean()), float(residence.var())
     else:

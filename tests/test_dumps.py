@@ -1,0 +1,146 @@
+"""Dump reader: parsing by column name, streaming, truncated and malformed input."""
+
+import numpy as np
+import pytest
+
+from coupling.errors import DumpFormatError
+from dem.dumps import (
+    TruncatedDumpWarning,
+    dump_paths,
+    format_snapshot,
+    iter_snapshots,
+    read_snapshot_file,
+)
+
+COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+
+
+def _data(rng, n, first_id=1):
+    values = rng.uniform(-0.05, 0.3, size=(n, len(COLUMNS)))
+    values[:, 0] = np.arange(first_id, first_id + n)
+    values[:, 1] = rng.integers(1, 3, n)
+    return values
+
+
+def test_per_snapshot_files_natural_order_and_values(tmp_path, rng):
+    expected = {}
+    for step in (0, 900, 1000, 10000):  # natural order: 900 before 1000
+        data = _data(rng, 7)
+        expected[step] = data
+        (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, data))
+    assert [p.name for p in dump_paths(str(tmp_path / "dump.*.txt"))] == [
+        "dump.0.txt", "dump.900.txt", "dump.1000.txt", "dump.10000.txt"]
+    snaps = list(iter_snapshots(str(tmp_path / "dump.*.txt")))
+    assert [s.step for s in snaps] == [0, 900, 1000, 10000]
+    for snap in snaps:
+        np.testing.assert_allclose(snap.data, expected[snap.step], rtol=1e-8)
+        assert snap.columns == COLUMNS
+        np.testing.assert_allclose(snap["vx"], expected[snap.step][:, 5], rtol=1e-8)
+
+
+def test_columns_found_by_name_not_position(tmp_path, rng):
+    data = _data(rng, 5)
+    permuted = ("vx", "radius", "x", "id", "type", "y", "z", "vy", "vz")
+    order = [COLUMNS.index(c) for c in permuted]
+    path = tmp_path / "d.txt"
+    path.write_bytes(format_snapshot(10, permuted, data[:, order]))
+    (snap,) = read_snapshot_file(path)
+    np.testing.assert_allclose(snap["x"], data[:, 2], rtol=1e-8)
+    np.testing.assert_array_equal(snap["id"], data[:, 0])
+
+
+def test_multi_snapshot_file_and_empty_snapshot(tmp_path, rng):
+    path = tmp_path / "all.txt"
+    blocks = [format_snapshot(0, COLUMNS, np.zeros((0, 9)))]
+    blocks += [format_snapshot(100 * k, COLUMNS, _data(rng, 3 + k)) for k in (1, 2, 3)]
+    path.write_bytes(b"".join(blocks))
+    snaps = list(iter_snapshots(path))
+    assert [s.n for s in snaps] == [0, 4, 5, 6]
+    assert snaps[0]["x"].shape == (0,)
+
+
+def test_lines_without_trailing_space_are_read(tmp_path):
+    path = tmp_path / "d.txt"
+    text = format_snapshot(5, ("id", "type", "x"), np.array([[1, 1, 0.5], [2, 2, 0.25]])).decode()
+    path.write_text(text.replace(" \n", "\n"))
+    (snap,) = read_snapshot_file(path)
+    np.testing.assert_allclose(snap["x"], [0.5, 0.25])
+
+
+def test_truncated_last_snapshot_dropped_with_warning(tmp_path, rng):
+    for step in (0, 100, 200):
+        (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, _data(rng, 50)))
+    last = tmp_path / "dump.200.txt"
+    last.write_bytes(last.read_bytes()[: len(last.read_bytes()) // 2])  # killed mid-write
+    with pytest.warns(TruncatedDumpWarning, match="dump.200.txt"):
+        steps = [s.step for s in iter_snapshots(str(tmp_path / "dump.*.txt"))]
+    assert steps == [0, 100]
+
+
+def test_truncated_at_line_boundary_is_detected(tmp_path, rng):
+    path = tmp_path / "all.txt"
+    good = format_snapshot(0, COLUMNS, _data(rng, 4))
+    cut = format_snapshot(100, COLUMNS, _data(rng, 4))
+    cut = cut[: cut.rfind(b"\n", 0, len(cut) - 1) + 1]  # one whole atom line missing
+    path.write_bytes(good + cut)
+    with pytest.warns(TruncatedDumpWarning):
+        assert [s.step for s in iter_snapshots(path)] == [0]
+
+
+def test_truncated_file_in_the_middle_is_an_error(tmp_path, rng):
+    for step in (0, 100):
+        (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, _data(rng, 20)))
+    first = tmp_path / "dump.0.txt"
+    first.write_bytes(first.read_bytes()[:-40])
+    with pytest.raises(DumpFormatError, match=r"dump\.0\.txt: line \d+"):
+        list(iter_snapshots(str(tmp_path / "dump.*.txt")))
+
+
+def test_malformed_number_names_file_and_line(tmp_path, rng):
+    path = tmp_path / "bad.txt"
+    text = format_snapshot(0, COLUMNS, _data(rng, 5)).decode().splitlines(keepends=True)
+    fields = text[11].split()
+    fields[3] = "1.2.3"
+    text[11] = " ".join(fields) + " \n"  # the third atom line is file line 12
+    path.write_text("".join(text))
+    with pytest.raises(DumpFormatError, match=r"bad\.txt: line 12"):
+        read_snapshot_file(path)
+
+
+def test_missing_field_names_the_line(tmp_path, rng):
+    path = tmp_path / "bad.txt"
+    lines = format_snapshot(0, COLUMNS, _data(rng, 5)).decode().splitlines(keepends=True)
+    lines[10] = " ".join(lines[10].split()[:-1]) + "\n"
+    path.write_text("".join(lines))
+    with pytest.raises(DumpFormatError, match=r"bad\.txt: line 11"):
+        read_snapshot_file(path)
+
+
+def test_bad_header_and_extra_lines(tmp_path, rng):
+    path = tmp_path / "bad.txt"
+    path.write_text(format_snapshot(0, COLUMNS, _data(rng, 2)).decode().replace("NUMBER OF ATOMS", "NUMBER OF PARTICLES"))
+    with pytest.raises(DumpFormatError, match=r"bad\.txt: line 3: expected 'ITEM: NUMBER OF ATOMS'"):
+        read_snapshot_file(path)
+    text = format_snapshot(0, COLUMNS, _data(rng, 2)).decode().replace("ATOMS\n2\n", "ATOMS\n1\n")
+    path.write_text(text)
+    with pytest.raises(DumpFormatError, match="announces 1 atoms but has 2 lines"):
+        read_snapshot_file(path)
+
+
+def test_required_column_missing(tmp_path, rng):
+    path = tmp_path / "d.txt"
+    path.write_bytes(format_snapshot(0, ("id", "type", "x"), _data(rng, 2)[:, :3]))
+    with pytest.raises(DumpFormatError, match="no column 'vx'"):
+        list(iter_snapshots(path, columns=("id", "vx")))
+
+
+def test_steps_must_increase(tmp_path, rng):
+    path = tmp_path / "d.txt"
+    path.write_bytes(format_snapshot(100, COLUMNS, _data(rng, 2)) + format_snapshot(100, COLUMNS, _data(rng, 2)))
+    with pytest.raises(DumpFormatError, match="does not follow"):
+        list(iter_snapshots(path))
+
+
+def test_no_files(tmp_path):
+    with pytest.raises(DumpFormatError, match="no dump files match"):
+        list(iter_snapshots(str(tmp_path / "dump.*.txt")))

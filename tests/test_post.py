@@ -1,0 +1,247 @@
+"""Post-processing on synthetic dumps with a known flow: exact tables, outflow, C_A, RSD, RTD.
+
+The synthetic blender (L = 0.33 m, D = 0.1 m, 4 x 2 compartments, dumps every 0.5 s to
+30 s): at every dump after t = 0 one A particle (y = +0.02) and one B particle (y = -0.02)
+appear at the inlet. A particles cross the blender in R_A = 4 s, B particles in R_B = 6 s
+(x = L (age + 0.25) / R, never on a compartment edge); each is seen once past the weir
+(x = L + 0.01) at age R and is gone at the next dump. vx = 0.1 (i + 1) m/s in slice i,
+vy = +0.02 (A) or -0.03 (B) m/s.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from coupling.errors import DumpFormatError
+from dem.config import DemConfig, TablesConfig
+from dem.dumps import TruncatedDumpWarning, format_snapshot
+from dem.post import postprocess, random_mixture_rsd, rsd_of_fractions
+
+COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+L, D = 0.330, 0.100
+R = {1: 4.0, 2: 6.0}
+DUMP_S, END_S = 0.5, 30.0
+
+
+def config():
+    return DemConfig(tables=TablesConfig(nx=4, ny=2, window_s=5.0, sample_interval_s=1.0, min_samples=1))
+
+
+def write_synthetic(directory, cfg, vanish_unseen=False, lose_id=None, end_s=END_S):
+    """Write the synthetic dumps; returns {id: (type, entry_s, exit_s)}.
+
+    ``vanish_unseen``: particles are deleted before any dump sees them past the weir (as by
+    an outlet face between two dumps): last seen in the last slice, then gone.
+    ``lose_id``: this particle vanishes at t = 10 s in the middle of the blender (lost)."""
+    dt = cfg.timestep_s
+    directory.mkdir(parents=True, exist_ok=True)
+    particles = {}
+    n_dumps = int(round(end_s / DUMP_S))
+    for k in range(1, n_dumps + 1):
+        for ptype in (1, 2):
+            particles[2 * k - 2 + ptype] = (ptype, k * DUMP_S)
+    truth = {}
+    for k in range(n_dumps + 1):
+        t = k * DUMP_S
+        rows = []
+        for pid, (ptype, entry) in particles.items():
+            age = t - entry
+            if age < -1e-9:
+                continue
+            if lose_id == pid and t >= 10.0 - 1e-9:
+                continue
+            res = R[ptype]
+            if age > res + 1e-9:
+                continue
+            if abs(age - res) < 1e-9:
+                if vanish_unseen:
+                    continue
+                x = L + 0.01
+            else:
+                x = L * (age + 0.25) / res
+            i = min(int(x / (L / 4)), 3)
+            rows.append((pid, ptype, x, 0.02 if ptype == 1 else -0.02, 0.0,
+                         0.1 * (i + 1), 0.02 if ptype == 1 else -0.03, 0.0, 0.003))
+        step = int(round(t / dt))
+        (directory / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows).reshape(-1, 9)))
+    for pid, (ptype, entry) in particles.items():
+        exit_s = entry + R[ptype]
+        truth[pid] = (ptype, entry, exit_s if exit_s <= end_s + 1e-9 else math.nan)
+    return truth
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    cfg = config()
+    directory = tmp_path_factory.mktemp("synthetic")
+    write_synthetic(directory, cfg)
+    return cfg, postprocess(str(directory / "dump.*.txt"), cfg, provenance={"input_hash": "test"})
+
+
+def test_velocity_table_exact(synthetic):
+    _, res = synthetic
+    table = res.table
+    np.testing.assert_allclose(table.t, [0, 5, 10, 15, 20, 25])
+    np.testing.assert_allclose(table.x_edges, np.linspace(0, L, 5))
+    np.testing.assert_allclose(table.y_edges, [-D / 2, 0, D / 2])
+    for k in range(6):
+        for i in range(4):
+            if table.n_samples[k, i].min() == 0:
+                continue
+            np.testing.assert_allclose(table.vx_pos[k, i], 0.1 * (i + 1), rtol=1e-9)
+    np.testing.assert_allclose(table.vx_neg, 0.0)
+    # steady windows (t >= 10 s): 2 A and 3 B per slice in every snapshot
+    np.testing.assert_allclose(table.vy_pos[2:, :, 1], 0.02, rtol=1e-9)
+    np.testing.assert_allclose(table.vy_pos[2:, :, 0], 0.0)
+    np.testing.assert_allclose(table.vy_neg[2:, :, 0], 0.03, rtol=1e-9)
+    np.testing.assert_allclose(table.count_A[2:, :, 1], 2.0)
+    np.testing.assert_allclose(table.count_B[2:, :, 0], 3.0)
+    np.testing.assert_allclose(table.count_A[2:, :, 0], 0.0)
+    # 10 snapshots per window, 11 in the last (it holds the end time)
+    np.testing.assert_array_equal(table.n_samples[2:5, :, 1], 20)
+    np.testing.assert_array_equal(table.n_samples[5, :, 1], 22)
+    np.testing.assert_array_equal(table.n_samples[2:5, :, 0], 30)
+    assert table.attrs["input_hash"] == "test"
+    assert table.attrs["snapshots_per_window"] == [10, 10, 10, 10, 10, 11]
+
+
+def test_velocity_means_are_ratios_of_sums(tmp_path):
+    """3 particles at +1 m/s in one snapshot, 1 at -1 m/s in the next: vx_pos = 3/4, not 1/2."""
+    cfg = config()
+    dt = cfg.timestep_s
+    rows1 = [(k, 1, 0.01, 0.01, 0, 1.0, 0, 0, 0.003) for k in (1, 2, 3)]
+    rows2 = [(4, 1, 0.01, 0.01, 0, -1.0, 0, 0, 0.003)]
+    for t, rows in ((1.0, rows1), (2.0, rows2)):
+        step = int(round(t / dt))
+        (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows)))
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg)
+    assert res.table.vx_pos[0, 0, 1] == pytest.approx(0.75)
+    assert res.table.vx_neg[0, 0, 1] == pytest.approx(0.25)
+    assert res.table.count_A[0, 0, 1] == pytest.approx(2.0)
+    assert res.table.n_samples[0, 0, 1] == 4
+
+
+def test_outflow_and_composition(synthetic):
+    _, res = synthetic
+    ts = res.timeseries
+    np.testing.assert_allclose(ts["t_s"], np.arange(1, 31))
+    out_a = np.where(ts["t_s"] >= 5, 2.0, 0.0)
+    out_b = np.where(ts["t_s"] >= 7, 2.0, 0.0)
+    np.testing.assert_allclose(ts["outflow_A_per_s"], out_a)
+    np.testing.assert_allclose(ts["outflow_B_per_s"], out_b)
+    np.testing.assert_allclose(ts["inflow_per_s"], 4.0)
+    c_a = ts["C_A"].to_numpy()
+    assert np.isnan(c_a[:4]).all()
+    np.testing.assert_allclose(c_a[4:6], 1.0)
+    np.testing.assert_allclose(c_a[6:], 0.5)
+
+
+def test_holdup_and_steady_state(synthetic):
+    _, res = synthetic
+    ts = res.timeseries
+    np.testing.assert_allclose(ts["holdup_A"][ts["t_s"] >= 5], 8)
+    np.testing.assert_allclose(ts["holdup_B"][ts["t_s"] >= 7], 12)
+    assert len(res.holdup) == 61
+    s = res.summary
+    # hold-up 18 at 5 s, 20 from 6 s on: the first trailing 5 s window within 5 % ends at 11 s
+    assert s["steady_state_time_s"] == pytest.approx(11.0)
+    assert s["steady_outflow_per_s"] == pytest.approx(4.0)
+    assert s["steady_C_A"] == pytest.approx(0.5)
+
+
+def test_rsd_and_floor(synthetic):
+    _, res = synthetic
+    floor = math.sqrt(0.1) / 0.4  # p = 0.4; 2 A (fraction 1) and 3 B (fraction 0) per slice
+    np.testing.assert_allclose(res.timeseries["rsd_outlet"][res.timeseries["t_s"] >= 7], math.sqrt(2))
+    np.testing.assert_allclose(res.timeseries["rsd_outlet_floor"][res.timeseries["t_s"] >= 7], floor)
+    np.testing.assert_allclose(res.rsd_by_slice, math.sqrt(2))
+    np.testing.assert_allclose(res.rsd_by_slice_floor, floor)
+    assert res.summary["final_rsd_blender"] == pytest.approx(math.sqrt(8 * 0.25 / 7) / 0.5)
+    assert res.summary["final_rsd_blender_floor"] == pytest.approx(floor)
+
+
+def test_rtd(synthetic):
+    _, res = synthetic
+    s = res.summary
+    assert s["rtd_tag_time_s"] == pytest.approx(11.0)
+    assert s["rtd_tagged"] == 4  # entries at 11.5 and 12.0 s, one A and one B each
+    assert s["rtd_recovered_fraction"] == 1.0 and s["rtd_recovered_ok"]
+    assert s["mean_residence_time_s"] == pytest.approx(5.0)
+    assert s["rtd_variance_s2"] == pytest.approx(1.0, rel=1e-4)  # dump times are whole timesteps
+    e = dict(zip(res.rtd["t_s"], res.rtd["E_per_s"]))
+    assert e[4.5] == pytest.approx(0.5) and e[6.5] == pytest.approx(0.5)
+    assert np.sum(res.rtd["E_per_s"]) * 1.0 == pytest.approx(1.0)
+
+
+def test_accounting_closes(synthetic):
+    s = synthetic[1].summary
+    assert s["inserted"] == 120
+    assert s["held"] == 20  # A entered after 26 s, B after 24 s
+    assert s["discharged"] == 100
+    assert s["lost"] == 0 and s["accounting_mismatch"] == 0
+    assert s["exits_seen_past_weir"] == 100
+    assert s["warnings"] == []
+
+
+def test_exits_never_seen_past_weir_use_disappearance(tmp_path):
+    """Deleted by the outlet face between dumps: counted at the first dump without them."""
+    cfg = config()
+    write_synthetic(tmp_path, cfg, vanish_unseen=True)
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg)
+    s = res.summary
+    assert s["exits_seen_past_weir"] == 0
+    assert s["exits_from_vanishing"] == s["discharged"] == 100
+    assert s["lost"] == 0 and s["accounting_mismatch"] == 0
+    assert s["mean_residence_time_s"] == pytest.approx(5.0)
+
+
+def test_massflow_file_gives_exit_times_and_crosscheck(tmp_path):
+    cfg = config()
+    truth = write_synthetic(tmp_path, cfg, vanish_unseen=True, lose_id=33)
+    # the solver's per-particle file: deleted 0.2 s before the dump that misses them
+    lines = ["# ID time  diameter x y z u v w  (ex ey ez, color)"]
+    for pid, (ptype, entry, exit_s) in sorted(truth.items()):
+        if pid != 33 and np.isfinite(exit_s):
+            lines.append(f"{pid}  {exit_s - 0.2:.4g}  0.003 0.331 0 0 0.1 0 0")
+    half = len(lines) // 2
+    (tmp_path / "massflow_A.txt.0").write_text("\n".join(lines[:half]) + "\n")
+    (tmp_path / "massflow_A.txt.1").write_text("\n".join(lines[:1] + lines[half:]) + "\n")
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1})
+    s = res.summary
+    assert s["massflow_discharged"] == len(lines) - 1
+    assert s["exits_from_massflow"] == len(lines) - 1
+    assert s["discharge_crosscheck_diff"] == 0 and s["solver_discharge_diff"] == 0
+    assert s["lost"] == 1 and s["accounting_mismatch"] == 1  # particle 33 left through a wall at 10 s
+    assert any("accounting" in w for w in s["warnings"])
+    # exit times come from the file (0.2 s before the dump that misses them): 3.8 and 5.8 s
+    assert s["mean_residence_time_s"] == pytest.approx(4.8, rel=1e-4)
+
+
+def test_rtd_recovery_flag(tmp_path):
+    cfg = config()
+    write_synthetic(tmp_path, cfg, end_s=16.0)  # B tagged at 11.5-12 s leave at 17.5-18 s
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, rtd_tag_time_s=11.0)
+    s = res.summary
+    assert s["rtd_recovered_fraction"] == pytest.approx(0.5)
+    assert not s["rtd_recovered_ok"]
+    assert any("95" in w for w in s["warnings"])
+
+
+def test_rsd_helpers():
+    assert math.isnan(rsd_of_fractions([1, 0], [0, 0]))  # one non-empty compartment
+    assert rsd_of_fractions([1, 3, 0], [1, 1, 0]) == pytest.approx(np.std([0.5, 0.75], ddof=1) / 0.625)
+    # Monte-Carlo check of the analytic floor (seeded): mean sample variance of binomial fractions
+    rng = np.random.default_rng(7)
+    n = np.array([3, 5, 8, 13, 21])
+    p = 0.3
+    x = rng.binomial(n, p, size=(200_000, n.size))
+    var = np.mean(np.var(x / n, axis=1, ddof=1))
+    a, b = p * n, (1 - p) * n
+    assert random_mixture_rsd(a, b) == pytest.approx(math.sqrt(var) / p, rel=5e-3)
+
+
+def test_no_snapshot_is_an_error(tmp_path):
+    (tmp_path / "dump.0.txt").write_bytes(b"")
+    with pytest.warns(TruncatedDumpWarning), pytest.raises(DumpFormatError, match="no complete snapshot"):
+        postprocess(str(tmp_path / "dump.*.txt"), config())
