@@ -55,7 +55,9 @@ class GeometryConfig(_Section):
     feed_y_outer_m: float = Field(0.030, gt=0)
     feed_height_m: float = Field(0.025, description="z of the feed zones' centre [m]")
     feed_depth_m: float = Field(0.012, gt=0, description="vertical extent of each feed zone [m]")
-    mesh_resolution_m: float = Field(0.008, gt=0, description="target triangle edge of curved/long surfaces [m]")
+    mesh_resolution_m: float = Field(
+        0.04, gt=0, description="target triangle edge of curved/long surfaces [m] (coarse: moving triangles cost per step)"
+    )
     box_margin_m: float = Field(0.005, gt=0, description="simulation box clearance around the barrel [m]")
 
     @model_validator(mode="after")
