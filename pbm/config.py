@@ -1,20 +1,65 @@
 """Typed, validated configuration of the PBM stage.
 
-Extended by the PBM implementation; every field carries its unit in its name.
+Every field carries its unit in its name. Values that depend on the velocity table (the
+length of the feed-weight lists must equal NY, the pulse time must fall inside the run) are
+checked when the table is known, in :func:`pbm.simulate.simulate`, and raise
+:class:`coupling.errors.ConfigError` there.
 """
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 class PbmConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    feed_rate_a_per_s: float = Field(995.0, ge=0)
-    feed_rate_b_per_s: float = Field(995.0, ge=0)
-    output_interval_s: float = Field(1.0, gt=0)
-    noise_sigma: float = Field(0.0, ge=0, description="relative SD of the feed-rate noise factor")
-    noise_interval_s: float = Field(1.0, gt=0)
+    feed_rate_a_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)
+    feed_rate_b_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)
+    feed_weights_a: list[float] | None = Field(
+        None,
+        description="NY relative weights of feed A over the first slice's compartments "
+        "(j = 0 at y = -D/2); None = uniformly over the y > 0 half",
+    )
+    feed_weights_b: list[float] | None = Field(
+        None, description="NY relative weights of feed B; None = uniformly over the y < 0 half"
+    )
+    duration_s: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="simulated time; None = the velocity table's end"
+    )
+    output_interval_s: float = Field(1.0, gt=0, allow_inf_nan=False)
+    noise_sigma: float = Field(0.0, ge=0, allow_inf_nan=False, description="relative SD of the feed-rate noise factor")
+    noise_interval_s: float = Field(1.0, gt=0, allow_inf_nan=False)
     seed: int = Field(12345, ge=0)
-    rtd_pulse_s: float | None = Field(None, ge=0, description="tracer pulse time; None = at detected steady state")
+    rtd_pulse_s: float | None = Field(
+        None, ge=0, allow_inf_nan=False, description="tracer pulse time; None = at detected steady state"
+    )
+    rtd_bin_s: float = Field(1.0, gt=0, allow_inf_nan=False, description="width of the E(t) histogram bins")
+    steady_window_s: float = Field(
+        10.0, gt=0, allow_inf_nan=False, description="trailing window of the steady-state test on the hold-up"
+    )
+    steady_rel_tol: float = Field(
+        0.02, gt=0, lt=1, description="steady when the mean hold-up of two successive windows differs by less"
+    )
+    rsd_min_particles: float = Field(
+        1.0, ge=0, allow_inf_nan=False, description="compartments holding fewer particles count as empty in RSDs"
+    )
+    method: Literal["expm", "bdf"] = Field("expm", description="exact propagation or the solve_ivp BDF cross-check")
+    bdf_rtol: float = Field(1e-6, gt=0, lt=1)
+
+    @field_validator("feed_weights_a", "feed_weights_b")
+    @classmethod
+    def _weights_valid(cls, weights: list[float] | None) -> list[float] | None:
+        if weights is None:
+            return None
+        if len(weights) == 0:
+            raise ValueError("must hold NY weights (one per transverse compartment), got an empty list")
+        bad = [w for w in weights if not math.isfinite(w) or w < 0]
+        if bad:
+            raise ValueError(f"weights must be finite and >= 0, got {bad[0]}")
+        if sum(weights) <= 0:
+            raise ValueError("at least one weight must be > 0")
+        return weights

@@ -1,0 +1,155 @@
+"""Feed-noise ensembles (paper section 3.2.3, Figs 5-6).
+
+All members share the velocity table, so they share every step operator: the ensemble is
+one propagation of a state matrix with 2 M columns (A and B of each member), and each
+member's noisy feed enters through the feed term of the same exact step
+``z <- P z + Q r``. CQAs are reduced on the fly at each output, so memory stays
+O(M x outputs) and never holds M full state histories.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable
+from pbm._blas import single_threaded_blas
+from pbm.config import PbmConfig
+from pbm.cqa import outflow_fraction_a, rsd
+from pbm.model import feed_distribution, fill_missing_velocities
+from pbm.simulate import check_run, noise_factors
+from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
+
+BAND_QUANTILES = (0.05, 0.95)
+
+
+@dataclass(frozen=True)
+class EnsembleResult:
+    """Statistics of M noise realisations. Series are (K,) over ``times`` [s].
+
+    ``C_A_*`` and ``rsd_outlet_*``: ensemble mean and 5 % / 95 % quantiles (NaN where
+    undefined for every member); ``rsd_by_slice_*`` (NX,) the same for RSD(x) at the end.
+    ``C_A_members`` and ``rsd_outlet_members`` (M, K) keep every realisation.
+    """
+
+    sigma: float
+    members: int
+    times: np.ndarray
+    C_A_mean: np.ndarray
+    C_A_p05: np.ndarray
+    C_A_p95: np.ndarray
+    rsd_outlet_mean: np.ndarray
+    rsd_outlet_p05: np.ndarray
+    rsd_outlet_p95: np.ndarray
+    rsd_by_slice_mean: np.ndarray
+    rsd_by_slice_p05: np.ndarray
+    rsd_by_slice_p95: np.ndarray
+    C_A_members: np.ndarray
+    rsd_outlet_members: np.ndarray
+
+
+def _bands(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and 5/95 % quantiles over axis 0, ignoring NaN; NaN where all are NaN."""
+    finite = np.isfinite(values)
+    any_finite = finite.any(axis=0)
+    mean = np.full(values.shape[1:], np.nan)
+    lo = np.full(values.shape[1:], np.nan)
+    hi = np.full(values.shape[1:], np.nan)
+    if any_finite.any():
+        sub = values[:, any_finite]
+        count = np.isfinite(sub).sum(axis=0)
+        mean[any_finite] = np.where(np.isfinite(sub), sub, 0.0).sum(axis=0) / count
+        q = np.nanquantile(sub, BAND_QUANTILES, axis=0)
+        lo[any_finite], hi[any_finite] = q[0], q[1]
+    return mean, lo, hi
+
+
+@single_threaded_blas()
+def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma: float | None = None,
+                   members: int = 100) -> EnsembleResult:
+    """Run ``members`` feed-noise realisations at once; return mean and 5-95 % bands.
+
+    ``sigma`` (default ``config.noise_sigma``) is the relative SD of the feed-rate factor
+    N(1, sigma), clipped at 0 and redrawn every ``config.noise_interval_s``, independently
+    for A and B; member m draws from a generator seeded ``(config.seed, m)`` -- the same
+    factors :func:`pbm.simulate.simulate` uses for m = 0. Exact propagation only (the BDF
+    path is a cross-check of single runs). No tracer: the RTD does not depend on the feed.
+    """
+    config = config or PbmConfig()
+    sigma = config.noise_sigma if sigma is None else float(sigma)
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise ConfigError(f"noise sigma must be a finite number >= 0, got {sigma}")
+    if isinstance(members, bool) or int(members) != members or members < 1:
+        raise ConfigError(f"members must be an integer >= 1, got {members!r}")
+    members = int(members)
+    t_end = check_run(table, config)
+    filled, _ = fill_missing_velocities(table)
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
+    props = Propagators(filled, feed)
+    nx, ny = table.nx, table.ny
+    n = nx * ny
+
+    # With sigma = 0 every member is the same run: propagate one and replicate it.
+    distinct = members if sigma > 0 else 1
+    n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
+    factors = np.stack([noise_factors(config, n_noise, member=m, sigma=sigma) for m in range(distinct)], axis=1)
+    rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
+
+    out_times = multiples(config.output_interval_s, config.output_interval_s, t_end)
+    switch_sets = [table.t]
+    if sigma > 0:
+        switch_sets.append(multiples(config.noise_interval_s, 0.0, t_end))
+    times = breakpoints(0.0, t_end, out_times, *switch_sets)
+    mids = 0.5 * (times[:-1] + times[1:])
+    feed_key = np.clip(np.floor(mids / config.noise_interval_s).astype(int), 0, n_noise - 1)
+    out_index = np.full(times.size, -1)
+    out_index[np.searchsorted(times, out_times - TIME_TOLERANCE_S)] = np.arange(out_times.size)
+
+    def feed_rates(key: int) -> np.ndarray:
+        r = np.zeros((2, 2 * distinct))
+        r[0, 0::2] = rates[0] * factors[key, :, 0]
+        r[1, 1::2] = rates[1] * factors[key, :, 1]
+        return r
+
+    c_a = np.empty((out_times.size, distinct))
+    rsd_out = np.empty((out_times.size, distinct))
+    last_discharged = np.zeros(2 * distinct)
+    z = np.zeros((props.n_states, 2 * distinct))
+    for b, z in march(props, times, z, feed_rates, feed_key):
+        k = out_index[b]
+        if k < 0:
+            continue
+        discharged = z[n]
+        inc = discharged - last_discharged
+        last_discharged = discharged.copy()
+        c_a[k] = outflow_fraction_a(inc[0::2], inc[1::2])
+        outlet = z[n - ny : n]
+        rsd_out[k] = rsd(outlet[:, 0::2], outlet[:, 1::2], axis=0, min_particles=config.rsd_min_particles)
+    final = z[:n].reshape(nx, ny, 2 * distinct)
+    rsd_slices = rsd(final[:, :, 0::2], final[:, :, 1::2], axis=1, min_particles=config.rsd_min_particles)  # (NX, M)
+
+    c_a_members = np.repeat(c_a.T, members // distinct, axis=0)
+    rsd_members = np.repeat(rsd_out.T, members // distinct, axis=0)
+    slice_members = np.repeat(rsd_slices.T, members // distinct, axis=0)
+    ca_stats = _bands(c_a_members)
+    rsd_stats = _bands(rsd_members)
+    slice_stats = _bands(slice_members)
+    return EnsembleResult(
+        sigma=sigma, members=members, times=out_times,
+        C_A_mean=ca_stats[0], C_A_p05=ca_stats[1], C_A_p95=ca_stats[2],
+        rsd_outlet_mean=rsd_stats[0], rsd_outlet_p05=rsd_stats[1], rsd_outlet_p95=rsd_stats[2],
+        rsd_by_slice_mean=slice_stats[0], rsd_by_slice_p05=slice_stats[1], rsd_by_slice_p95=slice_stats[2],
+        C_A_members=c_a_members, rsd_outlet_members=rsd_members,
+    )
+
+
+PAPER_SIGMAS = (0.0, 0.05, 0.1, 0.2, 0.3)
+
+
+def noise_study(table: VelocityTable, config: PbmConfig | None = None, sigmas=PAPER_SIGMAS,
+                members: int = 200) -> dict[float, EnsembleResult]:
+    """The paper's Figs 5-6 study: one :func:`noise_ensemble` per sigma (default 0-0.3)."""
+    return {float(s): noise_ensemble(table, config, sigma=s, members=members) for s in sigmas}

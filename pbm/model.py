@@ -1,0 +1,209 @@
+"""The compartment model: transfer rates from a velocity table, the feed, the generator.
+
+State layout. Compartment (i, j) -- i axial from the inlet, j along y from y = -D/2 -- is
+entry ``c = i * NY + j`` of a population vector ``N`` (particles). Every species (A, B,
+the passive tracer, every ensemble member) obeys the same linear operator, so the solver
+propagates them together as the columns of one matrix. Below the NX*NY populations the
+state carries three accumulator rows, shared by all columns:
+
+* ``OUT`` (row n):   discharged particles, dOUT/dt = sum over the last slice of (vx_pos/dx) N
+* ``INT1`` (row n+1): time integral of the hold-up, dINT1/dt = sum(N)         [particle s]
+* ``INT2`` (row n+2): time integral of INT1,        dINT2/dt = INT1           [particle s^2]
+
+so that time-averaged outflow rates and the first two moments of the residence-time
+distribution come out of the same exact propagation, with no quadrature error.
+
+Rates (DESIGN.md, "PBM rates"): particles in (i, j) leave to (i+1, j) at vx_pos/dx_i, to
+(i-1, j) at vx_neg/dx_i, to (i, j+1) at vy_pos/dy_j and to (i, j-1) at vy_neg/dy_j
+[1/s per particle], with the leaving compartment's velocities. The last slice's forward
+flux is the outflow; there is no flux through the inlet wall nor through the side walls.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from coupling.errors import ConfigError, TableError
+from coupling.tables import VELOCITY_NAMES, VelocityTable
+
+N_ACCUMULATORS = 3
+
+
+def fill_missing_velocities(table: VelocityTable) -> tuple[VelocityTable, np.ndarray]:
+    """Give every compartment-window without enough samples a velocity, by a fixed rule.
+
+    A compartment-window is missing when ``table.valid`` is False (fewer than
+    ``min_samples`` particle-snapshots); its stored velocities (0 by the schema) are never
+    read as measurements. For each velocity field (vx_pos, vx_neg, vy_pos, vy_neg), in order:
+
+    1. the same compartment's value in the nearest window in time where it is valid
+       (a tie between an earlier and a later window takes the earlier one: the flow that
+       particles have actually seen);
+    2. if the compartment is valid in no window: the mean of the valid compartments of the
+       same axial slice in the same window;
+    3. else the mean of the valid compartments of the nearest axial slice that has any in
+       that window (a tie averages both sides);
+    4. else (the window has no valid compartment at all) the table-wide mean of all valid
+       compartment-windows.
+
+    Returns ``(filled_table, filled_mask)``: the filled table (``n_samples`` unchanged, so
+    provenance survives) and the (K, NX, NY) bool mask of filled entries. Raises
+    TableError when no compartment-window at all is valid: there is nothing to fill from.
+    """
+    valid = table.valid
+    if valid.all():
+        return table, np.zeros_like(valid)
+    if not valid.any():
+        raise TableError(
+            f"no compartment-window of the velocity table has n_samples >= min_samples = {table.min_samples}; "
+            "the table carries no velocity information"
+        )
+    k_count = table.n_windows
+    filled = {name: getattr(table, name).copy() for name in VELOCITY_NAMES}
+
+    # Rule 1: nearest valid window of the same compartment. For each (k, i, j) find the
+    # last valid window at or before k and the first at or after k, then pick the closer.
+    window_times = table.t
+    idx = np.arange(k_count)[:, None, None]
+    last_before = np.where(valid, idx, -1)
+    last_before = np.maximum.accumulate(last_before, axis=0)
+    first_after = np.where(valid, idx, k_count)
+    first_after = np.minimum.accumulate(first_after[::-1], axis=0)[::-1]
+    has_before = last_before >= 0
+    has_after = first_after < k_count
+    t_k = np.broadcast_to(window_times[:, None, None], valid.shape)
+    gap_before = np.where(has_before, t_k - window_times[np.clip(last_before, 0, None)], np.inf)
+    gap_after = np.where(has_after, window_times[np.clip(first_after, None, k_count - 1)] - t_k, np.inf)
+    source = np.where(gap_before <= gap_after, last_before, first_after)
+    rule1 = ~valid & (has_before | has_after)
+    kk, ii, jj = np.nonzero(rule1)
+    for name in VELOCITY_NAMES:
+        filled[name][kk, ii, jj] = filled[name][source[kk, ii, jj], ii, jj]
+
+    # Rules 2-4 for compartments that are valid in no window at all.
+    never_valid = ~valid.any(axis=0)
+    if never_valid.any():
+        all_valid_mean = {name: getattr(table, name)[valid].mean() for name in VELOCITY_NAMES}
+        for k in range(k_count):
+            slice_has = valid[k].any(axis=1)  # (NX,)
+            for i, j in zip(*np.nonzero(never_valid)):
+                if not slice_has.any():
+                    for name in VELOCITY_NAMES:
+                        filled[name][k, i, j] = all_valid_mean[name]
+                    continue
+                distance = np.abs(np.arange(table.nx) - i).astype(float)
+                distance[~slice_has] = np.inf
+                slices = np.nonzero(distance == distance.min())[0]
+                for name in VELOCITY_NAMES:
+                    values = getattr(table, name)[k]
+                    filled[name][k, i, j] = np.mean([values[s][valid[k, s]].mean() for s in slices])
+    return table.replace(**filled), ~valid
+
+
+def default_feed_weights(y_edges: np.ndarray, side: int) -> np.ndarray:
+    """Weights of a feeder over the NY inlet compartments: the width share on one side.
+
+    ``side`` = +1 for y > 0 (feeder A), -1 for y < 0 (feeder B). A compartment straddling
+    y = 0 (odd NY) gets the fraction of its width on that side, so the two default feeds
+    stay mirror images of each other. Normalised to sum 1.
+    """
+    lo, hi = y_edges[:-1], y_edges[1:]
+    if side > 0:
+        share = np.clip(hi, 0, None) - np.clip(lo, 0, None)
+    else:
+        share = np.clip(hi, None, 0) - np.clip(lo, None, 0)
+    share = np.abs(share)
+    if share.sum() <= 0:
+        raise ConfigError(
+            f"the transverse edges {y_edges[0]:.4g}..{y_edges[-1]:.4g} m do not extend to y "
+            f"{'> 0' if side > 0 else '< 0'}; give feed_weights_{'a' if side > 0 else 'b'} explicitly"
+        )
+    return share / share.sum()
+
+
+def feed_distribution(table: VelocityTable, weights_a, weights_b) -> np.ndarray:
+    """(n, 2) matrix: how one particle/s of feed A (column 0) and B (column 1) enters.
+
+    Only the first axial slice (i = 0) receives feed; each column sums to 1. ``weights_a``
+    / ``weights_b`` are NY relative weights or None for the default halves. Raises
+    ConfigError when a weight list does not have NY entries.
+    """
+    ny = table.ny
+    columns = []
+    for name, weights, side in (("feed_weights_a", weights_a, +1), ("feed_weights_b", weights_b, -1)):
+        if weights is None:
+            w = default_feed_weights(table.y_edges, side)
+        else:
+            w = np.asarray(weights, dtype=float)
+            if w.shape != (ny,):
+                raise ConfigError(
+                    f"{name} has {w.size} entries; the velocity table has NY = {ny} transverse compartments"
+                )
+            w = w / w.sum()
+        column = np.zeros(table.nx * ny)
+        column[:ny] = w
+        columns.append(column)
+    return np.stack(columns, axis=1)
+
+
+def transfer_rates(table: VelocityTable, k: int) -> dict[str, np.ndarray]:
+    """Per-particle rates [1/s] of window ``k``, each (NX, NY), walls already closed.
+
+    Keys: ``forward`` (to i+1; for the last slice: the outflow), ``backward`` (to i-1),
+    ``up`` (to j+1), ``down`` (to j-1). Rates through the inlet wall and the side walls are
+    set to 0 here, so that the velocities recorded there by DEM (particles bouncing off
+    a wall) never move particles out of the domain.
+    """
+    dx = table.dx[:, None]
+    dy = table.dy[None, :]
+    forward = table.vx_pos[k] / dx
+    backward = table.vx_neg[k] / dx
+    up = table.vy_pos[k] / dy
+    down = table.vy_neg[k] / dy
+    backward = backward.copy()
+    up = up.copy()
+    down = down.copy()
+    backward[0, :] = 0.0
+    up[:, -1] = 0.0
+    down[:, 0] = 0.0
+    return {"forward": forward, "backward": backward, "up": up, "down": down}
+
+
+def _generator_triplets(table: VelocityTable, k: int):
+    nx, ny = table.nx, table.ny
+    n = nx * ny
+    r = transfer_rates(table, k)
+    c = np.arange(n).reshape(nx, ny)
+    rows, cols, vals = [], [], []
+
+    def add(src, dst, rate):
+        rows.append(dst.ravel())
+        cols.append(src.ravel())
+        vals.append(rate.ravel())
+
+    add(c[:-1, :], c[1:, :], r["forward"][:-1, :])
+    add(c[1:, :], c[:-1, :], r["backward"][1:, :])
+    add(c[:, :-1], c[:, 1:], r["up"][:, :-1])
+    add(c[:, 1:], c[:, :-1], r["down"][:, 1:])
+    leaving = r["forward"] + r["backward"] + r["up"] + r["down"]
+    add(c, c, -leaving)
+    # Accumulators: discharged particles, and the two time integrals of the hold-up.
+    add(c[-1, :], np.full(ny, n), r["forward"][-1, :])
+    add(c, np.full((nx, ny), n + 1), np.ones((nx, ny)))
+    add(np.array([n + 1]), np.array([n + 2]), np.array([1.0]))
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), n + N_ACCUMULATORS
+
+
+def generator_matrix(table: VelocityTable, k: int) -> np.ndarray:
+    """Dense (n+3, n+3) generator of window ``k``: dz/dt = G z for the augmented state."""
+    rows, cols, vals, m = _generator_triplets(table, k)
+    g = np.zeros((m, m))
+    np.add.at(g, (rows, cols), vals)
+    return g
+
+
+def generator_sparse(table: VelocityTable, k: int) -> sp.csr_matrix:
+    """The same generator as a sparse CSR matrix (for the BDF Jacobian)."""
+    rows, cols, vals, m = _generator_triplets(table, k)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(m, m))

@@ -1,0 +1,383 @@
+"""One PBM run: velocity table + configuration -> CQA time series, RTD and a summary.
+
+:func:`simulate` is the API the pipeline calls; :class:`PbmResult` is what it returns and
+:func:`write_outputs` writes it (``timeseries.csv``, ``rtd.csv``, ``summary.json``, figures).
+
+Time convention of the series: output k sits at ``t_k = k * output_interval_s``
+(k = 1..K). Rates and C_A are averages over the interval (t_{k-1}, t_k] -- exact, from the
+accumulated discharge -- and counts, hold-ups and RSDs are values at the instant t_k.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable
+from pbm._blas import single_threaded_blas
+from pbm.config import PbmConfig
+from pbm.cqa import detect_steady_state, holdup_relative_change, outflow_fraction_a, rsd, rtd_moments
+from pbm.model import feed_distribution, fill_missing_velocities
+from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
+
+BDF_ATOL_PARTICLES = 1e-9
+
+
+@dataclass(frozen=True)
+class PbmResult:
+    """Everything one PBM run produces. Units in the field docs; arrays are numpy.
+
+    Series over output times (shape (K,)): ``times`` [s]; ``outflow_A``, ``outflow_B``
+    [particles/s, mean over (t_{k-1}, t_k]]; ``C_A`` [-, flux-weighted A fraction of the
+    outflow over the interval, NaN while nothing leaves]; ``rsd_outlet`` (across the last
+    slice), ``rsd_blender`` (across all compartments) [-, NaN when undefined];
+    ``holdup_A``, ``holdup_B`` [particles]; ``fed_A``, ``fed_B``, ``discharged_A``,
+    ``discharged_B`` [particles, cumulative since t = 0].
+    ``counts`` (K, 2, NX, NY): A and B particles per compartment at each output time.
+    ``rsd_by_slice_final`` (NX,): RSD across each axial slice at the end, inlet -> outlet;
+    ``x_centres`` (NX,) [m] for plotting it.
+    RTD: ``rtd_t`` [s, residence-time bin centres], ``rtd_E`` [1/s] (tracer discharged in
+    the bin / tracer fed / bin width), ``rtd_pulse_s`` [s] the pulse time.
+    ``summary``: JSON-ready dict of scalars (see :func:`simulate`).
+    """
+
+    times: np.ndarray
+    outflow_A: np.ndarray
+    outflow_B: np.ndarray
+    C_A: np.ndarray
+    rsd_outlet: np.ndarray
+    rsd_blender: np.ndarray
+    holdup_A: np.ndarray
+    holdup_B: np.ndarray
+    fed_A: np.ndarray
+    fed_B: np.ndarray
+    discharged_A: np.ndarray
+    discharged_B: np.ndarray
+    counts: np.ndarray
+    rsd_by_slice_final: np.ndarray
+    x_centres: np.ndarray
+    rtd_t: np.ndarray
+    rtd_E: np.ndarray
+    rtd_pulse_s: float
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def noise_factors(config: PbmConfig, n_intervals: int, member: int = 0, sigma: float | None = None) -> np.ndarray:
+    """(n_intervals, 2) multiplicative factors of the A and B feed rates, one row per
+    noise interval: N(1, sigma) clipped at 0, drawn from a generator seeded by
+    ``(config.seed, member)``; so member 0 of an ensemble is the single run with that seed.
+    All ones when sigma is 0.
+    """
+    sigma = config.noise_sigma if sigma is None else sigma
+    if sigma == 0:
+        return np.ones((n_intervals, 2))
+    rng = np.random.default_rng([config.seed, member])
+    return np.clip(1.0 + sigma * rng.standard_normal((n_intervals, 2)), 0.0, None)
+
+
+def cumulative_feed(times: np.ndarray, rate_per_s: float, factors: np.ndarray, interval_s: float) -> np.ndarray:
+    """Particles fed by ``times`` [s] at ``rate_per_s`` x the piecewise-constant factors."""
+    edges = interval_s * np.arange(factors.size + 1)
+    fed_at_edges = np.concatenate([[0.0], np.cumsum(factors * interval_s)])
+    k = np.clip(np.floor(np.asarray(times) / interval_s + 1e-9).astype(int), 0, factors.size - 1)
+    return rate_per_s * (fed_at_edges[k] + factors[k] * (np.asarray(times) - edges[k]))
+
+
+def check_run(table: VelocityTable, config: PbmConfig) -> float:
+    """Validate what the configuration asks of this table; return the end time [s]."""
+    t_end = table.t_end if config.duration_s is None else config.duration_s
+    if t_end < config.output_interval_s - TIME_TOLERANCE_S:
+        raise ConfigError(
+            f"duration {t_end} s is shorter than output_interval_s = {config.output_interval_s} s; "
+            "at least one output interval is needed"
+        )
+    if t_end / config.output_interval_s > 1e6:
+        raise ConfigError(
+            f"duration {t_end} s / output_interval_s {config.output_interval_s} s asks for more than "
+            "1e6 outputs; raise output_interval_s"
+        )
+    return float(t_end)
+
+
+@single_threaded_blas()
+def simulate(
+    table: VelocityTable,
+    config: PbmConfig | None = None,
+    rtd_pulse_s: float | None = None,
+    initial_counts: np.ndarray | None = None,
+) -> PbmResult:
+    """Run the compartment PBM driven by ``table`` and return its CQAs.
+
+    ``config`` defaults to :class:`PbmConfig` (the paper's feed). ``rtd_pulse_s`` [s]
+    overrides ``config.rtd_pulse_s``; when both are None the tracer pulse is fed at the
+    detected steady state (:func:`pbm.cqa.detect_steady_state` on the total hold-up; if it
+    is never detected, at the output time of least relative hold-up change, or at 0 for a
+    run shorter than two steady windows -- ``summary['rtd_pulse_rule']`` says which).
+    ``initial_counts`` (2, NX, NY) [particles]: A and B already in the blender at t = 0
+    (default empty).
+
+    Compartment-windows without enough samples are filled by
+    :func:`pbm.model.fill_missing_velocities`. The tracer pulse holds as many particles
+    as the nominal feed delivers in one second (1 if the feed is 0), distributed over the
+    inlet like the nominal total feed; E(t) is normalised by it, so the amount is moot.
+
+    ``summary`` keys: mean_residence_time_s, rtd_variance_s2, rtd_recovered_fraction
+    (moments exact, over the tracer recovered by the end), steady_outflow_per_s and
+    steady_C_A (means from the steady-state time to the end; the last steady_window_s if
+    no steady state), final_rsd_outlet, final_rsd_blender, final_rsd_by_slice (list,
+    inlet -> outlet, None where undefined), holdup_final, holdup_final_A, holdup_final_B,
+    steady_state_time_s (None if not detected), rtd_pulse_s, rtd_pulse_rule,
+    filled_compartment_windows, nx, ny, duration_s, method, wall_time_s. Raises
+    ConfigError for settings this table cannot satisfy, TableError for an empty table.
+    """
+    wall0 = time.perf_counter()
+    config = config or PbmConfig()
+    t_end = check_run(table, config)
+    pulse = config.rtd_pulse_s if rtd_pulse_s is None else float(rtd_pulse_s)
+    if pulse is not None and not (0.0 <= pulse < t_end):
+        raise ConfigError(f"RTD pulse time {pulse} s must lie in [0, {t_end}) s, the simulated time")
+    filled, filled_mask = fill_missing_velocities(table)
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
+    props = Propagators(filled, feed)
+    n = table.nx * table.ny
+    m = props.n_states
+
+    z0 = np.zeros((m, 2))
+    if initial_counts is not None:
+        init = np.asarray(initial_counts, dtype=float)
+        if init.shape != (2, table.nx, table.ny) or not np.all(np.isfinite(init)) or np.any(init < 0):
+            raise ConfigError(
+                f"initial_counts must be finite, >= 0 and shaped (2, NX, NY) = (2, {table.nx}, {table.ny}); "
+                f"got shape {init.shape}"
+            )
+        z0[:n, 0] = init[0].ravel()
+        z0[:n, 1] = init[1].ravel()
+
+    dt_out = config.output_interval_s
+    out_times = multiples(dt_out, dt_out, t_end)
+    n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
+    factors = noise_factors(config, n_noise)
+    rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
+    tracer_amount, tracer_vector = _tracer_pulse(feed, rates, m)
+
+    def run(t_start, columns, pulse_at, record):
+        return _run_columns(props, config, t_start, t_end, columns, z0_for(columns), factors, rates, record, pulse_at,
+                            tracer_vector)
+
+    def z0_for(columns):
+        z = np.zeros((m, len(columns)))
+        for col, species in enumerate(columns):
+            if species in (0, 1):
+                z[:, col] = z0[:, species]
+        return z
+
+    if pulse is not None:
+        bins = _bin_edges(pulse, config.rtd_bin_s, t_end)
+        rec_t, rec_z = run(0.0, (0, 1, 2), pulse, np.concatenate([out_times, bins]))
+        main_z = _select(rec_t, rec_z, out_times)
+        holdup_total = main_z[:, :n, 0].sum(axis=1) + main_z[:, :n, 1].sum(axis=1)
+        tracer_rec_t, tracer_rec = rec_t, rec_z[:, :, 2:3]
+        rule = "given"
+        steady_time = detect_steady_state(out_times, holdup_total, config.steady_window_s, config.steady_rel_tol)
+    else:
+        rec_t, rec_z = run(0.0, (0, 1), None, out_times)
+        main_z = _select(rec_t, rec_z, out_times)
+        holdup_total = main_z[:, :n, 0].sum(axis=1) + main_z[:, :n, 1].sum(axis=1)
+        steady_time = detect_steady_state(out_times, holdup_total, config.steady_window_s, config.steady_rel_tol)
+        pulse, rule = _choose_pulse(out_times, holdup_total, steady_time, config)
+        bins = _bin_edges(pulse, config.rtd_bin_s, t_end)
+        tracer_rec_t, tracer_rec = run(pulse, (2,), pulse, bins)
+
+    # RTD: discharged tracer at the bin edges, and exact moments from the final state.
+    tracer_at_bins = _select(tracer_rec_t, tracer_rec, bins)[:, n, 0]
+    rtd_E = np.diff(tracer_at_bins) / (tracer_amount * config.rtd_bin_s)
+    rtd_t = config.rtd_bin_s * (np.arange(rtd_E.size) + 0.5)
+    final_tracer = tracer_rec[-1, :, 0]
+    moments = rtd_moments(tracer_amount, final_tracer[:n].sum(), final_tracer[n + 1], final_tracer[n + 2],
+                          t_end - pulse)
+
+    counts = main_z[:, :n, :2].transpose(0, 2, 1).reshape(out_times.size, 2, table.nx, table.ny)
+    discharged = main_z[:, n, :2]
+    increments = np.diff(np.vstack([np.zeros(2), discharged]), axis=0)
+    fed = np.stack([cumulative_feed(out_times, rates[s], factors[:, s], config.noise_interval_s) for s in (0, 1)], 1)
+    holdup = counts.sum(axis=(2, 3))
+    minp = config.rsd_min_particles
+    rsd_outlet = rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1, min_particles=minp)
+    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, n), counts[:, 1].reshape(out_times.size, n), axis=1,
+                      min_particles=minp)
+    rsd_slices = rsd(counts[-1, 0], counts[-1, 1], axis=1, min_particles=minp)
+
+    # Steady-state means: exact, from the discharge accumulated over the span.
+    if steady_time is not None and steady_time < t_end - TIME_TOLERANCE_S:
+        span_start = steady_time
+    else:
+        span_start = max(0.0, out_times[-1] - config.steady_window_s)
+    if span_start <= TIME_TOLERANCE_S:
+        span_start, d_start = 0.0, np.zeros(2)
+    else:
+        start_idx = int(np.argmin(np.abs(out_times - span_start)))
+        span_start, d_start = float(out_times[start_idx]), discharged[start_idx]
+    span = out_times[-1] - span_start
+    d_span = discharged[-1] - d_start
+    summary = {
+        "mean_residence_time_s": moments["mean_s"],
+        "rtd_variance_s2": moments["variance_s2"],
+        "rtd_recovered_fraction": moments["recovered_fraction"],
+        "steady_outflow_per_s": float(d_span.sum() / span) if span > 0 else float("nan"),
+        "steady_C_A": float(d_span[0] / d_span.sum()) if d_span.sum() > 0 else float("nan"),
+        "final_rsd_outlet": float(rsd_outlet[-1]),
+        "final_rsd_blender": float(rsd_blender[-1]),
+        "final_rsd_by_slice": [float(v) for v in rsd_slices],
+        "holdup_final": float(holdup[-1].sum()),
+        "holdup_final_A": float(holdup[-1, 0]),
+        "holdup_final_B": float(holdup[-1, 1]),
+        "steady_state_time_s": steady_time,
+        "rtd_pulse_s": float(pulse),
+        "rtd_pulse_rule": rule,
+        "filled_compartment_windows": int(filled_mask.sum()),
+        "nx": table.nx,
+        "ny": table.ny,
+        "duration_s": t_end,
+        "method": config.method,
+    }
+    summary["wall_time_s"] = time.perf_counter() - wall0
+    return PbmResult(
+        times=out_times,
+        outflow_A=increments[:, 0] / dt_out,
+        outflow_B=increments[:, 1] / dt_out,
+        C_A=outflow_fraction_a(increments[:, 0], increments[:, 1]),
+        rsd_outlet=rsd_outlet,
+        rsd_blender=rsd_blender,
+        holdup_A=holdup[:, 0],
+        holdup_B=holdup[:, 1],
+        fed_A=fed[:, 0],
+        fed_B=fed[:, 1],
+        discharged_A=discharged[:, 0].copy(),
+        discharged_B=discharged[:, 1].copy(),
+        counts=counts,
+        rsd_by_slice_final=rsd_slices,
+        x_centres=0.5 * (table.x_edges[:-1] + table.x_edges[1:]),
+        rtd_t=rtd_t,
+        rtd_E=rtd_E,
+        rtd_pulse_s=float(pulse),
+        summary=summary,
+    )
+
+
+def _tracer_pulse(feed: np.ndarray, rates: np.ndarray, m: int) -> tuple[float, np.ndarray]:
+    total = rates.sum()
+    shape = feed @ rates / total if total > 0 else feed.mean(axis=1)
+    amount = float(total) if total > 0 else 1.0
+    vector = np.zeros(m)
+    vector[: feed.shape[0]] = amount * shape
+    return amount, vector
+
+
+def _bin_edges(pulse: float, bin_s: float, t_end: float) -> np.ndarray:
+    count = int(np.floor((t_end - pulse) / bin_s + 1e-9))
+    return pulse + bin_s * np.arange(count + 1)
+
+
+def _choose_pulse(times, holdup, steady_time, config) -> tuple[float, str]:
+    if steady_time is not None:
+        return steady_time, "steady state detected"
+    change = holdup_relative_change(times, holdup, config.steady_window_s)
+    if np.all(np.isnan(change)):
+        return 0.0, "run shorter than two steady windows: pulse at t = 0"
+    return float(times[np.nanargmin(change)]), "steady state not detected: pulse at least relative hold-up change"
+
+
+def _run_columns(props, config, t_start, t_end, columns, z0, factors, rates, record_times, pulse_at, tracer_vector):
+    """March the columns (species 0 = A, 1 = B, 2 = tracer) and record every breakpoint."""
+    table = props.table
+    noise = config.noise_sigma > 0
+    switch_sets = [table.t]
+    if noise:
+        switch_sets.append(multiples(config.noise_interval_s, t_start, t_end))
+    extra = [] if pulse_at is None else [[pulse_at]]
+    times = breakpoints(t_start, t_end, record_times, *switch_sets, *extra)
+    mids = 0.5 * (times[:-1] + times[1:])
+    feed_key = (np.floor(mids / config.noise_interval_s).astype(int) if noise else np.zeros(mids.size, int))
+    feed_key = np.clip(feed_key, 0, factors.shape[0] - 1)
+    c = len(columns)
+    injections = {}
+    if pulse_at is not None:
+        b = int(np.argmin(np.abs(times - pulse_at)))
+        inj = np.zeros((props.n_states, c))
+        inj[:, columns.index(2)] = tracer_vector
+        injections[b] = inj
+
+    def feed_rates(key: int) -> np.ndarray:
+        r = np.zeros((2, c))
+        for col, species in enumerate(columns):
+            if species in (0, 1):
+                r[species, col] = rates[species] * factors[key, species]
+        return r
+
+    out = np.empty((times.size, props.n_states, c))
+    out[0] = z0 + injections.get(0, 0.0)
+    for b, z in march(props, times, z0, feed_rates, feed_key, injections, method=config.method,
+                      rtol=config.bdf_rtol, atol=BDF_ATOL_PARTICLES):
+        out[b] = z
+    return times, out
+
+
+def _select(times: np.ndarray, states: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    idx = np.searchsorted(times, np.asarray(wanted) - TIME_TOLERANCE_S)
+    return states[np.clip(idx, 0, times.size - 1)]
+
+
+# --------------------------------------------------------------------------- outputs
+
+TIMESERIES_COLUMNS = ("t_s", "outflow_A_per_s", "outflow_B_per_s", "C_A", "rsd_outlet", "rsd_blender",
+                      "holdup_A", "holdup_B")
+
+
+def timeseries_table(result: PbmResult) -> np.ndarray:
+    """(K, 8) array in the column order of ``timeseries.csv`` (:data:`TIMESERIES_COLUMNS`)."""
+    return np.column_stack([result.times, result.outflow_A, result.outflow_B, result.C_A, result.rsd_outlet,
+                            result.rsd_blender, result.holdup_A, result.holdup_B])
+
+
+def _json_ready(value):
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) -> dict[str, Path]:
+    """Write ``timeseries.csv``, ``rtd.csv``, ``summary.json`` and (if ``figures``) PNGs.
+
+    CSVs: comma-separated, a header line, ``nan`` where a value is undefined (C_A before
+    anything leaves, RSD with fewer than two occupied compartments). JSON: NaN -> null.
+    Returns name -> path of every file written.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    paths["timeseries"] = out / "timeseries.csv"
+    np.savetxt(paths["timeseries"], timeseries_table(result), delimiter=",", header=",".join(TIMESERIES_COLUMNS),
+               comments="", fmt="%.10g")
+    paths["rtd"] = out / "rtd.csv"
+    np.savetxt(paths["rtd"], np.column_stack([result.rtd_t, result.rtd_E]), delimiter=",", header="t_s,E_per_s",
+               comments="", fmt="%.10g")
+    paths["summary"] = out / "summary.json"
+    paths["summary"].write_text(json.dumps(_json_ready(result.summary), indent=2, allow_nan=False) + "\n")
+    if figures:
+        from pbm.plots import save_figures
+
+        paths.update(save_figures(result, out))
+    return paths

@@ -1,0 +1,249 @@
+"""Propagation of the piecewise-constant linear system dz/dt = G_k z + F r(t).
+
+Between two consecutive *breakpoints* (output times, table-window switches, feed-noise
+redraws, the tracer pulse, RTD bin edges) the generator ``G_k`` and the feed rates ``r``
+are constant, so the exact solution over a step of length h is
+
+    z(t + h) = P z(t) + Q r,     P = expm(G h),   Q = int_0^h expm(G s) ds F,
+
+and both blocks come from one matrix exponential of the augmented matrix
+``[[G, F], [0, 0]] h`` (Van Loan's trick). ``P`` and ``Q`` depend only on the window and
+on h, so they are computed once per (window, h) and reused by every step, every species
+and every ensemble member: a step is then one small dense matrix product.
+
+``method="bdf"`` integrates the same system with scipy's ``solve_ivp`` (BDF, sparse
+analytic Jacobian) instead; it is the independent cross-check of the exact path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.integrate import solve_ivp
+from scipy.linalg.lapack import dgesv as _dgesv
+
+from coupling.errors import PbmDemError
+from coupling.tables import VelocityTable
+from pbm.model import N_ACCUMULATORS, generator_matrix, generator_sparse
+
+# Times closer than this are the same breakpoint [s]: it absorbs the rounding of k * dt.
+TIME_TOLERANCE_S = 1e-9
+
+_PADE13 = (
+    64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
+    129060195264000.0, 10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0,
+    40840800.0, 960960.0, 16380.0, 182.0, 1.0,
+)
+_THETA13 = 5.371920351148152
+
+
+class SolverError(PbmDemError):
+    """The BDF cross-check failed to integrate a step (its message is scipy's)."""
+
+
+def expm_pade13(a: np.ndarray) -> np.ndarray:
+    """Matrix exponential by scaling and squaring with the [13/13] Pade approximant.
+
+    Higham (2005), with a diagonal shift: ``expm(A) = exp(-mu) expm(A + mu I)``. For a
+    population generator the diagonal holds minus the leaving rates, so shifting by the
+    largest leaving rate roughly halves the 1-norm and saves one squaring per matrix.
+    Accurate to about machine precision relative to the norm of the result. Written out
+    (rather than scipy.linalg.expm) to apply the shift and to keep temporaries few: this
+    is the hot loop of every PBM run.
+    """
+    n = a.shape[0]
+    diagonal = np.arange(n) * (n + 1)
+    mu = max(0.0, -float(a.flat[diagonal].min()))
+    norm_plain = np.abs(a).sum(axis=0).max()
+    shifted = a.copy()
+    shifted.flat[diagonal] += mu
+    norm_shifted = np.abs(shifted).sum(axis=0).max()
+    # Keep the shift only when it helps: it must never increase the norm.
+    if norm_shifted >= norm_plain:
+        shifted, mu, norm_shifted = a.copy(), 0.0, norm_plain
+    s = max(0, int(np.ceil(np.log2(norm_shifted / _THETA13)))) if norm_shifted > 0 else 0
+    x = shifted
+    x *= 0.5**s
+    b = _PADE13
+    x2 = x @ x
+    x4 = x2 @ x2
+    x6 = x4 @ x2
+    inner_u = b[13] * x6
+    inner_u += b[11] * x4
+    inner_u += b[9] * x2
+    u_half = x6 @ inner_u
+    u_half += b[7] * x6
+    u_half += b[5] * x4
+    u_half += b[3] * x2
+    u_half.flat[diagonal] += b[1]
+    u = x @ u_half
+    inner_v = b[12] * x6
+    inner_v += b[10] * x4
+    inner_v += b[8] * x2
+    v = x6 @ inner_v
+    v += b[6] * x6
+    v += b[4] * x4
+    v += b[2] * x2
+    v.flat[diagonal] += b[0]
+    # r = (v - u)^-1 (v + u), by one LU solve with many right-hand sides.
+    r = _solve(v - u, v + u)
+    for _ in range(s):
+        r = r @ r
+    if mu:
+        r *= np.exp(-mu)
+    return r
+
+
+def _solve(lhs: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    lu, piv, x, info = _dgesv(lhs, rhs, overwrite_a=True, overwrite_b=True)
+    if info != 0:
+        raise SolverError(f"singular Pade denominator in the matrix exponential (LAPACK dgesv info {info})")
+    return x
+
+
+def breakpoints(t_start: float, t_end: float, *time_sets: np.ndarray) -> np.ndarray:
+    """Sorted, de-duplicated times in [t_start, t_end], both ends included [s]."""
+    times = np.concatenate([np.atleast_1d(np.asarray(ts, dtype=float)) for ts in time_sets] + [[t_start, t_end]])
+    times = np.sort(times[(times >= t_start - TIME_TOLERANCE_S) & (times <= t_end + TIME_TOLERANCE_S)])
+    keep = np.concatenate([[True], np.diff(times) > TIME_TOLERANCE_S])
+    times = times[keep]
+    times[0], times[-1] = t_start, t_end
+    return times
+
+
+def multiples(step: float, t_start: float, t_end: float) -> np.ndarray:
+    """Multiples of ``step`` inside [t_start, t_end] (computed as k * step, no drift)."""
+    k0 = int(np.ceil(t_start / step - 1e-9))
+    k1 = int(np.floor(t_end / step + 1e-9))
+    return step * np.arange(k0, k1 + 1, dtype=float)
+
+
+@dataclass
+class Propagators:
+    """Exact step operators of one (filled) table and one feed distribution, cached.
+
+    ``feed`` is (n, 2): the inlet distribution of one particle/s of A and of B.
+    :meth:`step` returns ``(P, Q)`` with P (m, m) and Q (m, 2), m = n + 3.
+    """
+
+    table: VelocityTable
+    feed: np.ndarray
+    _cache: dict = field(default_factory=dict, repr=False)
+    _generators: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def n_states(self) -> int:
+        return self.feed.shape[0] + N_ACCUMULATORS
+
+    def generator(self, k: int) -> np.ndarray:
+        if k not in self._generators:
+            self._generators[k] = generator_matrix(self.table, k)
+        return self._generators[k]
+
+    def step(self, k: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+        key = (k, round(h / TIME_TOLERANCE_S))
+        if key not in self._cache:
+            m = self.n_states
+            aug = np.zeros((m + 2, m + 2))
+            aug[:m, :m] = self.generator(k)
+            aug[: self.feed.shape[0], m:] = self.feed
+            e = expm_pade13(aug * h)
+            self._cache[key] = (np.ascontiguousarray(e[:m, :m]), np.ascontiguousarray(e[:m, m:]))
+        return self._cache[key]
+
+
+def march(
+    props: Propagators,
+    times: np.ndarray,
+    z0: np.ndarray,
+    feed_rates: Callable[[int], np.ndarray],
+    feed_key: np.ndarray,
+    injections: dict[int, np.ndarray] | None = None,
+    method: str = "expm",
+    rtol: float = 1e-6,
+    atol: float = 1e-9,
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Propagate the state matrix ``z0`` (m, c) through the breakpoints ``times``.
+
+    Yields ``(b, z)`` after each breakpoint b = 1..len(times)-1 (z is the live state: copy
+    it to keep it). ``feed_key[s]`` (int per step) labels the feed in force during step s
+    (times[s] to times[s+1]); ``feed_rates(key)`` returns the (2, c) feed-rate matrix
+    [particles/s]: row 0 feed A and row 1 feed B into each column. ``injections[b]`` is
+    added to the state at breakpoint b before stepping on (a Dirac pulse). The window in
+    force is read at each step's midpoint, so window switches must be breakpoints.
+    """
+    injections = injections or {}
+    z = np.array(z0, dtype=float, copy=True)
+    if 0 in injections:
+        z += injections[0]
+    mids = 0.5 * (times[:-1] + times[1:])
+    # The window in force (the last one beyond the table's end), as VelocityTable.window_index.
+    windows = np.clip(np.searchsorted(props.table.t, mids, side="right") - 1, 0, props.table.n_windows - 1)
+    if method == "expm":
+        steps = np.diff(times)
+        feed_cache: dict[int, np.ndarray] = {}
+        for s in range(times.size - 1):
+            p, q = props.step(int(windows[s]), float(steps[s]))
+            key = int(feed_key[s])
+            if key not in feed_cache:
+                feed_cache = {key: feed_rates(key)}  # keys arrive in order: keep only the current
+            z = p @ z
+            z += q @ feed_cache[key]
+            if s + 1 in injections:
+                z += injections[s + 1]
+            yield s + 1, z
+        return
+    if method != "bdf":
+        raise ValueError(f"unknown method {method!r}; valid: 'expm', 'bdf'")
+    yield from _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol)
+
+
+def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol):
+    n = props.feed.shape[0]
+    m, c = z.shape
+    feed = np.zeros((m, 2))
+    feed[:n] = props.feed
+    s = 0
+    n_steps = times.size - 1
+    while s < n_steps:
+        # A piece: the longest run of steps with one window, one feed and no pulse inside.
+        e = s + 1
+        while e < n_steps and windows[e] == windows[s] and feed_key[e] == feed_key[s] and e not in injections:
+            e += 1
+        gen = generator_sparse(props.table, int(windows[s]))
+        jac = sp.kron(sp.identity(c, format="csr"), gen, format="csr")
+        source = (feed @ feed_rates(int(feed_key[s]))).T.ravel()
+
+        def rhs(_t, y, gen=gen, source=source):
+            return _rhs(y, gen, source, c, m)
+
+        # Accumulators restart from 0 on each piece so that their size, which grows all
+        # run long, does not loosen the relative tolerance on the per-interval increments.
+        start = z.copy()
+        local = z.copy()
+        local[n:] = 0.0
+        t0 = times[s]
+        sol = solve_ivp(
+            rhs, (t0, times[e]), local.T.ravel(), method="BDF", t_eval=times[s + 1 : e + 1],
+            jac=jac, rtol=rtol, atol=atol,
+        )
+        if not sol.success:
+            raise SolverError(f"BDF failed between t = {t0:.6g} s and {times[e]:.6g} s: {sol.message}")
+        for col, b in enumerate(range(s + 1, e + 1)):
+            z = sol.y[:, col].reshape(c, m).T.copy()
+            dt = times[b] - t0
+            z[n] += start[n]
+            z[n + 2] += start[n + 2] + start[n + 1] * dt
+            z[n + 1] += start[n + 1]
+            if b in injections:
+                z += injections[b]
+            yield b, z
+        s = e
+
+
+def _rhs(y: np.ndarray, gen: sp.csr_matrix, source: np.ndarray, c: int, m: int) -> np.ndarray:
+    # y holds the columns of z one after the other, so y.reshape(c, m) is z transposed.
+    return (gen @ y.reshape(c, m).T).T.ravel() + source
