@@ -109,7 +109,9 @@ def dump_paths(pattern: str | os.PathLike | Sequence[str | os.PathLike]) -> list
 
 
 def iter_snapshots(
-    paths: str | os.PathLike | Iterable[str | os.PathLike], columns: Sequence[str] | None = None
+    paths: str | os.PathLike | Iterable[str | os.PathLike],
+    columns: Sequence[str] | None = None,
+    threads: int | None = None,
 ) -> Iterator[Snapshot]:
     """Snapshots of one or several dump files, in file order then file position.
 
@@ -117,29 +119,80 @@ def iter_snapshots(
     ``columns``: if given, every snapshot must carry these columns (DumpFormatError naming
     the missing one otherwise). Steps must increase strictly across the whole sequence.
     A snapshot cut short at the end of the last file is dropped with TruncatedDumpWarning.
+    ``threads``: per-snapshot files are parsed ahead by this many threads (pandas' parser
+    releases the GIL), at most ``threads`` files in flight, so memory stays flat; default
+    min(2, CPUs); 1 parses in the caller's thread only.
     """
     if isinstance(paths, (str, os.PathLike)):
         files = dump_paths(paths) if any(c in str(paths) for c in "*?[") else [Path(paths)]
     else:
         files = [Path(p) for p in paths]
+    threads = max(1, int(threads if threads is not None else min(2, os.cpu_count() or 1)))
     last_step = None
-    for index, path in enumerate(files):
-        is_last_file = index == len(files) - 1
-        for snap in _iter_file(path, allow_truncated=is_last_file):
-            if last_step is not None and snap.step <= last_step:
-                raise DumpFormatError(
-                    f"{path}: snapshot step {snap.step} does not follow the previous step {last_step}; "
-                    "dump files must be given in time order without duplicates"
-                )
-            if columns is not None:
-                for name in columns:
-                    if name not in snap.columns:
-                        raise DumpFormatError(
-                            f"{path}: snapshot at step {snap.step} has no column {name!r}; "
-                            f"its ITEM: ATOMS header lists {' '.join(snap.columns)}"
-                        )
-            last_step = snap.step
-            yield snap
+    for path, snap in _snapshots_of_files(files, threads):
+        if last_step is not None and snap.step <= last_step:
+            raise DumpFormatError(
+                f"{path}: snapshot step {snap.step} does not follow the previous step {last_step}; "
+                "dump files must be given in time order without duplicates"
+            )
+        if columns is not None:
+            for name in columns:
+                if name not in snap.columns:
+                    raise DumpFormatError(
+                        f"{path}: snapshot at step {snap.step} has no column {name!r}; "
+                        f"its ITEM: ATOMS header lists {' '.join(snap.columns)}"
+                    )
+        last_step = snap.step
+        yield snap
+
+
+def _snapshots_of_files(files: list[Path], threads: int) -> Iterator[tuple[Path, Snapshot]]:
+    last = len(files) - 1
+    if threads == 1 or len(files) < 2:
+        for index, path in enumerate(files):
+            for snap in _iter_file(path, allow_truncated=index == last):
+                yield path, snap
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="dump-reader") as pool:
+        pending: deque = deque()
+        next_index = 0
+        try:
+            while pending or next_index <= last:
+                while next_index <= last and len(pending) < threads:
+                    path = files[next_index]
+                    pending.append((path, next_index == last, pool.submit(_load_single_file, path, next_index == last)))
+                    next_index += 1
+                path, allow, future = pending.popleft()
+                loaded = future.result()
+                if loaded is None:  # several snapshots in this file: stream it here
+                    for snap in _iter_file(path, allow_truncated=allow):
+                        yield path, snap
+                    continue
+                snap, messages = loaded
+                for message in messages:  # warnings are issued in the caller's thread
+                    warnings.warn(message, TruncatedDumpWarning, stacklevel=4)
+                if snap is not None:
+                    yield path, snap
+        finally:
+            for _, _, future in pending:
+                future.cancel()
+
+
+def _load_single_file(path: Path, allow_truncated: bool):
+    """Worker: ``(snapshot or None, warning messages)`` for a file of at most one snapshot;
+    None if the file holds more than one (the caller streams it instead)."""
+    messages: list[str] = []
+    snaps = _iter_file(path, allow_truncated, warn=messages.append)
+    try:
+        first = next(snaps, None)
+        if first is not None and next(snaps, None) is not None:
+            return None
+    finally:
+        snaps.close()
+    return first, messages
 
 
 def read_snapshot_file(path: str | os.PathLike) -> list[Snapshot]:
@@ -156,7 +209,14 @@ class _Truncated(Exception):
     pass
 
 
-def _iter_file(path: Path, allow_truncated: bool) -> Iterator[Snapshot]:
+def _iter_file(path: Path, allow_truncated: bool, warn=None) -> Iterator[Snapshot]:
+    """Snapshots of one file; a truncated last snapshot is reported through ``warn(message)``
+    (default: a TruncatedDumpWarning) when ``allow_truncated``, else DumpFormatError."""
+    if warn is None:
+
+        def warn(message: str) -> None:
+            warnings.warn(message, TruncatedDumpWarning, stacklevel=4)
+
     try:
         size = path.stat().st_size
         handle = open(path, "rb")
@@ -165,15 +225,23 @@ def _iter_file(path: Path, allow_truncated: bool) -> Iterator[Snapshot]:
     with handle:
         if size == 0:
             if allow_truncated:
-                warnings.warn(f"{path}: empty dump file (killed run?) ignored", TruncatedDumpWarning, stacklevel=3)
+                warn(f"{path}: empty dump file (killed run?) ignored")
                 return
             raise DumpFormatError(f"{path}: line 1: empty dump file")
-        # Small files (one snapshot each) are read whole; big multi-snapshot files are mapped so
-        # that only the snapshot being parsed is resident.
-        buf = handle.read() if size < (64 << 20) else mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
+        # Mapped, not read: headers are found without copying the file, and only the snapshot
+        # being parsed is resident.
+        buf = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
         try:
             pos = 0
             while pos < size:
+                if pos == 0:
+                    try:
+                        single = _parse_single(buf, size, path)
+                    except _Truncated:
+                        single = None  # the general path below reports it
+                    if single is not None:
+                        yield single
+                        return
                 try:
                     snap, pos = _parse_snapshot(buf, pos, size, path)
                 except _Truncated as exc:
@@ -182,21 +250,45 @@ def _iter_file(path: Path, allow_truncated: bool) -> Iterator[Snapshot]:
                             f"{path}: line {_line_of(buf, pos)}: snapshot cut short ({exc}) in a file "
                             "that is not the last of the sequence"
                         ) from None
-                    warnings.warn(
-                        f"{path}: last snapshot (from line {_line_of(buf, pos)}) is cut short ({exc}); "
-                        "dropped (killed run?)",
-                        TruncatedDumpWarning,
-                        stacklevel=3,
-                    )
+                    warn(f"{path}: last snapshot (from line {_line_of(buf, pos)}) is cut short ({exc}); dropped (killed run?)")
                     return
                 yield snap
         finally:
-            if isinstance(buf, mmap.mmap):
-                buf.close()
+            buf.close()
 
 
 def _line_of(buf, pos: int) -> int:
-    return buf.count(b"\n", 0, pos) + 1 if not isinstance(buf, mmap.mmap) else bytes(buf[:pos]).count(b"\n") + 1
+    return bytes(buf[:pos]).count(b"\n") + 1
+
+
+def _parse_single(buf, size: int, path: Path) -> Snapshot | None:
+    """Fast path for a file holding exactly one complete snapshot (the deck's layout):
+    pandas' C parser reads the numbers straight from the file after the 9 header lines,
+    exactly like the plain ``read_csv`` baseline but with float64 declared (no type
+    inference). Returns None when the file is not such a file (general path then)."""
+    if buf[size - 1 : size] != b"\n":
+        return None
+    step, natoms, box, columns, body_start, header_lines = _parse_header(buf, 0, size, path)
+    if natoms == 0 or buf.find(_NEXT, body_start) >= 0:
+        return None
+    try:
+        frame = pd.read_csv(path, sep=" ", header=None, skiprows=header_lines, dtype=np.float64, engine="c")
+    except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
+        return None
+    values = _checked_values(frame.to_numpy(), natoms, len(columns))
+    if values is None:
+        return None
+    return Snapshot(step=step, columns=columns, data=values, box=box, source=str(path))
+
+
+def _checked_values(values: np.ndarray, natoms: int, ncols: int) -> np.ndarray | None:
+    # LIGGGHTS ends every atom line with a space: pandas sees an empty last column, which is
+    # left out by a view (no copy).
+    if values.shape[1] == ncols + 1 and np.isnan(values[:, -1]).all():
+        values = values[:, :ncols]
+    if values.shape != (natoms, ncols) or np.isnan(values).any():
+        return None
+    return values
 
 
 def _read_line(buf, pos: int, size: int, path: Path) -> tuple[bytes, int]:
@@ -206,8 +298,8 @@ def _read_line(buf, pos: int, size: int, path: Path) -> tuple[bytes, int]:
     return bytes(buf[pos:end]).rstrip(b"\r"), end + 1
 
 
-def _parse_snapshot(buf, pos: int, size: int, path: Path) -> tuple[Snapshot, int]:
-    start = pos
+def _parse_header(buf, pos: int, size: int, path: Path):
+    """(step, natoms, box, columns, body_start, header_lines) of the snapshot at ``pos``."""
 
     def fail(at: int, message: str) -> DumpFormatError:
         return DumpFormatError(f"{path}: line {_line_of(buf, at)}: {message}")
@@ -246,9 +338,12 @@ def _parse_snapshot(buf, pos: int, size: int, path: Path) -> tuple[Snapshot, int
     columns = tuple(line[len(b"ITEM: ATOMS") :].decode().split())
     if not columns or len(set(columns)) != len(columns):
         raise fail(pos, f"ITEM: ATOMS header must name distinct columns, got {columns}")
-    pos = nxt
-    body_start = pos
-    end = buf.find(_NEXT, pos)
+    return step, natoms, box, columns, nxt, 9
+
+
+def _parse_snapshot(buf, pos: int, size: int, path: Path) -> tuple[Snapshot, int]:
+    step, natoms, box, columns, body_start, _ = _parse_header(buf, pos, size, path)
+    end = buf.find(_NEXT, body_start)
     if end < 0:
         end = size
     block = bytes(buf[body_start:end])
@@ -282,13 +377,10 @@ def _parse_block(block: bytes, natoms: int, ncols: int, path: Path, buf, body_st
         frame = pd.read_csv(io.BytesIO(block), sep=" ", header=None, dtype=np.float64, engine="c")
     except (ValueError, pd.errors.ParserError) as exc:
         raise _locate_bad_line(block, ncols, path, buf, body_start, str(exc)) from None
-    values = frame.to_numpy()
-    # LIGGGHTS ends every atom line with a space: pandas sees an empty last column.
-    if values.shape[1] == ncols + 1 and np.isnan(values[:, -1]).all():
-        values = values[:, :ncols]
-    if values.shape != (natoms, ncols) or np.isnan(values).any():
+    values = _checked_values(frame.to_numpy(), natoms, ncols)
+    if values is None:
         raise _locate_bad_line(block, ncols, path, buf, body_start, f"expected {natoms} lines of {ncols} numbers")
-    return np.ascontiguousarray(values)
+    return values
 
 
 def _locate_bad_line(block: bytes, ncols: int, path: Path, buf, body_start: int, why: str) -> DumpFormatError:

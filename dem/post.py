@@ -71,12 +71,12 @@ __all__ = [
     "rsd_of_fractions",
     "read_massflow",
     "massflow_files",
+    "massflow_patterns",
     "DEFAULT_TYPES_A",
     "DEFAULT_TYPES_B",
 ]
 
-# Atom types of the two components. The deck writer may override these with module constants
-# ``TYPES_A`` / ``TYPES_B`` in dem.deck (looked up at call time).
+# Atom types of the two components when dem.deck.ATOM_TYPES does not say (it does: 1 and 2).
 DEFAULT_TYPES_A = (1,)
 DEFAULT_TYPES_B = (2,)
 REQUIRED_COLUMNS = ("id", "type", "x", "y", "vx", "vy")
@@ -136,18 +136,22 @@ def random_mixture_rsd(count_a: np.ndarray, count_b: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------- massflow
-def massflow_files(directory: str | os.PathLike | None, pattern: str | None = None) -> list[Path]:
-    """The solver's per-particle discharge files in ``directory`` (per-rank ``.N`` suffixes
-    included). ``pattern`` defaults to the deck's ``MASSFLOW_GLOB`` or ``massflow*``."""
+def massflow_patterns() -> list[str]:
+    """Glob patterns of the solver's per-particle discharge files, relative to the run
+    directory: the deck's ``MASSFLOW_FILES`` plus any suffix (``.0``/``.1`` per MPI rank,
+    ``.upto<step>`` for the part of a resumed run before its restart)."""
+    names = list(_deck_constant("MASSFLOW_FILES", {}).values()) or ["massflow*"]
+    return [pattern for name in names for pattern in (name, name + ".*")]
+
+
+def massflow_files(directory: str | os.PathLike | None, patterns: Sequence[str] | None = None) -> list[Path]:
+    """The solver's per-particle discharge files found in ``directory`` (see
+    :func:`massflow_patterns`); empty if ``directory`` is None or holds none."""
     if directory is None:
         return []
-    if pattern is None:
-        pattern = _deck_constant("MASSFLOW_GLOB", "massflow*")
-    patterns = [pattern] if isinstance(pattern, str) else list(pattern)
     found: set[Path] = set()
-    for pat in patterns:
-        found.update(Path(p) for p in _glob.glob(str(Path(directory) / pat)))
-        found.update(Path(p) for p in _glob.glob(str(Path(directory) / (pat + ".[0-9]*"))))
+    for pattern in patterns or massflow_patterns():
+        found.update(Path(p) for p in _glob.glob(str(Path(directory) / pattern)))
     return sorted(p for p in found if p.is_file())
 
 
@@ -269,8 +273,9 @@ def postprocess(
     nx, ny = int(tables.nx), int(tables.ny)
     window = float(tables.window_s)
     interval = float(tables.sample_interval_s)
-    types_a = tuple(types_a if types_a is not None else _deck_constant("TYPES_A", DEFAULT_TYPES_A))
-    types_b = tuple(types_b if types_b is not None else _deck_constant("TYPES_B", DEFAULT_TYPES_B))
+    deck_types = _deck_constant("ATOM_TYPES", {})
+    types_a = tuple(types_a if types_a is not None else ((deck_types["A"],) if "A" in deck_types else DEFAULT_TYPES_A))
+    types_b = tuple(types_b if types_b is not None else ((deck_types["B"],) if "B" in deck_types else DEFAULT_TYPES_B))
     steady_window_s = float(steady_window_s if steady_window_s is not None else window)
     dx, dy = length / nx, diameter / ny
     # Snapshot times are step x dt: within half a timestep of a boundary counts as on it.

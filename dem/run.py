@@ -62,6 +62,9 @@ STATUS_FILE = "status.json"
 SOLVER_OUT = "solver.out"
 LOG_FILE = "log.liggghts"
 MAIN_INPUT = "in.blender"
+# thermo columns (dem.deck.THERMO_COLUMNS) summed into the solver's own counters
+DISCHARGED_COLUMNS = ("f_outA[2]", "f_outB[2]")
+INSERTED_COLUMNS = ("f_insA[1]", "f_insB[1]")
 
 
 @dataclass
@@ -200,11 +203,12 @@ class ThermoParser:
     ``discharged_columns``: names whose sum is the solver's discharge count (the deck's
     massflow counters); ``inserted_columns`` likewise for insertion counters."""
 
-    def __init__(self, discharged_columns=(), inserted_columns=()) -> None:
+    def __init__(self, discharged_columns=(), inserted_columns=(), columns=()) -> None:
         self.header: list[str] | None = None
         self.latest: dict[str, float] = {}
         self.discharged_columns = tuple(discharged_columns)
         self.inserted_columns = tuple(inserted_columns)
+        self.columns = tuple(columns)
 
     def feed(self, line: str) -> bool:
         """Consume one line; True if it was a thermo data row."""
@@ -212,7 +216,7 @@ class ThermoParser:
         if not tokens:
             return False
         if tokens[0] == "Step":
-            self.header = tokens
+            self.header = self._names(tokens)
             return False
         if self.header is None or len(tokens) != len(self.header):
             return False
@@ -222,6 +226,18 @@ class ThermoParser:
             return False
         self.latest = dict(zip(self.header, values))
         return True
+
+    def _names(self, printed: list[str]) -> list[str]:
+        """LIGGGHTS 3.8.0 prints thermo names without their ``v_``/``f_`` prefix and cut to a
+        few characters (``f_tscheck[1]`` -> ``tscheck[``): when the printed header matches the
+        deck's declared columns that way, the declared names are used."""
+        if len(printed) != len(self.columns):
+            return printed
+        for shown, declared in zip(printed, self.columns):
+            bare = declared[2:] if declared[:2] in ("v_", "f_", "c_") else declared
+            if not (bare.startswith(shown) or declared == shown):
+                return printed
+        return list(self.columns)
 
     @property
     def step(self) -> int | None:
@@ -283,32 +299,54 @@ class _Progress:
 
 
 # ----------------------------------------------------------------------------- run
+def _step_of(path: Path) -> int:
+    numbers = re.findall(r"\d+", path.name)
+    return int(numbers[-1]) if numbers else -1
+
+
 def _restart_files(run_dir: Path) -> list[Path]:
-    pattern = _deck_constant("RESTART_GLOB", "restart/*.restart")
+    pattern = _deck_constant("RESTART_GLOB", "restart/*.bin")
     files = [p for p in run_dir.glob(pattern) if p.is_file() and p.stat().st_size > 0]
-
-    def step(p: Path) -> int:
-        numbers = re.findall(r"\d+", p.name)
-        return int(numbers[-1]) if numbers else -1
-
-    return sorted(files, key=step)
+    return sorted(files, key=_step_of)
 
 
 def _clear_outputs(run_dir: Path) -> None:
     """Remove a previous attempt's outputs so they can never mix with a new run's."""
+    from dem.post import massflow_patterns
+
     for name in (LOG_FILE, SOLVER_OUT, STATUS_FILE):
         (run_dir / name).unlink(missing_ok=True)
-    for pattern in (
-        _deck_constant("DUMP_GLOB", "dumps/dump.*.txt"),
-        _deck_constant("MASSFLOW_GLOB", "massflow*"),
-        _deck_constant("RESTART_GLOB", "restart/*.restart"),
-    ):
+    patterns = [_deck_constant("DUMP_GLOB", "dumps/dump.*.txt"), _deck_constant("RESTART_GLOB", "restart/*.bin"),
+                *massflow_patterns()]
+    for pattern in patterns:
         for path in run_dir.glob(pattern):
             if path.is_file():
                 path.unlink()
-        for path in run_dir.glob(pattern + ".[0-9]*"):
-            if path.is_file():
-                path.unlink()
+
+
+def _set_aside_massflow(run_dir: Path, restart_step: int, dt: float) -> None:
+    """Before a resume: LIGGGHTS reopens the discharge files for writing (``file``
+    truncates them), so the records written before the crash are moved to
+    ``<name>.upto<step>``, keeping only the particles discharged up to the restart step
+    (the resumed run discharges the later ones again)."""
+    limit = restart_step * dt + 0.5 * dt
+    names = list(_deck_constant("MASSFLOW_FILES", {}).values())
+    for name in names:
+        for path in sorted(run_dir.glob(name)) + sorted(run_dir.glob(name + ".[0-9]")) + sorted(run_dir.glob(name + ".[0-9][0-9]")):
+            kept = []
+            for line in path.read_text(errors="replace").splitlines():
+                fields = line.split()
+                if line.startswith("#") or len(fields) < 2:
+                    kept.append(line)
+                    continue
+                try:
+                    if float(fields[1]) <= limit:
+                        kept.append(line)
+                except ValueError:
+                    continue  # a line cut by the crash
+            target = path.with_name(f"{path.name}.upto{restart_step}")
+            target.write_text("\n".join(kept) + "\n")
+            path.unlink()
 
 
 def run_dem(
@@ -337,7 +375,7 @@ def run_dem(
     deck = _deck_module()
     dem = getattr(config, "dem", config)
     run_config = dem.run
-    files = deck.build_deck(config)
+    files = deck.build_deck(dem)
     deck_digest = run_key(files, "")
     try:
         version = liggghts_version(run_config.liggghts)
@@ -373,26 +411,19 @@ def run_dem(
             )
         restart = restarts[-1]
         resumed_from = str(restart.relative_to(run_dir))
-        builder = getattr(deck, "build_resume_deck", None)
-        if builder is None:
-            raise DeckError("dem.deck has no build_resume_deck(config, restart_file); cannot resume")
-        run_files = builder(config, resumed_from)
-        main_input = getattr(deck, "RESUME_INPUT", "in.resume")
-        if isinstance(run_files, dict) and main_input not in run_files:
-            main_input = next((n for n in run_files if n.startswith("in.")), main_input)
+        run_files = deck.build_deck(dem, resume_from=resumed_from)
+        main_input = deck.RESUME_DECK
+        _set_aside_massflow(run_dir, _step_of(restart), float(dem.timestep_s))
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
         _clear_outputs(run_dir)
         run_files = files
-        main_input = getattr(deck, "MAIN_INPUT", MAIN_INPUT)
+        main_input = deck.MAIN_DECK
 
     command = solver_command(run_config, nprocs, main_input)
     # Never edit a deck in place while LIGGGHTS may read it (DESIGN.md): the run directory is
     # ours alone and the files are written before the solver starts.
     deck.write_deck(run_files, run_dir)
-    (run_dir / getattr(deck, "DUMP_DIR", "dumps")).mkdir(exist_ok=True)
-    restart_dir = getattr(deck, "RESTART_DIR", "restart")
-    (run_dir / restart_dir).mkdir(exist_ok=True)
 
     started = _now()
     base = {
@@ -409,14 +440,8 @@ def run_dem(
 
     dt = float(dem.timestep_s)
     duration = float(dem.operation.duration_s)
-    parser = ThermoParser(
-        discharged_columns=getattr(deck, "THERMO_DISCHARGED_COLUMNS", ()),
-        inserted_columns=getattr(deck, "THERMO_INSERTED_COLUMNS", ()),
-    )
-    start_s = 0.0
-    if resumed_from:
-        numbers = re.findall(r"\d+", Path(resumed_from).name)
-        start_s = int(numbers[-1]) * dt if numbers else 0.0
+    parser = ThermoParser(DISCHARGED_COLUMNS, INSERTED_COLUMNS, getattr(deck, "THERMO_COLUMNS", ()))
+    start_s = _step_of(Path(resumed_from)) * dt if resumed_from else 0.0
     bar = _Progress(duration, start_s, progress)
     t0 = time.monotonic()
     error_lines: list[str] = []

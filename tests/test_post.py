@@ -205,8 +205,8 @@ def test_massflow_file_gives_exit_times_and_crosscheck(tmp_path):
         if pid != 33 and np.isfinite(exit_s):
             lines.append(f"{pid}  {exit_s - 0.2:.4g}  0.003 0.331 0 0 0.1 0 0")
     half = len(lines) // 2
-    (tmp_path / "massflow_A.txt.0").write_text("\n".join(lines[:half]) + "\n")
-    (tmp_path / "massflow_A.txt.1").write_text("\n".join(lines[:1] + lines[half:]) + "\n")
+    (tmp_path / "discharge_A.txt.0").write_text("\n".join(lines[:half]) + "\n")
+    (tmp_path / "discharge_A.txt.1").write_text("\n".join(lines[:1] + lines[half:]) + "\n")
     res = postprocess(str(tmp_path / "dump.*.txt"), cfg, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1})
     s = res.summary
     assert s["massflow_discharged"] == len(lines) - 1
