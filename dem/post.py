@@ -293,8 +293,10 @@ def postprocess(
     reappeared = 0
     other_types: set[int] = set()
 
+    last_step = -1
     for snap in iter_snapshots(dump_paths, columns=REQUIRED_COLUMNS):
         t = snap.time_s(dt)
+        last_step = snap.step
         n_snapshots += 1
         ids = snap["id"].astype(np.int64)
         ptype = snap["type"].astype(np.int64)
@@ -418,14 +420,20 @@ def postprocess(
     vanished = seen & np.isnan(particles.exit_t) & ~np.isnan(particles.vanish_t)
     mf_paths = massflow_files(massflow_dir)
     massflow_discharged = None
+    massflow_discharged_by_last_dump = None
     massflow_unseen = 0
     if mf_paths:
         mf_ids, mf_t = read_massflow(mf_paths)
         massflow_discharged = int(mf_ids.size)
         if np.unique(mf_ids).size != mf_ids.size:
             warn_list.append(f"massflow files list {mf_ids.size - np.unique(mf_ids).size} IDs more than once")
+        if mf_t is not None:
+            # compare at the same instant: records after the last dump are not in our count
+            massflow_discharged_by_last_dump = int((mf_t <= t_last + tol).sum())
         in_range = mf_ids < particles.size
         massflow_unseen = int((~in_range).sum() + (~seen[mf_ids[in_range]]).sum())
+        if massflow_discharged_by_last_dump is None:
+            massflow_discharged_by_last_dump = massflow_discharged
         listed = np.zeros(particles.size, bool)
         listed[mf_ids[in_range]] = True
         use = vanished & listed
@@ -580,13 +588,27 @@ def postprocess(
     # face are in its count; those past the weir but not yet deleted are in ours only.
     pending = int((exited & last_present).sum())
     summary["discharged_pending_deletion"] = pending
-    if massflow_discharged is not None:
-        summary["discharge_crosscheck_diff"] = (discharged - pending) - massflow_discharged
+    summary["massflow_discharged_by_last_dump"] = massflow_discharged_by_last_dump
+    if massflow_discharged_by_last_dump is not None:
+        summary["discharge_crosscheck_diff"] = (discharged - pending) - massflow_discharged_by_last_dump
+        if summary["discharge_crosscheck_diff"]:
+            warn_list.append(
+                f"discharge cross-check: {discharged - pending} deleted particles in the dumps vs "
+                f"{massflow_discharged_by_last_dump} in the solver's massflow files up to the last dump"
+            )
     for key, value in counters.items():
         summary[f"solver_{key}"] = value
-    if "discharged" in counters and counters["discharged"] is not None:
+    # The thermo counters are only comparable when taken at the last dump's step.
+    counters_step = counters.get("step")
+    comparable = counters_step is None or int(counters_step) == last_step
+    if not comparable:
+        warn_list.append(
+            f"solver thermo counters are at step {int(counters_step)}, the last dump at step {last_step}: "
+            "not compared (the deck's end step is not a multiple of the dump interval)"
+        )
+    if counters.get("discharged") is not None and comparable:
         summary["solver_discharge_diff"] = (discharged - pending) - counters["discharged"]
-    if "inserted" in counters and counters["inserted"] is not None:
+    if counters.get("inserted") is not None and comparable:
         summary["solver_inserted_diff"] = inserted - counters["inserted"]
     # Flags, not Python warnings: the caller (CLI, report) shows them; a library warning would
     # turn into an exception wherever warnings are errors.

@@ -62,7 +62,7 @@ STATUS_FILE = "status.json"
 SOLVER_OUT = "solver.out"
 LOG_FILE = "log.liggghts"
 MAIN_INPUT = "in.blender"
-# thermo columns (dem.deck.THERMO_COLUMNS) summed into the solver's own counters
+# thermo columns summed into the solver's own counters when dem.deck.THERMO_MEANING is silent
 DISCHARGED_COLUMNS = ("f_outA[2]", "f_outB[2]")
 INSERTED_COLUMNS = ("f_insA[1]", "f_insB[1]")
 
@@ -127,7 +127,8 @@ def liggghts_version(liggghts: str = "liggghts") -> str:
     if not exe or shutil.which(exe[0]) is None:
         raise SolverNotFoundError(f"LIGGGHTS executable {liggghts!r} not found on PATH; {INSTALL_HINT}")
     try:
-        out = subprocess.run([*exe, "-h"], capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+        out = subprocess.run([*exe, "-h"], capture_output=True, text=True, errors="replace", timeout=60,
+                             stdin=subprocess.DEVNULL)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise SolverNotFoundError(f"cannot run {liggghts!r} -h: {exc}; {INSTALL_HINT}") from exc
     match = re.search(r"LIGGGHTS \(Version ([^)]*)\)", out.stdout + out.stderr)
@@ -267,6 +268,8 @@ class ThermoParser:
             out["inserted"] = self.inserted
         if self.atoms is not None:
             out["atoms"] = self.atoms
+        if self.step is not None:
+            out["step"] = self.step
         return out
 
 
@@ -299,6 +302,15 @@ class _Progress:
 
 
 # ----------------------------------------------------------------------------- run
+def _thermo_roles(deck) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Thermo columns summed into the solver's discharge and insertion counters, from the
+    deck's THERMO_MEANING ("... discharged ...", "... inserted ..."); defaults otherwise."""
+    meaning = getattr(deck, "THERMO_MEANING", {})
+    discharged = tuple(name for name, text in meaning.items() if "discharged" in text)
+    inserted = tuple(name for name, text in meaning.items() if "inserted" in text)
+    return discharged or DISCHARGED_COLUMNS, inserted or INSERTED_COLUMNS
+
+
 def _step_of(path: Path) -> int:
     numbers = re.findall(r"\d+", path.name)
     return int(numbers[-1]) if numbers else -1
@@ -440,7 +452,7 @@ def run_dem(
 
     dt = float(dem.timestep_s)
     duration = float(dem.operation.duration_s)
-    parser = ThermoParser(DISCHARGED_COLUMNS, INSERTED_COLUMNS, getattr(deck, "THERMO_COLUMNS", ()))
+    parser = ThermoParser(*_thermo_roles(deck), getattr(deck, "THERMO_COLUMNS", ()))
     start_s = _step_of(Path(resumed_from)) * dt if resumed_from else 0.0
     bar = _Progress(duration, start_s, progress)
     t0 = time.monotonic()
@@ -477,6 +489,9 @@ def run_dem(
         bar.close()
         _write_status(run_dir, {**base, "state": "crashed", "finished": _now(), "wall_time_s": time.monotonic() - t0})
         raise
+    finally:
+        if proc is not None and proc.stdout is not None:
+            proc.stdout.close()
     bar.close()
     wall = time.monotonic() - t0
     log_path = run_dir / LOG_FILE if (run_dir / LOG_FILE).exists() else run_dir / SOLVER_OUT
