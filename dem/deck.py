@@ -68,31 +68,30 @@ MASSFLOW_FILES = {"A": "discharge_A.txt", "B": "discharge_B.txt"}
 RUN_DIRS = (DUMP_DIR, RESTART_DIR)
 ATOM_TYPES = {"A": 1, "B": 2, "steel": 3}
 
-#: Columns of the thermo lines, exactly as LIGGGHTS prints the header:
-#: step, simulated time [s], particles in the box, particles inserted so far by feeder A and
-#: B, particles discharged so far (counted and deleted past the weir) of A and of B, and the
-#: timestep as a fraction of the Rayleigh and of the Hertz time (check/timestep/gran).
-THERMO_COLUMNS = (
-    "Step",
-    "v_simtime",
-    "Atoms",
-    "f_insA[1]",
-    "f_insB[1]",
-    "f_outA[2]",
-    "f_outB[2]",
-    "f_tscheck[1]",
-    "f_tscheck[2]",
-)
+#: Columns of the thermo lines, exactly as LIGGGHTS prints the header (it drops the ``v_``
+#: prefix and truncates long names, so every column is an equal-style variable with a short
+#: name; the timestep check is read directly, ``f_ts[k]``, because a variable would demand it be
+#: computed on every thermo step, including the run's last): step, simulated time [s], particles in the box, particles inserted so far by feeder
+#: A and B, particles discharged so far (counted and deleted past the weir) of A and of B, and
+#: the timestep as a fraction of the Rayleigh and of the Hertz time (check/timestep/gran).
+THERMO_COLUMNS = ("Step", "simtime", "Atoms", "insA", "insB", "outA", "outB", "ts[1]", "ts[2]")
 THERMO_MEANING = {
     "Step": "timestep number",
-    "v_simtime": "simulated time [s] (= step * dt, continuous across restarts)",
+    "simtime": "simulated time [s] (= step * dt, continuous across restarts)",
     "Atoms": "particles in the simulation",
-    "f_insA[1]": "particles of A inserted so far",
-    "f_insB[1]": "particles of B inserted so far",
-    "f_outA[2]": "particles of A discharged over the weir so far",
-    "f_outB[2]": "particles of B discharged over the weir so far",
-    "f_tscheck[1]": "timestep / Rayleigh time",
-    "f_tscheck[2]": "timestep / Hertz time",
+    "insA": "particles of A inserted so far",
+    "insB": "particles of B inserted so far",
+    "outA": "particles of A discharged over the weir so far",
+    "outB": "particles of B discharged over the weir so far",
+    "ts[1]": "timestep / Rayleigh time (fix check/timestep/gran 'ts')",
+    "ts[2]": "timestep / Hertz time (fix check/timestep/gran 'ts')",
+}
+#: LIGGGHTS expression behind each variable column.
+_THERMO_VARIABLES = {
+    "insA": "f_insA[1]",
+    "insB": "f_insB[1]",
+    "outA": "f_outA[2]",
+    "outB": "f_outB[2]",
 }
 #: Warn (check/timestep/gran) above this fraction of the Hertz time.
 HERTZ_WARN_FRACTION = 0.2
@@ -326,12 +325,16 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
             f"file {MASSFLOW_FILES[comp]} writeTime screen no")
     add("")
     add("fix integr all nve/sphere")
-    add(f"fix tscheck all check/timestep/gran {info['thermo_every_steps']} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "
+    add(f"fix ts all check/timestep/gran {info['thermo_every_steps']} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "
         f"{_g(HERTZ_WARN_FRACTION)}")
     add("")
     add("# output: simulated time from the step count (thermo 'time' restarts at 0 after read_restart)")
     add(f"variable        simtime equal step*{_g(dt)}")
-    cols = " ".join(c_.lower() if c_ in ("Step", "Atoms") else c_ for c_ in THERMO_COLUMNS)
+    for name, expr in _THERMO_VARIABLES.items():
+        add(f"variable        {name} equal {expr}")
+    cols = " ".join(
+        c_.lower() if c_ in ("Step", "Atoms") else f"f_{c_}" if c_.startswith("ts[") else f"v_{c_}" for c_ in THERMO_COLUMNS
+    )
     add(f"thermo_style    custom {cols}")
     add(f"thermo          {info['thermo_every_steps']}")
     add("thermo_modify   lost warn norm no")
