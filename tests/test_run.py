@@ -163,7 +163,9 @@ def test_interrupt_then_resume(tmp_path):
 
     def interrupt_after_restart(line):
         run_dir = next(tmp_path.iterdir())
-        restarts = [p for p in run_dir.glob("restart/restart.*.bin") if p.stat().st_size > 0]
+        # a restart file untouched for 1 s is complete (not being written)
+        restarts = [p for p in run_dir.glob("restart/restart.*.bin")
+                    if p.stat().st_size > 0 and time.time() - p.stat().st_mtime > 1]
         if restarts and "Step" not in seen and line.split() and line.split()[0].isdigit():
             seen["Step"] = int(line.split()[0])
             os.kill(os.getpid(), signal.SIGINT)

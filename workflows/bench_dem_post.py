@@ -78,6 +78,75 @@ def _time_pandas(paths) -> float:
     return time.perf_counter() - t0
 
 
+def _variant(config, **sections):
+    from workflows.config import config_from_dict
+
+    data = config.to_dict()
+    for section, values in sections.items():
+        data["dem"][section].update(values)
+    return config_from_dict(data)
+
+
+def _table_difference(a, b) -> dict:
+    """Relative RMS difference of two velocity tables over the compartment-windows valid in
+    both (RMS of the differences over the mean of the values), per field."""
+    n = min(a.n_windows, b.n_windows)
+    valid = a.valid[:n] & b.valid[:n]
+    out = {"compared_compartment_windows": int(valid.sum())}
+    for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg", "count_A", "count_B"):
+        x, y = getattr(a, name)[:n][valid], getattr(b, name)[:n][valid]
+        scale = float(np.mean(np.abs(x) + np.abs(y)) / 2)
+        out[name] = float(np.sqrt(np.mean((x - y) ** 2)) / scale) if scale > 0 else float("nan")
+    return out
+
+
+def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks: int | None = None) -> dict:
+    """Tables of an interrupted + resumed run against the DEM's own run-to-run scatter.
+
+    Three runs of ``preset`` (optionally shortened to ``duration_s``): seed S uninterrupted,
+    seed S' uninterrupted (scatter), and seed S interrupted (Ctrl-C equivalent) after its
+    first restart file, then resumed with ``resume=True``. Returns the relative RMS table
+    differences S vs S' and S vs resumed, and a few summary numbers of each run."""
+    from dem.post import postprocess
+    from dem.run import run_dem
+    from workflows.config import load_preset
+
+    base = load_preset(preset)
+    duration = float(duration_s or base.dem.operation.duration_s)
+    base = _variant(base, operation={"duration_s": duration}, numerics={"restart_interval_s": duration / 3})
+    other = _variant(base, numerics={"seed": 32452843})
+    records = {}
+    records["seed_a"] = run_dem(base, runs_root=root / "a", np=np_ranks, progress=False)
+    records["seed_b"] = run_dem(other, runs_root=root / "b", np=np_ranks, progress=False)
+
+    def interrupt(line: str) -> None:
+        run_dirs = [p for p in (root / "c").iterdir() if p.is_dir()]
+        # a restart file untouched for 2 s is complete (not being written)
+        if run_dirs and any(p.stat().st_size > 0 and time.time() - p.stat().st_mtime > 2
+                            for p in run_dirs[0].glob("restart/*")):
+            raise KeyboardInterrupt
+
+    try:
+        run_dem(base, runs_root=root / "c", np=np_ranks, progress=False, on_line=interrupt, fresh=True)
+    except KeyboardInterrupt:
+        pass
+    records["resumed"] = run_dem(base, runs_root=root / "c", np=np_ranks, resume=True, progress=False)
+    results = {
+        name: postprocess(rec.dump_glob, base.dem, massflow_dir=rec.massflow_dir, solver_counters=rec.solver_counters)
+        for name, rec in records.items()
+    }
+    keys = ("holdup_final", "discharged", "inserted", "lost", "accounting_mismatch", "discharge_crosscheck_diff")
+    return {
+        "preset": preset,
+        "duration_s": duration,
+        "resumed_from": records["resumed"].resumed_from,
+        "wall_time_s": {name: rec.wall_time_s for name, rec in records.items()},
+        "scatter_seed_a_vs_seed_b": _table_difference(results["seed_a"].table, results["seed_b"].table),
+        "resumed_vs_seed_a": _table_difference(results["seed_a"].table, results["resumed"].table),
+        "summaries": {name: {k: r.summary.get(k) for k in keys} for name, r in results.items()},
+    }
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m workflows.bench_dem_post", description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=20000)
@@ -86,7 +155,20 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--dumps", default=None, help="real dumps instead of synthetic ones (glob, quoted)")
     parser.add_argument("--preset", default="smoke", help="config of the real dumps (default smoke)")
     parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--restart-scatter", action="store_true",
+                        help="instead: run the preset 3 times (2 seeds + interrupted/resumed) and compare tables")
+    parser.add_argument("--duration", type=float, default=None, help="shorten the preset's run (restart scatter)")
+    parser.add_argument("--np", type=int, default=None, help="MPI ranks (restart scatter)")
+    parser.add_argument("--runs-dir", default=None, help="where the restart-scatter runs go (default: temporary)")
     args = parser.parse_args(argv if argv is not None else [])
+    if args.restart_scatter:
+        with tempfile.TemporaryDirectory(prefix="bench_restart_") as tmp:
+            record = restart_scatter(args.preset, args.duration, Path(args.runs_dir or tmp), args.np)
+        out = Path(args.out if args.out != str(OUT) else OUT.with_name("dem_restart_scatter.json"))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(record, indent=2, default=str) + "\n")
+        print(json.dumps(record, indent=2, default=str))
+        return record
 
     from dem.dumps import dump_paths
     from dem.post import postprocess
