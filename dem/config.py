@@ -30,6 +30,15 @@ class GeometryConfig(_Section):
     in azimuth, consecutive stations are turned by ``blade_azimuth_step_deg``, and the paddle
     faces are pitched by ``blade_pitch_deg`` from the axial direction, forward (F, conveying
     towards the outlet) or backward (B) following ``blade_pattern`` cyclically.
+
+    Choices (Dubey et al.'s GCM250 drawing is not available, so these are stated, not copied):
+    a 20 mm shaft; ten stations of two opposed 25 mm paddles pitched 45 deg, F/B alternating,
+    turned 90 deg from station to station, from x = 45 mm (just downstream of the feed zones,
+    which span x = 6-30 mm) to x = 300 mm; tips 5 mm from the wall (presets with coarser
+    particles widen this to stay above the largest particle); a 20 mm weir at x = L. Powder
+    is counted and removed at ``x = L + discharge_offset_m``; the simulation box extends
+    ``outlet_length_m`` past the weir and ``box_margin_m`` around the barrel.
+    See :mod:`dem.geometry` for how each surface is built and checked.
     """
 
     length_m: float = Field(0.330, gt=0)

@@ -22,14 +22,27 @@ in; every name is a module constant, the runner and the post-processor use them)
 ``restart/restart.<step>.bin``         binary restart files every ``restart_every_steps``
   (:data:`RESTART_GLOB`)
 ``discharge_A.txt``, ``discharge_B.txt``  ``fix massflow/mesh`` output, one line per
-  (:data:`MASSFLOW_FILES`)              discharged particle of that component (see below);
-                                        with MPI LIGGGHTS may add a per-rank suffix
+  (:data:`MASSFLOW_FILES`, globs in      discharged particle of that component: header
+  :data:`MASSFLOW_GLOBS`)               ``# ID time  diameter x y z u v w  (ex ey ez,
+                                        color)``, then ``id t[s] d[m] x y z vx vy vz``
+                                        where t is LIGGGHTS' ``time`` (restarts at 0 after a
+                                        resume: use the IDs, or the dumps, for times then).
+                                        With ``mpirun -np N`` each rank writes its own file
+                                        with suffix ``.0`` ... ``.N-1`` (measured); the
+                                        union is the discharge record. Verified: every
+                                        discharged ID appears once; totals equal the
+                                        thermo ``outA``/``outB`` columns.
 ``log.liggghts`` (:data:`LOG_FILE`)    LIGGGHTS' log (``-log`` default name)
 =====================================  ===================================================
 
 Thermo lines carry :data:`THERMO_COLUMNS` (the header LIGGGHTS prints, in order). Simulated
 time is ``v_simtime = step * dt``, not LIGGGHTS' ``time`` keyword, because ``time`` restarts
 at 0 after ``read_restart`` while steps (and so dump names) continue.
+
+Discharge: ``fix massflow/mesh ... count once delete_atoms yes`` deletes a particle at the
+re-neighbouring after its centre crosses ``x = L + discharge_offset_m``, so a dump can
+still show a few particles with ``x > L``: they have left the blender (the post-processor
+should bin only ``0 <= x <= L``).
 
 Atom types: 1 = component A, 2 = component B, 3 = steel (barrel, inlet wall, weir,
 impeller). Particle IDs are never renumbered (no ``reset_timestep``, no ``compress_tags``),
@@ -64,6 +77,8 @@ RESTART_DIR = "restart"
 RESTART_PATTERN = "restart/restart.*.bin"
 RESTART_GLOB = "restart/restart.*.bin"
 MASSFLOW_FILES = {"A": "discharge_A.txt", "B": "discharge_B.txt"}
+MASSFLOW_GLOBS = {"A": "discharge_A.txt*", "B": "discharge_B.txt*"}
+MASSFLOW_COLUMNS = ("id", "time", "diameter", "x", "y", "z", "vx", "vy", "vz")
 #: directories LIGGGHTS needs to exist before it starts (it does not create them)
 RUN_DIRS = (DUMP_DIR, RESTART_DIR)
 ATOM_TYPES = {"A": 1, "B": 2, "steel": 3}
@@ -206,6 +221,10 @@ def deck_parameters(config: DemConfig) -> dict:
         "dump_glob": DUMP_GLOB,
         "restart_glob": RESTART_GLOB,
         "massflow_files": dict(MASSFLOW_FILES),
+        "massflow_globs": dict(MASSFLOW_GLOBS),
+        "massflow_columns": list(MASSFLOW_COLUMNS),
+        "length_m": config.geometry.length_m,
+        "discharge_x_m": config.geometry.length_m + config.geometry.discharge_offset_m,
         "atom_types": dict(ATOM_TYPES),
     }
 
