@@ -269,7 +269,9 @@ def _parse_single(buf, size: int, path: Path) -> Snapshot | None:
     if buf[size - 1 : size] != b"\n":
         return None
     step, natoms, box, columns, body_start, header_lines = _parse_header(buf, 0, size, path)
-    if natoms == 0 or buf.find(_NEXT, body_start) >= 0:
+    # No scan for a second snapshot: its header lines would not parse as numbers (pandas
+    # raises) or the row count would differ, and the general path takes over.
+    if natoms == 0:
         return None
     try:
         frame = pd.read_csv(path, sep=" ", header=None, skiprows=header_lines, dtype=np.float64, engine="c")

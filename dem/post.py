@@ -572,6 +572,7 @@ def postprocess(
         "final_rsd_blender_floor": float(rows[-1, 5]),
         "holdup_final": float(rows[-1, 0] + rows[-1, 1]),
         "t_end_s": t_last,
+        "last_dump_step": last_step,
         "n_snapshots": n_snapshots,
         "inserted": inserted,
         "held": held,
