@@ -180,7 +180,8 @@ def test_invalid_parameters_refused_before_any_file(tmp_path, data, error, fragm
 
 def test_cli_writes_deck_and_refuses_bad_input(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["dem", "deck", "--preset", "smoke", "--out", str(out)]) == 0
+    assert main(["dem", "deck", "--preset", "smoke", "--out", str(out), "--view-stl", "--png"]) == 0
+    assert (out / "meshes" / "view_barrel.stl").is_file() and (out / "geometry.png").stat().st_size > 1000
     for name in (MAIN_DECK, DECK_INFO, "config.toml", *MESH_FILES.values()):
         assert (out / name).is_file(), name
     assert (out / "dumps").is_dir() and (out / "restart").is_dir()

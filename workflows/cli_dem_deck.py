@@ -2,7 +2,8 @@
 
 ``pbmdem dem deck --preset smoke --out DIR`` writes ``in.blender``, ``meshes/*.stl``,
 ``deck.json`` and the resolved ``config.toml`` (its first line records the deck hash) into
-DIR; then ``cd DIR && liggghts -in in.blender``. ``--png`` also renders the geometry.
+DIR; then ``cd DIR && liggghts -in in.blender``. ``--png`` also renders the geometry;
+``--view-stl`` also writes STL files of the barrel and inlet wall (the deck uses primitives).
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--resume-from", default=None,
                         help="also write in.resume, continuing from this restart file (path relative to --out)")
     parser.add_argument("--png", action="store_true", help="also render the assembled geometry to geometry.png")
+    parser.add_argument("--view-stl", action="store_true",
+                        help="also write meshes/view_barrel.stl and meshes/view_inlet_wall.stl (viewing only; "
+                             "the deck uses LIGGGHTS primitives for these)")
     parser.set_defaults(func=run)
 
 
@@ -34,6 +38,11 @@ def run(args: argparse.Namespace) -> int:
     digest = deck_hash(files)
     files[CONFIG_FILE] = f"# deck_hash = {digest}\n" + dump_toml(config)
     out = write_deck(files, args.out)
+    if args.view_stl:
+        from dem.geometry import build_geometry, write_stl
+
+        for name, mesh in build_geometry(config.dem).view_meshes.items():
+            write_stl(mesh, Path(out) / "meshes" / f"view_{name}.stl")
     if args.png:
         from dem.render import render_geometry
 
