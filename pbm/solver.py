@@ -17,7 +17,9 @@ analytic Jacobian) instead; it is the independent cross-check of the exact path.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +40,8 @@ _PADE13 = (
     40840800.0, 960960.0, 16380.0, 182.0, 1.0,
 )
 _THETA13 = 5.371920351148152
+# Threads computing step operators concurrently (capped: the matrices are small).
+MAX_THREADS = 4
 
 
 class SolverError(PbmDemError):
@@ -146,13 +150,42 @@ class Propagators:
     def step(self, k: int, h: float) -> tuple[np.ndarray, np.ndarray]:
         key = (k, round(h / TIME_TOLERANCE_S))
         if key not in self._cache:
-            m = self.n_states
-            aug = np.zeros((m + 2, m + 2))
-            aug[:m, :m] = self.generator(k)
-            aug[: self.feed.shape[0], m:] = self.feed
-            e = expm_pade13(aug * h)
-            self._cache[key] = (np.ascontiguousarray(e[:m, :m]), np.ascontiguousarray(e[:m, m:]))
+            self._cache[key] = self._compute(k, h)
         return self._cache[key]
+
+    def prepare(self, windows: np.ndarray, steps: np.ndarray) -> None:
+        """Compute the operators of every (window, step length) pair ahead, in parallel.
+
+        Each matrix exponential is independent and numpy releases the GIL inside BLAS and
+        LAPACK, so a thread per core overlaps them (BLAS itself is single-threaded here:
+        see pbm._blas). Results are identical to computing them one by one.
+        """
+        todo = {}
+        for k, h in zip(windows.tolist(), steps.tolist()):
+            key = (k, round(h / TIME_TOLERANCE_S))
+            if key not in self._cache and key not in todo:
+                todo[key] = (k, h)
+        if not todo:
+            return
+        for k, _h in todo.values():
+            self.generator(k)
+        workers = min(len(todo), os.cpu_count() or 1, MAX_THREADS)
+        if workers <= 1:
+            for key, (k, h) in todo.items():
+                self._cache[key] = self._compute(k, h)
+            return
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            results = pool.map(lambda kh: self._compute(*kh), todo.values())
+            for key, value in zip(todo, results):
+                self._cache[key] = value
+
+    def _compute(self, k: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+        m = self.n_states
+        aug = np.zeros((m + 2, m + 2))
+        aug[:m, :m] = self.generator(k)
+        aug[: self.feed.shape[0], m:] = self.feed
+        e = expm_pade13(aug * h)
+        return np.ascontiguousarray(e[:m, :m]), np.ascontiguousarray(e[:m, m:])
 
 
 def march(
@@ -184,6 +217,7 @@ def march(
     windows = np.clip(np.searchsorted(props.table.t, mids, side="right") - 1, 0, props.table.n_windows - 1)
     if method == "expm":
         steps = np.diff(times)
+        props.prepare(windows, steps)
         feed_cache: dict[int, np.ndarray] = {}
         for s in range(times.size - 1):
             p, q = props.step(int(windows[s]), float(steps[s]))

@@ -32,6 +32,14 @@ def test_expm_matches_scipy_on_a_generator():
         np.testing.assert_allclose(expm_pade13(g * h), expm(g * h), rtol=0, atol=1e-12 * np.abs(expm(g * h)).max())
 
 
+def test_dense_and_sparse_generators_agree():
+    # The sparse builder sums duplicate entries, the dense one assigns: equal means none.
+    from pbm.model import generator_sparse
+
+    table = synthetic_table(nx=4, ny=3, n_windows=2)
+    np.testing.assert_array_equal(generator_matrix(table, 1), generator_sparse(table, 1).toarray())
+
+
 def test_tanks_in_series_rtd_is_erlang():
     nx, v, length = 5, 0.02, 0.33
     k = v / (length / nx)
