@@ -144,3 +144,34 @@ def test_steps_must_increase(tmp_path, rng):
 def test_no_files(tmp_path):
     with pytest.raises(DumpFormatError, match="no dump files match"):
         list(iter_snapshots(str(tmp_path / "dump.*.txt")))
+
+
+STATIC = __import__("pathlib").Path(__file__).parent / "static" / "smoke_dumps"
+
+
+def test_real_liggghts_dumps():
+    """Dumps written by LIGGGHTS itself (tests/static/smoke_dumps/README.md)."""
+    snaps = list(iter_snapshots(str(STATIC / "dump.*.txt")))
+    assert [s.step for s in snaps] == [21200, 23320, 25440]
+    for snap in snaps:
+        assert snap.columns == COLUMNS
+        text = (STATIC / f"dump.{snap.step}.txt").read_text().splitlines()
+        assert snap.n == int(text[3]) == len(text) - 9
+        ids = snap["id"]
+        assert np.unique(ids).size == ids.size and set(np.unique(snap["type"])) <= {1.0, 2.0}
+        for axis, name in enumerate("xyz"):
+            assert (snap[name] >= snap.box[axis, 0]).all() and (snap[name] <= snap.box[axis, 1]).all()
+        assert (snap["radius"] > 0.0025).all() and (snap["radius"] < 0.0035).all()
+        first = text[9].split()
+        np.testing.assert_allclose(snap.data[0], [float(v) for v in first])
+    # particles are only added early in a run: each snapshot holds the previous one's IDs
+    assert set(snaps[0]["id"]) <= set(snaps[1]["id"]) <= set(snaps[2]["id"])
+
+
+def test_real_dump_truncated_by_a_kill(tmp_path):
+    for name in ("dump.21200.txt", "dump.23320.txt"):
+        (tmp_path / name).write_bytes((STATIC / name).read_bytes())
+    data = (STATIC / "dump.25440.txt").read_bytes()
+    (tmp_path / "dump.25440.txt").write_bytes(data[: int(len(data) * 0.6)])
+    with pytest.warns(TruncatedDumpWarning, match="dump.25440.txt"):
+        assert [s.step for s in iter_snapshots(str(tmp_path / "dump.*.txt"))] == [21200, 23320]
