@@ -10,11 +10,16 @@ and the LIGGGHTS version; the MPI rank count is *not* part of it -- it changes t
 trajectory only within the DEM's own scatter):
 
     in.blender, meshes...   the deck (dem.deck.write_deck)
-    log.liggghts            LIGGGHTS' own log
-    solver.out              the solver's stdout+stderr as streamed (line-buffered)
+    log.liggghts            LIGGGHTS' own log (log.liggghts.attemptN: earlier attempts of
+                            a resumed run, which LIGGGHTS would overwrite)
+    solver.out              the solver's stdout+stderr as streamed (line-buffered; a resumed
+                            attempt is appended after a marker line)
     status.json             state: running | completed | crashed | interrupted, with dates,
-                            wall time, LIGGGHTS version, command, key
-    dumps/, massflow files, restart files (names from dem.deck)
+                            wall time (summed over attempts), LIGGGHTS version, command, key,
+                            deck hash, the solver's final thermo counters and their step
+    dumps/, discharge_*.txt[.rank], restart/  (names from dem.deck); before a resume the
+                            discharge files are moved to ``<name>.upto<restart step>``,
+                            keeping the records up to the restart (LIGGGHTS truncates them)
 
 A ``completed`` run is reused by a second request with the same inputs without starting
 LIGGGHTS; anything else is never mistaken for a result. ``fresh=True`` deletes the
@@ -426,6 +431,10 @@ def run_dem(
         run_files = deck.build_deck(dem, resume_from=resumed_from)
         main_input = deck.RESUME_DECK
         _set_aside_massflow(run_dir, _step_of(restart), float(dem.timestep_s))
+        # LIGGGHTS overwrites its log: keep the interrupted attempt's log beside it
+        if (run_dir / LOG_FILE).exists():
+            attempt = 1 + len(list(run_dir.glob(LOG_FILE + ".attempt*")))
+            os.replace(run_dir / LOG_FILE, run_dir / f"{LOG_FILE}.attempt{attempt}")
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
         _clear_outputs(run_dir)
@@ -456,6 +465,8 @@ def run_dem(
     start_s = _step_of(Path(resumed_from)) * dt if resumed_from else 0.0
     bar = _Progress(duration, start_s, progress)
     t0 = time.monotonic()
+    # wall time accumulates over the attempts of a resumed run
+    prior_wall = float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0
     error_lines: list[str] = []
     proc = None
     mode = "a" if resume else "w"
@@ -481,13 +492,14 @@ def run_dem(
             _terminate_group(proc)
         bar.close()
         _write_status(run_dir, {**base, "state": "interrupted", "finished": _now(),
-                                "wall_time_s": time.monotonic() - t0, "solver_counters": parser.counters()})
+                                "wall_time_s": prior_wall + time.monotonic() - t0, "solver_counters": parser.counters()})
         raise
     except BaseException:
         if proc is not None:
             _terminate_group(proc)
         bar.close()
-        _write_status(run_dir, {**base, "state": "crashed", "finished": _now(), "wall_time_s": time.monotonic() - t0})
+        _write_status(run_dir, {**base, "state": "crashed", "finished": _now(),
+                                "wall_time_s": prior_wall + time.monotonic() - t0})
         raise
     finally:
         if proc is not None and proc.stdout is not None:
@@ -506,12 +518,11 @@ def run_dem(
     elif parser.step is None or parser.step * dt < duration - 2 * dt - 1e-9:
         reached = "no thermo output" if parser.step is None else f"t = {parser.step * dt:.3f} s"
         problem = f"LIGGGHTS stopped before the end time {duration} s ({reached})"
-    final = {**base, "finished": _now(), "wall_time_s": wall, "solver_counters": parser.counters()}
+    final = {**base, "finished": _now(), "wall_time_s": prior_wall + wall, "solver_counters": parser.counters()}
     if problem:
         _write_status(run_dir, {**final, "state": "crashed", "error": problem})
         raise SolverRunError(problem, run_dir=run_dir, log_tail=_tail(log_path))
-    total_wall = wall + (float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0)
-    _write_status(run_dir, {**final, "state": "completed", "wall_time_s": total_wall, "wall_time_this_attempt_s": wall})
+    _write_status(run_dir, {**final, "state": "completed", "wall_time_this_attempt_s": wall})
     return _record_from_status(run_dir, read_status(run_dir) or {}, reused=False)
 
 
