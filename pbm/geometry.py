@@ -99,3 +99,28 @@ def _new_edges(old: np.ndarray, count, edges, axis: str) -> np.ndarray:
     if isinstance(count, bool) or int(count) != count or count < 1:
         raise ConfigError(f"n{axis} must be an integer >= 1, got {count!r}")
     return np.linspace(old[0], old[-1], int(count) + 1)
+
+
+def geometry_study(table: VelocityTable, config=None, length_factors=(0.75, 1.0, 1.25),
+                   diameter_factors=(0.75, 1.0, 1.25), rtd_pulse_s: float | None = None) -> dict:
+    """Paper Figs 3-4: the same velocities in longer/shorter and wider/narrower blenders.
+
+    Returns ``{"length": {factor: PbmResult}, "diameter": {factor: PbmResult}}``, each run
+    by :func:`pbm.simulate.simulate` on :func:`scale_blender`'s table (the other dimension
+    kept). Plot with :func:`pbm.plots.plot_rsd_time_family` / ``plot_rsd_by_slice_family``.
+    """
+    from pbm.simulate import simulate  # here: simulate does not need geometry, keep it so
+
+    return {
+        "length": {float(f): simulate(scale_blender(table, length_factor=f), config, rtd_pulse_s) for f in length_factors},
+        "diameter": {float(f): simulate(scale_blender(table, diameter_factor=f), config, rtd_pulse_s)
+                     for f in diameter_factors},
+    }
+
+
+def grid_study(table: VelocityTable, config=None, grids=((5, 5), (10, 10), (20, 20)),
+               rtd_pulse_s: float | None = None) -> dict:
+    """The paper's compartment-number study: ``{(nx, ny): PbmResult}`` on :func:`regrid`'s tables."""
+    from pbm.simulate import simulate
+
+    return {(int(nx), int(ny)): simulate(regrid(table, nx=nx, ny=ny), config, rtd_pulse_s) for nx, ny in grids}

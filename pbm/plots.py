@@ -113,3 +113,45 @@ def save_figures(result: PbmResult, out_dir: str | Path, dpi: int = 110) -> dict
         ax.figure.savefig(path, dpi=dpi)
         paths[f"figure_{name}"] = path
     return paths
+
+
+def plot_ensemble(ensembles: dict, quantity: str = "C_A", ax: Axes | None = None) -> Axes:
+    """Mean and 5-95 % band of ``quantity`` ("C_A" or "rsd_outlet") against time, one
+    curve per noise level: ``ensembles`` is :func:`pbm.ensemble.noise_study`'s dict
+    (sigma -> EnsembleResult). Paper Figs 5 and 6(b).
+    """
+    if quantity not in ("C_A", "rsd_outlet"):
+        raise ValueError(f"quantity must be 'C_A' or 'rsd_outlet', got {quantity!r}")
+    ax = _axes(ax)
+    for sigma, ens in sorted(ensembles.items()):
+        mean = getattr(ens, f"{quantity}_mean")
+        line, = ax.plot(ens.times, mean, label=f"sigma = {sigma:g}")
+        ax.fill_between(ens.times, getattr(ens, f"{quantity}_p05"), getattr(ens, f"{quantity}_p95"),
+                        color=line.get_color(), alpha=0.2, lw=0)
+    ax.set(xlabel="time [s]", ylabel="C_A [-]" if quantity == "C_A" else "RSD at the outlet [-]",
+           title=f"Feed noise: mean and 5-95 % band ({next(iter(ensembles.values())).members} members)")
+    if quantity == "rsd_outlet":
+        ax.set_yscale("log")
+    ax.legend()
+    return ax
+
+
+def plot_rsd_by_slice_family(results: dict, ax: Axes | None = None) -> Axes:
+    """RSD(x) at the end for several runs (label -> PbmResult), e.g. a geometry study
+    (paper Figs 3(b), 4(b)); x is the slice number 1..NX of each run."""
+    ax = _axes(ax)
+    for label, result in results.items():
+        ax.plot(np.arange(1, result.rsd_by_slice_final.size + 1), result.rsd_by_slice_final, marker="o", label=str(label))
+    ax.set(xlabel="axial compartment (1 = inlet)", ylabel="RSD [-]", title="RSD(x) at the end time", yscale="log")
+    ax.legend()
+    return ax
+
+
+def plot_rsd_time_family(results: dict, ax: Axes | None = None) -> Axes:
+    """Outlet RSD against time for several runs (label -> PbmResult): paper Figs 3(a), 4(a)."""
+    ax = _axes(ax)
+    for label, result in results.items():
+        ax.plot(result.times, result.rsd_outlet, label=str(label))
+    ax.set(xlabel="time [s]", ylabel="RSD at the outlet [-]", title="Outlet RSD", yscale="log")
+    ax.legend()
+    return ax

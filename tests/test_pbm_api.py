@@ -124,3 +124,21 @@ def test_cli_errors_exit_2_with_a_message(tmp_path, capsys):
     write_table(tmp_path / "t.h5", table)
     assert main(["pbm", "run", "--tables", str(tmp_path / "t.h5"), "--rtd-pulse", "99", "--out", str(tmp_path)]) == 2
     assert "RTD pulse time 99.0 s" in capsys.readouterr().err
+
+
+def test_studies_run_and_plot(small_table, tmp_path):
+    from pbm import geometry_study, grid_study
+    from pbm.plots import plot_ensemble, plot_rsd_by_slice_family, plot_rsd_time_family
+
+    config = PbmConfig(duration_s=20.0)
+    geo = geometry_study(small_table, config, length_factors=(1.0, 2.0), diameter_factors=(1.0,), rtd_pulse_s=0.0)
+    # A longer blender holds the particles longer.
+    assert geo["length"][2.0].summary["mean_residence_time_s"] > geo["length"][1.0].summary["mean_residence_time_s"]
+    grids = grid_study(small_table, config, grids=((3, 2), (10, 8)), rtd_pulse_s=0.0)
+    assert grids[(10, 8)].rsd_by_slice_final.shape == (10,)
+    ens = noise_study(small_table, config, sigmas=(0.0, 0.2), members=3)
+    for ax in (plot_ensemble(ens, "C_A"), plot_ensemble(ens, "rsd_outlet"), plot_rsd_by_slice_family(geo["length"]),
+               plot_rsd_time_family(grids)):
+        ax.figure.savefig(tmp_path / "f.png")
+    with pytest.raises(ValueError, match="quantity must be"):
+        plot_ensemble(ens, "holdup")
