@@ -13,7 +13,7 @@ from coupling.cache import (
 )
 from coupling.errors import CacheError
 from dem.post import postprocess
-from tests.test_post import config, write_synthetic
+from test_post import config, write_synthetic  # tests/ is on sys.path (rootdir-less test modules)
 
 
 @pytest.fixture(scope="module")
