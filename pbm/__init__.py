@@ -9,6 +9,23 @@ The API the pipeline calls:
 * :func:`scale_blender` / :func:`regrid`: modified tables for geometry and grid studies;
   :func:`geometry_study` / :func:`grid_study` run them
 * :func:`synthetic_table`: a DEM-like table to try the PBM without DEM
+
+Conventions this package fixes where DESIGN.md leaves room (each documented and tested at
+the function named):
+
+* Missing samples (``table.valid`` False): :func:`fill_missing_velocities` -- the same
+  compartment's nearest valid window in time, else the mean of the same slice's valid
+  compartments, else the nearest valid slice, else the table-wide mean; never a zero.
+* Steady state (when the RTD pulse is not given): :func:`pbm.cqa.detect_steady_state` --
+  the mean hold-up over the trailing ``steady_window_s`` (10 s) differs from the mean over
+  the window before by at most ``steady_rel_tol`` (2 %) of itself.
+* Output times: rates and C_A average over (t - dt, t], exactly (accumulated discharge);
+  counts, hold-ups and RSDs are instantaneous at t. E(t) is reported at bin centres.
+* RSD: compartments with fewer than ``rsd_min_particles`` (1) particles are empty.
+* Regridding: :func:`regrid` -- particle-flux weighted overlap averages (ratio of sums, as
+  the DEM post-processing would bin), counts conserved.
+* Feed noise: factor N(1, sigma) per stream, clipped at 0, redrawn every
+  ``noise_interval_s``; member m seeded ``(seed, m)``.
 """
 
 from pbm.config import PbmConfig
