@@ -142,3 +142,15 @@ def test_studies_run_and_plot(small_table, tmp_path):
         ax.figure.savefig(tmp_path / "f.png")
     with pytest.raises(ValueError, match="quantity must be"):
         plot_ensemble(ens, "holdup")
+
+
+@pytest.mark.slow
+def test_bench_main_writes_json(tmp_path, capsys):
+    from workflows import bench_pbm
+
+    out = tmp_path / "pbm.json"
+    assert bench_pbm.main(["--repeats", "1", "--bdf-repeats", "1", "--members", "4", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["scenario"]["windows"] == 52 and report["ensemble"]["members"] == 4
+    assert max(report["max_rel_diff_expm_vs_bdf"].values()) < 1e-5
+    assert "speed-up vs BDF" in capsys.readouterr().out

@@ -23,6 +23,7 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 import tracemalloc
 from collections.abc import Sequence
@@ -135,7 +136,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--bdf-repeats", type=int, default=3)
     parser.add_argument("--members", type=int, default=1000)
     parser.add_argument("--out", default="results/bench/pbm.json")
-    args = parser.parse_args(argv)
+    # main() called from another module (``make bench``) runs the defaults; it must not
+    # parse that program's own command line.
+    args = parser.parse_args([] if argv is None else list(argv))
     report = run_benchmark(repeats=args.repeats, bdf_repeats=args.bdf_repeats, members=args.members)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -146,4 +149,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(sys.argv[1:]))
