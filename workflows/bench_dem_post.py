@@ -87,16 +87,42 @@ def _variant(config, **sections):
     return config_from_dict(data)
 
 
-def _table_difference(a, b) -> dict:
-    """Relative RMS difference of two velocity tables over the compartment-windows valid in
-    both (RMS of the differences over the mean of the values), per field."""
+FIELDS = ("vx_pos", "vx_neg", "vy_pos", "vy_neg", "count_A", "count_B")
+
+
+def _rel_rms(x: np.ndarray, y: np.ndarray) -> float:
+    scale = float(np.mean(np.abs(x) + np.abs(y)) / 2)
+    return float(np.sqrt(np.mean((x - y) ** 2)) / scale) if scale > 0 and x.size else float("nan")
+
+
+def _table_difference(a, b, well_sampled: int = 100) -> dict:
+    """How far two velocity tables are apart, as relative RMS differences (RMS of the
+    differences over the mean magnitude), per field, at three levels:
+
+    * ``compartment``: every compartment-window valid in both tables (noisy: sparse cells);
+    * ``well_sampled``: compartment-windows with >= ``well_sampled`` samples in both;
+    * ``slice``: per window and axial slice, the sample-weighted mean over the NY
+      compartments (velocities) or the sum (counts) -- the table's large-scale content.
+    """
     n = min(a.n_windows, b.n_windows)
     valid = a.valid[:n] & b.valid[:n]
-    out = {"compared_compartment_windows": int(valid.sum())}
-    for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg", "count_A", "count_B"):
-        x, y = getattr(a, name)[:n][valid], getattr(b, name)[:n][valid]
-        scale = float(np.mean(np.abs(x) + np.abs(y)) / 2)
-        out[name] = float(np.sqrt(np.mean((x - y) ** 2)) / scale) if scale > 0 else float("nan")
+    dense = valid & (a.n_samples[:n] >= well_sampled) & (b.n_samples[:n] >= well_sampled)
+    out = {"compared_compartment_windows": int(valid.sum()), "well_sampled_compartment_windows": int(dense.sum())}
+    for name in FIELDS:
+        x, y = getattr(a, name)[:n], getattr(b, name)[:n]
+        if name.startswith("count"):
+            xs, ys = x.sum(axis=2), y.sum(axis=2)
+        else:
+            wa, wb = a.n_samples[:n], b.n_samples[:n]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                xs = (x * wa).sum(axis=2) / wa.sum(axis=2)
+                ys = (y * wb).sum(axis=2) / wb.sum(axis=2)
+        keep = np.isfinite(xs) & np.isfinite(ys)
+        out[name] = {
+            "compartment": _rel_rms(x[valid], y[valid]),
+            "well_sampled": _rel_rms(x[dense], y[dense]),
+            "slice": _rel_rms(xs[keep], ys[keep]),
+        }
     return out
 
 
@@ -126,10 +152,14 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
                             for p in run_dirs[0].glob("restart/*")):
             raise KeyboardInterrupt
 
-    try:
-        run_dem(base, runs_root=root / "c", np=np_ranks, progress=False, on_line=interrupt, fresh=True)
-    except KeyboardInterrupt:
-        pass
+    from dem.run import read_status
+
+    done = [read_status(p) for p in (root / "c").glob("*")] if (root / "c").exists() else []
+    if not any(st and st.get("state") == "completed" and st.get("resumed_from") for st in done):
+        try:
+            run_dem(base, runs_root=root / "c", np=np_ranks, progress=False, on_line=interrupt, fresh=True)
+        except KeyboardInterrupt:
+            pass
     records["resumed"] = run_dem(base, runs_root=root / "c", np=np_ranks, resume=True, progress=False)
     results = {
         name: postprocess(rec.dump_glob, base.dem, massflow_dir=rec.massflow_dir, solver_counters=rec.solver_counters)
