@@ -84,3 +84,41 @@ def impeller_at(impeller: pv.PolyData, rpm: float, time_s: float) -> pv.PolyData
     about +x (right-hand rule) from angle 0 at t = 0."""
     angle_deg = (360.0 * rpm / 60.0 * time_s) % 360.0
     return impeller.rotate_x(angle_deg, point=(0.0, 0.0, 0.0), inplace=False)
+
+
+def _polydata(mesh) -> pv.PolyData:
+    """A ``dem.geometry.TriMesh`` as pyvista surface."""
+    faces = np.hstack([np.full((len(mesh.triangles), 1), 3), mesh.triangles]).ravel()
+    return pv.PolyData(np.asarray(mesh.points, dtype=float), faces)
+
+
+def write_particle_series(dem_config, run_dir: Path, out_dir: Path, max_snapshots: int = 60) -> list[Path]:
+    """Particle snapshots of a run (at most ``max_snapshots``, evenly spread) as ``.vtp`` with
+    the impeller at each snapshot's angle and the weir; one ``.pvd`` collection per series.
+
+    Returns the collection files. Reads the dumps of ``run_dir`` through ``dem.dumps``."""
+    from dem import deck
+    from dem.dumps import dump_paths, iter_snapshots
+    from dem.geometry import build_geometry
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = dump_paths(str(Path(run_dir) / deck.DUMP_GLOB))
+    chosen = [paths[i] for i in np.unique(np.linspace(0, len(paths) - 1, min(max_snapshots, len(paths))).astype(int))]
+    geometry = build_geometry(dem_config)
+    impeller = _polydata(geometry.meshes["impeller"])
+    _polydata(geometry.meshes["weir"]).save(out_dir / "weir.vtp")
+    dt = dem_config.timestep_s
+    rpm = dem_config.operation.impeller_rpm
+    particles, impellers = [], []
+    for k, snap in enumerate(iter_snapshots(chosen, columns=deck.DUMP_COLUMNS)):
+        t = snap.time_s(dt)
+        positions = np.column_stack([snap["x"], snap["y"], snap["z"]])
+        velocities = np.column_stack([snap["vx"], snap["vy"], snap["vz"]])
+        name = f"particles_{k:04d}.vtp"
+        particle_cloud(snap["id"], snap["type"], positions, velocities, snap["radius"]).save(out_dir / name)
+        particles.append((t, name))
+        name = f"impeller_{k:04d}.vtp"
+        impeller_at(impeller, rpm, t).save(out_dir / name)
+        impellers.append((t, name))
+    return [write_pvd(out_dir / "particles.pvd", particles), write_pvd(out_dir / "impeller.pvd", impellers)]
