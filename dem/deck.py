@@ -39,6 +39,11 @@ Thermo lines carry :data:`THERMO_COLUMNS` (the header LIGGGHTS prints, in order)
 time is ``v_simtime = step * dt``, not LIGGGHTS' ``time`` keyword, because ``time`` restarts
 at 0 after ``read_restart`` while steps (and so dump names) continue.
 
+Lost particles: ``thermo_modify lost ignore``, because with ``delete_atoms`` LIGGGHTS 3.8.0
+printed a spurious "Lost atoms: original N current N" warning (measured). Check the balance
+from the thermo columns instead: ``insA + insB - outA - outB - Atoms`` is 0 (or briefly
+negative, between a count and the deletion); positive means particles were lost.
+
 Discharge: ``fix massflow/mesh ... count once delete_atoms yes`` deletes a particle at the
 re-neighbouring after its centre crosses ``x = L + discharge_offset_m``, so a dump can
 still show a few particles with ``x > L``: they have left the blender (the post-processor
@@ -356,7 +361,7 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
     )
     add(f"thermo_style    custom {cols}")
     add(f"thermo          {info['thermo_every_steps']}")
-    add("thermo_modify   lost warn norm no")
+    add("thermo_modify   lost ignore norm no")
     add(f"dump            dmp all custom {info['dump_every_steps']} {DUMP_PATTERN} {' '.join(DUMP_COLUMNS)}")
     add(f"restart         {info['restart_every_steps']} {RESTART_PATTERN}")
     add("")
