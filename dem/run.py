@@ -604,19 +604,47 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _terminate_group(proc: subprocess.Popen, grace_s: float = 10.0) -> None:
-    """SIGTERM the solver's process group (every MPI rank), SIGKILL after ``grace_s``."""
+def _session_members(sid: int) -> list[int]:
+    """PIDs of the processes in session ``sid`` (Linux /proc; empty elsewhere). mpirun puts
+    each rank in a process group of its own, but they stay in the session we created."""
+    members = []
     try:
-        pgid = os.getpgid(proc.pid)
-    except ProcessLookupError:
-        return
+        entries = os.listdir("/proc")
+    except OSError:
+        return members
+    for entry in entries:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as handle:
+                fields = handle.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":  # after the command: state ppid pgrp session
+            members.append(int(entry))
+    return members
+
+
+def _terminate_group(proc: subprocess.Popen, grace_s: float = 10.0) -> None:
+    """SIGTERM the solver's process group and every process of its session (every MPI
+    rank), SIGKILL whatever is left after ``grace_s``."""
+    sid = proc.pid  # start_new_session: the launcher leads its own session and group
     for sig, wait in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
         try:
-            os.killpg(pgid, sig)
-        except ProcessLookupError:
-            return
+            os.killpg(sid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+        for pid in _session_members(sid):
+            try:
+                os.kill(pid, sig)
+            except (ProcessLookupError, PermissionError):
+                pass
         try:
             proc.wait(timeout=wait)
-            return
         except subprocess.TimeoutExpired:
             continue
+        deadline = time.monotonic() + wait
+        while _session_members(sid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if not _session_members(sid):
+            return
