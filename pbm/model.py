@@ -147,9 +147,10 @@ def feed_distribution(table: VelocityTable, weights_a, weights_b) -> np.ndarray:
     return np.stack(columns, axis=1)
 
 
-def transfer_rates(table: VelocityTable, k: int) -> dict[str, np.ndarray]:
+def transfer_rates(table: VelocityTable, k) -> dict[str, np.ndarray]:
     """Per-particle rates [1/s] of window ``k``, each (NX, NY), walls already closed.
 
+    ``k`` may also be an index array or slice: the rates then carry a leading window axis.
     Keys: ``forward`` (to i+1; for the last slice: the outflow), ``backward`` (to i-1),
     ``up`` (to j+1), ``down`` (to j-1). Rates through the inlet wall and the side walls are
     set to 0 here, so that the velocities recorded there by DEM (particles bouncing off
@@ -161,47 +162,50 @@ def transfer_rates(table: VelocityTable, k: int) -> dict[str, np.ndarray]:
     backward = table.vx_neg[k] / dx
     up = table.vy_pos[k] / dy
     down = table.vy_neg[k] / dy
-    backward = backward.copy()
-    up = up.copy()
-    down = down.copy()
-    backward[0, :] = 0.0
-    up[:, -1] = 0.0
-    down[:, 0] = 0.0
+    backward[..., 0, :] = 0.0
+    up[..., :, -1] = 0.0
+    down[..., :, 0] = 0.0
     return {"forward": forward, "backward": backward, "up": up, "down": down}
 
 
-def _generator_triplets(table: VelocityTable, k: int):
+def _generator_triplets(table: VelocityTable, k):
+    """Row, column and value arrays of the generator entries; values carry the leading
+    window axis of ``k`` (if any), rows and columns are the same for every window."""
     nx, ny = table.nx, table.ny
     n = nx * ny
     r = transfer_rates(table, k)
+    lead = r["forward"].shape[:-2]
     c = np.arange(n).reshape(nx, ny)
     rows, cols, vals = [], [], []
 
     def add(src, dst, rate):
-        rows.append(dst.ravel())
-        cols.append(src.ravel())
-        vals.append(rate.ravel())
+        rows.append(np.broadcast_to(dst, src.shape).ravel())
+        cols.append(np.ravel(src))
+        vals.append(np.broadcast_to(rate, (*lead, *np.shape(src))).reshape(*lead, -1))
 
-    add(c[:-1, :], c[1:, :], r["forward"][:-1, :])
-    add(c[1:, :], c[:-1, :], r["backward"][1:, :])
-    add(c[:, :-1], c[:, 1:], r["up"][:, :-1])
-    add(c[:, 1:], c[:, :-1], r["down"][:, 1:])
+    add(c[:-1, :], c[1:, :], r["forward"][..., :-1, :])
+    add(c[1:, :], c[:-1, :], r["backward"][..., 1:, :])
+    add(c[:, :-1], c[:, 1:], r["up"][..., :, :-1])
+    add(c[:, 1:], c[:, :-1], r["down"][..., :, 1:])
     leaving = r["forward"] + r["backward"] + r["up"] + r["down"]
     add(c, c, -leaving)
     # Accumulators: discharged particles, and the two time integrals of the hold-up.
-    add(c[-1, :], np.full(ny, n), r["forward"][-1, :])
+    add(c[-1, :], np.full(ny, n), r["forward"][..., -1, :])
     add(c, np.full((nx, ny), n + 1), np.ones((nx, ny)))
-    add(np.array([n + 1]), np.array([n + 2]), np.array([1.0]))
-    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), n + N_ACCUMULATORS
+    add(np.array([n + 1]), np.array([n + 2]), np.ones(1))
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals, axis=-1), n + N_ACCUMULATORS
 
 
-def generator_matrix(table: VelocityTable, k: int) -> np.ndarray:
-    """Dense (n+3, n+3) generator of window ``k``: dz/dt = G z for the augmented state."""
+def generator_matrix(table: VelocityTable, k) -> np.ndarray:
+    """Dense (n+3, n+3) generator of window ``k``: dz/dt = G z for the augmented state.
+
+    With an index array ``k`` of windows: the stack (len(k), n+3, n+3), built at once.
+    """
     rows, cols, vals, m = _generator_triplets(table, k)
-    g = np.zeros((m, m))
+    g = np.zeros((*vals.shape[:-1], m, m))
     # Every (destination, source) pair occurs once (the stencil's neighbours, the
     # diagonal and the accumulator rows are distinct), so plain assignment is exact.
-    g[rows, cols] = vals
+    g[..., rows, cols] = vals
     return g
 
 
