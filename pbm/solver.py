@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.integrate import solve_ivp
 
-from coupling.errors import PbmDemError
+from coupling.errors import ConfigError, PbmDemError
 from coupling.tables import VelocityTable
 from pbm.model import N_ACCUMULATORS, generator_matrix, generator_sparse
 
@@ -232,7 +232,7 @@ def march(
             yield s + 1, z
         return
     if method != "bdf":
-        raise ValueError(f"unknown method {method!r}; valid: 'expm', 'bdf'")
+        raise ConfigError(f"unknown solver method {method!r}; valid: 'expm', 'bdf'")
     yield from _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol)
 
 
