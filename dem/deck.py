@@ -11,7 +11,10 @@ in; every name is a module constant, the runner and the post-processor use them)
 =====================================  ===================================================
 ``in.blender`` (:data:`MAIN_DECK`)      main input deck (fresh start)
 ``in.resume`` (:data:`RESUME_DECK`)     only from ``build_deck(config, resume_from=...)``:
-                                        continues from a restart file to the same end step
+                                        continues from a restart file to the same end step;
+                                        run it with ``-log log.resume.liggghts``
+                                        (:data:`RESUME_LOG_FILE`); it appends to the
+                                        massflow files and rewrites later dumps
 ``meshes/impeller.stl`` etc.           ASCII STL of the impeller (shaft + paddles), the weir
                                         and the discharge counting face (:data:`MESH_FILES`)
 ``deck.json`` (:data:`DECK_INFO`)      machine-readable facts of the deck: timestep, step
@@ -72,6 +75,9 @@ MAIN_DECK = "in.blender"
 RESUME_DECK = "in.resume"
 DECK_INFO = "deck.json"
 LOG_FILE = "log.liggghts"
+#: Log of a resumed run: pass ``-log log.resume.liggghts`` (LIGGGHTS truncates its log file at
+#: start-up, before reading the deck, so the resume must not reuse LOG_FILE).
+RESUME_LOG_FILE = "log.resume.liggghts"
 MESH_DIR = "meshes"
 MESH_FILES = {name: f"{MESH_DIR}/{name}.stl" for name in ("impeller", "weir", "discharge")}
 DUMP_DIR = "dumps"
@@ -345,8 +351,10 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
     add("")
     add("# outlet: count and delete particles whose centre crosses the face past the weir, per component")
     for comp in ("A", "B"):
+        # a resumed run appends: 'file' would truncate the discharges recorded before the restart
+        mode = "file" if resume_from is None else "append"
         add(f"fix out{comp} g{comp} massflow/mesh mesh discharge vec_side 1. 0. 0. count once delete_atoms yes "
-            f"file {MASSFLOW_FILES[comp]} writeTime screen no")
+            f"{mode} {MASSFLOW_FILES[comp]} writeTime screen no")
     add("")
     add("fix integr all nve/sphere")
     add(f"fix ts all check/timestep/gran {info['thermo_every_steps']} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "

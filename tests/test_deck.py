@@ -142,6 +142,7 @@ def test_resume_deck_reads_restart_and_keeps_steps_continuous():
     assert resume.rstrip().endswith(f"run             {end} upto")
     for fix in ("insA", "insB", "outA", "outB", "rotor", "walls", "barrel", "ts"):
         assert f"fix {fix} " in resume
+    assert "append discharge_A.txt" in resume and "file discharge_A.txt" in files[MAIN_DECK]
     with pytest.raises(DeckError, match="resume_from"):
         build_deck(dem, resume_from="a b.bin")
 
@@ -203,10 +204,10 @@ def test_cli_writes_deck_and_refuses_bad_input(tmp_path, capsys):
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
-def _run_liggghts(run_dir: Path, deck: str, np_: int = 1, timeout: float = 240) -> str:
+def _run_liggghts(run_dir: Path, deck: str, np_: int = 1, timeout: float = 240, log: str = "log.liggghts") -> str:
     exe = shutil.which("liggghts")
     assert exe is not None, "liggghts is not installed (apt-get install liggghts): this test must not be skipped"
-    cmd = [exe, "-in", deck]
+    cmd = [exe, "-in", deck, "-log", log]
     if np_ > 1:
         cmd = ["mpirun", "--allow-run-as-root", "-np", str(np_), *cmd]
     proc = subprocess.run(["stdbuf", "-oL", *cmd] if shutil.which("stdbuf") else cmd, cwd=run_dir,
@@ -258,9 +259,11 @@ def test_liggghts_smoke_inserts_and_restart_resumes(tmp_path):
     inserted = last["insA"] + last["insB"]
     assert abs(inserted - expected) <= 0.15 * expected + 4
     assert (tmp_path / f"restart/restart.{restart_step}.bin").exists()
-    out2 = _run_liggghts(tmp_path, RESUME_DECK)
+    out2 = _run_liggghts(tmp_path, RESUME_DECK, log="log.resume.liggghts")
     rows2 = [l.split() for l in out2.splitlines() if re.match(r"^\s+\d+\s", l) and len(l.split()) == len(THERMO_COLUMNS)]
     assert int(rows2[0][0]) == restart_step and int(rows2[-1][0]) == info["end_step"]
     assert float(rows2[-1][1]) == pytest.approx(1.0, abs=2 * info["timestep_s"])
     for comp, fname in MASSFLOW_FILES.items():
         assert list(tmp_path.glob(fname + "*")), fname
+    assert (tmp_path / "log.liggghts").read_text().count("Loop time") == 1
+    assert (tmp_path / "log.resume.liggghts").is_file()
