@@ -42,10 +42,16 @@ Thermo lines carry :data:`THERMO_COLUMNS` (the header LIGGGHTS prints, in order)
 time is ``v_simtime = step * dt``, not LIGGGHTS' ``time`` keyword, because ``time`` restarts
 at 0 after ``read_restart`` while steps (and so dump names) continue.
 
+Resuming (measured on LIGGGHTS 3.8.0 from a discharging smoke state): particles, steps,
+the impeller's angle and the insertion counters ``insA``/``insB`` are restored exactly;
+the massflow counters ``outA``/``outB`` restart at 0 (the appended massflow files keep the
+whole record), and so does LIGGGHTS' ``time`` (hence ``simtime``).
+
 Lost particles: ``thermo_modify lost ignore``, because with ``delete_atoms`` LIGGGHTS 3.8.0
 printed a spurious "Lost atoms: original N current N" warning (measured). Check the balance
 from the thermo columns instead: ``insA + insB - outA - outB - Atoms`` is 0 (or briefly
-negative, between a count and the deletion); positive means particles were lost.
+negative, between a count and the deletion); positive means particles were lost. (In a
+resumed run add the discharges recorded before the restart.)
 
 Discharge: ``fix massflow/mesh ... count once delete_atoms yes`` deletes a particle at the
 re-neighbouring after its centre crosses ``x = L + discharge_offset_m``, so a dump can
@@ -107,8 +113,8 @@ THERMO_MEANING = {
     "Atoms": "particles in the simulation",
     "insA": "particles of A inserted so far",
     "insB": "particles of B inserted so far",
-    "outA": "particles of A discharged over the weir so far",
-    "outB": "particles of B discharged over the weir so far",
+    "outA": "particles of A discharged over the weir so far (since the start of this run: a resumed run restarts it at 0)",
+    "outB": "particles of B discharged over the weir so far (since the start of this run: a resumed run restarts it at 0)",
     "ts[1]": "timestep / Rayleigh time (fix check/timestep/gran 'ts')",
     "ts[2]": "timestep / Hertz time (fix check/timestep/gran 'ts')",
 }
