@@ -5,12 +5,17 @@ to EGL/OSMesa when there is no X server (measured here: works on this headless D
 after a "bad X server connection" warning on stderr). If that fails, or the image comes back
 blank, ``pyvista.start_xvfb()`` is tried when an ``Xvfb`` binary exists, and last matplotlib's
 Agg backend draws the triangles with ``mpl_toolkits.mplot3d``. The first backend that
-produces a non-blank image wins; :func:`render_geometry` returns which one it was.
+produces a non-blank image wins; :func:`render_geometry` returns which one it was. The
+pyvista attempt (with its Xvfb retry) runs in a child process, because a VTK that cannot
+create any context may abort instead of raising.
 """
 
 from __future__ import annotations
 
 import shutil
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -89,30 +94,60 @@ def _render_matplotlib(meshes: dict[str, TriMesh], path: Path, size: tuple[int, 
     plt.close(fig)
 
 
+def _render_pyvista_isolated(meshes: dict[str, TriMesh], path: Path, size: tuple[int, int]) -> None:
+    """Run the pyvista renderer in a child process: a VTK without a usable offscreen
+    context can abort the process (not raise), which must not take the caller down."""
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = Path(tmp) / "meshes.npz"
+        arrays = {}
+        for name, m in meshes.items():
+            arrays[f"{name}__points"] = m.points
+            arrays[f"{name}__triangles"] = m.triangles
+        np.savez(npz, **arrays)
+        proc = subprocess.run(
+            [sys.executable, "-m", "dem.render", str(npz), str(path), str(size[0]), str(size[1])],
+            capture_output=True, text=True, timeout=300,
+        )
+        if proc.returncode != 0 or not path.is_file():
+            raise RuntimeError(f"pyvista renderer failed (exit {proc.returncode}): {proc.stderr[-500:]}")
+
+
+def _load_npz(npz: Path) -> dict[str, TriMesh]:
+    data = np.load(npz)
+    names = sorted({k.rsplit("__", 1)[0] for k in data.files})
+    return {n: TriMesh(n, data[f"{n}__points"], data[f"{n}__triangles"]) for n in names}
+
+
 def render_geometry(config: DemConfig, path: str | Path, size: tuple[int, int] = (1200, 700),
                     backend: str = "auto") -> str:
     """Render the blender (impeller, weir, discharge face, barrel, feed zones) to a PNG.
 
     ``backend`` is ``"auto"``, ``"pyvista"`` or ``"matplotlib"``; returns the one used.
+    pyvista runs in a child process (see :func:`_render_pyvista_isolated`).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meshes = _all_meshes(build_geometry(config))
     if backend in ("auto", "pyvista"):
         try:
-            _render_pyvista(meshes, path, size)
+            _render_pyvista_isolated(meshes, path, size)
             return "pyvista"
         except Exception:
             if backend == "pyvista":
                 raise
-            if shutil.which("Xvfb"):
-                try:
-                    import pyvista as pv
-
-                    pv.start_xvfb()
-                    _render_pyvista(meshes, path, size)
-                    return "pyvista+xvfb"
-                except Exception:
-                    pass
     _render_matplotlib(meshes, path, size)
     return "matplotlib"
+
+
+if __name__ == "__main__":  # child process of _render_pyvista_isolated
+    _npz, _png, _w, _h = sys.argv[1:5]
+    _meshes = _load_npz(Path(_npz))
+    try:
+        _render_pyvista(_meshes, Path(_png), (int(_w), int(_h)))
+    except Exception:
+        if not shutil.which("Xvfb"):
+            raise
+        import pyvista as pv
+
+        pv.start_xvfb()
+        _render_pyvista(_meshes, Path(_png), (int(_w), int(_h)))
