@@ -28,8 +28,11 @@ in; every name is a module constant, the runner and the post-processor use them)
   (:data:`MASSFLOW_FILES`, globs in      discharged particle of that component: header
   :data:`MASSFLOW_GLOBS`)               ``# ID time  diameter x y z u v w  (ex ey ez,
                                         color)``, then ``id t[s] d[m] x y z vx vy vz``
-                                        where t is LIGGGHTS' ``time`` (restarts at 0 after a
-                                        resume: use the IDs, or the dumps, for times then).
+                                        where t is the simulated time of the crossing
+                                        (measured continuous across a resume). A resume
+                                        appends a second header line; records above it
+                                        with t after the restart's time belong to the
+                                        abandoned run and must be dropped.
                                         With ``mpirun -np N`` each rank writes its own file
                                         with suffix ``.0`` ... ``.N-1`` (measured); the
                                         union is the discharge record. Verified: every
