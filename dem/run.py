@@ -322,9 +322,24 @@ def _step_of(path: Path) -> int:
 
 
 def _restart_files(run_dir: Path) -> list[Path]:
+    """Restart files known to be complete, oldest first.
+
+    A restart file carries no end marker, and a run killed while writing one leaves it
+    truncated. LIGGGHTS writes a step's restart before that step's thermo line, so a restart
+    at step S is complete once solver.out shows a thermo row at a step >= S; newer ones
+    are ignored (the resume then starts from an older restart: safe, a little slower)."""
     pattern = _deck_constant("RESTART_GLOB", "restart/*.bin")
     files = [p for p in run_dir.glob(pattern) if p.is_file() and p.stat().st_size > 0]
-    return sorted(files, key=_step_of)
+    parser = ThermoParser()
+    last_step = -1
+    try:
+        with open(run_dir / SOLVER_OUT, errors="replace") as handle:
+            for line in handle:
+                if parser.feed(line) and parser.step is not None:
+                    last_step = max(last_step, parser.step)
+    except OSError:
+        return []
+    return sorted((p for p in files if _step_of(p) <= last_step), key=_step_of)
 
 
 def _clear_outputs(run_dir: Path) -> None:
@@ -424,7 +439,8 @@ def run_dem(
             return _record_from_status(run_dir, status, reused=True)
         if not restarts:
             raise SolverRunError(
-                f"cannot resume run {key}: no restart file in {run_dir} (start it without --resume)", run_dir=run_dir
+                f"cannot resume run {key}: no complete restart file in {run_dir} (start it without --resume)",
+                run_dir=run_dir,
             )
         restart = restarts[-1]
         resumed_from = str(restart.relative_to(run_dir))

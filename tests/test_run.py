@@ -162,12 +162,15 @@ def test_interrupt_then_resume(tmp_path):
     seen = {}
 
     def interrupt_after_restart(line):
+        # LIGGGHTS writes a step's restart before that step's thermo row: a thermo row at a
+        # step >= the restart's means the restart file is complete
+        tokens = line.split()
+        if "sent" in seen or len(tokens) != 9 or not tokens[0].isdigit():
+            return
         run_dir = next(tmp_path.iterdir())
-        # a restart file untouched for 1 s is complete (not being written)
-        restarts = [p for p in run_dir.glob("restart/restart.*.bin")
-                    if p.stat().st_size > 0 and time.time() - p.stat().st_mtime > 1]
-        if restarts and "Step" not in seen and line.split() and line.split()[0].isdigit():
-            seen["Step"] = int(line.split()[0])
+        steps = [int(p.name.split(".")[1]) for p in run_dir.glob("restart/restart.*.bin")]
+        if steps and int(tokens[0]) >= min(steps):
+            seen["sent"] = int(tokens[0])
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1)
 
