@@ -435,13 +435,13 @@ def postprocess(
         mf_ids = mf_ids[keep]
         mf_t = mf_t[keep] if mf_t is not None else None
         massflow_discharged = int(mf_ids.size)
-        if mf_t is not None:
-            # compare at the same instant: records after the last dump are not in our count
-            massflow_discharged_by_last_dump = int((mf_t <= t_last + tol).sum())
         in_range = mf_ids < particles.size
+        # Compare at the same instant: a particle deleted after the last dump is still in it.
+        # (Exact; the file's time column has only 4 significant digits.)
+        in_last_dump = np.zeros(mf_ids.size, bool)
+        in_last_dump[in_range] = np.isin(mf_ids[in_range], prev_ids)
+        massflow_discharged_by_last_dump = int((~in_last_dump).sum())
         massflow_unseen = int((~in_range).sum() + (~seen[mf_ids[in_range]]).sum())
-        if massflow_discharged_by_last_dump is None:
-            massflow_discharged_by_last_dump = massflow_discharged
         listed = np.zeros(particles.size, bool)
         listed[mf_ids[in_range]] = True
         use = vanished & listed
