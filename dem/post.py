@@ -42,6 +42,13 @@ Conventions (documented choices where DESIGN.md leaves room)
   (``steady_window_s``, default the velocity window), the hold-up changed by at most
   ``holdup_tol`` (5 %) of its value and the mean outflow rate is within ``flow_tol``
   (10 %) of the mean inflow (first appearances) over the same window.
+* Accounting and cross-checks: inserted (IDs seen) = held (in the last dump, not exited)
+  + discharged; ``lost`` counts IDs that vanished without a discharge record, and
+  ``accounting_mismatch`` = inserted - held - discharged is reported, never hidden.
+  ``discharge_crosscheck_diff`` = our discharged particles already deleted by the last dump
+  minus the solver's massflow records of particles absent from the last dump (exact, by ID);
+  the thermo counters (``solver_counters``) are compared only if taken at the last dump's
+  step (``solver_*_diff``), otherwise a warning says why not.
 * RTD: particles entering during (t_ss, t_ss + tag window] are tagged; residence time =
   exit - entry; E(t) is their 1 s histogram normalised to unit area over the recovered
   particles; mean and variance (population) from the individual residence times.
