@@ -234,6 +234,7 @@ def geometry_study(
                 "late outlet RSD": _late_mean(result),
                 "mean blender RSD at end": float(np.nanmean(result.rsd_by_slice_final)),
                 "mean residence time [s]": result.summary.get("mean_residence_time_s"),
+                "tracer recovered": result.summary.get("rtd_recovered_fraction"),
                 "hold-up at end": result.summary.get("holdup_final"),
             }
         )
@@ -327,7 +328,8 @@ def full_comparison(
 ) -> Path:
     """Run the whole comparison for ``config`` and return the report's path
     (``<results_root>/<name>-<input hash>/report.html``)."""
-    dem = dem_side(config, Path(runs_root), np_ranks=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
+    # absolute, so that the run directory recorded in the cache stays findable from elsewhere
+    dem = dem_side(config, Path(runs_root).resolve(), np_ranks=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
     key = dem.provenance.get("key", "unknown")
     out_dir = Path(results_root) / f"{config.name}-{key}"
     out_dir.mkdir(parents=True, exist_ok=True)

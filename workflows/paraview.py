@@ -111,7 +111,10 @@ def write_particle_series(dem_config, run_dir: Path, out_dir: Path, max_snapshot
     dt = dem_config.timestep_s
     rpm = dem_config.operation.impeller_rpm
     particles, impellers = [], []
-    for k, snap in enumerate(iter_snapshots(chosen, columns=deck.DUMP_COLUMNS)):
+    k = 0
+    for snap in iter_snapshots(chosen, columns=deck.DUMP_COLUMNS):
+        if snap.n == 0:  # before the first insertion: VTK has no empty point clouds
+            continue
         t = snap.time_s(dt)
         positions = np.column_stack([snap["x"], snap["y"], snap["z"]])
         velocities = np.column_stack([snap["vx"], snap["vy"], snap["vz"]])
@@ -121,4 +124,5 @@ def write_particle_series(dem_config, run_dir: Path, out_dir: Path, max_snapshot
         name = f"impeller_{k:04d}.vtp"
         impeller_at(impeller, rpm, t).save(out_dir / name)
         impellers.append((t, name))
+        k += 1
     return [write_pvd(out_dir / "particles.pvd", particles), write_pvd(out_dir / "impeller.pvd", impellers)]
