@@ -27,3 +27,16 @@ def test_mpi_command_and_slurm_script():
         slurm_script(dem, "/x", np=0, wall_hours=1)
     with pytest.raises(ConfigError, match="particles_held"):
         estimate_cost(dem, 0, 1e6, 2)
+
+
+def test_cli_slurm_writes_deck_and_script(tmp_path, capsys):
+    from workflows.cli import main
+
+    out = tmp_path / "job"
+    assert main(["dem", "slurm", "--preset", "paper", "--np", "16", "--holdup", "40000", "--throughput", "4e6",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert (out / "in.blender").is_file() and (out / "meshes" / "impeller.stl").is_file()
+    script = (out / "job.slurm").read_text()
+    assert f"cd {out.resolve()}" in script and "#SBATCH --ntasks=16" in script
+    assert "core-hours" in text and "sbatch job.slurm" in text

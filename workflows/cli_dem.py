@@ -8,7 +8,7 @@ import argparse
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("dem", help="DEM stage: write decks, run LIGGGHTS, post-process dumps")
     dem_sub = parser.add_subparsers(dest="dem_command", required=True, metavar="DEM_COMMAND")
-    for name in ("cli_dem_deck", "cli_dem_run"):
+    for name in ("cli_dem_deck", "cli_dem_run", "cli_dem_cluster"):
         try:
             module = __import__(f"workflows.{name}", fromlist=["register"])
         except ModuleNotFoundError as exc:
