@@ -10,6 +10,7 @@ from dem.deck import MAIN_DECK, build_deck
 from workflows.bench_dem_deck import (
     BenchError,
     box_deck_text,
+    loop_details,
     paper_core_hours,
     parse_loop_time,
     parse_runs,
@@ -135,3 +136,26 @@ def test_paper_core_hours_follow_estimate_cost():
     assert out["cores"]["2"]["parallel_efficiency"] == pytest.approx(0.9)
     if out["holdup_source"].startswith("measured smoke"):
         assert out["holdup_particles"] == pytest.approx(1500.0 * 27)
+
+
+def test_loop_details_after_the_last_loop_time():
+    log = """Loop time of 1.2771 on 1 procs for 2000 steps with 1540 atoms, finish time x
+
+
+Pair  time (%) = 1.04285 (81.6573)
+Neigh time (%) = 0.5 (0)
+Comm  time (%) = 0.000195497 (0.0153079)
+Outpt time (%) = 4.4997e-05 (0.00352337)
+Other time (%) = 0.234003 (18.3229)
+
+Nlocal:    1540 ave 1540 max 1540 min
+Total # of neighbors = 8217
+Ave neighs/atom = 5.33571
+Neighbor list builds = 7
+Dangerous builds = 0
+"""
+    out = loop_details("Loop time of 9 on 1 procs for 1 steps with 1 atoms\nPair  time (%) = 9 (100)\n" + log)
+    assert out["sections_s"] == {"Pair": 1.04285, "Neigh": 0.5, "Comm": 0.000195497, "Outpt": 4.4997e-05,
+                                 "Other": 0.234003}
+    assert out["neighbours_per_particle"] == 5.33571 and out["neighbour_builds"] == 7
+    assert loop_details("no timing here") == {}

@@ -134,6 +134,31 @@ def parse_runs(text: str) -> list[RunSegment]:
     return runs
 
 
+_SECTION_RE = re.compile(r"^\s*(\w+)\s+time\s+\(%\)\s+=\s+([-+0-9.eE]+)")
+
+
+def loop_details(text: str) -> dict:
+    """What LIGGGHTS prints after the last ``Loop time`` line: seconds per section (Pair,
+    Neigh, Comm, Outpt, Other -- fixes such as walls, meshes and insertion count as Other),
+    neighbours per particle and neighbour-list builds."""
+    starts = [m.start() for m in re.finditer(r"Loop time of", text)]
+    if not starts:
+        return {}
+    tail = text[starts[-1]:].splitlines()[1:]
+    out: dict = {"sections_s": {}}
+    for line in tail:
+        if line.startswith("Loop time of") or line.split()[:1] == ["Step"]:
+            break
+        section = _SECTION_RE.match(line)
+        if section:
+            out["sections_s"][section.group(1)] = float(section.group(2))
+        for key, label in (("neighbours_per_particle", "Ave neighs/atom ="), ("neighbour_builds", "Neighbor list builds ="),
+                           ("dangerous_builds", "Dangerous builds =")):
+            if line.startswith(label):
+                out[key] = float(line.split("=")[1])
+    return out
+
+
 def error_lines(text: str) -> list[str]:
     return [line.strip() for line in text.splitlines() if line.lstrip().startswith("ERROR")]
 
@@ -301,6 +326,7 @@ class Measurement:
     load_before: float
     warnings: int
     run_dir: str
+    details: dict = field(default_factory=dict)
 
 
 def _run_liggghts(run_config, np: int, run_dir: Path, deck: str, log: str, timeout_s: float) -> tuple[str, float, float]:
@@ -344,10 +370,14 @@ def _measure(name: str, run_config, np: int, run_dir: Path, deck: str, log: str,
         raise BenchError(f"{deck}: implausible loop time {last.loop}")
     rate = mean_atoms * last.loop.steps / last.loop.seconds
     n_warn = sum(1 for line in text.splitlines() if line.lstrip().startswith("WARNING"))
+    details = loop_details(text)
+    sections = ", ".join(f"{k} {v / last.loop.seconds:.0%}" for k, v in details.get("sections_s", {}).items())
     print(f"  {name:<16} np={np}  {last.loop.steps} steps, {mean_atoms:.0f} particles, loop {last.loop.seconds:.2f} s "
-          f"(wall {wall:.1f} s, CPU {cpu:.1f} s, load {load:.2f}): {rate:.3g} particle-steps/s", flush=True)
+          f"(wall {wall:.1f} s, CPU {cpu:.1f} s, load {load:.2f}): {rate:.3g} particle-steps/s"
+          + (f"\n{'':21}loop: {sections}; {details.get('neighbour_builds', 0):.0f} neighbour-list builds" if sections else ""),
+          flush=True)
     return Measurement(name, np, last.loop.steps, last.loop.seconds, mean_atoms, last.loop.atoms, rate, cpu, wall, load,
-                       n_warn, str(run_dir))
+                       n_warn, str(run_dir), details)
 
 
 def _with_numerics(config, **numerics):
