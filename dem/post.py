@@ -69,7 +69,7 @@ import pandas as pd
 
 from coupling.errors import DumpFormatError
 from coupling.tables import VelocityTable
-from dem.dumps import Snapshot, iter_snapshots
+from dem.dumps import iter_snapshots
 
 __all__ = [
     "DemResults",

@@ -132,8 +132,9 @@ def liggghts_version(liggghts: str = "liggghts") -> str:
     if not exe or shutil.which(exe[0]) is None:
         raise SolverNotFoundError(f"LIGGGHTS executable {liggghts!r} not found on PATH; {INSTALL_HINT}")
     try:
-        out = subprocess.run([*exe, "-h"], capture_output=True, text=True, errors="replace", timeout=60,
-                             stdin=subprocess.DEVNULL)
+        # -log none: otherwise `liggghts -h` leaves a log.liggghts in the caller's directory
+        out = subprocess.run([*exe, "-log", "none", "-h"], capture_output=True, text=True, errors="replace",
+                             timeout=60, stdin=subprocess.DEVNULL)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise SolverNotFoundError(f"cannot run {liggghts!r} -h: {exc}; {INSTALL_HINT}") from exc
     match = re.search(r"LIGGGHTS \(Version ([^)]*)\)", out.stdout + out.stderr)

@@ -44,7 +44,7 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
     report = next(results_dir.glob("smoke-*/report.html"))
     out = report.parent
     summary = json.loads((out / "summary.json").read_text())
-    dem, pbm, metrics = summary["dem_summary"], summary["pbm_summary"], summary["metrics"]
+    dem, metrics = summary["dem_summary"], summary["metrics"]
 
     # DEM substance: particles discharged, accounting closed, tables non-trivial.
     assert dem["discharged"] > 50

@@ -31,8 +31,8 @@ def variant(config, **sections):
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
-    root = tmp_path_factory.mktemp("runs")
+def smoke(smoke_runs_root):
+    root = smoke_runs_root  # one real smoke run per session (conftest), reused here
     config = load_preset("smoke")
     assert config.dem.run.np == 2  # the preset runs under mpirun -np 2
     record = run_dem(config, runs_root=root, progress=False)
@@ -43,7 +43,7 @@ def smoke(tmp_path_factory):
 
 def test_smoke_run_completes_under_mpi(smoke):
     config, root, record, _ = smoke
-    assert record.state == "completed" and not record.reused
+    assert record.state == "completed"
     assert record.command[:2] == ["mpirun", "--allow-run-as-root"] and "2" in record.command
     assert "3.8.0" in record.liggghts_version
     status = read_status(record.run_dir)

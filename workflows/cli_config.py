@@ -9,7 +9,7 @@ from workflows.config import dump_toml, preset_names, resolve_config
 
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("config", help="list presets, print or validate a configuration")
-    parser.add_argument("--preset", help=f"preset name")
+    parser.add_argument("--preset", help="preset name")
     parser.add_argument("--config", help="TOML configuration file to validate and print")
     parser.add_argument("--list", action="store_true", help="list the preset names")
     parser.set_defaults(func=run)

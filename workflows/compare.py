@@ -84,7 +84,7 @@ def dem_side(
 ) -> DemSide:
     from dem import deck
     from dem.run import liggghts_version, run_key
-    from workflows.cli_dem_run import dem_results
+    from workflows.pipeline import dem_results
 
     cache_root = runs_root / "cache"
     seeded = False
