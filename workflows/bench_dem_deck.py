@@ -340,8 +340,20 @@ def _run_liggghts(run_config, np: int, run_dir: Path, deck: str, log: str, timeo
     with open(out_path, "w") as out:
         proc = subprocess.Popen(command, cwd=run_dir, stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
+        error_seen = None
         try:
-            rc = proc.wait(timeout=timeout_s)
+            while (rc := proc.poll()) is None:
+                time.sleep(0.5)
+                now = time.monotonic()
+                if now - t0 > timeout_s:
+                    raise BenchError(f"LIGGGHTS ran longer than {timeout_s:.0f} s on {deck} in {run_dir}: stopped")
+                # an MPI rank can hang after another printed ERROR: stop it after a grace period
+                if error_seen is None and error_lines(out_path.read_text(errors="replace")):
+                    error_seen = now
+                if error_seen is not None and now - error_seen > 30:
+                    _terminate_group(proc)
+                    rc = proc.wait()
+                    break
         except BaseException:  # timeout, Ctrl-C: stop every rank we started
             _terminate_group(proc)
             raise
