@@ -125,73 +125,84 @@ def comparison_metrics(dem: SideResults, pbm: SideResults, feed_rate_per_s: floa
 # --- figures -------------------------------------------------------------------------------
 
 
-def _figure(path: Path, title: str, xlabel: str, ylabel: str):
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
-    ax.set_title(title)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.grid(alpha=0.3)
-    return fig, ax
-
-
-def _save(fig, path: Path) -> str:
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
-
-
-def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[str, str]:
-    """The paper's Figs 7-10 plus hold-up, DEM beside PBM. Returns figure key -> file name."""
-    out_dir = Path(out_dir)
-    files: dict[str, str] = {}
-    sides = ((dem, DEM_COLOUR, "-"), (pbm, PBM_COLOUR, "-"))
-
-    fig, ax = _figure(out_dir, "Residence time distribution (paper Fig. 7)", "t - t_pulse [s]", "E(t) [1/s]")
-    for side, colour, _ in sides:
+def _draw_rtd(ax, dem: SideResults, pbm: SideResults) -> None:
+    for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ax.step(side.rtd["t_s"], side.rtd["E_per_s"], where="mid", color=colour, label=side.label)
-    ax.legend()
-    files["rtd"] = _save(fig, out_dir / "rtd.png")
+    ax.set(title="Residence time distribution (paper Fig. 7)", xlabel="t - t_pulse [s]", ylabel="E(t) [1/s]")
 
-    fig, ax = _figure(out_dir, "RSD along the blender at the end (Fig. 8a)", "axial compartment (inlet = 1)", "RSD")
-    for side, colour, _ in sides:
+
+def _draw_rsd_axial(ax, dem: SideResults, pbm: SideResults) -> None:
+    for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         n = len(side.rsd_by_slice)
         ax.plot(np.arange(1, n + 1), side.rsd_by_slice, "o-", color=colour, label=side.label)
     if dem.rsd_by_slice_floor is not None:
         n = len(dem.rsd_by_slice_floor)
         ax.plot(np.arange(1, n + 1), dem.rsd_by_slice_floor, ":", color=DEM_COLOUR, label="DEM random-mixture floor")
-    ax.legend()
-    files["rsd_axial"] = _save(fig, out_dir / "rsd_axial.png")
+    ax.set(title="RSD along the blender at the end (Fig. 8a)", xlabel="axial compartment (inlet = 1)", ylabel="RSD")
 
-    fig, ax = _figure(out_dir, "RSD at the outlet (Fig. 8b)", "t [s]", "RSD across the last slice")
-    for side, colour, _ in sides:
+
+def _draw_rsd_time(ax, dem: SideResults, pbm: SideResults) -> None:
+    for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ax.plot(side.timeseries["t_s"], side.timeseries["rsd_outlet"], color=colour, label=side.label)
     if "rsd_outlet_floor" in dem.timeseries:
-        ax.plot(dem.timeseries["t_s"], dem.timeseries["rsd_outlet_floor"], ":", color=DEM_COLOUR, label="DEM random-mixture floor")
-    ax.legend()
-    files["rsd_time"] = _save(fig, out_dir / "rsd_time.png")
+        ax.plot(dem.timeseries["t_s"], dem.timeseries["rsd_outlet_floor"], ":", color=DEM_COLOUR,
+                label="DEM random-mixture floor")
+    ax.set(title="RSD at the outlet (Fig. 8b)", xlabel="t [s]", ylabel="RSD across the last slice")
 
-    fig, ax = _figure(out_dir, "Fraction of A in the outflow (Fig. 9)", "t [s]", "C_A")
-    for side, colour, _ in sides:
+
+def _draw_c_a(ax, dem: SideResults, pbm: SideResults) -> None:
+    for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ax.plot(side.timeseries["t_s"], side.timeseries["C_A"], color=colour, label=side.label)
     ax.axhline(0.5, color="grey", lw=0.8)
-    ax.set_ylim(0, 1)
-    ax.legend()
-    files["c_a"] = _save(fig, out_dir / "c_a.png")
+    ax.set(title="Fraction of A in the outflow (Fig. 9)", xlabel="t [s]", ylabel="C_A", ylim=(0, 1))
 
-    fig, ax = _figure(out_dir, "Outflow rate over the weir (Fig. 10)", "t [s]", "particles / s")
-    for side, colour, _ in sides:
+
+def _draw_outflow(ax, dem: SideResults, pbm: SideResults) -> None:
+    for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ts = side.timeseries
         ax.plot(ts["t_s"], ts["outflow_A_per_s"] + ts["outflow_B_per_s"], color=colour, label=side.label)
-    ax.legend()
-    files["outflow"] = _save(fig, out_dir / "outflow.png")
+    ax.set(title="Outflow rate over the weir (Fig. 10)", xlabel="t [s]", ylabel="particles / s")
 
-    fig, ax = _figure(out_dir, "Hold-up", "t [s]", "particles in the blender")
-    for side, colour, _ in sides:
+
+def _draw_holdup(ax, dem: SideResults, pbm: SideResults) -> None:
+    for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ts = side.timeseries
         ax.plot(ts["t_s"], ts["holdup_A"] + ts["holdup_B"], color=colour, label=f"{side.label} A+B")
         ax.plot(ts["t_s"], ts["holdup_A"], "--", color=colour, lw=0.8, label=f"{side.label} A")
-    ax.legend()
-    files["holdup"] = _save(fig, out_dir / "holdup.png")
+    ax.set(title="Hold-up", xlabel="t [s]", ylabel="particles in the blender")
+
+
+PANELS = {
+    "rtd": _draw_rtd,
+    "rsd_axial": _draw_rsd_axial,
+    "rsd_time": _draw_rsd_time,
+    "c_a": _draw_c_a,
+    "outflow": _draw_outflow,
+    "holdup": _draw_holdup,
+}
+
+
+def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[str, str]:
+    """The paper's Figs 7-10 plus hold-up, DEM beside PBM, one PNG each, and ``overview.png``
+    with all six. Returns figure key -> file name."""
+    out_dir = Path(out_dir)
+    files: dict[str, str] = {}
+    for key, draw in PANELS.items():
+        fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
+        draw(ax, dem, pbm)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.savefig(out_dir / f"{key}.png", dpi=110)
+        plt.close(fig)
+        files[key] = f"{key}.png"
+    fig, axes = plt.subplots(2, 3, figsize=(16, 8.5), layout="constrained")
+    for ax, draw in zip(axes.ravel(), PANELS.values()):
+        draw(ax, dem, pbm)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.savefig(out_dir / "overview.png", dpi=80)
+    plt.close(fig)
+    files["overview"] = "overview.png"
     return files
 
 
