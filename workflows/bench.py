@@ -13,6 +13,7 @@ BENCHMARKS = (
     ("PBM solver and ensembles", "workflows.bench_pbm"),
     ("DEM dump reader and post-processing", "workflows.bench_dem_post"),
     ("DEM deck efficiency and core-hours", "workflows.bench_dem_deck"),
+    ("Post-processing vs DEM wall time of the shipped runs", "workflows.bench_reference"),
 )
 
 
@@ -24,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         print(f"\n=== {title} ({module_name}) ===", flush=True)
         try:
-            importlib.import_module(module_name).main()
+            importlib.import_module(module_name).main([])
         except Exception as exc:  # one broken benchmark must not hide the others' numbers
             print(f"FAILED: {type(exc).__name__}: {exc}", flush=True)
             failed.append(module_name)
