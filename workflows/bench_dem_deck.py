@@ -31,8 +31,9 @@ machine the wall time is the victim of other jobs.
 
 Core-hours of the ``paper`` preset (2 mm particles): :func:`dem.cluster.estimate_cost`
 with the measured serial blender throughput and the steady hold-up scaled by solid volume
-from the measured smoke hold-up (x (6/2)^3), or from a shipped reference run when
-``pbmdem dem slurm`` finds one. Assumption: particle-steps per second do not depend on the
+from the measured smoke hold-up (x (6/2)^3), or, when ``pbmdem dem slurm`` finds a shipped
+reference run (``workflows/reference/dem-*.h5``), from that run's hold-up as that command
+does (both are recorded). Assumption: particle-steps per second do not depend on the
 particle size (the skin and the bins scale with the diameter, so neighbours and contacts
 per particle are the same; DESIGN.md measured 3-4.5e6 for 2 mm and 3.9e6 for 6 mm on one
 core). The steady hold-up bounds the run's mean from above (the blender fills first).
@@ -454,12 +455,16 @@ def paper_core_hours(rate_serial: float, speedup_np2: float | None, holdup_smoke
 
     paper = load_preset("paper").dem
     scale = (smoke_config.dem.particles.diameter_m / paper.particles.diameter_m) ** 3
-    holdup, source = holdup_smoke * scale, (f"measured smoke hold-up {holdup_smoke:.0f} x "
-                                            f"({smoke_config.dem.particles.diameter_m * 1e3:g}/{paper.particles.diameter_m * 1e3:g})^3")
+    scaled = holdup_smoke * scale
+    holdup, source = scaled, (f"measured smoke hold-up {holdup_smoke:.0f} x "
+                              f"({smoke_config.dem.particles.diameter_m * 1e3:g}/{paper.particles.diameter_m * 1e3:g})^3")
+    reference = None
     try:
         from workflows.cli_dem_cluster import reference_holdup
 
-        holdup, source = reference_holdup(paper)
+        # the hold-up `pbmdem dem slurm` uses: a shipped reference run, scaled by solid volume
+        reference = reference_holdup(paper)
+        holdup, source = reference
     except (LookupError, ImportError):  # no shipped reference (optional): keep the scaled measurement
         pass
     eff2 = min(1.0, speedup_np2 / 2) if speedup_np2 else 0.85
@@ -468,7 +473,8 @@ def paper_core_hours(rate_serial: float, speedup_np2: float | None, holdup_smoke
     if box_rate_serial and box_rate_serial > 0:
         overhead_s_per_step = max(0.0, holdup_smoke * (1 / rate_serial - 1 / box_rate_serial))
         amortised_rate = holdup / (holdup / box_rate_serial + overhead_s_per_step)
-    out = {"holdup_particles": holdup, "holdup_source": source, "particle_steps_per_core_s": rate_serial,
+    out = {"holdup_particles": holdup, "holdup_source": source, "holdup_scaled_from_smoke": scaled,
+           "holdup_from_reference": reference[0] if reference else None, "particle_steps_per_core_s": rate_serial,
            "throughput_assumption": "particle-steps/s independent of particle size (measured on the smoke deck, 6 mm)",
            "paper_reported_core_hours": PAPER_CORE_HOURS, "cores": {}}
     out["particle_steps_per_core_s_overhead_amortised"] = amortised_rate
@@ -479,6 +485,9 @@ def paper_core_hours(rate_serial: float, speedup_np2: float | None, holdup_smoke
         out["cores"][str(cores)] = {"core_hours": est.core_hours, "wall_hours": est.wall_hours,
                                     "parallel_efficiency": eff, "efficiency_source": why,
                                     "vs_paper": est.core_hours / PAPER_CORE_HOURS}
+        if reference:
+            out["cores"][str(cores)]["core_hours_smoke_scaled_holdup"] = estimate_cost(
+                paper, scaled, rate_serial, cores, eff).core_hours
         if amortised_rate:
             low = estimate_cost(paper, holdup, amortised_rate, cores, eff)
             out["cores"][str(cores)]["core_hours_overhead_amortised"] = low.core_hours
