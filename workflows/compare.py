@@ -281,9 +281,9 @@ def noise_study_section(table: VelocityTable, pbm_config: PbmConfig, out_dir: Pa
     widths = [r["late C_A 5-95 % band width"] for r in rows]
     trend = (
         f"Feed noise σ = {', '.join(f'{s:g}' for s in results)} ({members} realisations each): the late 5-95 % band "
-        f"of C_A is {' → '.join(f'{w:.3g}' for w in widths)} wide ({_trend(widths)}); the blender damps the feed "
-        f"noise, whose own 5-95 % band on the A fraction would be about ±{1.645 * max(results) / 2:.2g} per stream at "
-        f"σ = {max(results):g}."
+        f"of C_A is {' → '.join(f'{w:.3g}' for w in widths)} wide ({_trend(widths)}). Unmixed, the feed's own A "
+        f"fraction a/(a+b) would scatter by ±{1.645 * max(results) * np.sqrt(2) / 4:.2g} (5-95 %) at "
+        f"σ = {max(results):g}: the blender damps the feed noise by the ratio of the two."
     )
     return Study("Feed noise (paper Figs 5-6)", "sigma", "study_noise.png", trend, rows)
 
