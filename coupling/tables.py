@@ -290,6 +290,10 @@ class atomic_h5:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp", dir=self.path.parent)
         os.close(fd)
+        # mkstemp makes the file private (0600); a cache or table file is for sharing.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         self.tmp = Path(tmp)
         self.h5 = h5py.File(self.tmp, "w")
         return self.h5
