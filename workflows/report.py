@@ -268,7 +268,8 @@ def render_html(
         body = "".join("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row.values()) + "</tr>" for row in study.rows)
         study_html += (
             f"<h3>{html.escape(study.title)}</h3><p>{html.escape(study.trend)}</p>"
-            f"<table><tr>{header}</tr>{body}</table>" + img(study.figure, study.title)
+            f"<table><tr>{header}</tr>{body}</table>"
+            f'<figure><img src="{html.escape(study.figure)}" alt="{html.escape(study.title)}"></figure>'
         )
     prov_rows = "".join(
         f"<tr><td>{html.escape(k)}</td><td>{_fmt(v) if not isinstance(v, dict) else '<pre>' + html.escape(json.dumps(v, indent=1)) + '</pre>'}</td></tr>"
