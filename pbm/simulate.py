@@ -346,15 +346,18 @@ def timeseries_table(result: PbmResult) -> np.ndarray:
                             result.rsd_blender, result.holdup_A, result.holdup_B])
 
 
-def _json_ready(value):
+def json_ready(value):
+    """A JSON-safe copy for output files: numpy to Python, NaN and inf to null, paths to str."""
     if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [json_ready(v) for v in value]
     if isinstance(value, (float, np.floating)):
         return float(value) if math.isfinite(value) else None
     if isinstance(value, np.integer):
         return int(value)
+    if isinstance(value, Path):
+        return str(value)
     return value
 
 
@@ -375,7 +378,7 @@ def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) 
     np.savetxt(paths["rtd"], np.column_stack([result.rtd_t, result.rtd_E]), delimiter=",", header="t_s,E_per_s",
                comments="", fmt="%.10g")
     paths["summary"] = out / "summary.json"
-    paths["summary"].write_text(json.dumps(_json_ready(result.summary), indent=2, allow_nan=False) + "\n")
+    paths["summary"].write_text(json.dumps(json_ready(result.summary), indent=2, allow_nan=False) + "\n")
     if figures:
         from pbm.plots import save_figures
 

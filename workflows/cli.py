@@ -19,16 +19,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013).",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    from workflows import cli_config
+    from workflows import cli_compare, cli_config, cli_dem, cli_pbm
 
-    cli_config.register(sub)
-    for name in ("cli_pbm", "cli_dem", "cli_compare"):
-        try:
-            module = __import__(f"workflows.{name}", fromlist=["register"])
-        except ModuleNotFoundError as exc:
-            if exc.name != f"workflows.{name}":
-                raise
-            continue
+    for module in (cli_config, cli_pbm, cli_dem, cli_compare):
         module.register(sub)
     return parser
 

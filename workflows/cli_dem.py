@@ -8,13 +8,9 @@ import argparse
 def register(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("dem", help="DEM stage: write decks, run LIGGGHTS, post-process dumps")
     dem_sub = parser.add_subparsers(dest="dem_command", required=True, metavar="DEM_COMMAND")
-    for name in ("cli_dem_deck", "cli_dem_run", "cli_dem_cluster"):
-        try:
-            module = __import__(f"workflows.{name}", fromlist=["register"])
-        except ModuleNotFoundError as exc:
-            if exc.name != f"workflows.{name}":
-                raise
-            continue
+    from workflows import cli_dem_cluster, cli_dem_deck, cli_dem_run
+
+    for module in (cli_dem_deck, cli_dem_run, cli_dem_cluster):
         module.register(dem_sub)
 
 

@@ -33,7 +33,7 @@ from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.ensemble import PAPER_SIGMAS, noise_study
 from pbm.geometry import scale_blender
-from pbm.simulate import PbmResult, simulate
+from pbm.simulate import PbmResult, json_ready, simulate
 from workflows.config import Config, dump_toml
 from workflows.report import SideResults, Study, comparison_metrics, plot_comparison, render_html
 
@@ -397,7 +397,7 @@ def full_comparison(
         "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
         "notes": notes,
     }
-    (out_dir / "summary.json").write_text(json.dumps(_jsonable(summary), indent=1, sort_keys=True))
+    (out_dir / "summary.json").write_text(json.dumps(json_ready(summary), indent=1, sort_keys=True))
     dem_view.timeseries.to_csv(out_dir / "dem_timeseries.csv", index=False)
     pbm_view.timeseries.to_csv(out_dir / "pbm_timeseries.csv", index=False)
     if paraview:
@@ -416,19 +416,3 @@ def write_paraview(config: Config, dem: DemSide, out_dir: Path, log: Log, max_sn
         write_particle_series(config.dem, run_dir, out_dir, max_snapshots=max_snapshots)
     else:
         log("particle snapshots not written: the DEM run directory is not on this machine")
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (np.floating, float)):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, Path):
-        return str(value)
-    return value
