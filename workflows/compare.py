@@ -32,7 +32,7 @@ from coupling.cache import cache_path, try_load_dem_results
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.ensemble import PAPER_SIGMAS, noise_study
-from pbm.geometry import scale_blender
+from pbm.geometry import geometry_study
 from pbm.simulate import PbmResult, json_ready, simulate
 from workflows.config import Config, dump_toml
 from workflows.report import SideResults, Study, comparison_metrics, plot_comparison, render_html
@@ -218,16 +218,13 @@ def _late_mean(result: PbmResult, fraction: float = 0.25) -> float:
     return float(values.mean()) if values.size else float("nan")
 
 
-def geometry_study(
-    table: VelocityTable, pbm_config: PbmConfig, out_dir: Path, parameter: str, factors, base_length_m: float, base_diameter_m: float
-) -> Study:
+def geometry_section(parameter: str, results: dict[float, PbmResult], base_size_m: float, out_dir: Path) -> Study:
+    """Report section of one geometry study (``pbm.geometry.geometry_study``'s results for
+    ``parameter`` "length" or "diameter", keyed by scale factor)."""
     curves, rows = [], []
-    for factor in factors:
-        scaled = scale_blender(table, **({"length_factor": factor} if parameter == "length" else {"diameter_factor": factor}))
-        result = simulate(scaled, pbm_config)
-        size = (base_length_m if parameter == "length" else base_diameter_m) * factor
-        label = f"{parameter} {size * 1000:.0f} mm"
-        curves.append((label, result))
+    for factor, result in results.items():
+        size = base_size_m * factor
+        curves.append((f"{parameter} {size * 1000:.0f} mm", result))
         rows.append(
             {
                 f"{parameter} [mm]": round(size * 1000, 1),
@@ -242,7 +239,7 @@ def geometry_study(
     late = [r["late outlet RSD"] for r in rows]
     mrt = [r["mean residence time [s]"] for r in rows]
     trend = (
-        f"With the blender {parameter} scaled by {', '.join(f'{f:g}' for f in factors)}, the late outlet RSD "
+        f"With the blender {parameter} scaled by {', '.join(f'{f:g}' for f in results)}, the late outlet RSD "
         f"{_trend(late)} ({' → '.join(f'{v:.3g}' for v in late)}) and the mean residence time {_trend(mrt)} "
         f"({' → '.join(f'{v:.3g}' for v in mrt)} s). Same velocities, compartments scaled (paper Figs 3-4)."
     )
@@ -291,9 +288,10 @@ def noise_study_section(table: VelocityTable, pbm_config: PbmConfig, out_dir: Pa
 def run_studies(table: VelocityTable, pbm_config: PbmConfig, config: Config, out_dir: Path, members: int) -> list[Study]:
     g = config.dem.geometry
     base = pbm_config.model_copy(update={"rtd_pulse_s": None})
+    geometry = geometry_study(table, base, length_factors=LENGTH_FACTORS, diameter_factors=DIAMETER_FACTORS)
     return [
-        geometry_study(table, base, out_dir, "length", LENGTH_FACTORS, g.length_m, g.diameter_m),
-        geometry_study(table, base, out_dir, "diameter", DIAMETER_FACTORS, g.length_m, g.diameter_m),
+        geometry_section("length", geometry["length"], g.length_m, out_dir),
+        geometry_section("diameter", geometry["diameter"], g.diameter_m, out_dir),
         noise_study_section(table, base, out_dir, members),
     ]
 
