@@ -69,6 +69,7 @@ import pandas as pd
 
 from coupling.errors import DumpFormatError
 from coupling.tables import VelocityTable
+from dem import deck
 from dem.dumps import iter_snapshots
 
 __all__ = [
@@ -79,13 +80,8 @@ __all__ = [
     "read_massflow",
     "massflow_files",
     "massflow_patterns",
-    "DEFAULT_TYPES_A",
-    "DEFAULT_TYPES_B",
 ]
 
-# Atom types of the two components when dem.deck.ATOM_TYPES does not say (it does: 1 and 2).
-DEFAULT_TYPES_A = (1,)
-DEFAULT_TYPES_B = (2,)
 REQUIRED_COLUMNS = ("id", "type", "x", "y", "vx", "vy")
 
 
@@ -147,7 +143,7 @@ def massflow_patterns() -> list[str]:
     """Glob patterns of the solver's per-particle discharge files, relative to the run
     directory: the deck's ``MASSFLOW_FILES`` plus any suffix (``.0``/``.1`` per MPI rank,
     ``.upto<step>`` for the part of a resumed run before its restart)."""
-    names = list(_deck_constant("MASSFLOW_FILES", {}).values()) or ["massflow*"]
+    names = list(deck.MASSFLOW_FILES.values()) or ["massflow*"]
     return [pattern for name in names for pattern in (name, name + ".*")]
 
 
@@ -194,14 +190,6 @@ def read_massflow(paths: Sequence[str | os.PathLike]) -> tuple[np.ndarray, np.nd
     all_ids = np.concatenate(ids) if ids else np.zeros(0, np.int64)
     all_t = np.concatenate(times) if (ids and have_time) else None
     return all_ids, all_t
-
-
-def _deck_constant(name: str, default):
-    try:
-        from dem import deck  # written by the deck helper; optional here
-    except ImportError:
-        return default
-    return getattr(deck, name, default)
 
 
 # ----------------------------------------------------------------------------- accumulator
@@ -280,9 +268,8 @@ def postprocess(
     nx, ny = int(tables.nx), int(tables.ny)
     window = float(tables.window_s)
     interval = float(tables.sample_interval_s)
-    deck_types = _deck_constant("ATOM_TYPES", {})
-    types_a = tuple(types_a if types_a is not None else ((deck_types["A"],) if "A" in deck_types else DEFAULT_TYPES_A))
-    types_b = tuple(types_b if types_b is not None else ((deck_types["B"],) if "B" in deck_types else DEFAULT_TYPES_B))
+    types_a = tuple(types_a if types_a is not None else (deck.ATOM_TYPES["A"],))
+    types_b = tuple(types_b if types_b is not None else (deck.ATOM_TYPES["B"],))
     steady_window_s = float(steady_window_s if steady_window_s is not None else window)
     dx, dy = length / nx, diameter / ny
     # Snapshot times are step x dt: within half a timestep of a boundary counts as on it.

@@ -49,7 +49,8 @@ from pathlib import Path
 from typing import Any
 
 from coupling.cache import stable_hash
-from coupling.errors import DeckError, SolverNotFoundError, SolverRunError
+from coupling.errors import SolverNotFoundError, SolverRunError
+from dem import deck
 
 __all__ = [
     "RunRecord",
@@ -91,7 +92,7 @@ class RunRecord:
 
     @property
     def dump_glob(self) -> str:
-        return str(self.run_dir / _deck_constant("DUMP_GLOB", "dumps/dump.*.txt"))
+        return str(self.run_dir / deck.DUMP_GLOB)
 
     @property
     def massflow_dir(self) -> Path:
@@ -104,22 +105,6 @@ class RunRecord:
 
 
 # ----------------------------------------------------------------------------- helpers
-def _deck_module():
-    try:
-        from dem import deck
-    except ImportError as exc:  # pragma: no cover - the deck writer is part of the package
-        raise DeckError(f"the deck writer dem.deck cannot be imported: {exc}") from exc
-    return deck
-
-
-def _deck_constant(name: str, default):
-    try:
-        from dem import deck
-    except ImportError:
-        return default
-    return getattr(deck, name, default)
-
-
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -329,7 +314,7 @@ def _restart_files(run_dir: Path) -> list[Path]:
     truncated. LIGGGHTS writes a step's restart before that step's thermo line, so a restart
     at step S is complete once solver.out shows a thermo row at a step >= S; newer ones
     are ignored (the resume then starts from an older restart: safe, a little slower)."""
-    pattern = _deck_constant("RESTART_GLOB", "restart/*.bin")
+    pattern = deck.RESTART_GLOB
     files = [p for p in run_dir.glob(pattern) if p.is_file() and p.stat().st_size > 0]
     parser = ThermoParser()
     last_step = -1
@@ -349,7 +334,7 @@ def _clear_outputs(run_dir: Path) -> None:
 
     for name in (LOG_FILE, SOLVER_OUT, STATUS_FILE):
         (run_dir / name).unlink(missing_ok=True)
-    patterns = [_deck_constant("DUMP_GLOB", "dumps/dump.*.txt"), _deck_constant("RESTART_GLOB", "restart/*.bin"),
+    patterns = [deck.DUMP_GLOB, deck.RESTART_GLOB,
                 *massflow_patterns()]
     for pattern in patterns:
         for path in run_dir.glob(pattern):
@@ -363,7 +348,7 @@ def _set_aside_massflow(run_dir: Path, restart_step: int, dt: float) -> None:
     ``<name>.upto<step>``, keeping only the particles discharged up to the restart step
     (the resumed run discharges the later ones again)."""
     limit = restart_step * dt + 0.5 * dt
-    names = list(_deck_constant("MASSFLOW_FILES", {}).values())
+    names = list(deck.MASSFLOW_FILES.values())
     for name in names:
         for path in sorted(run_dir.glob(name)) + sorted(run_dir.glob(name + ".[0-9]")) + sorted(run_dir.glob(name + ".[0-9][0-9]")):
             kept = []
@@ -405,7 +390,6 @@ def run_dem(
     ``runs_root`` is still reused, and only a run that must actually start raises
     SolverNotFoundError.
     """
-    deck = _deck_module()
     dem = getattr(config, "dem", config)
     run_config = dem.run
     files = deck.build_deck(dem)
@@ -524,7 +508,7 @@ def run_dem(
     bar.close()
     wall = time.monotonic() - t0
     log_path = run_dir / LOG_FILE if (run_dir / LOG_FILE).exists() else run_dir / SOLVER_OUT
-    dumps = list(run_dir.glob(_deck_constant("DUMP_GLOB", "dumps/dump.*.txt")))
+    dumps = list(run_dir.glob(deck.DUMP_GLOB))
     problem = None
     if error_lines:
         problem = f"LIGGGHTS reported an error: {error_lines[0]}"
