@@ -1,47 +1,47 @@
-"""Keys for runs and caches, and the DEM results cache.
+"""Keys for runs and caches, and the results cache.
 
 Keys: a hash of the inputs names the run directory or cache file (signac's recipe), so a
 changed input can never be served a stale result.
 
-Cache file (one per DEM input hash, ``<root>/dem-<key>.h5``)::
+A cache entry holds one velocity table and the results that came with it, as generic
+parts: a JSON summary, named tables of columns (pandas DataFrames) and named arrays. The
+side that made the results turns them into these parts and back; this module knows
+nothing of what they mean. File layout (one file per key, ``<root>/dem-<key>.h5``)::
 
-    /                      attrs: format = "pbmdem-dem-cache", format_version, key,
-                                  provenance (JSON: config TOML, input hash, LIGGGHTS
-                                  version, dates, wall time...), complete = True
+    /                      attrs: format = "pbmdem-cache", format_version, key,
+                                  provenance (JSON), complete = True (written last)
     /velocity_table        the coupling table (coupling.tables.table_to_group)
-    /dem_results           attrs: summary (JSON)
-        timeseries/<col>   one dataset per column
-        holdup/<col>
-        rtd/<col>
-        rsd_by_slice, rsd_by_slice_floor, residence_times_s
+    /results               attrs: summary (JSON, NaN kept)
+        frames/<name>/<column>   attrs of frames/<name>: columns (JSON, in order)
+        arrays/<name>
 
 Writes are atomic (temporary file renamed into place). A file that is unreadable, foreign
-(another format), for another key, or incomplete raises :class:`~coupling.errors.CacheError`
-from :func:`load_dem_results`; :func:`try_load_dem_results` turns that into "absent" so the
-caller rebuilds it.
+(another format or version), for another key, or incomplete raises
+:class:`~coupling.errors.CacheError` from :func:`load_entry`; :func:`try_load_entry`
+turns that into "absent" so the caller rebuilds it.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
+import pandas as pd
 
 from coupling.errors import CacheError, TableError
+from coupling.jsonable import dumps_exact
 from coupling.tables import GROUP as TABLE_GROUP
 from coupling.tables import VelocityTable, atomic_h5, table_from_group, table_to_group
 
-CACHE_FORMAT = "pbmdem-dem-cache"
-CACHE_FORMAT_VERSION = 1
-RESULTS_GROUP = "dem_results"
-_FRAMES = ("timeseries", "holdup", "rtd")
-_ARRAYS = ("rsd_by_slice", "rsd_by_slice_floor", "residence_times_s")
+CACHE_FORMAT = "pbmdem-cache"
+CACHE_FORMAT_VERSION = 2
+RESULTS_GROUP = "results"
 
 
 def stable_hash(data: Any, length: int = 16) -> str:
@@ -50,66 +50,66 @@ def stable_hash(data: Any, length: int = 16) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:length]
 
 
-def file_digest(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """SHA-256 of a file's bytes (meshes and other binary inputs of a run)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while block := handle.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def cache_path(root: str | os.PathLike, key: str) -> Path:
-    """Where the DEM results for input hash ``key`` live under ``root``."""
+    """Where the entry for input hash ``key`` lives under ``root``."""
     return Path(root) / f"dem-{key}.h5"
 
 
-def save_dem_results(path: str | os.PathLike, table: VelocityTable, results, provenance: dict[str, Any]) -> Path:
-    """Write the velocity table and the DEM results (a ``dem.post.DemResults`` or any object
-    with the same attributes) atomically to ``path``. ``provenance`` must hold ``key``."""
+@dataclass(frozen=True)
+class CacheEntry:
+    """One cached result: the velocity table plus generic parts. ``provenance`` must
+    carry the entry's input hash under ``key``."""
+
+    table: VelocityTable
+    summary: dict[str, Any]
+    frames: dict[str, pd.DataFrame] = field(default_factory=dict)
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def key(self) -> str:
+        return str(self.provenance.get("key", ""))
+
+
+def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
+    """Write ``entry`` atomically to ``path``."""
     path = Path(path)
-    if "key" not in provenance:
+    if not entry.key:
         raise CacheError("provenance must carry the input hash under 'key'")
     try:
         with atomic_h5(path) as h5:
-            table_to_group(h5.create_group(TABLE_GROUP), table)
+            table_to_group(h5.create_group(TABLE_GROUP), entry.table)
             group = h5.create_group(RESULTS_GROUP)
-            group.attrs["summary"] = json.dumps(_jsonable(results.summary), sort_keys=True)
-            for name in _FRAMES:
-                frame = getattr(results, name)
-                sub = group.create_group(name)
-                sub.attrs["columns"] = json.dumps(list(frame.columns))
+            group.attrs["summary"] = dumps_exact(entry.summary)
+            frames = group.create_group("frames")
+            for name, frame in entry.frames.items():
+                sub = frames.create_group(name)
+                sub.attrs["columns"] = json.dumps([str(c) for c in frame.columns])
                 for column in frame.columns:
-                    sub.create_dataset(column, data=frame[column].to_numpy())
-            for name in _ARRAYS:
-                group.create_dataset(name, data=np.asarray(getattr(results, name), dtype=float))
+                    sub.create_dataset(str(column), data=frame[column].to_numpy())
+            arrays = group.create_group("arrays")
+            for name, values in entry.arrays.items():
+                arrays.create_dataset(name, data=np.asarray(values))
             h5.attrs["format"] = CACHE_FORMAT
             h5.attrs["format_version"] = CACHE_FORMAT_VERSION
-            h5.attrs["key"] = str(provenance["key"])
-            h5.attrs["provenance"] = json.dumps(_jsonable(provenance), sort_keys=True)
+            h5.attrs["key"] = entry.key
+            h5.attrs["provenance"] = dumps_exact(entry.provenance)
             h5.attrs["complete"] = True  # written last: a file without it was never finished
     except OSError as exc:
         raise CacheError(f"cannot write cache file {path}: {exc}") from exc
     return path
 
 
-def load_dem_results(path: str | os.PathLike, key: str | None = None):
-    """Read ``(table, results, provenance)`` from a cache file.
-
-    ``results`` is a ``dem.post.DemResults`` (``table`` also set on it). Raises CacheError
-    naming the problem if the file is missing, corrupt, foreign, incomplete or (when ``key``
-    is given) belongs to other inputs."""
-    import pandas as pd
-
-    from dem.post import DemResults  # coupling may know the DEM results' shape, not vice versa
-
+def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
+    """Read the entry in ``path``. Raises CacheError naming the problem if the file is
+    missing, corrupt, foreign, incomplete or (when ``key`` is given) for other inputs."""
     path = Path(path)
     if not path.is_file():
         raise CacheError(f"cache file {path} does not exist")
     try:
         with h5py.File(path, "r") as h5:
             if h5.attrs.get("format") != CACHE_FORMAT:
-                raise CacheError(f"{path} is not a pbmdem DEM cache file (format {h5.attrs.get('format')!r})")
+                raise CacheError(f"{path} is not a pbmdem cache file (format {h5.attrs.get('format')!r})")
             version = int(h5.attrs.get("format_version", -1))
             if version != CACHE_FORMAT_VERSION:
                 raise CacheError(f"{path} has cache format_version {version}; this version reads {CACHE_FORMAT_VERSION}")
@@ -125,50 +125,21 @@ def load_dem_results(path: str | os.PathLike, key: str | None = None):
             group = h5[RESULTS_GROUP]
             summary = json.loads(group.attrs["summary"])
             frames = {}
-            for name in _FRAMES:
-                sub = group[name]
+            for name, sub in group["frames"].items():
                 columns = json.loads(sub.attrs["columns"])
                 frames[name] = pd.DataFrame({c: sub[c][()] for c in columns}, columns=columns)
-            arrays = {name: group[name][()] for name in _ARRAYS}
+            arrays = {name: data[()] for name, data in group["arrays"].items()}
     except CacheError:
         raise
     except (OSError, KeyError, ValueError, TableError) as exc:
         raise CacheError(f"{path} is corrupt or unreadable: {exc}") from exc
-    results = DemResults(table=table, summary=_restore_nan(summary), **frames, **arrays)
-    return table, results, provenance
+    return CacheEntry(table, summary, frames, arrays, provenance)
 
 
-def try_load_dem_results(path: str | os.PathLike, key: str | None = None):
-    """Like :func:`load_dem_results` but returns ``(None, reason)`` instead of raising, so a
-    corrupt or foreign file is rebuilt rather than trusted. On success ``(loaded, "")``."""
+def try_load_entry(path: str | os.PathLike, key: str | None = None) -> tuple[CacheEntry | None, str]:
+    """Like :func:`load_entry` but returns ``(None, reason)`` instead of raising, so a
+    corrupt or foreign file is rebuilt rather than trusted. On success ``(entry, "")``."""
     try:
-        return load_dem_results(path, key), ""
+        return load_entry(path, key), ""
     except CacheError as exc:
         return None, str(exc)
-
-
-def _jsonable(value: Any) -> Any:
-    """JSON-safe copy: numpy scalars to Python, NaN/inf to strings (JSON has none)."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return {"__float__": repr(value)}
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return str(value)
-
-
-def _restore_nan(value: Any) -> Any:
-    if isinstance(value, dict):
-        if set(value) == {"__float__"}:
-            return float(value["__float__"])
-        return {k: _restore_nan(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_restore_nan(v) for v in value]
-    return value

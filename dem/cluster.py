@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 from coupling.errors import ConfigError
 from dem.config import DemConfig
+from dem.deck import MAIN_DECK
+from dem.liggghts import launch_command
 
 
 @dataclass(frozen=True)
@@ -61,10 +63,10 @@ def estimate_cost(
     return CostEstimate(steps, particles_held, particle_steps_per_core_s, cores, parallel_efficiency)
 
 
-def mpi_command(config: DemConfig, np: int, deck: str = "in.blender") -> list[str]:
-    """The solver command line for ``np`` ranks with the configured launcher."""
-    launcher = config.run.launcher.format(np=np) if np > 1 else ""
-    return [*shlex.split(launcher), config.run.liggghts, "-in", deck]
+def mpi_command(config: DemConfig, np: int, deck: str = MAIN_DECK) -> list[str]:
+    """The solver command line for ``np`` ranks with the configured launcher, as
+    :func:`dem.liggghts.launch_command` (the programs need not exist on this machine)."""
+    return launch_command(config.run, np, deck)
 
 
 def slurm_script(
@@ -98,8 +100,8 @@ def slurm_script(
     lines += [
         "set -euo pipefail",
         f"cd {shlex.quote(run_dir)}",
-        "# LIGGGHTS reads its input while it runs: do not edit in.blender during the job.",
-        f"srun {shlex.quote(config.run.liggghts)} -in in.blender",
+        f"# LIGGGHTS reads its input while it runs: do not edit {MAIN_DECK} during the job.",
+        f"srun {shlex.quote(config.run.liggghts)} -in {MAIN_DECK}",
         "",
     ]
     return "\n".join(lines)

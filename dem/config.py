@@ -112,7 +112,7 @@ class ParticleConfig(_Section):
     truncated at +-3 SD and discretised into ``size_classes`` LIGGGHTS templates."""
 
     diameter_m: float = Field(0.002, gt=0)
-    # DESIGN.md: the paper's text says SD = 5 % of the mean radius, i.e. 0.05 mm on the
+    # The paper's text says SD = 5 % of the mean radius, i.e. 0.05 mm on the
     # radius and 0.1 mm on the diameter; Table 1's "0.2" has no unit and is not used.
     diameter_sd_m: float = Field(0.0001, ge=0)
     size_classes: int = Field(5, ge=1, le=15)
@@ -181,8 +181,8 @@ class OperationConfig(_Section):
         return self.feed_rate_total_per_s * (1 - self.feed_fraction_a)
 
 
-# Measured here on LIGGGHTS 3.8.0 (DESIGN.md): dt = 0.27 t_Rayleigh was stable, 0.32 gave
-# spurious speed spikes, 0.38 lost particles.
+# Measured on LIGGGHTS 3.8.0 from a settled bed of 2 mm particles: dt = 0.27 t_Rayleigh was
+# stable, 0.32 gave spurious speed spikes, 0.38 lost particles.
 MAX_STABLE_RAYLEIGH_FRACTION = 0.27
 
 
@@ -216,7 +216,7 @@ class RunConfig(_Section):
 
 
 class TablesConfig(_Section):
-    """Binning of the dumps into velocity tables and CQA sampling (DESIGN.md)."""
+    """Binning of the dumps into velocity tables and CQA sampling (``coupling/DEFINITIONS.md``)."""
 
     nx: int = Field(10, ge=1)
     ny: int = Field(10, ge=1)

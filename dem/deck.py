@@ -3,7 +3,13 @@
 :func:`build_deck` turns a :class:`~dem.config.DemConfig` into a dict *relative file name →
 text*; :func:`write_deck` is the only function here that touches the disk. Nothing is
 written unless the geometry and the deck validate (:class:`~coupling.errors.GeometryError`,
-:class:`~coupling.errors.DeckError`).
+:class:`~coupling.errors.DeckError`). :func:`build_box_deck` builds the yardstick of the
+deck's efficiency: the same particles and contact physics in a plain box, built from the
+same section builders as the blender deck.
+
+This module is longer than the others: the section builders are private to it, shared by
+the two decks, and every line of the blender deck's text feeds the input hash of shipped
+reference runs, so the text is built in one place.
 
 File layout of a run directory (relative to the directory ``liggghts -in in.blender`` runs
 in; every name is a module constant, the runner and the post-processor use them):
@@ -68,6 +74,7 @@ so an ID identifies one particle across dumps and the discharge files.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -97,6 +104,8 @@ RESTART_DIR = "restart"
 RESTART_PATTERN = "restart/restart.*.bin"
 RESTART_GLOB = "restart/restart.*.bin"
 MASSFLOW_FILES = {"A": "discharge_A.txt", "B": "discharge_B.txt"}
+#: Every discharge file of a component, relative to the run directory: the file, its per-rank
+#: files (``.0``, ``.1``... under MPI) and the ``.upto<step>`` records kept by a resume.
 MASSFLOW_GLOBS = {"A": "discharge_A.txt*", "B": "discharge_B.txt*"}
 MASSFLOW_COLUMNS = ("id", "time", "diameter", "x", "y", "z", "vx", "vy", "vz")
 #: directories LIGGGHTS needs to exist before it starts (it does not create them)
@@ -121,6 +130,9 @@ THERMO_MEANING = {
     "ts[1]": "timestep / Rayleigh time (fix check/timestep/gran 'ts')",
     "ts[2]": "timestep / Hertz time (fix check/timestep/gran 'ts')",
 }
+#: Thermo columns whose sum is the solver's own count of discharged / inserted particles.
+THERMO_DISCHARGED = ("outA", "outB")
+THERMO_INSERTED = ("insA", "insB")
 #: LIGGGHTS expression behind each variable column.
 _THERMO_VARIABLES = {
     "insA": "f_insA[1]",
@@ -132,6 +144,10 @@ _THERMO_VARIABLES = {
 HERTZ_WARN_FRACTION = 0.2
 FEED_VELOCITY_M_S = 0.5  # downward speed given to inserted particles
 FEED_BATCH_S = 0.05  # the feeders insert a batch every this much simulated time
+#: The plain box (:func:`build_box_deck`): its deck, its log, and how often it is topped up.
+BOX_DECK = "in.box"
+BOX_LOG_FILE = "log.box.liggghts"
+BOX_FILL_BATCH_S = 0.1
 
 
 # --------------------------------------------------------------------------------------
@@ -250,28 +266,47 @@ def deck_parameters(config: DemConfig) -> dict:
 
 
 # --------------------------------------------------------------------------------------
-# the deck
+# deck sections: lists of lines, shared by the blender deck and the plain box
 # --------------------------------------------------------------------------------------
+
+_CONTACT_MODEL = "model hertz tangential history rolling_friction cdt"
 
 
 def _box_args(b: Box) -> str:
     return " ".join(_g(v) for v in (b.xmin, b.xmax, b.ymin, b.ymax, b.zmin, b.zmax))
 
 
-def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
-    geo = build_geometry(config)
-    g, p, s, c, op, num = (config.geometry, config.particles, config.steel, config.contact, config.operation,
-                           config.numerics)
-    dt = info["timestep_s"]
-    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
-    n_cls = len(diam)
-    primes = _primes_from(num.seed, 2 * n_cls + 4)
-    seeds_tpl = {"A": primes[:n_cls], "B": primes[n_cls : 2 * n_cls]}
-    seed_pdd = {"A": primes[2 * n_cls], "B": primes[2 * n_cls + 1]}
-    seed_ins = {"A": primes[2 * n_cls + 2], "B": primes[2 * n_cls + 3]}
-    skin = 0.5 * p.diameter_m
-    model = "model hertz tangential history rolling_friction cdt"
+def _seeds(seed: int, n_classes: int) -> dict:
+    """Random seeds of every fix, all distinct primes: one particle template per size class
+    and component, then the distributions and the insertions of A and B, then the plain
+    box's distribution and insertion (drawn last so the blender's seeds do not depend on it)."""
+    n = n_classes
+    primes = _primes_from(seed, 2 * n + 6)
+    return {"templates": {"A": primes[:n], "B": primes[n : 2 * n]},
+            "distribution": {"A": primes[2 * n], "B": primes[2 * n + 1]},
+            "insertion": {"A": primes[2 * n + 2], "B": primes[2 * n + 3]},
+            "box_distribution": primes[2 * n + 4], "box_insertion": primes[2 * n + 5]}
 
+
+def _setup_lines(domain: Box) -> list[str]:
+    return ["atom_style      granular", "atom_modify     map array", "boundary        f f f", "newton          off",
+            "communicate     single vel yes", "units           si", "processors      * 1 1", "",
+            f"region          domain block {_box_args(domain)} units box", "create_box      3 domain"]
+
+
+def _resume_setup_lines(resume_from: str) -> list[str]:
+    return [f"# resume: state (particles, step, mesh positions, counters) from {resume_from}",
+            "atom_modify     map array", "communicate     single vel yes", "processors      * 1 1",
+            f"read_restart    {resume_from}", "newton          off"]
+
+
+def _neighbour_lines(config: DemConfig) -> list[str]:
+    skin = 0.5 * config.particles.diameter_m
+    return [f"neighbor        {_g(skin)} bin", "neigh_modify    delay 0", "hard_particles  yes"]
+
+
+def _material_lines(config: DemConfig) -> list[str]:
+    p, s, c = config.particles, config.steel, config.contact
     e_p, e_s = p.youngs_modulus_pa, s.youngs_modulus_pa
     mu = {(1, 1): c.friction_particle_particle, (1, 2): c.friction_particle_particle,
           (2, 2): c.friction_particle_particle, (1, 3): c.friction_particle_wall,
@@ -280,59 +315,83 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
     def pair_matrix(f) -> str:
         return " ".join(_g(f(min(i, j), max(i, j))) for i in (1, 2, 3) for j in (1, 2, 3))
 
-    L: list[str] = []
-    add = L.append
-    add("# pbmdem: LIGGGHTS 3.8.0 deck for a GCM250-style continuous blender (Sen et al. 2013).")
-    add("# Generated by dem.deck.build_deck; do not edit in place during a run.")
-    add(f"# particles: d = {_g(p.diameter_m)} m (SD {_g(p.diameter_sd_m)} m, {n_cls} classes); feed "
+    return [
+        "# Table 1. E = 2 G (1 + nu): particles (types 1, 2) and steel (type 3)",
+        f"fix m1 all property/global youngsModulus peratomtype {_g(e_p)} {_g(e_p)} {_g(e_s)}",
+        f"fix m2 all property/global poissonsRatio peratomtype {_g(p.poisson_ratio)} {_g(p.poisson_ratio)} "
+        f"{_g(s.poisson_ratio)}",
+        f"fix m3 all property/global coefficientRestitution peratomtypepair 3 {pair_matrix(lambda i, j: c.restitution)}",
+        f"fix m4 all property/global coefficientFriction peratomtypepair 3 {pair_matrix(lambda i, j: mu[(i, j)])}",
+        f"fix m5 all property/global coefficientRollingFriction peratomtypepair 3 "
+        f"{pair_matrix(lambda i, j: c.rolling_friction)}",
+    ]
+
+
+def _contact_lines(dt: float) -> list[str]:
+    """Pair style, timestep and gravity."""
+    return [f"pair_style      gran {_CONTACT_MODEL}", "pair_coeff      * *", f"timestep        {_g(dt)}",
+            "fix gravi all gravity 9.81 vector 0.0 0.0 -1.0"]
+
+
+def _steel_wall(name: str, primitive: str) -> str:
+    return f"fix {name} all wall/gran {_CONTACT_MODEL} primitive type {ATOM_TYPES['steel']} {primitive}"
+
+
+def _template_lines(config: DemConfig, comp: str, diameters: np.ndarray, seeds: list[int]) -> list[str]:
+    """One ``particletemplate/sphere`` per size class of component ``comp`` (``pt<comp><k>``)."""
+    density = _g(config.particles.density_kg_m3)
+    return [f"fix pt{comp}{k} all particletemplate/sphere {seeds[k]} atom_type {ATOM_TYPES[comp]} density constant "
+            f"{density} radius constant {_g(d / 2)}" for k, d in enumerate(diameters)]
+
+
+def _distribution_line(name: str, seed: int, templates: list[str], weights: np.ndarray) -> str:
+    parts = " ".join(f"{t} {w}" for t, w in zip(templates, _format_weights(weights)))
+    return f"fix {name} all particledistribution/discrete/numberbased {seed} {len(templates)} {parts}"
+
+
+def _integration_lines(thermo_every: int) -> list[str]:
+    """Integration and the timestep check, run on every thermo step."""
+    return ["fix integr all nve/sphere",
+            f"fix ts all check/timestep/gran {thermo_every} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "
+            f"{_g(HERTZ_WARN_FRACTION)}"]
+
+
+def _thermo_lines(columns: str, every: int) -> list[str]:
+    return [f"thermo_style    custom {columns}", f"thermo          {every}", "thermo_modify   lost ignore norm no"]
+
+
+# --------------------------------------------------------------------------------------
+# the blender deck
+# --------------------------------------------------------------------------------------
+
+
+def _deck_text(config: DemConfig, info: dict, resume_from: str | None, dumps: bool = True) -> str:
+    geo = build_geometry(config)
+    g, p, op = config.geometry, config.particles, config.operation
+    dt = info["timestep_s"]
+    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
+    n_cls = len(diam)
+    seeds = _seeds(config.numerics.seed, n_cls)
+
+    L: list[str] = [
+        "# pbmdem: LIGGGHTS 3.8.0 deck for a GCM250-style continuous blender (Sen et al. 2013).",
+        "# Generated by dem.deck.build_deck; do not edit in place during a run.",
+        f"# particles: d = {_g(p.diameter_m)} m (SD {_g(p.diameter_sd_m)} m, {n_cls} classes); feed "
         f"{_g(op.feed_rate_total_per_s)} /s (A share {_g(op.feed_fraction_a)}); {_g(op.impeller_rpm)} rpm; "
-        f"{_g(op.duration_s)} s")
-    add(f"# atom types: 1 = A, 2 = B, 3 = steel. Thermo columns: {' '.join(THERMO_COLUMNS)}")
-    add("")
-    if resume_from is None:
-        add("atom_style      granular")
-        add("atom_modify     map array")
-        add("boundary        f f f")
-        add("newton          off")
-        add("communicate     single vel yes")
-        add("units           si")
-        add("processors      * 1 1")
-        add("")
-        add(f"region          domain block {_box_args(geo.box)} units box")
-        add("create_box      3 domain")
-    else:
-        add(f"# resume: state (particles, step, mesh positions, counters) from {resume_from}")
-        add("atom_modify     map array")
-        add("communicate     single vel yes")
-        add("processors      * 1 1")
-        add(f"read_restart    {resume_from}")
-        add("newton          off")
-    add("")
-    add(f"neighbor        {_g(skin)} bin")
-    add("neigh_modify    delay 0")
-    add("hard_particles  yes")
-    add("")
-    add("# Table 1. E = 2 G (1 + nu): particles (types 1, 2) and steel (type 3)")
-    add(f"fix m1 all property/global youngsModulus peratomtype {_g(e_p)} {_g(e_p)} {_g(e_s)}")
-    add(f"fix m2 all property/global poissonsRatio peratomtype {_g(p.poisson_ratio)} {_g(p.poisson_ratio)} "
-        f"{_g(s.poisson_ratio)}")
-    add(f"fix m3 all property/global coefficientRestitution peratomtypepair 3 {pair_matrix(lambda i, j: c.restitution)}")
-    add(f"fix m4 all property/global coefficientFriction peratomtypepair 3 {pair_matrix(lambda i, j: mu[(i, j)])}")
-    add(f"fix m5 all property/global coefficientRollingFriction peratomtypepair 3 "
-        f"{pair_matrix(lambda i, j: c.rolling_friction)}")
-    add("")
-    add(f"pair_style      gran {model}")
-    add("pair_coeff      * *")
-    add(f"timestep        {_g(dt)}")
-    add("fix gravi all gravity 9.81 vector 0.0 0.0 -1.0")
-    add("")
+        f"{_g(op.duration_s)} s",
+        f"# atom types: 1 = A, 2 = B, 3 = steel. Thermo columns: {' '.join(THERMO_COLUMNS)}",
+        "",
+    ]
+    add = L.append
+    L += _setup_lines(geo.box) if resume_from is None else _resume_setup_lines(resume_from)
+    L += ["", *_neighbour_lines(config), "", *_material_lines(config), "", *_contact_lines(dt), ""]
     add("# barrel and closed inlet end: primitives (faster than STL)")
-    add(f"fix barrel all wall/gran {model} primitive type 3 xcylinder {_g(g.radius_m)} 0. 0.")
-    add(f"fix inletwall all wall/gran {model} primitive type 3 xplane 0.0")
+    add(_steel_wall("barrel", f"xcylinder {_g(g.radius_m)} 0. 0."))
+    add(_steel_wall("inletwall", "xplane 0.0"))
     add("# impeller (shaft + paddles) and weir: STL meshes; discharge face: counting only, no wall")
     add(f"fix impeller all mesh/surface file {MESH_FILES['impeller']} type 3")
     add(f"fix weir all mesh/surface file {MESH_FILES['weir']} type 3")
-    add(f"fix walls all wall/gran {model} mesh n_meshes 2 meshes impeller weir")
+    add(f"fix walls all wall/gran {_CONTACT_MODEL} mesh n_meshes 2 meshes impeller weir")
     add(f"fix discharge all mesh/surface/planar file {MESH_FILES['discharge']} type 3")
     add(f"fix rotor all move/mesh mesh impeller rotate origin 0. 0. 0. axis 1. 0. 0. period {_g(info['impeller_period_s'])}")
     add("")
@@ -341,20 +400,16 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
     if resume_from is None:
         add("group           gA type 1")
         add("group           gB type 2")
-    w_text = _format_weights(weights)
     for comp in ("A", "B"):
-        t = ATOM_TYPES[comp]
-        for k, d in enumerate(diam):
-            add(f"fix pt{comp}{k} all particletemplate/sphere {seeds_tpl[comp][k]} atom_type {t} density constant "
-                f"{_g(p.density_kg_m3)} radius constant {_g(d / 2)}")
-        parts = " ".join(f"pt{comp}{k} {w_text[k]}" for k in range(n_cls))
-        add(f"fix pdd{comp} all particledistribution/discrete/numberbased {seed_pdd[comp]} {n_cls} {parts}")
+        L += _template_lines(config, comp, diam, seeds["templates"][comp])
+        add(_distribution_line(f"pdd{comp}", seeds["distribution"][comp], [f"pt{comp}{k}" for k in range(n_cls)],
+                               weights))
     add("")
     add("# feeders: A on +y, B on -y, above the first compartment, upstream of the first blade")
     rates = {"A": op.feed_rate_a_per_s, "B": op.feed_rate_b_per_s}
     for comp in ("A", "B"):
         add(f"region          feed{comp} block {_box_args(geo.feed_zones[comp])} units box")
-        add(f"fix ins{comp} g{comp} insert/rate/region seed {seed_ins[comp]} distributiontemplate pdd{comp} "
+        add(f"fix ins{comp} g{comp} insert/rate/region seed {seeds['insertion'][comp]} distributiontemplate pdd{comp} "
             f"nparticles INF particlerate {_g(rates[comp])} insert_every {info['insert_every_steps']} "
             f"overlapcheck yes all_in yes vel constant 0. 0. {_g(-FEED_VELOCITY_M_S)} region feed{comp} ntry_mc 10000")
     add("")
@@ -364,11 +419,7 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
         mode = "file" if resume_from is None else "append"
         add(f"fix out{comp} g{comp} massflow/mesh mesh discharge vec_side 1. 0. 0. count once delete_atoms yes "
             f"{mode} {MASSFLOW_FILES[comp]} writeTime screen no")
-    add("")
-    add("fix integr all nve/sphere")
-    add(f"fix ts all check/timestep/gran {info['thermo_every_steps']} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "
-        f"{_g(HERTZ_WARN_FRACTION)}")
-    add("")
+    L += ["", *_integration_lines(info["thermo_every_steps"]), ""]
     add("# output: simulated time from the step count (thermo 'time' restarts at 0 after read_restart)")
     add(f"variable        simtime equal step*{_g(dt)}")
     for name, expr in _THERMO_VARIABLES.items():
@@ -376,30 +427,31 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None) -> str:
     cols = " ".join(
         c_.lower() if c_ in ("Step", "Atoms") else f"f_{c_}" if c_.startswith("ts[") else f"v_{c_}" for c_ in THERMO_COLUMNS
     )
-    add(f"thermo_style    custom {cols}")
-    add(f"thermo          {info['thermo_every_steps']}")
-    add("thermo_modify   lost ignore norm no")
-    add(f"dump            dmp all custom {info['dump_every_steps']} {DUMP_PATTERN} {' '.join(DUMP_COLUMNS)}")
+    L += _thermo_lines(cols, info["thermo_every_steps"])
+    if dumps:
+        add(f"dump            dmp all custom {info['dump_every_steps']} {DUMP_PATTERN} {' '.join(DUMP_COLUMNS)}")
     add(f"restart         {info['restart_every_steps']} {RESTART_PATTERN}")
     add("")
     add(f"run             {info['end_step']} upto")
     return "\n".join(L) + "\n"
 
 
-def build_deck(config: DemConfig, resume_from: str | None = None) -> dict[str, str]:
+def build_deck(config: DemConfig, resume_from: str | None = None, dumps: bool = True) -> dict[str, str]:
     """All files of a run directory as ``{relative path: text}``; nothing is written.
 
     ``resume_from`` (a restart file path relative to the run directory, e.g.
     ``"restart/restart.250000.bin"``) adds :data:`RESUME_DECK`, which reads it, declares
     every fix again and runs on to the same end step (steps, and so dump names, continue).
+    ``dumps=False`` leaves out the ``dump`` command: a run to measure what the dumps cost,
+    from which nothing can be post-processed.
     Raises :class:`GeometryError` / :class:`DeckError` before anything exists.
     """
     info = deck_parameters(config)
-    files = {MAIN_DECK: _deck_text(config, info, None)}
+    files = {MAIN_DECK: _deck_text(config, info, None, dumps)}
     if resume_from is not None:
         if not str(resume_from).strip() or any(ch.isspace() for ch in str(resume_from)):
             raise DeckError(f"resume_from = {resume_from!r}: must be a restart file path without spaces")
-        files[RESUME_DECK] = _deck_text(config, info, str(resume_from))
+        files[RESUME_DECK] = _deck_text(config, info, str(resume_from), dumps)
     geo = build_geometry(config)
     for name, path in MESH_FILES.items():
         files[path] = stl_text(geo.meshes[name])
@@ -407,9 +459,97 @@ def build_deck(config: DemConfig, resume_from: str | None = None) -> dict[str, s
     return files
 
 
-def deck_hash(files: dict[str, str]) -> str:
-    """Hash of the deck's file texts (key of the run; changes with any input that matters)."""
-    return stable_hash({name: files[name] for name in sorted(files)})
+# --------------------------------------------------------------------------------------
+# the plain box: the blender's particles and contact physics without the blender
+# --------------------------------------------------------------------------------------
+
+
+def box_geometry(config: DemConfig, particles: int) -> dict:
+    """Box of the blender's length and of width = barrel radius (about the blender's bed
+    depth); insertion height so that random packing at ~25 % solids holds every particle;
+    expected settled depth at 60 % solids; wall margin of the domain = largest diameter."""
+    p, g = config.particles, config.geometry
+    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
+    mean_volume = float((weights * math.pi / 6 * diam**3).sum())
+    length, width = g.length_m, g.radius_m
+    solid = particles * mean_volume
+    height = max(solid / (0.25 * length * width), 4 * float(diam.max()))
+    return {"length_m": length, "width_m": width, "fill_height_m": height,
+            "bed_depth_m": solid / (0.6 * length * width), "margin_m": float(diam.max())}
+
+
+def build_box_deck(config: DemConfig, particles: int, steps: int, fill_s: float = 1.0,
+                   settle_s: float = 0.5) -> dict[str, str]:
+    """``{BOX_DECK: text}``: a settled bed of ``particles`` particles in a plain box, then
+    ``steps`` measured steps (the log's last ``Loop time``); nothing is written.
+
+    The reference for the blender deck's efficiency: the same setup, neighbour settings,
+    materials, pair style, timestep, gravity, particle templates, integration, timestep
+    check and thermo interval as :func:`build_deck` (the same section builders), in a box
+    of five steel ``wall/gran`` primitives with the barrel's contact model
+    (:func:`box_geometry`). No impeller, meshes, feeders, discharge or dumps. A and B are
+    inserted through one number-weighted distribution, each class at half its own
+    component's weight (the blender's feed at 50/50; A and B are the same material).
+    ``fix insert/pack`` tops the box up every :data:`BOX_FILL_BATCH_S` for ``fill_s``, the
+    bed settles for ``settle_s``, then the measured run. Raises :class:`DeckError`.
+    """
+    if particles < 1 or steps < 1:
+        raise DeckError(f"plain box deck: particles = {particles} and steps = {steps}; both must be >= 1")
+    info = deck_parameters(config)
+    dt, thermo_every = info["timestep_s"], info["thermo_every_steps"]
+    p = config.particles
+    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
+    n_cls = len(diam)
+    seeds = _seeds(config.numerics.seed, n_cls)
+    box = box_geometry(config, particles)
+    length, half, height, margin = box["length_m"], box["width_m"] / 2, box["fill_height_m"], box["margin_m"]
+    domain = Box(-margin, length + margin, -half - margin, half + margin, -margin, height + margin)
+    templates = [f"pt{comp}{k}" for comp in ("A", "B") for k in range(n_cls)]
+    fill_steps, settle_steps = max(1, round(fill_s / dt)), max(1, round(settle_s / dt))
+
+    L: list[str] = [
+        "# pbmdem: plain box of the blender deck's particles (dem.deck.build_box_deck).",
+        f"# {particles} particles settled in a {_g(length)} x {_g(2 * half)} m box of steel wall/gran primitives, "
+        f"then {steps} measured steps (the last Loop time).",
+        "",
+        *_setup_lines(domain), "", *_neighbour_lines(config), "", *_material_lines(config), "",
+        *_contact_lines(dt), "",
+        "# the box: five steel primitives with the blender barrel's contact model",
+        _steel_wall("boxfloor", "zplane 0.0"),
+        _steel_wall("boxxlo", "xplane 0.0"),
+        _steel_wall("boxxhi", f"xplane {_g(length)}"),
+        _steel_wall("boxylo", f"yplane {_g(-half)}"),
+        _steel_wall("boxyhi", f"yplane {_g(half)}"),
+        "",
+        *_template_lines(config, "A", diam, seeds["templates"]["A"]),
+        *_template_lines(config, "B", diam, seeds["templates"]["B"]),
+        _distribution_line("pddbox", seeds["box_distribution"], templates, np.concatenate([weights, weights]) / 2),
+        f"region          fill block 0 {_g(length)} {_g(-half)} {_g(half)} 0 {_g(height)} units box",
+        f"fix ins all insert/pack seed {seeds['box_insertion']} distributiontemplate pddbox insert_every "
+        f"{max(1, round(BOX_FILL_BATCH_S / dt))} overlapcheck yes all_in yes particles_in_region {particles} "
+        "region fill ntry_mc 10000",
+        "",
+        *_integration_lines(thermo_every), "",
+        *_thermo_lines("step atoms ke", thermo_every), "",
+        f"# fill: top the box up to {particles} particles every {_g(BOX_FILL_BATCH_S)} s, then settle without insertion",
+        f"run             {fill_steps}",
+        "unfix           ins",
+        f"run             {settle_steps}",
+        "# measured",
+        f"run             {steps}",
+    ]
+    return {BOX_DECK: "\n".join(L) + "\n"}
+
+
+def deck_hash(files: dict[str, str | bytes], liggghts_version: str = "") -> str:
+    """Hash of every deck file's content (texts and meshes): the deck alone, or with
+    ``liggghts_version`` the key of a run of it (:func:`dem.run.run_key`). Changes with any
+    input that matters."""
+    digests = {}
+    for name, content in files.items():
+        data = content.encode() if isinstance(content, str) else bytes(content)
+        digests[name] = hashlib.sha256(data).hexdigest()
+    return stable_hash({"files": digests, "liggghts_version": liggghts_version, "layout": 1}, length=16)
 
 
 def write_deck(files: dict[str, str], out_dir: str | Path) -> Path:

@@ -23,6 +23,10 @@ Memory holds one snapshot at a time: flat in the number of snapshots.
 Errors: a snapshot cut short at the very end of the *last* file (a killed run) is dropped
 with a :class:`TruncatedDumpWarning`; anything else malformed raises
 :class:`~coupling.errors.DumpFormatError` naming the file and the line.
+
+One module for one file format: the header parser, the block parser and the error
+location share the byte offsets they work on, and a writer (:func:`format_snapshot`, for
+tests and tools) sits beside the reader it must satisfy.
 """
 
 from __future__ import annotations

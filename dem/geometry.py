@@ -1,7 +1,7 @@
 """Blender geometry as pure functions: a :class:`~dem.config.DemConfig` in, triangle meshes out.
 
-Frame (DESIGN.md): x axial, 0 at the closed inlet end wall, ``L`` at the outlet; the impeller
-axis is the x axis (y = z = 0); z is vertical, gravity along -z.
+Frame (``coupling/DEFINITIONS.md``): x axial, 0 at the closed inlet end wall, ``L`` at the
+outlet; the impeller axis is the x axis (y = z = 0); z is vertical, gravity along -z.
 
 What is built, and why
 ----------------------
@@ -39,6 +39,10 @@ sizes, blade tips clearing the wall by more than the largest particle, blades wi
 barrel, feed zones inside the barrel and clear of the blades' swept volume, and LIGGGHTS'
 own mesh checks (no duplicate or degenerate triangles, no angle below 0.5 deg, at most 5
 edge neighbours per element, every node inside the simulation box).
+
+This module is longer than most: each surface, the checks that make it acceptable to
+LIGGGHTS, and its STL text belong together, so that changing a surface shows at once what
+it must still satisfy.
 """
 
 from __future__ import annotations

@@ -74,13 +74,10 @@ def _render_pyvista(meshes: dict[str, TriMesh], path: Path, size: tuple[int, int
 
 
 def _render_matplotlib(meshes: dict[str, TriMesh], path: Path, size: tuple[int, int]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    fig = plt.figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
+    fig = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
     ax = fig.add_subplot(projection="3d")
     for name, m in meshes.items():
         ax.add_collection3d(Poly3DCollection(m.corners, facecolor=COLOURS.get(name, "#777777"),
@@ -91,7 +88,6 @@ def _render_matplotlib(meshes: dict[str, TriMesh], path: Path, size: tuple[int, 
     ax.set_box_aspect(hi - lo)
     ax.set_xlabel("x [m]"), ax.set_ylabel("y [m]"), ax.set_zlabel("z [m]")
     fig.savefig(path)
-    plt.close(fig)
 
 
 def _render_pyvista_isolated(meshes: dict[str, TriMesh], path: Path, size: tuple[int, int]) -> None:

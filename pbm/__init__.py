@@ -2,7 +2,7 @@
 
 The API the pipeline calls:
 
-* :func:`simulate` (table, config, rtd_pulse_s=None) -> :class:`PbmResult`
+* :func:`simulate` (table, config, rtd_pulse_s=None, steady=SteadyStateRule()) -> :class:`PbmResult`
 * :func:`write_outputs` (result, out_dir) -> paths of timeseries.csv, rtd.csv, summary.json, PNGs
 * :mod:`pbm.plots` ``plot_*`` (result, ax=None) -> Axes, to overlay DEM curves
 * :func:`noise_ensemble` / :func:`noise_study`: feed-noise bands (paper Figs 5-6)
@@ -10,18 +10,15 @@ The API the pipeline calls:
   :func:`geometry_study` / :func:`grid_study` run them
 * :func:`synthetic_table`: a DEM-like table to try the PBM without DEM
 
-Conventions this package fixes where DESIGN.md leaves room (each documented and tested at
-the function named):
+The CQAs (RSD and its empty rule, C_A, the steady-state rule) are those of
+:mod:`coupling.metrics`, shared with the DEM. Conventions of this package (each documented
+and tested at the function named):
 
 * Missing samples (``table.valid`` False): :func:`fill_missing_velocities` -- the same
   compartment's nearest valid window in time, else the mean of the same slice's valid
   compartments, else the nearest valid slice, else the table-wide mean; never a zero.
-* Steady state (when the RTD pulse is not given): :func:`pbm.cqa.detect_steady_state` --
-  the mean hold-up over the trailing ``steady_window_s`` (10 s) differs from the mean over
-  the window before by at most ``steady_rel_tol`` (2 %) of itself.
 * Output times: rates and C_A average over (t - dt, t], exactly (accumulated discharge);
   counts, hold-ups and RSDs are instantaneous at t. E(t) is reported at bin centres.
-* RSD: compartments with fewer than ``rsd_min_particles`` (1) particles are empty.
 * Regridding: :func:`regrid` -- particle-flux weighted overlap averages (ratio of sums, as
   the DEM post-processing would bin), counts conserved.
 * Feed noise: factor N(1, sigma) per stream, clipped at 0, redrawn every
@@ -30,9 +27,10 @@ the function named):
 
 from pbm.config import PbmConfig
 from pbm.ensemble import EnsembleResult, noise_ensemble, noise_study
-from pbm.geometry import geometry_study, grid_study, regrid, scale_blender
 from pbm.model import fill_missing_velocities
-from pbm.simulate import PbmResult, simulate, write_outputs
+from pbm.outputs import write_outputs
+from pbm.simulate import PbmResult, simulate
+from pbm.studies import geometry_study, grid_study, regrid, scale_blender
 from pbm.synthetic import synthetic_table
 
 __all__ = [

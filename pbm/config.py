@@ -38,15 +38,6 @@ class PbmConfig(BaseModel):
         None, ge=0, allow_inf_nan=False, description="tracer pulse time; None = at detected steady state"
     )
     rtd_bin_s: float = Field(1.0, gt=0, allow_inf_nan=False, description="width of the E(t) histogram bins")
-    steady_window_s: float = Field(
-        10.0, gt=0, allow_inf_nan=False, description="trailing window of the steady-state test on the hold-up"
-    )
-    steady_rel_tol: float = Field(
-        0.02, gt=0, lt=1, description="steady when the mean hold-up of two successive windows differs by less"
-    )
-    rsd_min_particles: float = Field(
-        1.0, ge=0, allow_inf_nan=False, description="compartments holding fewer particles count as empty in RSDs"
-    )
     method: Literal["expm", "bdf"] = Field("expm", description="exact propagation or the solve_ivp BDF cross-check")
     bdf_rtol: float = Field(1e-6, gt=0, lt=1)
 

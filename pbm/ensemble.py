@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from coupling.errors import ConfigError
+from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
 from pbm._blas import single_threaded_blas
 from pbm.config import PbmConfig
-from pbm.cqa import outflow_fraction_a, rsd
 from pbm.model import feed_distribution, fill_missing_velocities
 from pbm.simulate import check_run, noise_factors
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
@@ -127,9 +127,9 @@ def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma:
         last_discharged = discharged.copy()
         c_a[k] = outflow_fraction_a(inc[0::2], inc[1::2])
         outlet = z[n - ny : n]
-        rsd_out[k] = rsd(outlet[:, 0::2], outlet[:, 1::2], axis=0, min_particles=config.rsd_min_particles)
+        rsd_out[k] = rsd(outlet[:, 0::2], outlet[:, 1::2], axis=0)
     final = z[:n].reshape(nx, ny, 2 * distinct)
-    rsd_slices = rsd(final[:, :, 0::2], final[:, :, 1::2], axis=1, min_particles=config.rsd_min_particles)  # (NX, M)
+    rsd_slices = rsd(final[:, :, 0::2], final[:, :, 1::2], axis=1)  # (NX, M)
 
     c_a_members = np.repeat(c_a.T, members // distinct, axis=0)
     rsd_members = np.repeat(rsd_out.T, members // distinct, axis=0)

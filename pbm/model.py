@@ -13,9 +13,9 @@ state carries three accumulator rows, shared by all columns:
 so that time-averaged outflow rates and the first two moments of the residence-time
 distribution come out of the same exact propagation, with no quadrature error.
 
-Rates (DESIGN.md, "PBM rates"): particles in (i, j) leave to (i+1, j) at vx_pos/dx_i, to
-(i-1, j) at vx_neg/dx_i, to (i, j+1) at vy_pos/dy_j and to (i, j-1) at vy_neg/dy_j
-[1/s per particle], with the leaving compartment's velocities. The last slice's forward
+Rates (``coupling/DEFINITIONS.md``, "PBM rates"): particles in (i, j) leave to (i+1, j) at
+vx_pos/dx_i, to (i-1, j) at vx_neg/dx_i, to (i, j+1) at vy_pos/dy_j and to (i, j-1) at
+vy_neg/dy_j [1/s per particle], with the leaving compartment's velocities. The last slice's forward
 flux is the outflow; there is no flux through the inlet wall nor through the side walls.
 """
 
@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError, TableError
 from coupling.tables import VELOCITY_NAMES, VelocityTable
 
@@ -108,18 +109,14 @@ def default_feed_weights(y_edges: np.ndarray, side: int) -> np.ndarray:
     y = 0 (odd NY) gets the fraction of its width on that side, so the two default feeds
     stay mirror images of each other. Normalised to sum 1.
     """
-    lo, hi = y_edges[:-1], y_edges[1:]
-    if side > 0:
-        share = np.clip(hi, 0, None) - np.clip(lo, 0, None)
-    else:
-        share = np.clip(hi, None, 0) - np.clip(lo, None, 0)
-    share = np.abs(share)
-    if share.sum() <= 0:
+    zone = (0.0, y_edges[-1]) if side > 0 else (y_edges[0], 0.0)
+    try:
+        return np.asarray(inlet_weights(y_edges, *zone))
+    except ConfigError:
         raise ConfigError(
             f"the transverse edges {y_edges[0]:.4g}..{y_edges[-1]:.4g} m do not extend to y "
             f"{'> 0' if side > 0 else '< 0'}; give feed_weights_{'a' if side > 0 else 'b'} explicitly"
-        )
-    return share / share.sum()
+        ) from None
 
 
 def feed_distribution(table: VelocityTable, weights_a, weights_b) -> np.ndarray:

@@ -1,7 +1,8 @@
 """One PBM run: velocity table + configuration -> CQA time series, RTD and a summary.
 
-:func:`simulate` is the API the pipeline calls; :class:`PbmResult` is what it returns and
-:func:`write_outputs` writes it (``timeseries.csv``, ``rtd.csv``, ``summary.json``, figures).
+:func:`simulate` is the API the pipeline calls; :class:`PbmResult` is what it returns
+(:func:`pbm.outputs.write_outputs` writes it to files). The CQAs are computed by
+:mod:`coupling.metrics`, the same functions the DEM side calls.
 
 Time convention of the series: output k sits at ``t_k = k * output_interval_s``
 (k = 1..K). Rates and C_A are averages over the interval (t_{k-1}, t_k] -- exact, from the
@@ -10,20 +11,19 @@ accumulated discharge -- and counts, hold-ups and RSDs are values at the instant
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from coupling.errors import ConfigError
+from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
 from pbm._blas import single_threaded_blas
 from pbm.config import PbmConfig
-from pbm.cqa import detect_steady_state, holdup_relative_change, outflow_fraction_a, rsd, rtd_moments
 from pbm.model import feed_distribution, fill_missing_velocities
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
@@ -67,6 +67,16 @@ class PbmResult:
     rtd_E: np.ndarray
     rtd_pulse_s: float
     summary: dict[str, Any] = field(default_factory=dict)
+
+    def timeseries(self) -> pd.DataFrame:
+        """The CQA series in :data:`coupling.metrics.TIMESERIES_COLUMNS`."""
+        values = (self.times, self.outflow_A, self.outflow_B, self.C_A, self.rsd_outlet, self.rsd_blender,
+                  self.holdup_A, self.holdup_B)
+        return pd.DataFrame(dict(zip(TIMESERIES_COLUMNS, values)))
+
+    def rtd(self) -> pd.DataFrame:
+        """E(t): ``t_s`` (bin centres since the pulse) and ``E_per_s``."""
+        return pd.DataFrame({"t_s": self.rtd_t, "E_per_s": self.rtd_E})
 
 
 def noise_factors(config: PbmConfig, n_intervals: int, member: int = 0, sigma: float | None = None) -> np.ndarray:
@@ -112,12 +122,14 @@ def simulate(
     config: PbmConfig | None = None,
     rtd_pulse_s: float | None = None,
     initial_counts: np.ndarray | None = None,
+    steady: SteadyStateRule = SteadyStateRule(),
 ) -> PbmResult:
     """Run the compartment PBM driven by ``table`` and return its CQAs.
 
     ``config`` defaults to :class:`PbmConfig` (the paper's feed). ``rtd_pulse_s`` [s]
     overrides ``config.rtd_pulse_s``; when both are None the tracer pulse is fed at the
-    detected steady state (:func:`pbm.cqa.detect_steady_state` on the total hold-up; if it
+    steady state that ``steady`` detects on the total hold-up (the rule the DEM is judged
+    by, :class:`coupling.metrics.SteadyStateRule`; if it
     is never detected, at the output time of least relative hold-up change, or at 0 for a
     run shorter than two steady windows -- ``summary['rtd_pulse_rule']`` says which).
     ``initial_counts`` (2, NX, NY) [particles]: A and B already in the blender at t = 0
@@ -130,7 +142,7 @@ def simulate(
 
     ``summary`` keys: mean_residence_time_s, rtd_variance_s2, rtd_recovered_fraction
     (moments exact, over the tracer recovered by the end), steady_outflow_per_s and
-    steady_C_A (means from the steady-state time to the end; the last steady_window_s if
+    steady_C_A (means from the steady-state time to the end; the last steady window if
     no steady state), final_rsd_outlet, final_rsd_blender, final_rsd_by_slice (list,
     inlet -> outlet, None where undefined), holdup_final, holdup_final_A, holdup_final_B,
     steady_state_time_s (None if not detected), rtd_pulse_s, rtd_pulse_rule,
@@ -185,13 +197,13 @@ def simulate(
         holdup_total = main_z[:, :n, 0].sum(axis=1) + main_z[:, :n, 1].sum(axis=1)
         tracer_rec_t, tracer_rec = rec_t, rec_z[:, :, 2:3]
         rule = "given"
-        steady_time = detect_steady_state(out_times, holdup_total, config.steady_window_s, config.steady_rel_tol)
+        steady_time = steady.time(out_times, holdup_total)
     else:
         rec_t, rec_z = run(0.0, (0, 1), None, out_times)
         main_z = _select(rec_t, rec_z, out_times)
         holdup_total = main_z[:, :n, 0].sum(axis=1) + main_z[:, :n, 1].sum(axis=1)
-        steady_time = detect_steady_state(out_times, holdup_total, config.steady_window_s, config.steady_rel_tol)
-        pulse, rule = _choose_pulse(out_times, holdup_total, steady_time, config)
+        steady_time = steady.time(out_times, holdup_total)
+        pulse, rule = _choose_pulse(out_times, holdup_total, steady_time, steady)
         bins = _bin_edges(pulse, config.rtd_bin_s, t_end)
         tracer_rec_t, tracer_rec = run(pulse, (2,), pulse, bins)
 
@@ -208,17 +220,15 @@ def simulate(
     increments = np.diff(np.vstack([np.zeros(2), discharged]), axis=0)
     fed = np.stack([cumulative_feed(out_times, rates[s], factors[:, s], config.noise_interval_s) for s in (0, 1)], 1)
     holdup = counts.sum(axis=(2, 3))
-    minp = config.rsd_min_particles
-    rsd_outlet = rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1, min_particles=minp)
-    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, n), counts[:, 1].reshape(out_times.size, n), axis=1,
-                      min_particles=minp)
-    rsd_slices = rsd(counts[-1, 0], counts[-1, 1], axis=1, min_particles=minp)
+    rsd_outlet = rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1)
+    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, n), counts[:, 1].reshape(out_times.size, n), axis=1)
+    rsd_slices = rsd(counts[-1, 0], counts[-1, 1], axis=1)
 
     # Steady-state means: exact, from the discharge accumulated over the span.
     if steady_time is not None and steady_time < t_end - TIME_TOLERANCE_S:
         span_start = steady_time
     else:
-        span_start = max(0.0, out_times[-1] - config.steady_window_s)
+        span_start = max(0.0, out_times[-1] - steady.window_s)
     if span_start <= TIME_TOLERANCE_S:
         span_start, d_start = 0.0, np.zeros(2)
     else:
@@ -271,6 +281,24 @@ def simulate(
     )
 
 
+def rtd_moments(amount: float, held: float, int1: float, int2: float, elapsed_s: float) -> dict[str, float]:
+    """Mean and variance of the residence time of the recovered tracer, exactly.
+
+    From the tracer's hold-up at the end ``held`` = H(T), and its time integrals since the
+    pulse ``int1`` = int_0^T H dtau and ``int2`` = int_0^T int1 dtau, with T = ``elapsed_s``
+    since the pulse and the outflow q = -dH/dtau. Integration by parts gives
+    int tau q = int1 - T H(T) and int tau^2 q = 2 (T int1 - int2) - T^2 H(T). Moments are
+    conditional on recovery by the end, like the DEM's tagged particles that left.
+    """
+    recovered = amount - held
+    m1 = int1 - elapsed_s * held
+    m2 = 2.0 * (elapsed_s * int1 - int2) - elapsed_s**2 * held
+    if recovered <= 0:
+        return {"recovered_fraction": 0.0, "mean_s": float("nan"), "variance_s2": float("nan")}
+    mean = m1 / recovered
+    return {"recovered_fraction": recovered / amount, "mean_s": mean, "variance_s2": m2 / recovered - mean**2}
+
+
 def _tracer_pulse(feed: np.ndarray, rates: np.ndarray, m: int) -> tuple[float, np.ndarray]:
     total = rates.sum()
     shape = feed @ rates / total if total > 0 else feed.mean(axis=1)
@@ -285,10 +313,10 @@ def _bin_edges(pulse: float, bin_s: float, t_end: float) -> np.ndarray:
     return pulse + bin_s * np.arange(count + 1)
 
 
-def _choose_pulse(times, holdup, steady_time, config) -> tuple[float, str]:
+def _choose_pulse(times, holdup, steady_time, steady: SteadyStateRule) -> tuple[float, str]:
     if steady_time is not None:
         return steady_time, "steady state detected"
-    change = holdup_relative_change(times, holdup, config.steady_window_s)
+    change = steady.relative_change(times, holdup)
     if np.all(np.isnan(change)):
         return 0.0, "run shorter than two steady windows: pulse at t = 0"
     return float(times[np.nanargmin(change)]), "steady state not detected: pulse at least relative hold-up change"
@@ -332,55 +360,3 @@ def _run_columns(props, config, t_start, t_end, columns, z0, factors, rates, rec
 def _select(times: np.ndarray, states: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     idx = np.searchsorted(times, np.asarray(wanted) - TIME_TOLERANCE_S)
     return states[np.clip(idx, 0, times.size - 1)]
-
-
-# --------------------------------------------------------------------------- outputs
-
-TIMESERIES_COLUMNS = ("t_s", "outflow_A_per_s", "outflow_B_per_s", "C_A", "rsd_outlet", "rsd_blender",
-                      "holdup_A", "holdup_B")
-
-
-def timeseries_table(result: PbmResult) -> np.ndarray:
-    """(K, 8) array in the column order of ``timeseries.csv`` (:data:`TIMESERIES_COLUMNS`)."""
-    return np.column_stack([result.times, result.outflow_A, result.outflow_B, result.C_A, result.rsd_outlet,
-                            result.rsd_blender, result.holdup_A, result.holdup_B])
-
-
-def json_ready(value):
-    """A JSON-safe copy for output files: numpy to Python, NaN and inf to null, paths to str."""
-    if isinstance(value, dict):
-        return {str(k): json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [json_ready(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) -> dict[str, Path]:
-    """Write ``timeseries.csv``, ``rtd.csv``, ``summary.json`` and (if ``figures``) PNGs.
-
-    CSVs: comma-separated, a header line, ``nan`` where a value is undefined (C_A before
-    anything leaves, RSD with fewer than two occupied compartments). JSON: NaN -> null.
-    Returns name -> path of every file written.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    paths["timeseries"] = out / "timeseries.csv"
-    np.savetxt(paths["timeseries"], timeseries_table(result), delimiter=",", header=",".join(TIMESERIES_COLUMNS),
-               comments="", fmt="%.10g")
-    paths["rtd"] = out / "rtd.csv"
-    np.savetxt(paths["rtd"], np.column_stack([result.rtd_t, result.rtd_E]), delimiter=",", header="t_s,E_per_s",
-               comments="", fmt="%.10g")
-    paths["summary"] = out / "summary.json"
-    paths["summary"].write_text(json.dumps(json_ready(result.summary), indent=2, allow_nan=False) + "\n")
-    if figures:
-        from pbm.plots import save_figures
-
-        paths.update(save_figures(result, out))
-    return paths

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from coupling.errors import ConfigError
 from coupling.tables import VelocityTable, make_table
 
 
@@ -27,6 +28,11 @@ def synthetic_table(
     particles yet (n_samples 0, so the PBM's fill rule is exercised), the others 50-500
     samples; counts of A and B follow the samples (A on the y > 0 side early on).
     """
+    for name, value in (("nx", nx), ("ny", ny), ("n_windows", n_windows)):
+        if isinstance(value, bool) or int(value) != value or value < 1:
+            raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
+    if not window_s > 0:
+        raise ConfigError(f"window_s must be > 0 s, got {window_s}")
     rng = np.random.default_rng(seed)
     shape = (n_windows, nx, ny)
     t = window_s * np.arange(n_windows)

@@ -19,9 +19,9 @@ def smoke_runs_root(tmp_path_factory):
     """A runs directory holding one completed real LIGGGHTS run of the ``smoke`` preset
     (under mpirun, as the preset says). Shared by every test that needs real DEM output,
     so CI pays for the solver once."""
-    from dem.run import run_dem
+    from dem.run import prepare_run, run_dem
     from workflows.config import load_preset
 
     root = tmp_path_factory.mktemp("smoke-runs")
-    run_dem(load_preset("smoke"), runs_root=root, progress=False)
+    run_dem(prepare_run(load_preset("smoke").dem), runs_root=root, progress=False)
     return root

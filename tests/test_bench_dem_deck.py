@@ -1,97 +1,13 @@
-"""The DEM deck benchmark's pure parts (no LIGGGHTS): the plain-box deck has the blender
-deck's physics, and LIGGGHTS' timing lines are parsed right."""
-
-import re
+"""The DEM deck benchmark's pure parts (no LIGGGHTS): LIGGGHTS' timing lines are parsed
+right, and the paper's core-hours follow the cost estimate. (The plain-box deck it measures
+against is tested with the deck writer, tests/test_deck.py.)"""
 
 import pytest
 
 from dem.cluster import estimate_cost
-from dem.deck import MAIN_DECK, build_deck
-from workflows.bench_dem_deck import (
-    BenchError,
-    box_deck_text,
-    loop_details,
-    paper_core_hours,
-    parse_loop_time,
-    parse_runs,
-)
+from dem.liggghts_log import loop_details, parse_loop_time, parse_runs
+from workflows.bench_dem_deck import paper_core_hours
 from workflows.config import load_preset
-
-
-def _fixes(text: str) -> dict[str, list[str]]:
-    """fix style -> the fixes' argument texts (after 'fix ID group style')."""
-    out: dict[str, list[str]] = {}
-    for line in text.splitlines():
-        tokens = line.split()
-        if len(tokens) >= 4 and tokens[0] == "fix":
-            out.setdefault(tokens[3], []).append(" ".join(tokens[4:]))
-    return out
-
-
-def _commands(text: str, name: str) -> list[str]:
-    return [" ".join(line.split()[1:]) for line in text.splitlines() if line.split()[:1] == [name]]
-
-
-def _physics(text: str) -> dict:
-    fixes = _fixes(text)
-    walls = fixes.get("wall/gran", [])
-    return {
-        "pair_style": _commands(text, "pair_style"),
-        "pair_coeff": _commands(text, "pair_coeff"),
-        "timestep": [float(v) for v in _commands(text, "timestep")],
-        "neighbor": _commands(text, "neighbor"),
-        "neigh_modify": _commands(text, "neigh_modify"),
-        "hard_particles": _commands(text, "hard_particles"),
-        "newton": _commands(text, "newton"),
-        "communicate": _commands(text, "communicate"),
-        "materials": sorted(fixes["property/global"]),
-        "templates": sorted(fixes["particletemplate/sphere"]),
-        "gravity": fixes["gravity"],
-        "integration": fixes["nve/sphere"],
-        "timestep_check": fixes["check/timestep/gran"],
-        # contact model and atom type of the primitive walls
-        "wall_models": sorted({re.match(r"(.*?) primitive type (\d+)", w).groups() for w in walls if " primitive " in w}),
-    }
-
-
-@pytest.mark.parametrize("preset", ["smoke", "paper"])
-def test_box_deck_has_the_blender_physics(preset):
-    dem = load_preset(preset).dem
-    blender = build_deck(dem)[MAIN_DECK]
-    box = box_deck_text(dem, particles=1234, steps=5000)
-    want, got = _physics(blender), _physics(box)
-    assert got == want
-    assert want["pair_style"] == ["gran model hertz tangential history rolling_friction cdt"]
-    assert len(want["templates"]) == 2 * dem.particles.size_classes
-    assert want["timestep"] == [pytest.approx(dem.timestep_s, rel=1e-9)]
-
-
-def test_box_deck_is_a_plain_box_of_the_same_particles():
-    dem = load_preset("smoke").dem
-    box = box_deck_text(dem, particles=1234, steps=5000)
-    fixes = _fixes(box)
-    # no impeller, meshes, feeders, discharge or dumps
-    for style in ("mesh/surface", "mesh/surface/planar", "move/mesh", "massflow/mesh", "insert/rate/region"):
-        assert style not in fixes
-    assert not _commands(box, "dump") and not _commands(box, "read_restart")
-    # five steel primitive walls: floor and four sides
-    prims = sorted(w.split()[-2] for w in fixes["wall/gran"])
-    assert prims == ["xplane", "xplane", "yplane", "yplane", "zplane"]
-    # one insertion topping the box up to the particle count, with every template of A and B
-    (ins,) = fixes["insert/pack"]
-    assert "particles_in_region 1234" in ins and "all_in yes" in ins
-    (pdd,) = fixes["particledistribution/discrete/numberbased"]
-    tokens = pdd.split()
-    assert int(tokens[1]) == 2 * dem.particles.size_classes
-    weights = [float(w) for w in tokens[3::2]]
-    assert sum(weights) == pytest.approx(1.0, abs=1e-12)
-    assert sorted(tokens[2::2]) == sorted(t.split()[0] for t in _commands(box, "fix") if "particletemplate/sphere" in t)
-    # the measured run is the last one and the insertion is gone by then
-    runs = _commands(box, "run")
-    assert runs[-1] == "5000" and len(runs) == 3
-    assert box.index("unfix           ins") < box.rindex("run ")
-    with pytest.raises(BenchError):
-        box_deck_text(dem, particles=0, steps=10)
 
 
 def test_loop_time_parser():

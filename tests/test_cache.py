@@ -1,18 +1,13 @@
-"""DEM results cache: round trip, reuse by key, corrupt/foreign/incomplete files, atomic writes."""
+"""Results cache: generic parts round trip (and DEM results through them), reuse by key,
+corrupt/foreign/incomplete files, atomic writes."""
 
 import h5py
 import numpy as np
 import pytest
 
-from coupling.cache import (
-    cache_path,
-    load_dem_results,
-    save_dem_results,
-    stable_hash,
-    try_load_dem_results,
-)
+from coupling.cache import CacheEntry, cache_path, load_entry, save_entry, stable_hash, try_load_entry
 from coupling.errors import CacheError
-from dem.post import postprocess
+from dem.post import DemResults, postprocess
 from test_post import config, write_synthetic  # tests/ is on sys.path (rootdir-less test modules)
 
 
@@ -28,10 +23,19 @@ def provenance(key="k1"):
     return {"key": key, "liggghts_version": "LIGGGHTS-PUBLIC 3.8.0", "config_toml": "name = \"x\"\n", "wall_time_s": 12.5}
 
 
+def save(path, results, key="k1"):
+    return save_entry(path, results.to_cache_entry(provenance(key)))
+
+
+def load(path, key=None):
+    entry = load_entry(path, key)
+    return entry.table, DemResults.from_cache_entry(entry), entry.provenance
+
+
 def test_round_trip(tmp_path, results):
-    path = save_dem_results(cache_path(tmp_path, "k1"), results.table, results, provenance())
+    path = save(cache_path(tmp_path, "k1"), results)
     assert path.name == "dem-k1.h5"
-    table, loaded, prov = load_dem_results(path, key="k1")
+    table, loaded, prov = load(path, key="k1")
     np.testing.assert_array_equal(table.vx_pos, results.table.vx_pos)
     np.testing.assert_array_equal(table.n_samples, results.table.n_samples)
     assert table.attrs["input_hash"] == "abc"
@@ -50,14 +54,14 @@ def test_round_trip(tmp_path, results):
 
 
 def test_other_key_is_refused(tmp_path, results):
-    path = save_dem_results(tmp_path / "c.h5", results.table, results, provenance("k1"))
+    path = save(tmp_path / "c.h5", results, "k1")
     with pytest.raises(CacheError, match="holds results for inputs k1, not k2"):
-        load_dem_results(path, key="k2")
+        load_entry(path, key="k2")
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "foreign", "incomplete", "no_table"])
 def test_damaged_files_are_detected_not_trusted(tmp_path, results, damage):
-    path = save_dem_results(tmp_path / "c.h5", results.table, results, provenance())
+    path = save(tmp_path / "c.h5", results)
     if damage == "truncate":
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 3])
@@ -73,38 +77,47 @@ def test_damaged_files_are_detected_not_trusted(tmp_path, results, damage):
         with h5py.File(path, "a") as h5:
             del h5["velocity_table/vx_pos"]
     with pytest.raises(CacheError):
-        load_dem_results(path, key="k1")
-    loaded, reason = try_load_dem_results(path, key="k1")
+        load_entry(path, key="k1")
+    loaded, reason = try_load_entry(path, key="k1")
     assert loaded is None and reason
 
 
 def test_missing_file(tmp_path):
-    loaded, reason = try_load_dem_results(tmp_path / "nope.h5")
+    loaded, reason = try_load_entry(tmp_path / "nope.h5")
     assert loaded is None and "does not exist" in reason
 
 
 def test_write_is_atomic(tmp_path, results):
-    path = save_dem_results(tmp_path / "c.h5", results.table, results, provenance("old"))
+    path = save(tmp_path / "c.h5", results, "old")
     before = path.read_bytes()
 
-    class Broken:
-        summary = results.summary
-        timeseries = results.timeseries
-
-        @property
-        def holdup(self):
+    class Broken(dict):
+        def items(self):
             raise RuntimeError("disk full halfway")
 
+    entry = results.to_cache_entry(provenance("new"))
     with pytest.raises(RuntimeError, match="halfway"):
-        save_dem_results(path, results.table, Broken(), provenance("new"))
+        save_entry(path, CacheEntry(entry.table, entry.summary, entry.frames, Broken(), entry.provenance))
     assert path.read_bytes() == before  # the old file is intact
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.h5"]  # no temporary left behind
-    assert load_dem_results(path)[2]["key"] == "old"
+    assert load_entry(path).key == "old"
 
 
 def test_provenance_needs_key(tmp_path, results):
     with pytest.raises(CacheError, match="key"):
-        save_dem_results(tmp_path / "c.h5", results.table, results, {"liggghts_version": "x"})
+        save_entry(tmp_path / "c.h5", results.to_cache_entry({"liggghts_version": "x"}))
+
+
+def test_parts_are_generic(tmp_path, results):
+    """Any side's results travel as named frames and arrays; NaN and infinity survive."""
+    import pandas as pd
+
+    entry = CacheEntry(results.table, {"a": float("nan"), "b": [1, float("inf")], "c": None},
+                       {"f": pd.DataFrame({"x": [1.0, 2.0], "n": [1, 2]})}, {"v": np.arange(3)}, {"key": "g"})
+    back = load_entry(save_entry(tmp_path / "g.h5", entry), key="g")
+    assert np.isnan(back.summary["a"]) and back.summary["b"] == [1, float("inf")] and back.summary["c"] is None
+    assert list(back.frames["f"].columns) == ["x", "n"] and back.frames["f"]["n"].tolist() == [1, 2]
+    np.testing.assert_array_equal(back.arrays["v"], np.arange(3))
 
 
 def test_stable_hash_ignores_key_order():

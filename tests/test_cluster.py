@@ -20,6 +20,9 @@ def test_mpi_command_and_slurm_script():
     dem = load_preset("paper").dem
     assert mpi_command(dem, 1) == ["liggghts", "-in", "in.blender"]
     assert mpi_command(dem, 8)[:4] == ["mpirun", "--allow-run-as-root", "-np", "8"]
+    # a launcher without {np} takes the task count from its allocation: used on one rank too
+    srun = dem.model_copy(update={"run": dem.run.model_copy(update={"launcher": "srun"})})
+    assert mpi_command(srun, 1) == ["srun", "liggghts", "-in", "in.blender"]
     script = slurm_script(dem, "/scratch/run 1", np=16, wall_hours=10, partition="compute")
     assert "#SBATCH --ntasks=16" in script and "#SBATCH --time=13:00:00" in script
     assert "cd '/scratch/run 1'" in script and "srun liggghts -in in.blender" in script

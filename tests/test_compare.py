@@ -1,26 +1,28 @@
-"""The full comparison: feed mapping, reference seeding, and the smoke preset end to end with
-the real LIGGGHTS (DEM -> tables -> PBM -> report)."""
+"""The full comparison: feed mapping, where the DEM stage finds results (cache, shipped
+reference, no solver installed), and the smoke preset end to end with the real LIGGGHTS
+(DEM -> tables -> PBM -> report)."""
 
 import json
-import shutil
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from coupling.cache import cache_path, load_dem_results
+from coupling.cache import cache_path, load_entry, save_entry
+from coupling.compartments import inlet_weights
+from coupling.errors import ConfigError
 from workflows.cli import main
-from workflows.compare import feed_weights_from_zones, pbm_config_for, seed_cache_from_reference
-from workflows.config import load_preset
+from workflows.config import config_from_dict, load_preset
+from workflows.pipeline import dem_stage, pbm_config_for, post_hash, results_key
 
 
 def test_feed_weights_are_the_overlap_in_y():
     edges = np.linspace(-0.05, 0.05, 11)
-    w = feed_weights_from_zones(edges, 0.005, 0.035)
+    w = inlet_weights(edges, 0.005, 0.035)
     # [5, 10] mm, [10, 20], [20, 30], [30, 35]: overlaps 5, 10, 10, 5 of 30 mm.
     np.testing.assert_allclose(w, [0] * 5 + [1 / 6, 1 / 3, 1 / 3, 1 / 6, 0], atol=1e-12)
-    with pytest.raises(ValueError, match="outside the compartments"):
-        feed_weights_from_zones(edges, 0.06, 0.07)
+    with pytest.raises(ConfigError, match="outside the compartments"):
+        inlet_weights(edges, 0.06, 0.07)
 
 
 def test_pbm_config_takes_the_dem_feed(rng):
@@ -49,7 +51,7 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
     # DEM substance: particles discharged, accounting closed, tables non-trivial.
     assert dem["discharged"] > 50
     assert dem["lost"] == 0 and dem["accounting_mismatch"] == 0
-    table, _, _ = load_dem_results(next(smoke_runs_root.glob("cache/dem-*.h5")))
+    table = load_entry(next(smoke_runs_root.glob("cache/dem-*.h5"))).table
     assert table.valid.mean() > 0.5
     assert np.all(table.vx_pos[table.valid].mean() > 0) and table.vy_pos.max() > 0.01
 
@@ -70,16 +72,63 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
     assert (out / "paraview" / "compartments.pvd").is_file() and (out / "paraview" / "particles.pvd").is_file()
 
 
-def test_reference_seeding_copies_only_valid_files(tmp_path):
-    shipped = sorted((pytest.importorskip("workflows.compare").REFERENCE_DIR).glob("dem-*.h5"))
-    if not shipped:
-        pytest.fail("no shipped reference data under workflows/reference/")
-    key = shipped[0].name.removeprefix("dem-").removesuffix(".h5")
-    assert seed_cache_from_reference(key, tmp_path / "cache")
-    assert load_dem_results(cache_path(tmp_path / "cache", key), key)[2]["key"] == key
-    assert not seed_cache_from_reference(key, tmp_path / "cache")  # already valid: nothing to do
-    assert not seed_cache_from_reference("0" * 16, tmp_path / "other")
-    # a corrupt cache file is replaced by the shipped one
-    cache_path(tmp_path / "cache", key).write_text("garbage")
-    assert seed_cache_from_reference(key, tmp_path / "cache")
-    shutil.rmtree(tmp_path / "cache")
+@pytest.fixture(scope="module")
+def some_results(tmp_path_factory):
+    from dem.post import postprocess
+    from test_post import STEADY, config, write_synthetic  # tests/ is on sys.path
+
+    directory = tmp_path_factory.mktemp("dumps")
+    write_synthetic(directory, config())
+    return postprocess(str(directory / "dump.*.txt"), config(), STEADY)
+
+
+def _entry_for(config, key, results):
+    """A cache entry claiming to hold ``config``'s DEM results under ``key``."""
+    from dem.run import prepare_run
+
+    inputs = prepare_run(config.dem)
+    provenance = {"key": key, "deck_hash": inputs.deck_hash, "post_hash": post_hash(config), "created": "test"}
+    return results.to_cache_entry(provenance), inputs
+
+
+def test_dem_stage_takes_the_reference_in_place_and_rebuilds_nothing_corrupt(tmp_path, some_results):
+    config = load_preset("smoke")
+    reference = tmp_path / "reference"
+    _, inputs = _entry_for(config, "x", some_results)
+    if inputs.key is None:
+        pytest.fail("LIGGGHTS is not installed (make setup installs it)")
+    key = results_key(inputs.key, post_hash(config))
+    save_entry(cache_path(reference, key), _entry_for(config, key, some_results)[0])
+    dem = dem_stage(config, runs_root=tmp_path / "runs", reference_dir=reference)
+    assert dem.source == "reference" and dem.key == key and dem.cache_file.parent == reference
+    # a corrupt cache file of the same key is not trusted: the reference is used instead
+    cache_path(tmp_path / "runs" / "cache", key).parent.mkdir(parents=True)
+    cache_path(tmp_path / "runs" / "cache", key).write_text("garbage")
+    messages = []
+    dem = dem_stage(config, runs_root=tmp_path / "runs", reference_dir=reference, log=messages.append)
+    assert dem.source == "reference" and any("not usable" in m for m in messages)
+    # changing how the dumps are binned changes the key: the cached table is not served
+    finer = config_from_dict({**config.to_dict(), "dem": {**config.to_dict()["dem"], "tables": {"nx": 20}}})
+    assert post_hash(finer) != post_hash(config)
+
+
+def test_without_liggghts_results_of_the_same_deck_are_found(tmp_path, some_results):
+    data = load_preset("smoke").to_dict()
+    data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
+    config = config_from_dict(data)
+    entry, inputs = _entry_for(config, "made-elsewhere", some_results)
+    assert inputs.key is None
+    save_entry(cache_path(tmp_path / "reference", "made-elsewhere"), entry)
+    dem = dem_stage(config, runs_root=tmp_path / "runs", reference_dir=tmp_path / "reference")
+    assert dem.source == "reference" and dem.key == "made-elsewhere"
+
+
+def test_shipped_reference_covers_the_reduced_preset(tmp_path):
+    """A fresh clone's `make full-comparison` must not need LIGGGHTS: the shipped data match
+    the current deck and post-processing of the reduced preset. (Run as if no solver were
+    installed, so that a mismatch fails here instead of starting a 40-minute run.)"""
+    data = load_preset("reduced").to_dict()
+    data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
+    dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs")
+    assert dem.source == "reference", dem.cache_file
+

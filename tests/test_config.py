@@ -22,7 +22,7 @@ def test_paper_preset_is_table_1():
     assert dem.steel.youngs_modulus_pa == pytest.approx(2 * 7.93e10 * 1.33)
     assert dem.operation.feed_rate_total_per_s == 1990 and dem.operation.impeller_rpm == 250
     assert dem.contact.friction_particle_particle == 0.5 and dem.contact.friction_particle_wall == 0.4
-    # Rayleigh time of a 2 mm particle is about 9.3e-5 s (DESIGN.md); ours uses the smallest one.
+    # Rayleigh time of a 2 mm particle is about 9.3e-5 s; ours uses the smallest one.
     assert 7e-5 < dem.rayleigh_time_s < 9.3e-5
 
 

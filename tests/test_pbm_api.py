@@ -30,7 +30,8 @@ def small_table():
         ({"feed_weights_a": [1.0, -1.0]}, "weights must be finite and >= 0, got -1.0"),
         ({"feed_weights_b": [0.0, 0.0]}, "at least one weight must be > 0"),
         ({"feed_weights_b": []}, "got an empty list"),
-        ({"steady_rel_tol": 1.5}, "'pbm.steady_rel_tol' = 1.5"),
+        ({"rtd_bin_s": 0.0}, "'pbm.rtd_bin_s' = 0.0"),
+        ({"steady_window_s": 5.0}, "unknown key 'pbm.steady_window_s'"),  # one rule, in [steady_state]
         ({"method": "rk4"}, "'pbm.method' = 'rk4'"),
         ({"rtd_pulse_s": -1.0}, "'pbm.rtd_pulse_s' = -1.0"),
         ({"feed_rate_a": 1.0}, "did you mean 'feed_rate_a_per_s'"),

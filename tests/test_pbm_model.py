@@ -7,7 +7,6 @@ from scipy.stats import gamma
 from coupling.errors import ConfigError, TableError
 from coupling.tables import make_table
 from pbm import PbmConfig, fill_missing_velocities, regrid, scale_blender, simulate
-from pbm.cqa import detect_steady_state, outflow_fraction_a, rsd
 from pbm.model import default_feed_weights, feed_distribution
 
 
@@ -108,33 +107,6 @@ def test_feed_distribution_custom_weights_and_length_check():
     np.testing.assert_allclose(feed[:, 1], [1.0, 0, 0, 0])
     with pytest.raises(ConfigError, match="feed_weights_a has 3 entries; .* NY = 2"):
         feed_distribution(table, [1.0, 1.0, 1.0], None)
-
-
-def test_rsd_sample_statistic_and_empty_compartments():
-    a = np.array([1.0, 3.0, 0.0, 2.0])
-    b = np.array([3.0, 1.0, 0.0, 2.0])  # fractions 0.25, 0.75, (empty), 0.5
-    assert rsd(a, b) == pytest.approx(np.std([0.25, 0.75, 0.5], ddof=1) / 0.5)
-    assert np.isnan(rsd(np.array([1.0, 0.0]), np.array([1.0, 0.0])))  # one occupied compartment
-    assert np.isnan(rsd(np.array([0.0, 0.0]), np.array([2.0, 2.0])))  # no A: undefined
-    # Below min_particles counts as empty.
-    assert rsd(np.array([0.3, 1.0, 3.0]), np.array([0.0, 3.0, 1.0])) == pytest.approx(
-        np.std([0.25, 0.75], ddof=1) / 0.5)
-    assert outflow_fraction_a(np.array([1.0, 0.0]), np.array([3.0, 0.0]))[0] == 0.25
-    assert np.isnan(outflow_fraction_a(np.array([1.0, 0.0]), np.array([3.0, 0.0]))[1])
-
-
-def test_steady_state_detection():
-    t = np.arange(1.0, 201.0)
-    assert detect_steady_state(t, 100 * t, 10.0, 0.02) is None  # a linear rise never passes
-    holdup = 1000 * (1 - np.exp(-t / 20))
-    found = detect_steady_state(t, holdup, 10.0, 0.02)
-
-    def change(s):  # |m1 - m0| / m1 over the windows (s-10, s] and (s-20, s-10]
-        m1 = holdup[(t > s - 10) & (t <= s)].mean()
-        m0 = holdup[(t > s - 20) & (t <= s - 10)].mean()
-        return abs(m1 - m0) / m1
-
-    assert found is not None and change(found) <= 0.02 < change(found - 1)
 
 
 def test_scale_blender_length_doubles_plug_residence_time():

@@ -5,7 +5,7 @@ The synthetic blender (L = 0.33 m, D = 0.1 m, 4 x 2 compartments, dumps every 0.
 appear at the inlet. A particles cross the blender in R_A = 4 s, B particles in R_B = 6 s
 (x = L (age + 0.25) / R, never on a compartment edge); each is seen once past the weir
 (x = L + 0.01) at age R and is gone at the next dump. vx = 0.1 (i + 1) m/s in slice i,
-vy = +0.02 (A) or -0.03 (B) m/s.
+vy = +0.02 (A) or -0.03 (B) m/s. The hold-up is 4 t until 4 s, 18 at 5 s and 20 from 6 s.
 """
 
 import math
@@ -16,9 +16,13 @@ import pytest
 from coupling.errors import DumpFormatError
 from dem.config import DemConfig, TablesConfig
 from dem.dumps import TruncatedDumpWarning, format_snapshot
-from dem.post import postprocess, random_mixture_rsd, rsd_of_fractions
+from coupling.metrics import SteadyStateRule
+from dem.post import postprocess
 
 COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+# Windows of 3 s: the synthetic run is 30 s long. Means over (3, 6] and (6, 9] are 18 and
+# 20 (10 % apart), over (7, 10] and (4, 7]: 20 and 19.33 (3.3 %): steady at 10 s.
+STEADY = SteadyStateRule(window_s=3.0, rel_tol=0.05)
 L, D = 0.330, 0.100
 R = {1: 4.0, 2: 6.0}
 DUMP_S, END_S = 0.5, 30.0
@@ -76,7 +80,7 @@ def synthetic(tmp_path_factory):
     cfg = config()
     directory = tmp_path_factory.mktemp("synthetic")
     write_synthetic(directory, cfg)
-    return cfg, postprocess(str(directory / "dump.*.txt"), cfg, provenance={"input_hash": "test"})
+    return cfg, postprocess(str(directory / "dump.*.txt"), cfg, STEADY, provenance={"input_hash": "test"})
 
 
 def test_velocity_table_exact(synthetic):
@@ -144,8 +148,7 @@ def test_holdup_and_steady_state(synthetic):
     np.testing.assert_allclose(ts["holdup_B"][ts["t_s"] >= 7], 12)
     assert len(res.holdup) == 61
     s = res.summary
-    # hold-up 18 at 5 s, 20 from 6 s on: the first trailing 5 s window within 5 % ends at 11 s
-    assert s["steady_state_time_s"] == pytest.approx(11.0)
+    assert s["steady_state_time_s"] == pytest.approx(10.0)
     assert s["steady_outflow_per_s"] == pytest.approx(4.0)
     assert s["steady_C_A"] == pytest.approx(0.5)
 
@@ -164,8 +167,8 @@ def test_rsd_and_floor(synthetic):
 def test_rtd(synthetic):
     _, res = synthetic
     s = res.summary
-    assert s["rtd_tag_time_s"] == pytest.approx(11.0)
-    assert s["rtd_tagged"] == 4  # entries at 11.5 and 12.0 s, one A and one B each
+    assert s["rtd_tag_time_s"] == pytest.approx(10.0)
+    assert s["rtd_tagged"] == 4  # entries at 10.5 and 11.0 s, one A and one B each
     assert s["rtd_recovered_fraction"] == 1.0 and s["rtd_recovered_ok"]
     assert s["mean_residence_time_s"] == pytest.approx(5.0)
     assert s["rtd_variance_s2"] == pytest.approx(1.0, rel=1e-4)  # dump times are whole timesteps
@@ -188,7 +191,7 @@ def test_exits_never_seen_past_weir_use_disappearance(tmp_path):
     """Deleted by the outlet face between dumps: counted at the first dump without them."""
     cfg = config()
     write_synthetic(tmp_path, cfg, vanish_unseen=True)
-    res = postprocess(str(tmp_path / "dump.*.txt"), cfg)
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
     s = res.summary
     assert s["exits_seen_past_weir"] == 0
     assert s["exits_from_vanishing"] == s["discharged"] == 100
@@ -207,7 +210,7 @@ def test_massflow_file_gives_exit_times_and_crosscheck(tmp_path):
     half = len(lines) // 2
     (tmp_path / "discharge_A.txt.0").write_text("\n".join(lines[:half]) + "\n")
     (tmp_path / "discharge_A.txt.1").write_text("\n".join(lines[:1] + lines[half:]) + "\n")
-    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1})
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1})
     s = res.summary
     assert s["massflow_discharged"] == len(lines) - 1
     assert s["exits_from_massflow"] == len(lines) - 1
@@ -228,19 +231,6 @@ def test_rtd_recovery_flag(tmp_path):
     assert any("95" in w for w in s["warnings"])
 
 
-def test_rsd_helpers():
-    assert math.isnan(rsd_of_fractions([1, 0], [0, 0]))  # one non-empty compartment
-    assert rsd_of_fractions([1, 3, 0], [1, 1, 0]) == pytest.approx(np.std([0.5, 0.75], ddof=1) / 0.625)
-    # Monte-Carlo check of the analytic floor (seeded): mean sample variance of binomial fractions
-    rng = np.random.default_rng(7)
-    n = np.array([3, 5, 8, 13, 21])
-    p = 0.3
-    x = rng.binomial(n, p, size=(200_000, n.size))
-    var = np.mean(np.var(x / n, axis=1, ddof=1))
-    a, b = p * n, (1 - p) * n
-    assert random_mixture_rsd(a, b) == pytest.approx(math.sqrt(var) / p, rel=5e-3)
-
-
 def test_no_snapshot_is_an_error(tmp_path):
     (tmp_path / "dump.0.txt").write_bytes(b"")
     with pytest.warns(TruncatedDumpWarning), pytest.raises(DumpFormatError, match="no complete snapshot"):
@@ -259,7 +249,7 @@ def test_massflow_parts_of_a_resumed_run(tmp_path):
     late = [r for pid, r in rows.items() if truth[pid][2] >= 14.0]  # 14-15 s listed in both parts
     (tmp_path / "discharge_A.txt.upto300000").write_text("\n".join([header, *early]) + "\n")
     (tmp_path / "discharge_A.txt").write_text("\n".join([header, *late]) + "\n")
-    s = postprocess(str(tmp_path / "dump.*.txt"), cfg, massflow_dir=tmp_path).summary
+    s = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY, massflow_dir=tmp_path).summary
     assert s["massflow_duplicate_ids"] == len(early) + len(late) - len(rows) > 0
     assert s["massflow_discharged"] == len(rows)
     assert s["discharge_crosscheck_diff"] == 0 and s["lost"] == 0

@@ -1,25 +1,31 @@
-"""The real LIGGGHTS solver: smoke preset under ``mpirun -np 2``, post-processing with the
-accounting checked against the solver's own counters, reuse without starting LIGGGHTS,
-loud failures, and an interrupted run resumed from its restart file.
+"""Running LIGGGHTS: the supervised solver process (any command, no solver needed) and
+the real solver (marked ``liggghts``): smoke preset under ``mpirun -np 2``, post-processing
+with the accounting checked against the solver's own counters, reuse without starting
+LIGGGHTS or rebuilding the deck, loud failures, and an interrupted run resumed from its
+restart file.
 
 One smoke run is shared by the module (it is the expensive part: about 1.5 min on 2 free
 cores); the resume test uses a 2 s variant on one rank.
 """
 
 import os
+import time
 
 import numpy as np
 import pytest
 
-from coupling.cache import load_dem_results
+from coupling.cache import load_entry
 from coupling.errors import SolverNotFoundError, SolverRunError
 from coupling.tables import read_table
+from dem import deck
+from dem.liggghts import run_solver
+from dem.liggghts_log import ThermoParser
 from dem.post import postprocess
-from dem.run import read_status, run_dem, solver_command
+from dem.run import prepare_run, read_status, run_dem, run_key, solver_command
 from workflows.cli import main
 from workflows.config import config_from_dict, load_preset
 
-pytestmark = pytest.mark.liggghts
+liggghts = pytest.mark.liggghts
 
 
 def variant(config, **sections):
@@ -35,12 +41,13 @@ def smoke(smoke_runs_root):
     root = smoke_runs_root  # one real smoke run per session (conftest), reused here
     config = load_preset("smoke")
     assert config.dem.run.np == 2  # the preset runs under mpirun -np 2
-    record = run_dem(config, runs_root=root, progress=False)
-    results = postprocess(record.dump_glob, config.dem, massflow_dir=record.massflow_dir,
+    record = run_dem(prepare_run(config.dem), runs_root=root, progress=False)
+    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
                           solver_counters=record.solver_counters)
     return config, root, record, results
 
 
+@liggghts
 def test_smoke_run_completes_under_mpi(smoke):
     config, root, record, _ = smoke
     assert record.state == "completed"
@@ -54,6 +61,7 @@ def test_smoke_run_completes_under_mpi(smoke):
     assert list(record.run_dir.glob("discharge_A.txt.*"))
 
 
+@liggghts
 def test_smoke_accounting_and_crosscheck(smoke):
     _, _, record, results = smoke
     s = results.summary
@@ -76,6 +84,7 @@ def assert_thermo_counters_agree(s):
     assert s["solver_atoms"] == s["held"] + s["discharged_pending_deletion"]
 
 
+@liggghts
 def test_smoke_tables_have_data_in_every_window(smoke):
     config, _, _, results = smoke
     table = results.table
@@ -85,31 +94,47 @@ def test_smoke_tables_have_data_in_every_window(smoke):
     assert results.timeseries["outflow_A_per_s"].sum() > 0 and results.timeseries["outflow_B_per_s"].sum() > 0
 
 
-def test_second_request_reuses_without_liggghts(smoke):
+@liggghts
+def test_second_request_reuses_without_liggghts(smoke, monkeypatch):
     config, root, record, _ = smoke
     status_mtime = (record.run_dir / "status.json").stat().st_mtime_ns
     out_mtime = (record.run_dir / "solver.out").stat().st_mtime_ns
-    again = run_dem(config, runs_root=root, progress=False)
+    inputs = prepare_run(config.dem)
+    assert inputs.key == record.key == run_key(inputs.files, inputs.liggghts_version)
+    assert inputs.liggghts_version == record.liggghts_version
+
+    def asked_again(*args, **kwargs):
+        raise AssertionError("run_dem asked for what prepare_run computed")
+
+    # the deck and the version are computed once, by prepare_run
+    with monkeypatch.context() as patch:
+        patch.setattr("dem.run.liggghts_version", asked_again)
+        patch.setattr("dem.deck.build_deck", asked_again)
+        again = run_dem(inputs, runs_root=root, progress=False)
     assert again.reused and again.key == record.key
     # even with no solver installed at all, the completed run of the same deck is found
-    gone = variant(config, run={"liggghts": "no-such-liggghts-binary"})
+    gone = prepare_run(variant(config, run={"liggghts": "no-such-liggghts-binary"}).dem)
+    assert gone.key is None and gone.liggghts_version is None and gone.deck_hash == inputs.deck_hash
     again = run_dem(gone, runs_root=root, progress=False)
     assert again.reused and again.run_dir == record.run_dir
     assert (record.run_dir / "status.json").stat().st_mtime_ns == status_mtime
     assert (record.run_dir / "solver.out").stat().st_mtime_ns == out_mtime
 
 
+@liggghts
 def test_cli_run_writes_cache_then_reuses_it(smoke, tmp_path, capsys):
     _, root, record, _ = smoke
     cache_dir = tmp_path / "cache"
     argv = ["dem", "run", "--preset", "smoke", "--runs-dir", str(root), "--cache-dir", str(cache_dir), "--no-progress"]
     assert main(argv) == 0
     out = capsys.readouterr()
-    cache_file = cache_dir / f"dem-{record.key}.h5"
+    (cache_file,) = cache_dir.glob("dem-*.h5")
     assert str(cache_file) in out.out
-    table, results, provenance = load_dem_results(cache_file, key=record.key)
+    entry = load_entry(cache_file)
+    provenance = entry.provenance
+    assert provenance["run_key"] == record.key and provenance["deck_hash"] == read_status(record.run_dir)["deck_hash"]
     assert provenance["liggghts_version"] == record.liggghts_version and "config_toml" in provenance
-    assert table.attrs["input_hash"] == record.key
+    assert entry.table.attrs["input_hash"] == entry.key
     mtime = cache_file.stat().st_mtime_ns
     assert main(argv) == 0
     assert "reused from the cache" in capsys.readouterr().err
@@ -118,40 +143,46 @@ def test_cli_run_writes_cache_then_reuses_it(smoke, tmp_path, capsys):
     cache_file.write_bytes(b"garbage")
     assert main(argv) == 0
     assert "not usable, rebuilding" in capsys.readouterr().err
-    load_dem_results(cache_file, key=record.key)
+    load_entry(cache_file, key=entry.key)
 
 
+@liggghts
 def test_cli_post_from_dumps(smoke, tmp_path, capsys):
     _, _, record, results = smoke
     out = tmp_path / "tables.h5"
     assert main(["dem", "post", "--preset", "smoke", "--dumps", record.dump_glob, "--out", str(out)]) == 0
     table = read_table(out)
     np.testing.assert_allclose(table.vx_pos, results.table.vx_pos)
-    _, loaded, _ = load_dem_results(out)
-    assert loaded.summary["discharge_crosscheck_diff"] == 0  # discharge files found beside dumps/
+    assert load_entry(out).summary["discharge_crosscheck_diff"] == 0  # discharge files found beside dumps/
 
 
+@liggghts
 def test_error_line_raises_with_log_tail(tmp_path):
     # a real LIGGGHTS error: it prints its banner, then rejects the command line
     config = variant(load_preset("smoke"), run={"liggghts": "liggghts -echo bogus", "np": 1})
+    inputs = prepare_run(config.dem)
     with pytest.raises(SolverRunError, match="Illegal echo command") as info:
-        run_dem(config, runs_root=tmp_path, progress=False)
+        run_dem(inputs, runs_root=tmp_path, progress=False)
     assert info.value.run_dir is not None and "ERROR" in info.value.log_tail
     assert read_status(info.value.run_dir)["state"] == "crashed"
     # a crashed run is never served as a result: a new request starts it again (and fails again)
     with pytest.raises(SolverRunError):
-        run_dem(config, runs_root=tmp_path, progress=False)
+        run_dem(inputs, runs_root=tmp_path, progress=False)
 
 
 def test_missing_solver_or_launcher(tmp_path):
     config = variant(load_preset("smoke"), run={"liggghts": "no-such-liggghts-binary"})
-    with pytest.raises(SolverNotFoundError, match="apt-get install liggghts openmpi-bin"):
-        run_dem(config, runs_root=tmp_path, progress=False)
+    inputs = prepare_run(config.dem)  # no solver is not an error until a run must start
+    assert inputs.key is None and inputs.files == deck.build_deck(config.dem)
+    with pytest.raises(SolverNotFoundError, match="no-such-liggghts-binary.*apt-get install liggghts openmpi-bin"):
+        run_dem(inputs, runs_root=tmp_path, progress=False)
+    assert not any(tmp_path.iterdir())
     config = variant(load_preset("smoke"), run={"launcher": "no-such-mpirun -np {np}", "np": 2})
     with pytest.raises(SolverNotFoundError, match="no-such-mpirun.*make setup"):
         solver_command(config.dem.run)
 
 
+@liggghts
 def test_interrupt_then_resume(tmp_path):
     """Ctrl-C after the first restart file: the solver group is terminated, the run marked
     interrupted; --resume continues from the restart and the result is complete and sound."""
@@ -173,15 +204,16 @@ def test_interrupt_then_resume(tmp_path):
             # run in a background job, so raise it directly)
             raise KeyboardInterrupt
 
+    inputs = prepare_run(config.dem)
     with pytest.raises(KeyboardInterrupt):
-        run_dem(config, runs_root=tmp_path, progress=False, on_line=interrupt_after_restart)
+        run_dem(inputs, runs_root=tmp_path, progress=False, on_line=interrupt_after_restart)
     run_dir = next(tmp_path.iterdir())
     status = read_status(run_dir)
     assert status["state"] == "interrupted"
     assert not _solver_alive(status.get("solver_pid"))
-    record = run_dem(config, runs_root=tmp_path, resume=True, progress=False)
+    record = run_dem(inputs, runs_root=tmp_path, resume=True, progress=False)
     assert record.state == "completed" and record.resumed_from.startswith("restart/")
-    results = postprocess(record.dump_glob, config.dem, massflow_dir=record.massflow_dir,
+    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
                           solver_counters=record.solver_counters)
     s = results.summary
     assert s["t_end_s"] == pytest.approx(2.0, abs=1e-3)
@@ -205,3 +237,45 @@ def _solver_alive(pid):
             return handle.read().split()[2] != "Z"
     except OSError:
         return False
+
+
+# ----------------------------------------------------------------------------- no solver needed
+def test_thermo_counters_are_the_decks_named_columns():
+    parser = ThermoParser(deck.THERMO_DISCHARGED, deck.THERMO_INSERTED, deck.THERMO_COLUMNS)
+    # LIGGGHTS 3.8.0 prints the header without the v_/f_ prefixes
+    assert not parser.feed("Step simtime Atoms insA insB outA outB ts[1] ts[2]")
+    assert parser.feed("  8482 0.5 120 70 64 5 3 0.25 0.011")
+    assert parser.counters() == {"discharged": 8.0, "inserted": 134.0, "atoms": 120, "step": 8482}
+
+
+def test_solver_output_errors_and_exit_status(tmp_path):
+    seen = []
+    result = run_solver(["sh", "-c", "echo Step Atoms; echo 'ERROR: Illegal fix'; exit 3"], tmp_path, "out.txt",
+                        on_line=seen.append)
+    assert result.returncode == 3 and result.error_lines == ["ERROR: Illegal fix"]
+    assert result.failure == "LIGGGHTS reported an error: ERROR: Illegal fix"
+    assert result.output == "Step Atoms\nERROR: Illegal fix\n" == "".join(seen)
+    assert result.output_file == tmp_path / "out.txt" and result.wall_s >= 0 and result.cpu_s >= 0
+    again = run_solver(["sh", "-c", "exit 2"], tmp_path, "out.txt", append=True)
+    assert again.failure == "LIGGGHTS exited with status 2" and again.output == result.output
+
+
+def test_solver_hanging_after_an_error_is_stopped(tmp_path):
+    t0 = time.monotonic()
+    result = run_solver(["sh", "-c", "echo 'ERROR on proc 1: boom'; exec sleep 60"], tmp_path, "out.txt",
+                        error_grace_s=1.0)
+    assert time.monotonic() - t0 < 30 and result.returncode != 0 and result.error_lines
+
+
+def test_timeout_and_interrupt_stop_every_process_of_the_session(tmp_path):
+    with pytest.raises(SolverRunError, match="longer than the 1 s allowed"):
+        run_solver(["sh", "-c", "sleep 60 & echo $! > child.pid; wait"], tmp_path, "out.txt", timeout_s=1.0)
+    assert not _solver_alive((tmp_path / "child.pid").read_text())
+
+    def interrupt(line):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_solver(["sh", "-c", "sleep 60 & echo $! > child.pid; echo started; wait"], tmp_path, "out.txt",
+                   on_line=interrupt)
+    assert not _solver_alive((tmp_path / "child.pid").read_text())

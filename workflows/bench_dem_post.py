@@ -137,16 +137,17 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
     first restart file, then resumed with ``resume=True``. Returns the relative RMS table
     differences S vs S' and S vs resumed, and a few summary numbers of each run."""
     from dem.post import postprocess
-    from dem.run import run_dem
+    from dem.run import prepare_run, read_status, run_dem
     from workflows.config import load_preset
 
     base = load_preset(preset)
     duration = float(duration_s or base.dem.operation.duration_s)
     base = _variant(base, operation={"duration_s": duration}, numerics={"restart_interval_s": duration / 3})
     other = _variant(base, numerics={"seed": 32452843})
+    inputs = prepare_run(base.dem)
     records = {}
-    records["seed_a"] = run_dem(base, runs_root=root / "a", np=np_ranks, progress=False)
-    records["seed_b"] = run_dem(other, runs_root=root / "b", np=np_ranks, progress=False)
+    records["seed_a"] = run_dem(inputs, runs_root=root / "a", np=np_ranks, progress=False)
+    records["seed_b"] = run_dem(prepare_run(other.dem), runs_root=root / "b", np=np_ranks, progress=False)
 
     def interrupt(line: str) -> None:
         run_dirs = [p for p in (root / "c").iterdir() if p.is_dir()]
@@ -155,19 +156,15 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
                             for p in run_dirs[0].glob("restart/*")):
             raise KeyboardInterrupt
 
-    from dem.run import read_status
-
     done = [read_status(p) for p in (root / "c").glob("*")] if (root / "c").exists() else []
     if not any(st and st.get("state") == "completed" and st.get("resumed_from") for st in done):
         try:
-            run_dem(base, runs_root=root / "c", np=np_ranks, progress=False, on_line=interrupt, fresh=True)
+            run_dem(inputs, runs_root=root / "c", np=np_ranks, progress=False, on_line=interrupt, fresh=True)
         except KeyboardInterrupt:
             pass
-    records["resumed"] = run_dem(base, runs_root=root / "c", np=np_ranks, resume=True, progress=False)
-    results = {
-        name: postprocess(rec.dump_glob, base.dem, massflow_dir=rec.massflow_dir, solver_counters=rec.solver_counters)
-        for name, rec in records.items()
-    }
+    records["resumed"] = run_dem(inputs, runs_root=root / "c", np=np_ranks, resume=True, progress=False)
+    results = {name: postprocess(rec.dump_glob, base.dem, base.steady_state, massflow_dir=rec.massflow_dir,
+                                 solver_counters=rec.solver_counters) for name, rec in records.items()}
     keys = ("holdup_final", "discharged", "inserted", "lost", "accounting_mismatch", "discharge_crosscheck_diff")
     return {
         "preset": preset,
@@ -224,7 +221,7 @@ def main(argv: list[str] | None = None) -> dict:
             reader_1.append(_time_reader(paths, threads=1))
         config = load_preset(args.preset)
         t0 = time.perf_counter()
-        results = postprocess(paths, config.dem)
+        results = postprocess(paths, config.dem, config.steady_state)
         post_s = time.perf_counter() - t0
 
     best_reader, best_pandas = min(reader), min(baseline)

@@ -3,7 +3,7 @@
 ``python -m workflows.bench_reference [DIR ...]`` reads every ``dem-*.h5`` in the shipped
 reference folder (and any cache folders given) and prints, per run, the LIGGGHTS wall time,
 the post-processing time and their ratio (the issue's target: post-processing <= 5 % of
-the DEM for ``reduced``). Both times are recorded by ``workflows.pipeline.dem_results``
+the DEM for ``reduced``). Both times are recorded by :func:`workflows.pipeline.dem_stage`
 when the run is made, so ``FRESH=1 make full-comparison`` measures them again.
 """
 
@@ -13,8 +13,8 @@ import json
 import sys
 from pathlib import Path
 
-from coupling.cache import try_load_dem_results
-from workflows.compare import REFERENCE_DIR
+from coupling.cache import try_load_entry
+from workflows.pipeline import REFERENCE_DIR
 
 OUT = Path("results/bench/reference.json")
 
@@ -24,11 +24,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for folder in folders:
         for path in sorted(folder.glob("dem-*.h5")):
-            loaded, reason = try_load_dem_results(path)
-            if loaded is None:
+            entry, reason = try_load_entry(path)
+            if entry is None:
                 print(f"{path}: skipped ({reason})")
                 continue
-            _, results, prov = loaded
+            prov = entry.provenance
             dem_s, post_s = prov.get("wall_time_s"), prov.get("postprocess_time_s")
             rows.append(
                 {
@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
                     "dem_wall_time_s": dem_s,
                     "postprocess_time_s": post_s,
                     "postprocess_fraction": post_s / dem_s if dem_s and post_s else None,
-                    "holdup_final": results.summary.get("holdup_final"),
+                    "holdup_final": entry.summary.get("holdup_final"),
                     "made": prov.get("created"),
                 }
             )

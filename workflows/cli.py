@@ -1,7 +1,8 @@
-"""The ``pbmdem`` command line: ``pbmdem pbm ...``, ``pbmdem dem ...``, ``pbmdem compare ...``.
+"""The ``pbmdem`` command line: ``pbmdem config``, ``pbmdem compare``, ``pbmdem pbm ...``
+(:mod:`workflows.cli_pbm`) and ``pbmdem dem ...`` (:mod:`workflows.cli_dem`).
 
-Each stage registers its subcommands from its own module (``workflows/cli_*.py``). Library
-code raises; only :func:`main` turns a project error into a message on stderr and exit code 2.
+Every command parses its arguments and makes one library call; library code raises, and
+only :func:`main` turns a project error into one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -9,26 +10,67 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
-from coupling.errors import PbmDemError
+from coupling.errors import ConfigError, PbmDemError
+from workflows.config import add_config_arguments, dump_toml, preset_names, resolve_config
+from workflows.pipeline import stderr_log
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="pbmdem",
-        description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013).",
-    )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    from workflows import cli_compare, cli_config, cli_dem, cli_pbm
+    from workflows import cli_dem, cli_pbm
 
-    for module in (cli_config, cli_pbm, cli_dem, cli_compare):
-        module.register(sub)
+    parser = argparse.ArgumentParser(
+        prog="pbmdem", description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013).")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    config = sub.add_parser("config", help="list presets, print or validate a configuration")
+    config.add_argument("--preset", help="preset name")
+    config.add_argument("--config", help="TOML configuration file to validate and print")
+    config.add_argument("--list", action="store_true", help="list the preset names")
+    config.set_defaults(func=config_command)
+
+    compare = sub.add_parser(
+        "compare", help="DEM (or its cached / shipped results) -> velocity tables -> PBM -> side-by-side report")
+    add_config_arguments(compare)
+    compare.add_argument("--np", type=int, default=None, help="MPI ranks for LIGGGHTS (default: the config's)")
+    compare.add_argument("--fresh", action="store_true", help="ignore cached and shipped DEM results: run LIGGGHTS again")
+    compare.add_argument("--resume", action="store_true", help="resume an interrupted DEM run from its restart file")
+    compare.add_argument("--results-dir", default="results", help="where <preset>-<hash>/report.html goes")
+    compare.add_argument("--runs-dir", default="runs", help="root of the DEM run directories and cache")
+    compare.add_argument("--noise-members", type=int, default=200, help="realisations per noise level")
+    compare.add_argument("--no-paraview", action="store_true", help="skip the ParaView (VTK) files")
+    compare.add_argument("--no-progress", action="store_true", help="no progress bar")
+    compare.set_defaults(func=compare_command)
+
+    cli_pbm.register(sub)
+    cli_dem.register(sub)
     return parser
 
 
+def config_command(args: argparse.Namespace) -> int:
+    if args.list:
+        print("\n".join(preset_names()))
+        return 0
+    print(dump_toml(resolve_config(args.preset, args.config)), end="")
+    return 0
+
+
+def compare_command(args: argparse.Namespace) -> int:
+    from workflows.compare import full_comparison
+
+    if args.noise_members < 1:
+        raise ConfigError(f"--noise-members must be >= 1, got {args.noise_members}")
+    report = full_comparison(
+        resolve_config(args.preset, args.config), results_root=Path(args.results_dir), runs_root=Path(args.runs_dir),
+        np_ranks=args.np, fresh=args.fresh, resume=args.resume, noise_members=args.noise_members,
+        paraview=not args.no_paraview, progress=not args.no_progress, log=stderr_log)
+    print(f"report: {report}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except PbmDemError as exc:

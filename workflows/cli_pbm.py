@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
-from coupling.tables import read_table, write_table
-from workflows.config import resolve_config
+from workflows.config import add_config_arguments
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,9 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     run = pbm_sub.add_parser("run", help="simulate the blender from a velocity table and write the CQAs")
     run.add_argument("--tables", required=True, help="velocity table (HDF5, see coupling/tables.py)")
-    group = run.add_mutually_exclusive_group()
-    group.add_argument("--preset", help="preset name whose [pbm] section to use (default: built-in defaults)")
-    group.add_argument("--config", help="TOML configuration file whose [pbm] section to use")
+    add_config_arguments(run, required=False)
     run.add_argument("--rtd-pulse", type=float, default=None, metavar="SECONDS",
                      help="tracer pulse time [s] (default: config, else the detected steady state)")
     run.add_argument("--method", choices=("expm", "bdf"), default=None,
@@ -43,39 +39,26 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    from pbm.config import PbmConfig
-    from pbm.simulate import simulate, write_outputs
+    from workflows.config import Config, resolve_config
+    from workflows.pipeline import run_pbm
 
-    if args.preset is None and args.config is None:
-        config = PbmConfig()
-    else:
-        config = resolve_config(args.preset, args.config).pbm
-    if args.method is not None:
-        config = config.model_copy(update={"method": args.method})
-    table = read_table(args.tables)
-    result = simulate(table, config, rtd_pulse_s=args.rtd_pulse)
-    paths = write_outputs(result, args.out, figures=not args.no_figures)
+    config = Config() if args.preset is None and args.config is None else resolve_config(args.preset, args.config)
+    result, paths = run_pbm(args.tables, config, args.out, rtd_pulse_s=args.rtd_pulse, method=args.method,
+                            figures=not args.no_figures)
     s = result.summary
-    print(
-        f"PBM {s['nx']}x{s['ny']}, {s['duration_s']:g} s ({s['method']}) in {s['wall_time_s'] * 1e3:.1f} ms: "
-        f"steady outflow {s['steady_outflow_per_s']:.1f}/s, C_A {s['steady_C_A']:.4f}, "
-        f"mean residence {s['mean_residence_time_s']:.2f} s (recovered {s['rtd_recovered_fraction']:.3f}), "
-        f"final outlet RSD {s['final_rsd_outlet']:.3g}"
-    )
+    print(f"PBM {s['nx']}x{s['ny']}, {s['duration_s']:g} s ({s['method']}) in {s['wall_time_s'] * 1e3:.1f} ms: "
+          f"steady outflow {s['steady_outflow_per_s']:.1f}/s, C_A {s['steady_C_A']:.4f}, "
+          f"mean residence {s['mean_residence_time_s']:.2f} s (recovered {s['rtd_recovered_fraction']:.3f}), "
+          f"final outlet RSD {s['final_rsd_outlet']:.3g}")
     print(json.dumps({k: str(v) for k, v in paths.items()}, indent=2))
     return 0
 
 
 def synth_command(args: argparse.Namespace) -> int:
-    from coupling.errors import ConfigError
+    from coupling.tables import write_table
     from pbm.synthetic import synthetic_table
 
-    for name in ("nx", "ny", "windows"):
-        if getattr(args, name) < 1:
-            raise ConfigError(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if not args.window_s > 0:
-        raise ConfigError(f"--window-s must be > 0, got {args.window_s}")
     table = synthetic_table(nx=args.nx, ny=args.ny, n_windows=args.windows, window_s=args.window_s, seed=args.seed)
-    path = write_table(Path(args.out), table)
+    path = write_table(args.out, table)
     print(f"wrote {path}: {table.n_windows} windows x {table.nx}x{table.ny} compartments")
     return 0

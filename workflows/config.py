@@ -1,4 +1,5 @@
-"""Pipeline configuration: one TOML file with a ``[dem.*]`` part and a ``[pbm]`` part.
+"""Pipeline configuration: one TOML file with a ``[dem.*]`` part, a ``[pbm]`` part and the
+``[steady_state]`` rule both sides are judged by.
 
 Presets are ordinary TOML files in ``workflows/presets/``; copy one and edit it. Loading
 validates every value before anything is written; errors name the key, the bad value and
@@ -7,6 +8,8 @@ what is allowed, and suggest the nearest valid key for a typo.
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import difflib
 import json
 import tomllib
@@ -17,6 +20,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from coupling.errors import ConfigError
+from coupling.metrics import SteadyStateRule
 from dem.config import DemConfig
 from pbm.config import PbmConfig
 
@@ -31,6 +35,7 @@ class Config(BaseModel):
     name: str = Field("custom", pattern=r"^[A-Za-z0-9_.-]+$")
     dem: DemConfig = DemConfig()
     pbm: PbmConfig = PbmConfig()
+    steady_state: SteadyStateRule = SteadyStateRule()
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(mode="json")
@@ -72,6 +77,13 @@ def resolve_config(preset: str | None = None, config: str | Path | None = None) 
     if (preset is None) == (config is None):
         raise ConfigError("give exactly one of --preset NAME or --config FILE.toml")
     return load_preset(preset) if preset is not None else load_config(config)
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, required: bool = True) -> None:
+    """The command-line face of :func:`resolve_config`: --preset NAME | --config FILE.toml."""
+    group = parser.add_mutually_exclusive_group(required=required)
+    group.add_argument("--preset", help="preset name (see `pbmdem config --list`)")
+    group.add_argument("--config", help="TOML configuration file")
 
 
 def config_from_dict(data: dict[str, Any], source: str = "configuration") -> Config:
@@ -117,9 +129,8 @@ def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
     for err in exc.errors():
         loc = [str(part) for part in err["loc"]]
         key = ".".join(loc) or "(top level)"
-        if err["type"] == "extra_forbidden":
-            parent_model = _model_at(Config, loc[:-1])
-            valid = sorted(parent_model.model_fields) if parent_model else []
+        if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
+            valid = _field_names(_model_at(Config, loc[:-1]))
             hint = difflib.get_close_matches(loc[-1], valid, n=1)
             problems.append(
                 f"unknown key '{key}'"
@@ -132,10 +143,23 @@ def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
     return f"invalid {source}:\n  " + "\n  ".join(problems)
 
 
-def _model_at(model: type[BaseModel], path: list[str]) -> type[BaseModel] | None:
+def _model_at(model: type, path: list[str]) -> type | None:
     for part in path:
-        field = model.model_fields.get(part)
-        if field is None or not (isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)):
+        field = _fields(model).get(part)
+        if field is None:
             return None
-        model = field.annotation
+        model = field
     return model
+
+
+def _fields(model: type | None) -> dict[str, type]:
+    """Field name -> annotation of a pydantic model or a dataclass (the steady-state rule)."""
+    if isinstance(model, type) and issubclass(model, BaseModel):
+        return {name: f.annotation for name, f in model.model_fields.items()}
+    if model is not None and dataclasses.is_dataclass(model):
+        return {f.name: f.type for f in dataclasses.fields(model)}
+    return {}
+
+
+def _field_names(model: type | None) -> list[str]:
+    return sorted(_fields(model))

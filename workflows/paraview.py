@@ -30,7 +30,7 @@ def write_pvd(path: Path, entries: Iterable[tuple[float, str]]) -> Path:
 def compartment_grid(table: VelocityTable, k: int, height_m: float) -> pv.RectilinearGrid:
     """Window ``k`` of ``table`` as a one-cell-high rectilinear grid with cell data.
 
-    Compartments span the full height of the vessel (DESIGN.md), hence one cell in z."""
+    Compartments span the full height of the vessel, hence one cell in z."""
     half = height_m / 2
     grid = pv.RectilinearGrid(table.x_edges, table.y_edges, np.array([-half, half]))
     # VTK numbers cells with x fastest: (i, j) -> i + NX * j, i.e. Fortran order of (NX, NY).

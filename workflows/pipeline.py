@@ -1,72 +1,285 @@
-"""Pipeline steps shared by the CLI commands and ``workflows.compare``.
+"""The stages as the pipeline sees them: the DEM stage (cache, shipped reference, or a
+LIGGGHTS run post-processed), the PBM configuration that describes the same process, and
+the cluster plan. The CLI commands and :mod:`workflows.compare` call these.
 
-:func:`dem_results` is the DEM stage seen from outside: the velocity table and DEM CQAs
-for a configuration, from the cache when valid, else from a (reused or new) LIGGGHTS run
-post-processed by ``dem.post`` and written to the cache.
+Keys. A LIGGGHTS run is keyed by its deck and the solver version (:func:`dem.run.run_key`);
+its post-processed results by that run key *and* the post-processing settings (bins,
+windows, the steady-state rule, :data:`POST_VERSION`), so that changing NX never serves a
+table binned for another NX, and new post-processing reuses the run without rerunning it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
+import json
+import sys
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+from coupling.cache import cache_path, save_entry, stable_hash, try_load_entry
+from coupling.compartments import inlet_weights
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable
+from dem.cluster import estimate_cost, mpi_command, slurm_script
+from dem.deck import MAIN_DECK, MESH_DIR, build_deck, deck_hash, write_deck
+from dem.dumps import dump_paths
+from dem.geometry import build_geometry, feed_zones, write_stl
+from dem.post import DemResults, postprocess
+from dem.run import RunInputs, prepare_run, run_dem
+from coupling.tables import read_table
+from pbm.config import PbmConfig
+from pbm.outputs import write_outputs
+from pbm.simulate import PbmResult, simulate
+from workflows.config import Config, config_from_dict, dump_toml
+
+REFERENCE_DIR = Path(__file__).parent / "reference"
+#: Bump when the post-processing computes anything differently: cached results are redone.
+POST_VERSION = 2
+
+Log = Callable[[str], None]
 
 
-def dem_results(config, runs_root="runs", cache_root=None, np=None, resume=False, fresh=False, progress=True,
-                log=None):
-    """Pipeline step for the lead's workflows: the (table, results, provenance) of the DEM for
-    ``config``, from the cache when valid, else from a (reused or new) LIGGGHTS run.
+def _quiet(message: str) -> None:
+    pass
 
-    Returns ``(table, results, provenance, cache_file, source)`` with source one of "cache",
-    "run". ``log``: callable for progress messages (the CLI passes print to stderr)."""
-    from coupling.cache import cache_path, save_dem_results, try_load_dem_results
-    from dem import deck
-    from dem.post import postprocess
-    from dem.run import liggghts_version, run_dem, run_key
-    from coupling.errors import SolverNotFoundError
-    from workflows.config import dump_toml
 
-    log = log or (lambda message: None)
-    cache_root = Path(cache_root or runs_root)
-    files = deck.build_deck(config.dem)
-    try:
-        key = run_key(files, liggghts_version(config.dem.run.liggghts))
-    except SolverNotFoundError:
-        key = None
-    if key is not None and not fresh:
-        loaded, reason = try_load_dem_results(cache_path(cache_root, key), key)
-        if loaded is not None:
-            table, results, provenance = loaded
-            return table, results, provenance, cache_path(cache_root, key), "cache"
-        if cache_path(cache_root, key).exists():
-            log(f"cache file not usable, rebuilding: {reason}")
-    record = run_dem(config, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress)
-    key = record.key
-    target = cache_path(cache_root, key)
+def stderr_log(message: str) -> None:
+    """The command line's log: one line per message on stderr."""
+    print(f"pbmdem: {message}", file=sys.stderr, flush=True)
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+@dataclass
+class DemSide:
+    """The DEM's results for one configuration and where they came from: ``source`` is
+    "run" (post-processed now), "cache" or "reference" (shipped with the repository)."""
+
+    table: VelocityTable
+    results: DemResults
+    provenance: dict[str, Any]
+    cache_file: Path
+    source: str
+
+    @property
+    def key(self) -> str:
+        return str(self.provenance.get("key", "unknown"))
+
+
+def post_hash(config: Config) -> str:
+    """Hash of everything the post-processing does with a run's dumps."""
+    return stable_hash({"tables": config.dem.tables.model_dump(mode="json"),
+                        "steady_state": dataclasses.asdict(config.steady_state), "version": POST_VERSION})
+
+
+def results_key(run_key: str, post: str) -> str:
+    return stable_hash({"run": run_key, "post": post})
+
+
+def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], log: Log) -> DemSide | None:
+    """A valid cached entry for these inputs: by key when the solver's version is known,
+    else (no solver here) the newest entry made from the same deck and post-processing."""
+    for root, source in roots:
+        if inputs.key is not None:
+            key = results_key(inputs.key, post)
+            candidates = [cache_path(root, key)]
+        else:
+            key = None
+            candidates = sorted(Path(root).glob("dem-*.h5"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for path in candidates:
+            entry, reason = try_load_entry(path, key)
+            if entry is None:
+                if key is not None and path.exists():
+                    log(f"cache file not usable, rebuilding: {reason}")
+                continue
+            if key is None and (entry.provenance.get("deck_hash"), entry.provenance.get("post_hash")) != (
+                    inputs.deck_hash, post):
+                continue
+            return DemSide(entry.table, DemResults.from_cache_entry(entry), entry.provenance, path, source)
+    return None
+
+
+def dem_stage(
+    config: Config,
+    runs_root: str | Path = "runs",
+    cache_root: str | Path | None = None,
+    np: int | None = None,
+    resume: bool = False,
+    fresh: bool = False,
+    progress: bool = True,
+    log: Log = _quiet,
+    reference_dir: Path = REFERENCE_DIR,
+) -> DemSide:
+    """The DEM's velocity table and CQAs for ``config``.
+
+    In order: the cache (``cache_root``, default ``<runs_root>/cache``), the reference
+    data shipped in ``reference_dir``, else LIGGGHTS (reusing a completed run of the same
+    inputs; ``resume`` continues an interrupted one) followed by the post-processing,
+    whose result is cached. ``fresh`` skips both caches and reruns the solver. The deck is
+    built and the input hash computed once, here. Without LIGGGHTS installed, cached or
+    shipped results made from the same deck are still found."""
+    runs_root = Path(runs_root).resolve()  # recorded in the cache: findable from elsewhere
+    cache_root = Path(cache_root) if cache_root is not None else runs_root / "cache"
+    inputs = prepare_run(config.dem)
+    post = post_hash(config)
     if not fresh:
-        loaded, _ = try_load_dem_results(target, key)
-        if loaded is not None:
-            return (*loaded, target, "cache")
+        found = _find_cached(inputs, post, [(cache_root, "cache"), (Path(reference_dir), "reference")], log)
+        if found is not None:
+            if found.source == "reference":
+                log(f"DEM results for inputs {found.key} taken from the shipped reference data")
+            return found
+    record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress)
+    key = results_key(record.key, post)
     log(f"run {'reused' if record.reused else 'finished'}: {record.run_dir}; post-processing the dumps")
     t0 = time.monotonic()
     provenance = {
-        "key": key,
-        "input_hash": key,
-        "liggghts_version": record.liggghts_version,
-        "preset": config.name,
-        "config_toml": dump_toml(config),
-        "run_dir": str(record.run_dir),
-        "run_started": record.started,
-        "run_finished": record.finished,
-        "wall_time_s": record.wall_time_s,
-        "np": record.np,
-        "resumed_from": record.resumed_from,
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "key": key, "input_hash": key, "run_key": record.key, "deck_hash": inputs.deck_hash, "post_hash": post,
+        "liggghts_version": record.liggghts_version, "preset": config.name, "config_toml": dump_toml(config),
+        "run_dir": str(record.run_dir), "run_started": record.started, "run_finished": record.finished,
+        "wall_time_s": record.wall_time_s, "np": record.np, "resumed_from": record.resumed_from, "created": _now(),
     }
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
-    results = postprocess(record.dump_glob, config.dem, massflow_dir=record.massflow_dir,
+    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
                           solver_counters=record.solver_counters, provenance=table_attrs)
     results.summary["wall_time_s"] = record.wall_time_s
     provenance["postprocess_time_s"] = time.monotonic() - t0
-    save_dem_results(target, results.table, results, provenance)
-    return results.table, results, provenance, target, "run"
+    path = save_entry(cache_path(cache_root, key), results.to_cache_entry(provenance))
+    return DemSide(results.table, results, provenance, path, "run")
+
+
+def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir: str | Path | None = None) -> DemResults:
+    """Post-process existing dumps (glob ``dumps``) into a results file ``out`` (velocity
+    table + DEM results, readable as a velocity table). The solver's discharge files are
+    looked for beside the dumps (one level up when they sit in the deck's ``dumps/``)."""
+    out = Path(out)
+    if out.is_dir():
+        raise ConfigError(f"--out {out} is a directory; give a file name such as tables.h5")
+    paths = dump_paths(dumps)
+    if massflow_dir is None:
+        massflow_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
+    t0 = time.monotonic()
+    key = stable_hash({"dumps": [str(p.resolve()) for p in paths], "config": config.to_dict()})
+    attrs = {"input_hash": key, "preset": config.name, "config_toml": dump_toml(config), "created": _now(),
+             "liggghts_version": "unknown (post-processed from existing dumps)"}
+    results = postprocess(paths, config.dem, config.steady_state, massflow_dir=massflow_dir, provenance=attrs)
+    provenance = {**attrs, "key": key, "dumps": str(dumps), "postprocess_time_s": time.monotonic() - t0}
+    save_entry(out, results.to_cache_entry(provenance))
+    return results
+
+
+def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: float | None = None,
+            method: str | None = None, figures: bool = True) -> tuple[PbmResult, dict[str, Path]]:
+    """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
+    rule) on the velocity table in ``tables``; files written to ``out``."""
+    pbm = config.pbm if method is None else config.pbm.model_copy(update={"method": method})
+    result = simulate(read_table(tables), pbm, rtd_pulse_s=rtd_pulse_s, steady=config.steady_state)
+    return result, write_outputs(result, out, figures=figures)
+
+
+def write_run_directory(config: Config, out: str | Path, resume_from: str | None = None, view_stl: bool = False,
+                        png: bool = False) -> tuple[Path, str]:
+    """``pbmdem dem deck``: the deck, meshes, ``deck.json`` and the resolved ``config.toml``
+    (its first line records the deck hash) in ``out``; optionally STL files of the barrel
+    and inlet wall (the deck uses primitives for them) and a picture. Returns (directory,
+    deck hash). Everything is validated before anything is written."""
+    files = build_deck(config.dem, resume_from=resume_from)
+    digest = deck_hash(files)
+    files["config.toml"] = f"# deck_hash = {digest}\n" + dump_toml(config)
+    run_dir = write_deck(files, out)
+    if view_stl:
+        for name, mesh in build_geometry(config.dem).view_meshes.items():
+            write_stl(mesh, run_dir / MESH_DIR / f"view_{name}.stl")
+    if png:
+        from dem.render import render_geometry
+
+        render_geometry(config.dem, run_dir / "geometry.png")
+    return run_dir, digest
+
+
+def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:
+    """The PBM configuration that describes the same process as the DEM run: the DEM's
+    feed rates, each feeder's zone mapped onto the inlet compartments by overlap in y."""
+    zones = feed_zones(config.dem.geometry)
+    operation = config.dem.operation
+    return config.pbm.model_copy(update={
+        "feed_rate_a_per_s": operation.feed_rate_a_per_s,
+        "feed_rate_b_per_s": operation.feed_rate_b_per_s,
+        "feed_weights_a": inlet_weights(table.y_edges, zones["A"].ymin, zones["A"].ymax),
+        "feed_weights_b": inlet_weights(table.y_edges, zones["B"].ymin, zones["B"].ymax),
+        "rtd_pulse_s": rtd_pulse_s,
+    })
+
+
+# --------------------------------------------------------------------------- the cluster path
+
+#: Particle-steps per second per core of the blender deck when no benchmark result is
+#: found (LIGGGHTS 3.8.0, one core of the development machine).
+DEFAULT_THROUGHPUT_PER_CORE = 3.9e6
+BENCH_FILE = Path("results/bench/dem_deck.json")
+
+
+def reference_holdup(dem_config) -> tuple[float, str]:
+    """Steady hold-up for ``dem_config`` scaled by solid volume from a shipped DEM run of
+    the same blender: the same vessel holds the same powder volume, so the number of
+    particles goes as (d_ref / d)^3. Raises LookupError when no shipped run fits."""
+    import tomllib
+
+    for path in sorted(REFERENCE_DIR.glob("dem-*.h5")):
+        entry, _ = try_load_entry(path)
+        if entry is None:
+            continue
+        ref = config_from_dict(tomllib.loads(entry.provenance["config_toml"])).dem
+        clearance = {"blade_tip_clearance_m": ref.geometry.blade_tip_clearance_m}
+        if ref.geometry != dem_config.geometry.model_copy(update=clearance):
+            continue
+        held = float(entry.summary["holdup_final"])
+        scale = (ref.particles.diameter_m / dem_config.particles.diameter_m) ** 3
+        return held * scale, f"{held:.0f} particles of {ref.particles.diameter_m * 1000:g} mm in {path.name}, x {scale:.3g}"
+    raise LookupError("no shipped reference run of the same blender to scale the hold-up from; pass --holdup")
+
+
+@dataclass(frozen=True)
+class ClusterPlan:
+    run_dir: Path
+    mpi_command: list[str]
+    holdup: float
+    holdup_source: str
+    throughput: float
+    throughput_source: str
+    estimate: Any  # dem.cluster.CostEstimate
+
+
+def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | None = None,
+                     holdup: float | None = None, throughput: float | None = None) -> ClusterPlan:
+    """Write the run directory (deck, meshes, resolved config) and ``job.slurm`` with a
+    core-hour estimate: hold-up given or scaled from the shipped reference, throughput
+    given, else measured by ``make bench``, else the development machine's."""
+    if holdup is not None:
+        holdup_source = "given with --holdup"
+    else:
+        try:
+            holdup, holdup_source = reference_holdup(config.dem)
+        except LookupError as exc:
+            raise ConfigError(str(exc)) from None
+    if throughput is not None:
+        throughput_source = "given with --throughput"
+    elif BENCH_FILE.is_file():
+        throughput = float(json.loads(BENCH_FILE.read_text())["blender_particle_steps_per_s_serial"])
+        throughput_source = f"measured by make bench ({BENCH_FILE})"
+    else:
+        throughput, throughput_source = DEFAULT_THROUGHPUT_PER_CORE, "measured on the development machine"
+    estimate = estimate_cost(config.dem, holdup, throughput, np)
+    files = build_deck(config.dem)
+    files["config.toml"] = dump_toml(config)
+    files["job.slurm"] = slurm_script(config.dem, str(Path(out).resolve()), np, estimate.wall_hours,
+                                      job_name=f"pbmdem-{config.name}", partition=partition)
+    run_dir = write_deck(files, out)
+    return ClusterPlan(run_dir, mpi_command(config.dem, np, MAIN_DECK), holdup, holdup_source, throughput,
+                       throughput_source, estimate)
+

@@ -1,8 +1,9 @@
 """The side-by-side DEM / PBM report: comparison metrics, figures (paper Figs 3-10) and HTML.
 
 Both sides reach this module in one shape, :class:`SideResults`, so every figure and metric
-is computed from the same columns for DEM and PBM (the CQA definitions of DESIGN.md). The
-HTML page is self-contained apart from the PNG files written beside it.
+is computed from the same columns for DEM and PBM (:mod:`coupling.metrics`). The HTML page
+is self-contained apart from the PNG files written beside it. Figures are drawn with
+matplotlib's object API (no pyplot, so no backend is chosen or needed).
 """
 
 from __future__ import annotations
@@ -14,23 +15,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+from coupling.metrics import TIMESERIES_COLUMNS
 
-TIMESERIES_COLUMNS = (
-    "t_s",
-    "outflow_A_per_s",
-    "outflow_B_per_s",
-    "C_A",
-    "rsd_outlet",
-    "rsd_blender",
-    "holdup_A",
-    "holdup_B",
-)
 DEM_COLOUR, PBM_COLOUR = "#b2182b", "#2166ac"
 
 
@@ -188,20 +178,20 @@ def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[s
     out_dir = Path(out_dir)
     files: dict[str, str] = {}
     for key, draw in PANELS.items():
-        fig, ax = plt.subplots(figsize=(6.4, 4.0), layout="constrained")
+        fig = Figure(figsize=(6.4, 4.0), layout="constrained")
+        ax = fig.add_subplot()
         draw(ax, dem, pbm)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         fig.savefig(out_dir / f"{key}.png", dpi=110)
-        plt.close(fig)
         files[key] = f"{key}.png"
-    fig, axes = plt.subplots(2, 3, figsize=(16, 8.5), layout="constrained")
+    fig = Figure(figsize=(16, 8.5), layout="constrained")
+    axes = fig.subplots(2, 3)
     for ax, draw in zip(axes.ravel(), PANELS.values()):
         draw(ax, dem, pbm)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.savefig(out_dir / "overview.png", dpi=80)
-    plt.close(fig)
     files["overview"] = "overview.png"
     return files
 

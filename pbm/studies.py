@@ -1,5 +1,5 @@
-"""Geometry studies (paper Figs 3-4 and the grid study): functions that return modified
-velocity tables, which then feed the same :func:`pbm.simulate.simulate`.
+"""Studies on a velocity table: the paper's blender length and diameter (Figs 3-4) and the
+compartment grid. Each builds modified tables that feed the same :func:`pbm.simulate.simulate`.
 """
 
 from __future__ import annotations
@@ -7,8 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from coupling.errors import ConfigError
+from coupling.metrics import SteadyStateRule
 from coupling.tables import VELOCITY_NAMES, VelocityTable
 from pbm.model import fill_missing_velocities
+from pbm.simulate import simulate
 
 
 def scale_blender(table: VelocityTable, length_factor: float = 1.0, diameter_factor: float = 1.0) -> VelocityTable:
@@ -102,25 +104,26 @@ def _new_edges(old: np.ndarray, count, edges, axis: str) -> np.ndarray:
 
 
 def geometry_study(table: VelocityTable, config=None, length_factors=(0.75, 1.0, 1.25),
-                   diameter_factors=(0.75, 1.0, 1.25), rtd_pulse_s: float | None = None) -> dict:
+                   diameter_factors=(0.75, 1.0, 1.25), rtd_pulse_s: float | None = None,
+                   steady: SteadyStateRule = SteadyStateRule()) -> dict:
     """Paper Figs 3-4: the same velocities in longer/shorter and wider/narrower blenders.
 
     Returns ``{"length": {factor: PbmResult}, "diameter": {factor: PbmResult}}``, each run
     by :func:`pbm.simulate.simulate` on :func:`scale_blender`'s table (the other dimension
     kept). Plot with :func:`pbm.plots.plot_rsd_time_family` / ``plot_rsd_by_slice_family``.
     """
-    from pbm.simulate import simulate  # here: simulate does not need geometry, keep it so
+    def run(length_factor: float = 1.0, diameter_factor: float = 1.0):
+        scaled = scale_blender(table, length_factor=length_factor, diameter_factor=diameter_factor)
+        return simulate(scaled, config, rtd_pulse_s, steady=steady)
 
     return {
-        "length": {float(f): simulate(scale_blender(table, length_factor=f), config, rtd_pulse_s) for f in length_factors},
-        "diameter": {float(f): simulate(scale_blender(table, diameter_factor=f), config, rtd_pulse_s)
-                     for f in diameter_factors},
+        "length": {float(f): run(length_factor=f) for f in length_factors},
+        "diameter": {float(f): run(diameter_factor=f) for f in diameter_factors},
     }
 
 
 def grid_study(table: VelocityTable, config=None, grids=((5, 5), (10, 10), (20, 20)),
-               rtd_pulse_s: float | None = None) -> dict:
+               rtd_pulse_s: float | None = None, steady: SteadyStateRule = SteadyStateRule()) -> dict:
     """The paper's compartment-number study: ``{(nx, ny): PbmResult}`` on :func:`regrid`'s tables."""
-    from pbm.simulate import simulate
-
-    return {(int(nx), int(ny)): simulate(regrid(table, nx=nx, ny=ny), config, rtd_pulse_s) for nx, ny in grids}
+    return {(int(nx), int(ny)): simulate(regrid(table, nx=nx, ny=ny), config, rtd_pulse_s, steady=steady)
+            for nx, ny in grids}

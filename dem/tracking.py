@@ -1,0 +1,199 @@
+"""Following every particle through the dumps: the one streaming pass of the
+post-processing (:func:`accumulate`) and when each particle left (:func:`find_exits`).
+
+Memory is flat in the number of snapshots: per-particle state is a few arrays indexed by
+particle ID, the velocity sums one array per window and the compartment counts one small
+array per snapshot. The conventions (times, binning, windows, exits) are listed in
+:mod:`dem.post`, which runs these steps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from coupling.compartments import bin_particles
+from coupling.errors import DumpFormatError
+from coupling.tables import VELOCITY_NAMES
+from dem.config import DemConfig
+from dem.dumps import iter_snapshots
+from dem.massflow import latest_records
+
+REQUIRED_COLUMNS = ("id", "type", "x", "y", "vx", "vy")
+#: Rows of a window's sums: the four velocity parts, particle-snapshots, A and B counts.
+SUM_ROWS = (*VELOCITY_NAMES, "n_samples", "count_A", "count_B")
+#: How a particle's exit was found (:func:`find_exits`).
+EXIT_NONE, EXIT_PAST_WEIR, EXIT_MASSFLOW, EXIT_VANISHED = 0, 1, 2, 3
+
+
+class ParticleLog:
+    """Per-particle state indexed by ID, grown by doubling. Times [s]; NaN = not yet."""
+
+    FLOATS = ("first_t", "last_t", "last_x", "exit_t", "vanish_t")
+
+    def __init__(self) -> None:
+        self.size = 0
+        for name in self.FLOATS:
+            setattr(self, name, np.zeros(0))
+        self.kind = np.zeros(0, np.int8)  # 0 unseen, 1 A, 2 B, 3 other type
+        self.scratch = np.zeros(0, bool)
+
+    def ensure(self, max_id: int) -> None:
+        if max_id < self.size:
+            return
+        new = max(1024, 2 * self.size, max_id + 1)
+        for name in self.FLOATS:
+            grown = np.full(new, np.nan)
+            grown[: self.size] = getattr(self, name)
+            setattr(self, name, grown)
+        for name, dtype in (("kind", np.int8), ("scratch", bool)):
+            grown = np.zeros(new, dtype)
+            grown[: self.size] = getattr(self, name)
+            setattr(self, name, grown)
+        self.size = new
+
+    @property
+    def seen(self) -> np.ndarray:
+        return ~np.isnan(self.first_t)
+
+
+@dataclass
+class Accumulation:
+    """What the streaming pass keeps: the particle log, the window sums (window index ->
+    (len(SUM_ROWS), NX*NY)), snapshots per window, and per snapshot its time and its
+    (2, NX, NY) counts of A and B."""
+
+    particles: ParticleLog
+    window_sums: dict[int, np.ndarray]
+    window_snapshots: dict[int, int]
+    snapshot_t: np.ndarray
+    snapshot_counts: np.ndarray
+    last_ids: np.ndarray
+    last_step: int
+    reappeared: int
+    other_types: set[int]
+
+
+def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int]) -> Accumulation:
+    """Stream every snapshot once into an :class:`Accumulation`."""
+    g, tables = config.geometry, config.tables
+    dt = float(config.timestep_s)
+    length, diameter, nx, ny = float(g.length_m), float(g.diameter_m), int(tables.nx), int(tables.ny)
+    window, tol, ncell = float(tables.window_s), 0.5 * dt, nx * ny
+    log = ParticleLog()
+    window_sums: dict[int, np.ndarray] = {}
+    window_snapshots: dict[int, int] = {}
+    times: list[float] = []
+    counts: list[np.ndarray] = []
+    prev_ids = np.zeros(0, np.int64)
+    last_step, reappeared, other_types = -1, 0, set()
+    for snap in iter_snapshots(dump_paths, columns=REQUIRED_COLUMNS):
+        t = snap.time_s(dt)
+        last_step = snap.step
+        ids = snap["id"].astype(np.int64)
+        ptype = snap["type"].astype(np.int64)
+        x, y, vx, vy = snap["x"], snap["y"], snap["vx"], snap["vy"]
+        if ids.size:
+            if ids.min() < 0:
+                raise DumpFormatError(f"{snap.source}: negative particle id at step {snap.step}")
+            log.ensure(int(ids.max()))
+        is_a, is_b = np.isin(ptype, types_a), np.isin(ptype, types_b)
+        if not (is_a | is_b).all():
+            other_types.update(int(v) for v in np.unique(ptype[~(is_a | is_b)]))
+
+        new = np.isnan(log.first_t[ids])
+        log.first_t[ids[new]] = t
+        log.kind[ids] = np.where(is_a, 1, np.where(is_b, 2, 3))
+        back = ~new & ~np.isnan(log.vanish_t[ids])
+        if back.any():
+            reappeared += int(back.sum())
+            log.vanish_t[ids[back]] = np.nan
+        log.scratch[ids] = True
+        log.vanish_t[prev_ids[~log.scratch[prev_ids]]] = t
+        log.scratch[ids] = False
+        prev_ids = ids
+        log.last_t[ids] = t
+        log.last_x[ids] = x
+        past = (x > length) & np.isnan(log.exit_t[ids])
+        log.exit_t[ids[past]] = t
+
+        inside, cell = bin_particles(x, y, length, diameter, nx, ny)
+        vxi, vyi = vx[inside], vy[inside]
+        a_in, b_in = is_a[inside], is_b[inside]
+        sums = np.empty((len(SUM_ROWS), ncell))
+        sums[0] = np.bincount(cell, np.maximum(vxi, 0), ncell)
+        sums[1] = np.bincount(cell, np.maximum(-vxi, 0), ncell)
+        sums[2] = np.bincount(cell, np.maximum(vyi, 0), ncell)
+        sums[3] = np.bincount(cell, np.maximum(-vyi, 0), ncell)
+        sums[4] = np.bincount(cell, minlength=ncell)
+        sums[5] = np.bincount(cell[a_in], minlength=ncell)
+        sums[6] = np.bincount(cell[b_in], minlength=ncell)
+        k = int(math.floor((t + tol) / window))
+        if k in window_sums:
+            window_sums[k] += sums
+            window_snapshots[k] += 1
+        else:
+            window_sums[k], window_snapshots[k] = sums, 1
+        times.append(t)
+        counts.append(sums[5:7].reshape(2, nx, ny).copy())  # the window sums grow in place
+    if not times:
+        raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
+    return Accumulation(log, window_sums, window_snapshots, np.asarray(times), np.stack(counts), prev_ids,
+                        last_step, reappeared, other_types)
+
+
+@dataclass
+class Exits:
+    """Exit time [s] per ID (NaN: still inside or lost), how it was found (EXIT_*), and
+    what the solver's discharge files said (None without them)."""
+
+    time: np.ndarray
+    how: np.ndarray
+    massflow_discharged: int | None = None
+    massflow_discharged_by_last_dump: int | None = None
+    massflow_unseen: int = 0
+    massflow_duplicates: int = 0
+
+    @property
+    def exited(self) -> np.ndarray:
+        return self.how != EXIT_NONE
+
+
+def find_exits(acc: Accumulation, config: DemConfig, massflow_paths: Sequence[Path]) -> Exits:
+    """Exit of every particle (module docstring, "Exit of a particle")."""
+    log = acc.particles
+    seen = log.seen
+    exit_t = log.exit_t.copy()
+    how = np.full(log.size, EXIT_NONE, np.int8)
+    how[seen & ~np.isnan(exit_t)] = EXIT_PAST_WEIR
+    vanished = seen & np.isnan(exit_t) & ~np.isnan(log.vanish_t)
+    exits = Exits(exit_t, how)
+    if not massflow_paths:
+        dx = float(config.geometry.length_m) / int(config.tables.nx)
+        use = vanished & (log.last_x >= float(config.geometry.length_m) - dx)
+        exit_t[use] = log.vanish_t[use]
+        how[use] = EXIT_VANISHED
+        return exits
+    ids, times, exits.massflow_duplicates = latest_records(massflow_paths)
+    exits.massflow_discharged = int(ids.size)
+    in_range = ids < log.size
+    # Compare at the same instant: a particle deleted after the last dump is still in it.
+    in_last_dump = np.zeros(ids.size, bool)
+    in_last_dump[in_range] = np.isin(ids[in_range], acc.last_ids)
+    exits.massflow_discharged_by_last_dump = int((~in_last_dump).sum())
+    exits.massflow_unseen = int((~in_range).sum() + (~seen[ids[in_range]]).sum())
+    listed = np.zeros(log.size, bool)
+    listed[ids[in_range]] = True
+    use = vanished & listed
+    if times is not None:
+        by_id = np.full(log.size, np.nan)
+        by_id[ids[in_range]] = times[in_range]
+        exit_t[use] = np.clip(by_id[use], log.last_t[use], log.vanish_t[use])
+    else:
+        exit_t[use] = log.vanish_t[use]
+    how[use] = EXIT_MASSFLOW
+    return exits
