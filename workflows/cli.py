@@ -76,6 +76,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except PbmDemError as exc:
         print(f"pbmdem: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the file system said no (a path, the disk, a permission): one line
+        where = " -> ".join(str(name) for name in (exc.filename, exc.filename2) if name)
+        print(f"pbmdem: error: {exc.strerror or exc}" + (f": {where}" if where else ""), file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("pbmdem: interrupted", file=sys.stderr)
         return 130

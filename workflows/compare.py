@@ -25,7 +25,7 @@ import numpy as np
 from coupling.jsonable import json_ready
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, dump_toml
-from workflows.pipeline import DemSide, dem_stage, pbm_config_for
+from workflows.pipeline import DemSide, dem_stage, pbm_config_for, writable_directory
 from workflows.report import SideResults, comparison_metrics, plot_comparison, render_html
 from workflows.studies import run_studies
 
@@ -81,9 +81,9 @@ def full_comparison(
 ) -> Path:
     """Run the whole comparison for ``config`` and return the report's path
     (``<results_root>/<name>-<input hash>/report.html``)."""
+    writable_directory(results_root, "results directory")  # before the DEM, which may take an hour
     dem = dem_stage(config, runs_root, np=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
-    out_dir = Path(results_root) / f"{config.name}-{dem.key}"
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = writable_directory(Path(results_root) / f"{config.name}-{dem.key}", "results directory")
 
     tag_time = dem.results.summary.get("rtd_tag_time_s")
     pulse = tag_time if tag_time is not None and np.isfinite(tag_time) else None

@@ -14,6 +14,7 @@ import dataclasses
 import datetime as _dt
 import json
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,6 +55,22 @@ def stderr_log(message: str) -> None:
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def writable_directory(path: str | Path, what: str) -> Path:
+    """``path`` as a directory this process can write in, created if missing. Checked
+    before any expensive work, so that a bad output path fails in a second, not after the
+    solver; raises ConfigError naming the path and the problem."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {path} is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path} is not a writable directory: {exc.strerror or exc}") from None
+    return path
 
 
 @dataclass
@@ -124,8 +141,8 @@ def dem_stage(
     whose result is cached. ``fresh`` skips both caches and reruns the solver. The deck is
     built and the input hash computed once, here. Without LIGGGHTS installed, cached or
     shipped results made from the same deck are still found."""
-    runs_root = Path(runs_root).resolve()  # recorded in the cache: findable from elsewhere
-    cache_root = Path(cache_root) if cache_root is not None else runs_root / "cache"
+    runs_root = writable_directory(Path(runs_root).resolve(), "runs directory")  # absolute: recorded in the cache
+    cache_root = writable_directory(cache_root if cache_root is not None else runs_root / "cache", "cache directory")
     inputs = prepare_run(config.dem)
     post = post_hash(config)
     if not fresh:
@@ -160,6 +177,7 @@ def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir:
     out = Path(out)
     if out.is_dir():
         raise ConfigError(f"--out {out} is a directory; give a file name such as tables.h5")
+    writable_directory(out.parent, "the directory of --out")
     paths = dump_paths(dumps)
     if massflow_dir is None:
         massflow_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
@@ -178,7 +196,9 @@ def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: fl
     """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
     rule) on the velocity table in ``tables``; files written to ``out``."""
     pbm = config.pbm if method is None else config.pbm.model_copy(update={"method": method})
-    result = simulate(read_table(tables), pbm, rtd_pulse_s=rtd_pulse_s, steady=config.steady_state)
+    table = read_table(tables)
+    writable_directory(out, "output directory")
+    result = simulate(table, pbm, rtd_pulse_s=rtd_pulse_s, steady=config.steady_state)
     return result, write_outputs(result, out, figures=figures)
 
 
@@ -191,7 +211,7 @@ def write_run_directory(config: Config, out: str | Path, resume_from: str | None
     files = build_deck(config.dem, resume_from=resume_from)
     digest = deck_hash(files)
     files["config.toml"] = f"# deck_hash = {digest}\n" + dump_toml(config)
-    run_dir = write_deck(files, out)
+    run_dir = write_deck(files, writable_directory(out, "run directory"))
     if view_stl:
         for name, mesh in build_geometry(config.dem).view_meshes.items():
             write_stl(mesh, run_dir / MESH_DIR / f"view_{name}.stl")
@@ -276,6 +296,7 @@ def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | 
         throughput, throughput_source = DEFAULT_THROUGHPUT_PER_CORE, "measured on the development machine"
     estimate = estimate_cost(config.dem, holdup, throughput, np)
     files = build_deck(config.dem)
+    writable_directory(out, "run directory")
     files["config.toml"] = dump_toml(config)
     files["job.slurm"] = slurm_script(config.dem, str(Path(out).resolve()), np, estimate.wall_hours,
                                       job_name=f"pbmdem-{config.name}", partition=partition)

@@ -1,0 +1,51 @@
+"""Every subcommand against paths that cannot work: a missing input, an output under a
+regular file, an output that is an existing file. One line naming the path, exit code 2,
+no traceback, and nothing expensive started first (these run without the solver)."""
+
+import pytest
+
+from workflows.cli import main
+
+
+@pytest.fixture
+def paths(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory\n")
+    table = tmp_path / "table.h5"
+    assert main(["pbm", "synth", "--out", str(table), "--nx", "3", "--ny", "2", "--windows", "2"]) == 0
+    return {"file": blocker, "under_file": blocker / "sub", "table": table, "missing": tmp_path / "missing"}
+
+
+COMMANDS = {
+    "config: missing file": lambda p: ["config", "--config", str(p["missing"] / "c.toml")],
+    "pbm run: missing table": lambda p: ["pbm", "run", "--tables", str(p["missing"] / "t.h5"), "--out", str(p["missing"])],
+    "pbm run: out under a file": lambda p: ["pbm", "run", "--tables", str(p["table"]), "--out", str(p["under_file"])],
+    "pbm run: out is a file": lambda p: ["pbm", "run", "--tables", str(p["table"]), "--out", str(p["file"])],
+    "pbm synth: out under a file": lambda p: ["pbm", "synth", "--out", str(p["under_file"] / "t.h5")],
+    "dem deck: out under a file": lambda p: ["dem", "deck", "--preset", "smoke", "--out", str(p["under_file"])],
+    "dem run: runs dir under a file": lambda p: ["dem", "run", "--preset", "smoke", "--runs-dir", str(p["under_file"]),
+                                                 "--no-progress"],
+    "dem post: missing dumps": lambda p: ["dem", "post", "--preset", "smoke", "--dumps", str(p["missing"] / "d.*.txt"),
+                                          "--out", str(p["missing"].parent / "r.h5")],
+    "dem post: out under a file": lambda p: ["dem", "post", "--preset", "smoke", "--dumps", str(p["missing"] / "*.txt"),
+                                             "--out", str(p["under_file"] / "r.h5")],
+    "dem slurm: out under a file": lambda p: ["dem", "slurm", "--preset", "paper", "--out", str(p["under_file"]),
+                                              "--holdup", "1000", "--throughput", "1e6"],
+    "compare: results under a file": lambda p: ["compare", "--preset", "smoke", "--results-dir", str(p["under_file"]),
+                                                "--runs-dir", str(p["missing"]), "--no-progress"],
+    "compare: runs under a file": lambda p: ["compare", "--preset", "smoke", "--runs-dir", str(p["under_file"]),
+                                             "--results-dir", str(p["missing"]), "--no-progress"],
+}
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_bad_paths_give_one_line(name, paths, capsys):
+    capsys.readouterr()
+    argv = COMMANDS[name](paths)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pbmdem: error:"), err
+    assert "Traceback" not in err
+    bad = next(a for a in argv if a.startswith(str(paths["file"].parent)))
+    assert any(part in lines[0] for part in (bad, str(paths["file"]), str(paths["missing"]))), lines[0]
