@@ -49,3 +49,30 @@ def test_bad_paths_give_one_line(name, paths, capsys):
     assert "Traceback" not in err
     bad = next(a for a in argv if a.startswith(str(paths["file"].parent)))
     assert any(part in lines[0] for part in (bad, str(paths["file"]), str(paths["missing"]))), lines[0]
+
+
+def test_dem_post_refuses_dumps_of_another_deck(tmp_path, capsys):
+    """Dumps in a run directory written by `dem deck` (deck.json) or by a run (status.json)
+    are post-processed only with the configuration that made them."""
+    import json
+
+    import numpy as np
+
+    from dem.dumps import format_snapshot
+    from workflows.config import load_preset
+
+    run_dir = tmp_path / "run"
+    assert main(["dem", "deck", "--preset", "smoke", "--out", str(run_dir)]) == 0
+    step = int(round(1.0 / load_preset("smoke").dem.timestep_s))
+    columns = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+    rows = np.array([[1, 1, 0.01, 0.01, 0, 0.1, 0, 0, 0.003], [2, 2, 0.2, -0.01, 0, 0.1, 0, 0, 0.003]])
+    (run_dir / "dumps" / f"dump.{step}.txt").write_bytes(format_snapshot(step, columns, rows))
+    dumps = str(run_dir / "dumps" / "dump.*.txt")
+    capsys.readouterr()
+    assert main(["dem", "post", "--preset", "reduced", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 2
+    assert "deck.json differs" in capsys.readouterr().err
+    assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 0
+    (run_dir / "status.json").write_text(json.dumps({"deck_hash": "0123456789abcdef", "state": "completed"}))
+    capsys.readouterr()
+    assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 2
+    assert "come from deck 0123456789abcdef" in capsys.readouterr().err

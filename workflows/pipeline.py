@@ -26,11 +26,11 @@ from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from dem.cluster import estimate_cost, mpi_command, slurm_script
-from dem.deck import MAIN_DECK, MESH_DIR, build_deck, deck_hash, write_deck
+from dem.deck import DECK_INFO, MAIN_DECK, MESH_DIR, build_deck, deck_hash, write_deck
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
 from dem.post import DemResults, postprocess
-from dem.run import RunInputs, prepare_run, run_dem
+from dem.run import RunInputs, prepare_run, read_status, run_dem
 from coupling.tables import read_table
 from pbm.config import PbmConfig
 from pbm.outputs import write_outputs
@@ -179,8 +179,10 @@ def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir:
         raise ConfigError(f"--out {out} is a directory; give a file name such as tables.h5")
     writable_directory(out.parent, "the directory of --out")
     paths = dump_paths(dumps)
+    run_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
+    _check_same_deck(config, run_dir)
     if massflow_dir is None:
-        massflow_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
+        massflow_dir = run_dir
     t0 = time.monotonic()
     key = stable_hash({"dumps": [str(p.resolve()) for p in paths], "config": config.to_dict()})
     attrs = {"input_hash": key, "preset": config.name, "config_toml": dump_toml(config), "created": _now(),
@@ -220,6 +222,22 @@ def write_run_directory(config: Config, out: str | Path, resume_from: str | None
 
         render_geometry(config.dem, run_dir / "geometry.png")
     return run_dir, digest
+
+
+def _check_same_deck(config: Config, run_dir: Path) -> None:
+    """Dumps in a run directory written by this project carry the deck they came from
+    (``status.json``'s deck hash, else ``deck.json``): refuse a configuration that makes
+    another deck, whose timestep would turn steps into wrong times."""
+    files = build_deck(config.dem)
+    status = read_status(run_dir) or {}
+    if status.get("deck_hash"):
+        ours = deck_hash(files)
+        if status["deck_hash"] != ours:
+            raise ConfigError(f"the dumps in {run_dir} come from deck {status['deck_hash']}, but the configuration given "
+                              f"makes deck {ours}: pass the configuration of that run")
+    elif (run_dir / DECK_INFO).is_file() and (run_dir / DECK_INFO).read_text() != files[DECK_INFO]:
+        raise ConfigError(f"the dumps in {run_dir} come from a deck whose {DECK_INFO} differs from the one the "
+                          "configuration given makes (timestep, intervals or geometry): pass the configuration of that run")
 
 
 def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:
