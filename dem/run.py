@@ -45,8 +45,11 @@ import json
 import os
 import re
 import shutil
+import signal
+import threading
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -173,25 +176,28 @@ def run_dem(
     key = inputs.key
     run_dir = Path(runs_root) / key
     status = read_status(run_dir)
+    if not fresh and status and status.get("state") == "completed":
+        return _record_from_status(run_dir, status, reused=True)
+    nprocs = int(np if np is not None else config.run.np)
+    # Every argument and program is checked before anything in the run directory changes:
+    # a typo must never cost the outputs of an interrupted run.
+    command = solver_command(config.run, nprocs, deck.RESUME_DECK if resume else deck.MAIN_DECK)
+    if status and status.get("state") == "running" and _alive(status):
+        raise SolverRunError(f"run {key} is already running (pid {status.get('solver_pid') or status.get('pid')})",
+                             run_dir=run_dir)
     if fresh and run_dir.exists():
         shutil.rmtree(run_dir)
         status = None
-    if status and status.get("state") == "completed":
-        return _record_from_status(run_dir, status, reused=True)
-    if status and status.get("state") == "running":
-        pid = status.get("pid")
-        if pid and _alive(int(pid)):
-            raise SolverRunError(f"run {key} is already running (pid {pid})", run_dir=run_dir)
+    if not resume and run_dir.exists():
+        _refuse_to_discard(run_dir, key, status)
 
-    nprocs = int(np if np is not None else config.run.np)
     if resume:
         resumed_from = _prepare_resume(run_dir, key, float(config.timestep_s))
-        run_files, main_input = deck.build_deck(config, resume_from=resumed_from), deck.RESUME_DECK
+        run_files = deck.build_deck(config, resume_from=resumed_from)
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
         _clear_outputs(run_dir)
-        resumed_from, run_files, main_input = None, inputs.files, deck.MAIN_DECK
-    command = solver_command(config.run, nprocs, main_input)
+        resumed_from, run_files = None, inputs.files
     # LIGGGHTS reads its input while it runs, so a deck is never edited in place: the run
     # directory is this run's alone and every file is written before the solver starts.
     deck.write_deck(run_files, run_dir)
@@ -222,7 +228,9 @@ def run_dem(
     prior_wall = float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0
     t0 = time.monotonic()
     try:
-        result = run_solver(command, run_dir, SOLVER_OUT, append=resume, on_start=solver_started, on_line=follow)
+        with _terminate_as_interrupt():
+            result = run_solver(command, run_dir, SOLVER_OUT, append=resume, on_start=solver_started,
+                                on_line=follow)
     except BaseException as exc:
         bar.close()
         stopped = {"finished": _now(), "wall_time_s": prior_wall + time.monotonic() - t0}
@@ -249,6 +257,38 @@ def run_dem(
 
 
 # ----------------------------------------------------------------------------- run directory
+@contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a scheduler's or ``timeout``'s stop) is handled like Ctrl-C while the solver
+    runs: every rank is stopped, the run is marked interrupted and can be resumed. Only the
+    main thread can own a signal handler; elsewhere the default stays."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _refuse_to_discard(run_dir: Path, key: str, status: dict[str, Any] | None) -> None:
+    """A run directory holding a stopped run's dumps or restart files is never cleared
+    implicitly: the caller says resume or start again."""
+    dumps = list(run_dir.glob(deck.DUMP_GLOB))
+    restarts = list(run_dir.glob(deck.RESTART_GLOB))
+    if dumps or restarts:
+        state = (status or {}).get("state", "unknown")
+        raise SolverRunError(
+            f"run {key} stopped ({state}) with {len(dumps)} dumps and {len(restarts)} restart files in {run_dir}; "
+            "continue it with --resume (resume=True) or discard it and start again with --fresh (fresh=True)",
+            run_dir=run_dir)
+
+
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -359,14 +399,19 @@ def _completed_for_deck(runs_root: Path, deck_digest: str) -> Path | None:
     return best[1] if best else None
 
 
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, PermissionError):
-        return False
-    return True
+def _alive(status: dict[str, Any]) -> bool:
+    """Whether the run in ``status`` still runs: its solver (the process that matters: an
+    orphaned mpirun outlives a killed Python) or the Python process that started it."""
+    for pid in (status.get("solver_pid"), status.get("pid")):
+        if not pid or int(pid) == os.getpid():
+            continue
+        try:
+            with open(f"/proc/{int(pid)}/stat") as handle:
+                if handle.read().rsplit(")", 1)[1].split()[0] != "Z":  # a zombie has ended
+                    return True
+        except OSError:
+            continue
+    return False
 
 
 class _Progress:

@@ -9,6 +9,7 @@ cores); the resume test uses a 2 s variant on one rank.
 """
 
 import os
+from pathlib import Path
 import time
 
 import numpy as np
@@ -211,6 +212,13 @@ def test_interrupt_then_resume(tmp_path):
     status = read_status(run_dir)
     assert status["state"] == "interrupted"
     assert not _solver_alive(status.get("solver_pid"))
+    # neither a bad argument nor a plain rerun may cost the interrupted run's outputs
+    kept = sorted(p.name for p in run_dir.rglob("*") if p.is_file())
+    with pytest.raises(SolverRunError, match="number of MPI ranks must be >= 1"):
+        run_dem(inputs, runs_root=tmp_path, np=0, progress=False)
+    with pytest.raises(SolverRunError, match="--resume .*--fresh"):
+        run_dem(inputs, runs_root=tmp_path, progress=False)
+    assert sorted(p.name for p in run_dir.rglob("*") if p.is_file()) == kept
     record = run_dem(inputs, runs_root=tmp_path, resume=True, progress=False)
     assert record.state == "completed" and record.resumed_from.startswith("restart/")
     results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
@@ -222,6 +230,46 @@ def test_interrupt_then_resume(tmp_path):
     assert s["discharge_crosscheck_diff"] == 0
     steps = sorted(int(p.name.split(".")[1]) for p in run_dir.glob("dumps/dump.*.txt"))
     assert len(set(np.diff(steps))) == 1  # no gap, no duplicate across the restart
+
+
+@liggghts
+def test_sigterm_is_handled_like_ctrl_c(tmp_path):
+    """A scheduler's or `timeout`'s SIGTERM: every rank ends within 2 s, the run is marked
+    interrupted, and --resume finishes it."""
+    import signal
+    import subprocess
+    import sys
+
+    config = variant(load_preset("smoke"), operation={"duration_s": 3.0}, numerics={"restart_interval_s": 0.5})
+    (tmp_path / "config.toml").write_text(__import__("workflows.config", fromlist=["dump_toml"]).dump_toml(config))
+    script = ("import sys; from dem.run import prepare_run, run_dem; from workflows.config import load_config; "
+              "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)")
+    log = tmp_path / "child.err"
+    with open(log, "w") as err, subprocess.Popen(
+            [sys.executable, "-c", script, str(tmp_path / "config.toml"), str(tmp_path / "runs")],
+            cwd=Path(__file__).resolve().parents[1], stderr=err) as child:
+        deadline = time.monotonic() + 300
+        run_dir = None
+        while time.monotonic() < deadline and child.poll() is None:
+            time.sleep(0.5)
+            runs = [p for p in (tmp_path / "runs").glob("*") if p.is_dir()]
+            if runs and (runs[0] / "restart").is_dir():
+                from dem.run import _restart_files  # the rule --resume applies: complete restart files only
+
+                if _restart_files(runs[0]):
+                    run_dir = runs[0]
+                    break
+        assert run_dir is not None, log.read_text() or "no restart file in time"
+        solver_pid = read_status(run_dir)["solver_pid"]
+        child.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        while _solver_alive(solver_pid) and time.monotonic() - sent < 10:
+            time.sleep(0.05)
+        assert time.monotonic() - sent <= 2.0, "the solver outlived SIGTERM by more than 2 s"
+        child.wait(timeout=30)
+    assert read_status(run_dir)["state"] == "interrupted"
+    record = run_dem(prepare_run(config.dem), runs_root=tmp_path / "runs", resume=True, progress=False)
+    assert record.state == "completed" and record.resumed_from.startswith("restart/")
 
 
 def _solver_alive(pid):
