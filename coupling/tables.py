@@ -268,6 +268,8 @@ def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:
 def read_table(path: str | os.PathLike) -> VelocityTable:
     """Read the velocity table stored in ``path`` (its ``velocity_table`` group)."""
     path = Path(path)
+    if path.is_dir():
+        raise TableError(f"velocity table path {path} is a directory, not an HDF5 file")
     if not path.is_file():
         raise TableError(f"velocity table file {path} does not exist")
     try:
@@ -275,8 +277,14 @@ def read_table(path: str | os.PathLike) -> VelocityTable:
             if GROUP not in h5:
                 raise TableError(f"{path} has no '{GROUP}' group; groups present: {sorted(h5.keys())}")
             return table_from_group(h5[GROUP], source=str(path))
+    except TableError:
+        raise
     except OSError as exc:
         raise TableError(f"{path} is not a readable HDF5 file: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - h5py and numpy raise many types on damaged files
+        # RuntimeError ("bad local heap signature"), KeyError, ValueError, UnicodeDecodeError...
+        # from a damaged file all mean the same: this file holds no usable table.
+        raise TableError(f"{path} is corrupt or unreadable: {type(exc).__name__}: {exc}") from exc
 
 
 class atomic_h5:

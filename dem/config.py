@@ -19,7 +19,9 @@ def _is_prime(n: int) -> bool:
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: an infinite feed rate or a NaN feed height would otherwise pass
+    # every gt/ge bound (or none is given) and be written into the LIGGGHTS deck verbatim
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class GeometryConfig(_Section):

@@ -15,7 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 class PbmConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # for every float field, including those added later without their own allow_inf_nan
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     feed_rate_a_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)
     feed_rate_b_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)

@@ -102,7 +102,7 @@ def test_dem_stage_takes_the_reference_in_place_and_rebuilds_nothing_corrupt(tmp
     dem = dem_stage(config, runs_root=tmp_path / "runs", reference_dir=reference)
     assert dem.source == "reference" and dem.key == key and dem.cache_file.parent == reference
     # a corrupt cache file of the same key is not trusted: the reference is used instead
-    cache_path(tmp_path / "runs" / "cache", key).parent.mkdir(parents=True)
+    cache_path(tmp_path / "runs" / "cache", key).parent.mkdir(parents=True, exist_ok=True)
     cache_path(tmp_path / "runs" / "cache", key).write_text("garbage")
     messages = []
     dem = dem_stage(config, runs_root=tmp_path / "runs", reference_dir=reference, log=messages.append)

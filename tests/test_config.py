@@ -59,3 +59,102 @@ def test_cli_config_prints_preset_and_reports_errors(capsys, tmp_path):
     bad.write_text("[dem.operation]\nimpeller_rpm = -3\n")
     assert main(["config", "--config", str(bad)]) == 2
     assert "impeller_rpm" in capsys.readouterr().err
+
+
+def _float_keys(model, prefix=()):
+    """Dotted keys of every float field of the configuration, nested sections included."""
+    import dataclasses
+    import typing
+
+    from pydantic import BaseModel
+
+    fields = (
+        {name: f.annotation for name, f in model.model_fields.items()}
+        if issubclass(model, BaseModel)
+        else typing.get_type_hints(model)  # resolves the dataclass's string annotations
+    )
+    for name, annotation in fields.items():
+        if isinstance(annotation, type) and (issubclass(annotation, BaseModel) or dataclasses.is_dataclass(annotation)):
+            yield from _float_keys(annotation, (*prefix, name))
+        elif annotation is float or float in typing.get_args(annotation):
+            yield (*prefix, name)
+
+
+def _nested(key, value):
+    data = value
+    for part in reversed(key):
+        data = {part: data}
+    return data
+
+
+def test_every_float_key_refuses_inf_and_nan():
+    from workflows.config import Config
+
+    keys = list(_float_keys(Config))
+    assert len(keys) > 40 and ("steady_state", "rel_tol") in keys and ("pbm", "duration_s") in keys
+    accepted = []
+    for key in keys:
+        for value in (float("inf"), float("-inf"), float("nan")):
+            try:
+                config_from_dict(_nested(key, value))
+            except ConfigError as exc:
+                assert f"'{'.'.join(key)}' = {value!r}: Input should be a finite number" in str(exc)
+            else:
+                accepted.append((".".join(key), value))
+    assert accepted == []
+
+
+@pytest.mark.parametrize(
+    "section, line",
+    [
+        ("dem.operation", "feed_rate_total_per_s = inf"),
+        ("dem.operation", "duration_s = +inf"),
+        ("dem.geometry", "feed_height_m = nan"),
+        ("dem.particles", "diameter_m = nan"),
+        ("dem.numerics", "dump_interval_s = inf"),
+        ("dem.tables", "window_s = -inf"),
+        ("pbm", "bdf_rtol = nan"),
+        ("pbm", "duration_s = inf"),
+        ("steady_state", "window_s = inf"),
+        ("steady_state", "rel_tol = nan"),
+    ],
+)
+def test_inf_and_nan_in_a_toml_file_are_refused_by_key(tmp_path, section, line):
+    path = tmp_path / "c.toml"
+    path.write_text(f"[{section}]\n{line}\n")
+    key = line.split(" = ")[0]
+    with pytest.raises(ConfigError, match=rf"'{section}\.{key}' = .*(inf|nan).*finite number"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("text", ["", "\n\n", "# only a comment\n# and another\n"])
+def test_empty_config_file_is_refused_with_how_to_start(tmp_path, text):
+    path = tmp_path / "empty.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert str(path) in message and "sets no keys" in message
+    assert "pbmdem config --preset reduced > my.toml" in message
+
+
+def test_binary_config_file_is_a_one_line_error(tmp_path):
+    path = tmp_path / "blob.toml"
+    path.write_bytes(b"name = \"x\"\n\xff\xfe\x00\x89PNG\r\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "not a UTF-8 text file" in message
+
+
+def test_config_path_that_is_a_directory(tmp_path):
+    with pytest.raises(ConfigError, match="is a directory"):
+        load_config(tmp_path)
+
+
+def test_cli_reports_empty_config_without_traceback(capsys, tmp_path):
+    path = tmp_path / "empty.toml"
+    path.write_text("# nothing yet\n")
+    assert main(["config", "--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "--preset reduced" in err and "Traceback" not in err

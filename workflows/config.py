@@ -30,7 +30,9 @@ PRESET_DIR = resources.files("workflows") / "presets"
 class Config(BaseModel):
     """The whole pipeline's configuration."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False also reaches the steady-state rule (a plain dataclass takes its
+    # parent's config), so its inf/nan is refused by key like every other section's
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field("custom", pattern=r"^[A-Za-z0-9_.-]+$")
     dem: DemConfig = DemConfig()
@@ -59,12 +61,31 @@ def preset_path(name: str) -> Path:
 def load_config(path: str | Path) -> Config:
     """Read and validate a TOML configuration file."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"configuration path {path} is a directory; give a TOML file")
     if not path.is_file():
         raise ConfigError(f"configuration file {path} does not exist")
     try:
-        data = tomllib.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path} is not a UTF-8 text file (undecodable byte at offset {exc.start}); "
+            "a configuration is a TOML text file"
+        ) from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read configuration file {path}: {exc}") from exc
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}") from exc
+    if not data:
+        # every key has a default, so an empty file would silently mean the paper-scale
+        # run (2 mm particles, 1990 /s, 260 s: about a day of LIGGGHTS)
+        raise ConfigError(
+            f"{path} sets no keys (empty or only comments); start from a preset instead: "
+            "`pbmdem config --preset reduced > my.toml`, then edit it "
+            f"(presets: {', '.join(preset_names())})"
+        )
     return config_from_dict(data, source=str(path))
 
 
