@@ -11,11 +11,14 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 setup: setup-system setup-python
 
-# apt only when something is missing, so reruns cost nothing.
+# apt only when something is missing, so reruns cost nothing. Slurm and munge let the test
+# suite run the cluster path on a one-node cluster of this machine.
 setup-system:
-	@if ! command -v liggghts >/dev/null || ! command -v mpirun >/dev/null; then \
+	@if ! command -v liggghts >/dev/null || ! command -v mpirun >/dev/null \
+			|| ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null; then \
 		$(SUDO) apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends liggghts openmpi-bin; \
+		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends \
+			liggghts openmpi-bin slurm-wlm munge; \
 	fi
 
 setup-python:

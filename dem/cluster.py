@@ -79,14 +79,19 @@ def slurm_script(
 ) -> str:
     """A Slurm batch script that runs the deck in ``run_dir`` on ``np`` tasks.
 
-    ``srun`` replaces the configured launcher: it is how Slurm wants MPI jobs started, and
-    it takes the task count from the allocation. The wall-time request carries a 30 % margin.
+    The ranks are started by the configured launcher (:func:`mpi_command`; Open MPI's
+    ``mpirun`` takes its hosts from the Slurm allocation), not by ``srun``: ``srun`` can
+    start MPI ranks only when the MPI library was built with Slurm's PMI, and Debian's
+    Open MPI is not (measured on a one-node Slurm 22.05 cluster: "OMPI was not built with
+    SLURM's PMI support"; ``srun --mpi=pmix`` could not load a PMIx library either). The
+    wall-time request carries a 30 % margin and is at least 10 minutes, so that start-up
+    on a busy node does not kill a short job.
     """
     if np < 1:
         raise ConfigError(f"np must be >= 1, got {np}")
     if wall_hours <= 0:
         raise ConfigError(f"wall_hours must be > 0, got {wall_hours}")
-    minutes = math.ceil(wall_hours * 1.3 * 60)
+    minutes = max(10, math.ceil(wall_hours * 1.3 * 60))
     lines = [
         "#!/bin/bash",
         f"#SBATCH --job-name={job_name}",
@@ -101,7 +106,7 @@ def slurm_script(
         "set -euo pipefail",
         f"cd {shlex.quote(run_dir)}",
         f"# LIGGGHTS reads its input while it runs: do not edit {MAIN_DECK} during the job.",
-        f"srun {shlex.quote(config.run.liggghts)} -in {MAIN_DECK}",
+        shlex.join(mpi_command(config, np, MAIN_DECK)),
         "",
     ]
     return "\n".join(lines)
