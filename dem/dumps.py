@@ -22,7 +22,14 @@ Memory holds one snapshot at a time: flat in the number of snapshots.
 
 Errors: a snapshot cut short at the very end of the *last* file (a killed run) is dropped
 with a :class:`TruncatedDumpWarning`; anything else malformed raises
-:class:`~coupling.errors.DumpFormatError` naming the file and the line.
+:class:`~coupling.errors.DumpFormatError` naming the file and the line (and the column and
+value for a bad atom field). Checked: header bytes (column names are ASCII), steps and atom
+counts in [0, 2**63), box bounds (two finite numbers lo < hi per axis; three, the last the
+tilt factor, for a triclinic ``BOX BOUNDS xy xz yz`` header), every field a number, no NaN,
+no infinity in the columns the caller asks for (all columns if it names none), ``id`` and
+``type`` integers >= 1 (ids up to 2**53, types up to 2**31 - 1), positions x, y, z within
+one box length of the box. The checks are vector reductions over each parsed snapshot; the
+line and column are found by a slow scan only once a check has failed.
 
 One module for one file format: the header parser, the block parser and the error
 location share the byte offsets they work on, and a writer (:func:`format_snapshot`, for
@@ -33,6 +40,7 @@ from __future__ import annotations
 
 import glob as _glob
 import io
+import math
 import mmap
 import os
 import re
@@ -121,7 +129,7 @@ def iter_snapshots(
 
     ``paths``: a glob pattern, a path, or a sequence of paths (sorted naturally when a glob).
     ``columns``: if given, every snapshot must carry these columns (DumpFormatError naming
-    the missing one otherwise). Steps must increase strictly across the whole sequence.
+    the missing one otherwise) and their values must be finite. Steps must increase strictly across the whole sequence.
     A snapshot cut short at the end of the last file is dropped with TruncatedDumpWarning.
     ``threads``: per-snapshot files are parsed ahead by this many threads (pandas' parser
     releases the GIL), at most ``threads`` files in flight, so memory stays flat; default
@@ -138,7 +146,8 @@ def iter_snapshots(
         threads = min(2, os.cpu_count() or 1) if big else 1
     threads = max(1, int(threads))
     last_step = None
-    for path, snap in _snapshots_of_files(files, threads):
+    checked = tuple(columns) if columns is not None else None
+    for path, snap in _snapshots_of_files(files, threads, checked):
         if last_step is not None and snap.step <= last_step:
             raise DumpFormatError(
                 f"{path}: snapshot step {snap.step} does not follow the previous step {last_step}; "
@@ -155,11 +164,11 @@ def iter_snapshots(
         yield snap
 
 
-def _snapshots_of_files(files: list[Path], threads: int) -> Iterator[tuple[Path, Snapshot]]:
+def _snapshots_of_files(files: list[Path], threads: int, checked) -> Iterator[tuple[Path, Snapshot]]:
     last = len(files) - 1
     if threads == 1 or len(files) < 2:
         for index, path in enumerate(files):
-            for snap in _iter_file(path, allow_truncated=index == last):
+            for snap in _iter_file(path, allow_truncated=index == last, checked=checked):
                 yield path, snap
         return
     from collections import deque
@@ -172,12 +181,12 @@ def _snapshots_of_files(files: list[Path], threads: int) -> Iterator[tuple[Path,
             while pending or next_index <= last:
                 while next_index <= last and len(pending) < threads:
                     path = files[next_index]
-                    pending.append((path, next_index == last, pool.submit(_load_single_file, path, next_index == last)))
+                    pending.append((path, next_index == last, pool.submit(_load_single_file, path, next_index == last, checked)))
                     next_index += 1
                 path, allow, future = pending.popleft()
                 loaded = future.result()
                 if loaded is None:  # several snapshots in this file: stream it here
-                    for snap in _iter_file(path, allow_truncated=allow):
+                    for snap in _iter_file(path, allow_truncated=allow, checked=checked):
                         yield path, snap
                     continue
                 snap, messages = loaded
@@ -190,11 +199,11 @@ def _snapshots_of_files(files: list[Path], threads: int) -> Iterator[tuple[Path,
                 future.cancel()
 
 
-def _load_single_file(path: Path, allow_truncated: bool):
+def _load_single_file(path: Path, allow_truncated: bool, checked):
     """Worker: ``(snapshot or None, warning messages)`` for a file of at most one snapshot;
     None if the file holds more than one (the caller streams it instead)."""
     messages: list[str] = []
-    snaps = _iter_file(path, allow_truncated, warn=messages.append)
+    snaps = _iter_file(path, allow_truncated, warn=messages.append, checked=checked)
     try:
         first = next(snaps, None)
         if first is not None and next(snaps, None) is not None:
@@ -218,9 +227,10 @@ class _Truncated(Exception):
     pass
 
 
-def _iter_file(path: Path, allow_truncated: bool, warn=None) -> Iterator[Snapshot]:
+def _iter_file(path: Path, allow_truncated: bool, warn=None, checked=None) -> Iterator[Snapshot]:
     """Snapshots of one file; a truncated last snapshot is reported through ``warn(message)``
-    (default: a TruncatedDumpWarning) when ``allow_truncated``, else DumpFormatError."""
+    (default: a TruncatedDumpWarning) when ``allow_truncated``, else DumpFormatError.
+    ``checked``: the columns that must be finite (None: all of them)."""
     if warn is None:
 
         def warn(message: str) -> None:
@@ -245,14 +255,14 @@ def _iter_file(path: Path, allow_truncated: bool, warn=None) -> Iterator[Snapsho
             while pos < size:
                 if pos == 0:
                     try:
-                        single = _parse_single(buf, size, path)
+                        single = _parse_single(buf, size, path, checked)
                     except _Truncated:
                         single = None  # the general path below reports it
                     if single is not None:
                         yield single
                         return
                 try:
-                    snap, pos = _parse_snapshot(buf, pos, size, path)
+                    snap, pos = _parse_snapshot(buf, pos, size, path, checked)
                 except _Truncated as exc:
                     if not allow_truncated:
                         raise DumpFormatError(
@@ -270,11 +280,12 @@ def _line_of(buf, pos: int) -> int:
     return bytes(buf[:pos]).count(b"\n") + 1
 
 
-def _parse_single(buf, size: int, path: Path) -> Snapshot | None:
+def _parse_single(buf, size: int, path: Path, checked=None) -> Snapshot | None:
     """Fast path for a file holding exactly one complete snapshot (the deck's layout):
     pandas' C parser reads the numbers straight from the file after the 9 header lines,
     exactly like the plain ``read_csv`` baseline but with float64 declared (no type
-    inference). Returns None when the file is not such a file (general path then)."""
+    inference). Returns None when the file is not such a file, or its values fail a check
+    (the general path then parses it again and names the line)."""
     if buf[size - 1 : size] != b"\n":
         return None
     step, natoms, box, columns, body_start, header_lines = _parse_header(buf, 0, size, path)
@@ -287,20 +298,87 @@ def _parse_single(buf, size: int, path: Path) -> Snapshot | None:
                             low_memory=False)  # one snapshot: one chunk, no chunk concatenation
     except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
         return None
-    values = _checked_values(frame.to_numpy(), natoms, len(columns))
+    values = _checked_values(frame.to_numpy(), natoms, columns, checked, box)
     if values is None:
         return None
     return Snapshot(step=step, columns=columns, data=values, box=box, source=str(path))
 
 
-def _checked_values(values: np.ndarray, natoms: int, ncols: int) -> np.ndarray | None:
+#: Ids and types are C integers in LIGGGHTS, >= 1. Ids are held here as float64, exact up to
+#: 2**53 (beyond it two ids could read as one); types are C ``int``.
+_MAX_ID = float(2**53)
+_MAX_TYPE = float(2**31 - 1)
+_INTEGER_COLUMNS = {"id": _MAX_ID, "type": _MAX_TYPE}
+#: Positions: LIGGGHTS loses (fixed boundaries) or wraps (periodic) an atom that leaves the
+#: box at the next neighbour-list build, before which it moves less than the skin; so a
+#: dumped position lies in the box give or take a little. One box length of margin on each
+#: side accepts any such position and refuses a corrupted one (1e300 would count as a
+#: discharge).
+_POSITION_AXES = {"x": 0, "y": 1, "z": 2}
+#: Steps are LIGGGHTS' ``bigint`` (int64).
+_MAX_STEP = 2**63 - 1
+
+
+def _position_range(box: np.ndarray, axis: int) -> tuple[float, float]:
+    lo, hi = box[axis]
+    return lo - (hi - lo), hi + (hi - lo)
+
+
+def _checked_values(values: np.ndarray, natoms: int, columns: tuple[str, ...], checked,
+                    box: np.ndarray) -> np.ndarray | None:
+    """The (natoms, ncols) values, or None if their shape is wrong or a value fails a check
+    (:func:`_field_problem` then names it)."""
+    ncols = len(columns)
     # LIGGGHTS ends every atom line with a space: pandas sees an empty last column, which is
     # left out by a view (no copy).
     if values.shape[1] == ncols + 1 and np.isnan(values[:, -1]).all():
         values = values[:, :ncols]
-    if values.shape != (natoms, ncols) or np.isnan(values).any():
+    if values.shape != (natoms, ncols):
         return None
+    if not np.isfinite(values).all():  # rare: which non-finite values are allowed?
+        # NaN anywhere also means an empty field (two spaces), which pandas reads as NaN.
+        if np.isnan(values).any():
+            return None
+        names = columns if checked is None else [name for name in checked if name in columns]
+        if any(not np.isfinite(values[:, columns.index(name)]).all() for name in names):
+            return None
+    # min/max are single reductions over a strided column, cheaper than boolean masks
+    for name, bound in _INTEGER_COLUMNS.items():
+        if name in columns:
+            v = values[:, columns.index(name)]
+            if v.min() < 1 or v.max() > bound or not np.array_equal(v, np.floor(v)):
+                return None
+    for name, axis in _POSITION_AXES.items():
+        if name in columns:
+            low, high = _position_range(box, axis)
+            v = values[:, columns.index(name)]
+            if v.min() < low or v.max() > high:
+                return None
     return values
+
+
+def _field_problem(name: str, text: bytes, checked, box: np.ndarray) -> str | None:
+    """Why the field ``text`` of column ``name`` is invalid, or None (the per-value form of
+    :func:`_checked_values`, used only to name a bad value)."""
+    shown = text[:40].decode(errors="replace")
+    try:
+        value = float(text)
+    except ValueError:
+        return f"column {name!r}: {shown!r} is not a number"
+    if math.isnan(value):
+        return f"column {name!r}: {shown!r} is not a number (NaN)"
+    if math.isinf(value) and (checked is None or name in checked):
+        return f"column {name!r}: {shown!r} is not finite; a finite number is needed"
+    bound = _INTEGER_COLUMNS.get(name)
+    if bound is not None and not (1 <= value <= bound and value == math.floor(value)):
+        return f"column {name!r}: {shown!r} is not a valid {name}; an integer in [1, {int(bound)}] is needed"
+    axis = _POSITION_AXES.get(name)
+    if axis is not None and math.isfinite(value):
+        low, high = _position_range(box, axis)
+        if not low <= value <= high:
+            return (f"column {name!r}: {shown!r} lies far outside the box [{box[axis][0]:.6g}, {box[axis][1]:.6g}]; "
+                    f"positions within one box length of it, [{low:.6g}, {high:.6g}], are accepted")
+    return None
 
 
 def _read_line(buf, pos: int, size: int, path: Path) -> tuple[bytes, int]:
@@ -310,61 +388,82 @@ def _read_line(buf, pos: int, size: int, path: Path) -> tuple[bytes, int]:
     return bytes(buf[pos:end]).rstrip(b"\r"), end + 1
 
 
+def _shown(line: bytes) -> str:
+    return repr(line[:60].decode(errors="replace"))
+
+
 def _parse_header(buf, pos: int, size: int, path: Path):
     """(step, natoms, box, columns, body_start, header_lines) of the snapshot at ``pos``."""
 
     def fail(at: int, message: str) -> DumpFormatError:
         return DumpFormatError(f"{path}: line {_line_of(buf, at)}: {message}")
 
-    def expect_item(at: int, item: bytes) -> int:
+    def expect_item(at: int, item: bytes) -> tuple[bytes, int]:
         line, nxt = _read_line(buf, at, size, path)
         if not line.strip().startswith(item):
-            raise fail(at, f"expected {item.decode()!r}, found {line[:60].decode(errors='replace')!r}")
-        return nxt
+            raise fail(at, f"expected {item.decode()!r}, found {_shown(line)}")
+        return line, nxt
 
-    def number(at: int, kind, what: str):
+    def number(at: int, what: str, low: int, high: int):
         line, nxt = _read_line(buf, at, size, path)
         try:
-            return kind(line.strip()), nxt
+            value = int(line.strip())
         except ValueError:
-            raise fail(at, f"expected {what}, found {line[:60].decode(errors='replace')!r}") from None
+            raise fail(at, f"expected {what}, found {_shown(line)}") from None
+        if not low <= value <= high:
+            raise fail(at, f"{what} {value} is out of range; it must lie in [{low}, {high}]")
+        return value, nxt
 
-    pos = expect_item(pos, _HEADER_ITEMS[0])
-    step, pos = number(pos, int, "an integer timestep")
-    pos = expect_item(pos, _HEADER_ITEMS[1])
-    natoms, pos = number(pos, int, "an integer number of atoms")
-    if natoms < 0:
-        raise fail(pos, f"negative number of atoms {natoms}")
-    pos = expect_item(pos, _HEADER_ITEMS[2])
+    _, pos = expect_item(pos, _HEADER_ITEMS[0])
+    step, pos = number(pos, "timestep", 0, _MAX_STEP)
+    _, pos = expect_item(pos, _HEADER_ITEMS[1])
+    natoms, pos = number(pos, "number of atoms", 0, _MAX_STEP)
+    flags, pos = expect_item(pos, _HEADER_ITEMS[2])
+    # A triclinic box (LIGGGHTS writes 'BOX BOUNDS xy xz yz ...') adds its tilt factor as a
+    # third number per line; lo and hi are then the bounding box's, still lo < hi.
+    triclinic = b"xy" in flags.split()
+    per_line = 3 if triclinic else 2
     box = np.zeros((3, 2))
     for axis in range(3):
         line, nxt = _read_line(buf, pos, size, path)
+        fields = line.split()
         try:
-            box[axis] = [float(v) for v in line.split()[:2]]
+            values = [float(v) for v in fields]
         except ValueError:
-            raise fail(pos, f"expected box bounds 'lo hi', found {line[:60].decode(errors='replace')!r}") from None
+            values = []
+        if len(values) != per_line or not all(math.isfinite(v) for v in values) or not values[0] < values[1]:
+            layout = "'lo hi tilt'" if triclinic else "'lo hi'"
+            raise fail(pos, f"box bounds of axis {'xyz'[axis]} must be {layout}: {per_line} finite numbers "
+                            f"with lo < hi, found {_shown(line)}")
+        box[axis] = values[:2]
         pos = nxt
     line, nxt = _read_line(buf, pos, size, path)
     if not line.startswith(b"ITEM: ATOMS"):
-        raise fail(pos, f"expected 'ITEM: ATOMS <columns>', found {line[:60].decode(errors='replace')!r}")
-    columns = tuple(line[len(b"ITEM: ATOMS") :].decode().split())
+        raise fail(pos, f"expected 'ITEM: ATOMS <columns>', found {_shown(line)}")
+    try:
+        columns = tuple(line[len(b"ITEM: ATOMS") :].decode("ascii").split())
+    except UnicodeDecodeError as exc:
+        raise fail(pos, f"column names must be ASCII; byte {line[len(b'ITEM: ATOMS') + exc.start]:#04x} at "
+                        f"character {len(b'ITEM: ATOMS') + exc.start + 1} of {_shown(line)} is not") from None
     if not columns or len(set(columns)) != len(columns):
         raise fail(pos, f"ITEM: ATOMS header must name distinct columns, got {columns}")
     return step, natoms, box, columns, nxt, 9
 
 
-def _parse_snapshot(buf, pos: int, size: int, path: Path) -> tuple[Snapshot, int]:
+def _parse_snapshot(buf, pos: int, size: int, path: Path, checked=None) -> tuple[Snapshot, int]:
     step, natoms, box, columns, body_start, _ = _parse_header(buf, pos, size, path)
     end = buf.find(_NEXT, body_start)
     if end < 0:
         end = size
     block = bytes(buf[body_start:end])
     at_eof = end == size
-    data = _parse_block(block, natoms, len(columns), path, buf, body_start, at_eof)
+    data = _parse_block(block, natoms, columns, path, buf, body_start, at_eof, checked, box)
     return Snapshot(step=step, columns=columns, data=data, box=box, source=str(path)), end
 
 
-def _parse_block(block: bytes, natoms: int, ncols: int, path: Path, buf, body_start: int, at_eof: bool) -> np.ndarray:
+def _parse_block(block: bytes, natoms: int, columns: tuple[str, ...], path: Path, buf, body_start: int,
+                 at_eof: bool, checked=None, box=None) -> np.ndarray:
+    ncols = len(columns)
     if natoms == 0:
         if block.strip():
             raise DumpFormatError(f"{path}: line {_line_of(buf, body_start)}: data lines after 'NUMBER OF ATOMS 0'")
@@ -388,27 +487,34 @@ def _parse_block(block: bytes, natoms: int, ncols: int, path: Path, buf, body_st
     try:
         frame = pd.read_csv(io.BytesIO(block), sep=" ", header=None, dtype=np.float64, engine="c", low_memory=False)
     except (ValueError, pd.errors.ParserError) as exc:
-        raise _locate_bad_line(block, ncols, path, buf, body_start, str(exc)) from None
-    values = _checked_values(frame.to_numpy(), natoms, ncols)
+        raise _locate_bad_line(block, columns, path, buf, body_start, str(exc), checked, box) from None
+    values = _checked_values(frame.to_numpy(), natoms, columns, checked, box)
     if values is None:
-        raise _locate_bad_line(block, ncols, path, buf, body_start, f"expected {natoms} lines of {ncols} numbers")
+        raise _locate_bad_line(block, columns, path, buf, body_start, f"expected {natoms} lines of {ncols} numbers",
+                               checked, box)
     return values
 
 
-def _locate_bad_line(block: bytes, ncols: int, path: Path, buf, body_start: int, why: str) -> DumpFormatError:
-    """Slow path, only on error: find the first atom line that is not ``ncols`` numbers."""
+def _locate_bad_line(block: bytes, columns: tuple[str, ...], path: Path, buf, body_start: int, why: str,
+                     checked=None, box=None) -> DumpFormatError:
+    """Slow path, only on error: the first atom line that is not ``len(columns)`` valid numbers."""
     first = _line_of(buf, body_start)
+    ncols = len(columns)
     for offset, line in enumerate(block.split(b"\n")[:-1]):
         fields = line.split()
-        try:
-            ok = len(fields) == ncols and all(float(f) == float(f) for f in fields)
-        except ValueError:
-            ok = False
-        if not ok:
+        if len(fields) != ncols:
             return DumpFormatError(
-                f"{path}: line {first + offset}: expected {ncols} numbers "
-                f"({len(fields)} fields: {line[:80].decode(errors='replace')!r})"
+                f"{path}: line {first + offset}: expected {ncols} numbers ({' '.join(columns)}), "
+                f"found {len(fields)} fields: {line[:80].decode(errors='replace')!r}"
             )
+        for name, text in zip(columns, fields):
+            problem = _field_problem(name, text, checked, box)
+            if problem is not None:
+                return DumpFormatError(f"{path}: line {first + offset}: {problem}")
+        # pandas splits on single spaces: two in a row make an empty field
+        if b"  " in line.strip() or b"\t" in line:
+            return DumpFormatError(f"{path}: line {first + offset}: fields must be separated by single spaces, "
+                                   f"found {line[:80].decode(errors='replace')!r}")
     return DumpFormatError(f"{path}: line {first}: malformed atom block ({why})")
 
 

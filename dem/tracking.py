@@ -2,8 +2,9 @@
 post-processing (:func:`accumulate`) and when each particle left (:func:`find_exits`).
 
 Memory is flat in the number of snapshots: per-particle state is a few arrays indexed by
-particle ID, the velocity sums one array per window and the compartment counts one small
-array per snapshot. The conventions (times, binning, windows, exits) are listed in
+particle ID (IDs are bounded by the number of particles seen, :func:`id_bound`), the
+velocity sums one array per window and the compartment counts one small array per
+snapshot. The conventions (times, binning, windows, exits) are listed in
 :mod:`dem.post`, which runs these steps.
 """
 
@@ -24,6 +25,11 @@ from dem.dumps import iter_snapshots
 from dem.massflow import latest_records
 
 REQUIRED_COLUMNS = ("id", "type", "x", "y", "vx", "vy")
+#: Bound on particle IDs (see :func:`id_bound`): the per-particle arrays are indexed by ID.
+ID_HEADROOM, ID_FACTOR = 1_000_000, 10
+#: Bound on a snapshot's time, in sampling intervals: the time series holds one row (and one
+#: NX x NY count array) per interval up to the last snapshot. The paper's run is 260 of them.
+MAX_SAMPLING_INTERVALS = 100_000
 #: Rows of a window's sums: the four velocity parts, particle-snapshots, A and B counts.
 SUM_ROWS = (*VELOCITY_NAMES, "n_samples", "count_A", "count_B")
 #: How a particle's exit was found (:func:`find_exits`).
@@ -61,6 +67,22 @@ class ParticleLog:
         return ~np.isnan(self.first_t)
 
 
+def id_bound(particles_seen: int) -> int:
+    """Largest particle ID accepted once ``particles_seen`` particles are known (an ID listed
+    twice in one snapshot counts twice, which only loosens the bound).
+
+    The per-particle arrays are indexed by ID (42 bytes per ID up to the largest), which is
+    what keeps the streaming pass a few vector operations per snapshot. LIGGGHTS numbers
+    inserted particles 1, 2, 3, ... and never reuses an ID, so the largest ID is about the
+    number inserted so far; dumps that start late in a run see fewer particles than that.
+    The headroom of 10**6 IDs (at most ~84 MB with the doubling) accepts any such window of
+    a run inserting up to a million particles (the paper preset inserts ~520 000 in
+    260 s), and the factor 10 larger runs seen sparsely; an ID beyond both is a corrupted
+    dump, not a particle, and would otherwise cost memory in proportion to its value.
+    """
+    return ID_FACTOR * int(particles_seen) + ID_HEADROOM
+
+
 @dataclass
 class Accumulation:
     """What the streaming pass keeps: the particle log, the window sums (window index ->
@@ -91,22 +113,39 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
     counts: list[np.ndarray] = []
     prev_ids = np.zeros(0, np.int64)
     last_step, reappeared, other_types = -1, 0, set()
+    n_seen = 0
+    max_t = MAX_SAMPLING_INTERVALS * float(tables.sample_interval_s)
+    # The reader has checked that ids and types are integers >= 1 and that the columns used
+    # here are finite.
     for snap in iter_snapshots(dump_paths, columns=REQUIRED_COLUMNS):
         t = snap.time_s(dt)
+        if t > max_t:
+            raise DumpFormatError(
+                f"{snap.source}: snapshot at step {snap.step} is at t = {t:.6g} s (timestep {dt:.6g} s), beyond "
+                f"{MAX_SAMPLING_INTERVALS} sampling intervals ({max_t:.6g} s); a corrupted step, or a timestep "
+                "that is not the run's")
         last_step = snap.step
         ids = snap["id"].astype(np.int64)
         ptype = snap["type"].astype(np.int64)
         x, y, vx, vy = snap["x"], snap["y"], snap["vx"], snap["vy"]
         if ids.size:
-            if ids.min() < 0:
-                raise DumpFormatError(f"{snap.source}: negative particle id at step {snap.step}")
-            log.ensure(int(ids.max()))
+            top = int(ids.max())
+            bound = id_bound(n_seen + ids.size)
+            if top > bound:
+                row = int(np.argmax(ids))
+                raise DumpFormatError(
+                    f"{snap.source}: snapshot at step {snap.step}, atom {row + 1} (column 'id'): particle id {top} "
+                    f"is implausible; with {n_seen} particles seen before and {ids.size} in this snapshot, ids up "
+                    f"to {bound} ({ID_FACTOR} x particles + {ID_HEADROOM}) are accepted (LIGGGHTS numbers "
+                    "particles 1, 2, 3, ...)")
+            log.ensure(top)
         is_a, is_b = np.isin(ptype, types_a), np.isin(ptype, types_b)
         if not (is_a | is_b).all():
             other_types.update(int(v) for v in np.unique(ptype[~(is_a | is_b)]))
 
         new = np.isnan(log.first_t[ids])
         log.first_t[ids[new]] = t
+        n_seen += int(np.count_nonzero(new))  # an id listed twice counts twice: a looser bound, no sort
         log.kind[ids] = np.where(is_a, 1, np.where(is_b, 2, 3))
         back = ~new & ~np.isnan(log.vanish_t[ids])
         if back.any():

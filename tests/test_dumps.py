@@ -175,3 +175,93 @@ def test_real_dump_truncated_by_a_kill(tmp_path):
     (tmp_path / "dump.25440.txt").write_bytes(data[: int(len(data) * 0.6)])
     with pytest.warns(TruncatedDumpWarning, match="dump.25440.txt"):
         assert [s.step for s in iter_snapshots(str(tmp_path / "dump.*.txt"))] == [21200, 23320]
+
+
+def _one_snapshot(tmp_path, name="bad.txt", rows=((1, 1, 0.1, 0.0, 0.0, 0.1, 0.0, 0.0, 0.003),
+                                                  (2, 2, 0.2, 0.01, 0.0, 0.2, 0.0, 0.0, 0.003))):
+    path = tmp_path / name
+    path.write_bytes(format_snapshot(7, COLUMNS, np.array(rows, dtype=float)))
+    return path
+
+
+def _replace_line(path, index, text: bytes):
+    lines = path.read_bytes().split(b"\n")
+    lines[index] = text
+    path.write_bytes(b"\n".join(lines))
+
+
+def test_undecodable_header_bytes_name_file_and_line(tmp_path):
+    path = _one_snapshot(tmp_path)
+    _replace_line(path, 8, b"ITEM: ATOMS id type x \xff\xfe z vx vy vz radius ")
+    with pytest.raises(DumpFormatError, match=r"bad\.txt: line 9: column names must be ASCII; byte 0xff"):
+        read_snapshot_file(path)
+    _replace_line(path, 8, b"ITEM: ATOMS id type x y z vx vy vz radius ")
+    _replace_line(path, 9, b"1 1 0.\xc3 0 0 0.1 0 0 0.003 ")
+    with pytest.raises(DumpFormatError, match=r"bad\.txt: line 10: column 'x': .* is not a number"):
+        read_snapshot_file(path)
+
+
+@pytest.mark.parametrize("column, value", [("x", "inf"), ("y", "-inf"), ("vx", "nan"), ("vy", "Infinity")])
+def test_non_finite_value_names_line_and_column(tmp_path, column, value):
+    path = _one_snapshot(tmp_path)
+    fields = path.read_bytes().split(b"\n")[10].split(b" ")
+    fields[COLUMNS.index(column)] = value.encode()
+    _replace_line(path, 10, b" ".join(fields))
+    with pytest.raises(DumpFormatError, match=rf"bad\.txt: line 11: column '{column}': '{value}' is not"):
+        list(iter_snapshots(path, columns=("id", "type", "x", "y", "vx", "vy")))
+
+
+def test_inf_in_a_column_nobody_uses_is_read(tmp_path):
+    path = _one_snapshot(tmp_path)
+    _replace_line(path, 10, b"2 2 0.2 0.01 0 0.2 0 0 inf ")
+    (snap,) = iter_snapshots(path, columns=("id", "x"))
+    assert np.isinf(snap["radius"][1])
+    with pytest.raises(DumpFormatError, match=r"line 11: column 'radius': 'inf' is not finite"):
+        read_snapshot_file(path)  # no columns named: every column must be finite
+
+
+@pytest.mark.parametrize("line", [b"-0.005", b"0.35 -0.005", b"0.1 0.1", b"-0.005 inf", b"nan 0.35",
+                                  b"-0.005 0.35 0.0", b"a b", b""])
+def test_box_bounds_need_two_finite_numbers_lo_below_hi(tmp_path, line):
+    path = _one_snapshot(tmp_path)
+    _replace_line(path, 6, line)
+    with pytest.raises(DumpFormatError, match=r"bad\.txt: line 7: box bounds of axis y must be 'lo hi': 2 finite"):
+        read_snapshot_file(path)
+
+
+def test_triclinic_box_bounds_are_read(tmp_path):
+    path = _one_snapshot(tmp_path)
+    _replace_line(path, 4, b"ITEM: BOX BOUNDS xy xz yz ff ff ff")
+    for index in (5, 6, 7):
+        _replace_line(path, index, b"-1 1 0.0")
+    (snap,) = read_snapshot_file(path)
+    np.testing.assert_array_equal(snap.box, [[-1, 1]] * 3)
+    _replace_line(path, 6, b"-1 1")
+    with pytest.raises(DumpFormatError, match=r"line 7: box bounds of axis y must be 'lo hi tilt'"):
+        read_snapshot_file(path)
+
+
+@pytest.mark.parametrize("column, value", [("id", b"-3"), ("id", b"0"), ("id", b"1.5"), ("id", b"1e20"),
+                                           ("type", b"0"), ("type", b"2.5"), ("type", b"3e9")])
+def test_ids_and_types_must_be_positive_integers(tmp_path, column, value):
+    path = _one_snapshot(tmp_path)
+    fields = path.read_bytes().split(b"\n")[9].split(b" ")
+    fields[COLUMNS.index(column)] = value
+    _replace_line(path, 9, b" ".join(fields))
+    with pytest.raises(DumpFormatError, match=rf"line 10: column '{column}': .* an integer in \[1, "):
+        read_snapshot_file(path)
+
+
+def test_position_far_outside_the_box_is_refused(tmp_path):
+    path = _one_snapshot(tmp_path)  # box [-1, 1]: positions in [-3, 3] are accepted
+    _replace_line(path, 10, b"2 2 2.9 1e300 0 0.2 0 0 0.003 ")
+    with pytest.raises(DumpFormatError, match=r"line 11: column 'y': '1e300' lies far outside the box"):
+        read_snapshot_file(path)
+
+
+@pytest.mark.parametrize("line, message", [(1, b"-5"), (1, b"99999999999999999999"), (3, b"-1")])
+def test_header_numbers_out_of_range(tmp_path, line, message):
+    path = _one_snapshot(tmp_path)
+    _replace_line(path, line, message)
+    with pytest.raises(DumpFormatError, match=rf"line {line + 1}: .* is out of range"):
+        read_snapshot_file(path)

@@ -253,3 +253,32 @@ def test_massflow_parts_of_a_resumed_run(tmp_path):
     assert s["massflow_duplicate_ids"] == len(early) + len(late) - len(rows) > 0
     assert s["massflow_discharged"] == len(rows)
     assert s["discharge_crosscheck_diff"] == 0 and s["lost"] == 0
+
+
+def test_absurd_particle_id_is_refused_not_allocated(tmp_path):
+    """An id of 9e12 (a corrupted digit) would make the per-id arrays 65 TiB."""
+    cfg = config()
+    step = int(round(1.0 / cfg.timestep_s))
+    rows = [(1, 1, 0.01, 0.01, 0, 0.1, 0, 0, 0.003), (9e12, 2, 0.02, -0.01, 0, 0.1, 0, 0, 0.003)]
+    (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows)))
+    with pytest.raises(DumpFormatError, match=r"atom 2 \(column 'id'\): particle id 9000000000000 is implausible"):
+        postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
+
+
+def test_sparse_ids_within_the_bound_are_accepted(tmp_path):
+    """Dumps from late in a long run: few particles, ids near a million."""
+    cfg = config()
+    step = int(round(1.0 / cfg.timestep_s))
+    rows = [(999_000 + k, 1, 0.01 * k, 0.01, 0, 0.1, 0, 0, 0.003) for k in (1, 2, 3)]
+    (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows)))
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
+    assert res.summary["inserted"] == 3
+
+
+def test_snapshot_time_beyond_any_run_is_refused(tmp_path):
+    cfg = config()
+    step = int(round(1e6 / cfg.timestep_s))  # 10**6 s: 10**6 one-second sampling intervals
+    rows = [(1, 1, 0.01, 0.01, 0, 0.1, 0, 0, 0.003)]
+    (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows)))
+    with pytest.raises(DumpFormatError, match="beyond 100000 sampling intervals"):
+        postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
