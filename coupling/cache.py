@@ -51,7 +51,7 @@ import h5py
 import numpy as np
 import pandas as pd
 
-from coupling.errors import CacheError
+from coupling.errors import CacheError, os_reason
 from coupling.jsonable import dumps_exact
 from coupling.tables import GROUP as TABLE_GROUP
 from coupling.tables import VelocityTable, atomic_h5, table_from_group, table_to_group
@@ -116,7 +116,7 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
             # over what was just written, read back through h5py: the same path load_entry takes
             h5.attrs[DIGEST_ATTR] = file_digest(h5)
     except OSError as exc:
-        raise CacheError(f"cannot write cache file {path}: {exc}") from exc
+        raise CacheError(f"cannot write cache file {path}: {os_reason(exc)}") from exc
     return path
 
 

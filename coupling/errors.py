@@ -5,6 +5,16 @@ an exit code. Each message names the offending value and what would have been va
 """
 
 
+def os_reason(exc: OSError) -> str:
+    """What the file system said, in one line: the errno's text when there is one (HDF5's
+    messages run over several lines and name temporary files), else the message itself."""
+    import os
+
+    if exc.errno:
+        return os.strerror(exc.errno)
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 class PbmDemError(Exception):
     """Base class of every error this project raises on purpose."""
 
@@ -50,6 +60,10 @@ class DumpFormatError(PbmDemError, ValueError):
 
 class TableError(PbmDemError, ValueError):
     """A velocity table is missing a dataset, has a wrong shape or invalid values."""
+
+
+class OutputError(PbmDemError):
+    """An output (run directory, result files, report) could not be written."""
 
 
 class CacheError(PbmDemError):

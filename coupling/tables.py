@@ -40,7 +40,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from coupling.errors import TableError
+from coupling.errors import TableError, os_reason
 
 SCHEMA_VERSION = 1
 GROUP = "velocity_table"
@@ -260,8 +260,11 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
 def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:
     """Write ``table`` to a new HDF5 file atomically (temporary file, then rename)."""
     path = Path(path)
-    with atomic_h5(path) as h5:
-        table_to_group(h5.create_group(GROUP), table)
+    try:
+        with atomic_h5(path) as h5:
+            table_to_group(h5.create_group(GROUP), table)
+    except OSError as exc:
+        raise TableError(f"cannot write velocity table {path}: {os_reason(exc)}") from exc
     return path
 
 

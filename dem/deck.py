@@ -83,7 +83,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from coupling.cache import stable_hash
-from coupling.errors import DeckError
+from coupling.errors import DeckError, OutputError, os_reason
 from dem.config import MAX_STABLE_RAYLEIGH_FRACTION, DemConfig
 from dem.geometry import Box, build_geometry, stl_text
 
@@ -553,13 +553,17 @@ def deck_hash(files: dict[str, str | bytes], liggghts_version: str = "") -> str:
 
 
 def write_deck(files: dict[str, str], out_dir: str | Path) -> Path:
-    """Write the files (creating ``meshes/``, ``dumps/``, ``restart/``) under ``out_dir``."""
+    """Write the files (creating ``meshes/``, ``dumps/``, ``restart/``) under ``out_dir``.
+    Raises OutputError naming the directory when the file system refuses."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    for d in RUN_DIRS:
-        (out / d).mkdir(exist_ok=True)
-    for name, text in files.items():
-        path = out / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for d in RUN_DIRS:
+            (out / d).mkdir(exist_ok=True)
+        for name, text in files.items():
+            path = out / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+    except OSError as exc:
+        raise OutputError(f"cannot write the run directory {out}: {os_reason(exc)}") from exc
     return out

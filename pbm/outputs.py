@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from coupling.errors import OutputError, os_reason
 from coupling.jsonable import json_ready
 from pbm.plots import save_figures
 from pbm.simulate import PbmResult
@@ -15,14 +16,18 @@ def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) 
 
     CSVs: comma-separated, a header line, ``nan`` where a value is undefined (C_A before
     anything leaves, RSD with fewer than two occupied compartments). JSON: NaN -> null.
-    Returns name -> path of every file written.
+    Returns name -> path of every file written; raises OutputError naming the directory
+    when the file system refuses.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {"timeseries": out / "timeseries.csv", "rtd": out / "rtd.csv", "summary": out / "summary.json"}
-    result.timeseries().to_csv(paths["timeseries"], index=False, float_format="%.10g", na_rep="nan")
-    result.rtd().to_csv(paths["rtd"], index=False, float_format="%.10g", na_rep="nan")
-    paths["summary"].write_text(json.dumps(json_ready(result.summary), indent=2, allow_nan=False) + "\n")
-    if figures:
-        paths.update(save_figures(result, out))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        result.timeseries().to_csv(paths["timeseries"], index=False, float_format="%.10g", na_rep="nan")
+        result.rtd().to_csv(paths["rtd"], index=False, float_format="%.10g", na_rep="nan")
+        paths["summary"].write_text(json.dumps(json_ready(result.summary), indent=2, allow_nan=False) + "\n")
+        if figures:
+            paths.update(save_figures(result, out))
+    except OSError as exc:
+        raise OutputError(f"cannot write the PBM outputs in {out}: {os_reason(exc)}") from exc
     return paths

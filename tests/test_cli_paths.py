@@ -76,3 +76,37 @@ def test_dem_post_refuses_dumps_of_another_deck(tmp_path, capsys):
     capsys.readouterr()
     assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 2
     assert "come from deck 0123456789abcdef" in capsys.readouterr().err
+
+
+@pytest.fixture
+def small_mounts(tmp_path):
+    """A full disk (a 64 KiB tmpfs) and a read-only file system, which root cannot write
+    either (permission bits would not stop root, who runs CI)."""
+    import os
+    import subprocess
+
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root (CI runs as root)")
+    mounts = {"full": tmp_path / "full", "readonly": tmp_path / "readonly"}
+    for name, options in (("full", "size=64k"), ("readonly", "ro,size=64k")):
+        mounts[name].mkdir()
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mounts[name])], capture_output=True)
+        if done.returncode != 0:
+            pytest.fail(f"cannot mount a tmpfs: {done.stderr.decode(errors='replace')}")
+    yield mounts
+    for path in mounts.values():
+        subprocess.run(["umount", str(path)], capture_output=True)
+
+
+@pytest.mark.parametrize("where", ["full", "readonly"])
+def test_full_disk_and_read_only_directory_give_one_line(where, paths, small_mounts, capsys):
+    target = small_mounts[where]
+    for argv in (["pbm", "run", "--tables", str(paths["table"]), "--out", str(target / "out")],
+                 ["dem", "deck", "--preset", "smoke", "--out", str(target / "deck")],
+                 ["pbm", "synth", "--out", str(target / "t.h5")]):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("pbmdem: error:") and "Traceback" not in err, err
+        assert str(target) in lines[0] and ("No space" in lines[0] or "Read-only" in lines[0]), lines[0]

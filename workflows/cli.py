@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from coupling.errors import ConfigError, PbmDemError
+from coupling.errors import ConfigError, PbmDemError, os_reason
 from workflows.config import add_config_arguments, dump_toml, preset_names, resolve_config
 from workflows.pipeline import stderr_log
 
@@ -78,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except OSError as exc:  # the file system said no (a path, the disk, a permission): one line
         where = " -> ".join(str(name) for name in (exc.filename, exc.filename2) if name)
-        print(f"pbmdem: error: {exc.strerror or exc}" + (f": {where}" if where else ""), file=sys.stderr)
+        print(f"pbmdem: error: {os_reason(exc)}" + (f": {where}" if where else ""), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("pbmdem: interrupted", file=sys.stderr)

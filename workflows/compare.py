@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coupling.errors import OutputError, os_reason
 from coupling.jsonable import json_ready
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, dump_toml
@@ -97,54 +98,60 @@ def full_comparison(
     pbm_view = SideResults("PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final,
                            dict(pbm_result.summary))
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
-    figures = plot_comparison(dem_view, pbm_view, out_dir)
-    try:
-        from dem.render import render_geometry
+    try:  # every file of the report: a full disk or a vanished directory is one line naming it
+        figures = plot_comparison(dem_view, pbm_view, out_dir)
+        try:
+            from dem.render import render_geometry
 
-        render_geometry(config.dem, out_dir / "geometry.png")
-        figures["geometry"] = "geometry.png"
-    except Exception as exc:  # a picture must not cost the report; say why it is missing
-        log(f"geometry picture skipped: {exc}")
+            render_geometry(config.dem, out_dir / "geometry.png")
+            figures["geometry"] = "geometry.png"
+        except Exception as exc:  # a picture must not cost the report; say why it is missing
+            log(f"geometry picture skipped: {exc}")
 
-    log("running the PBM studies (length, diameter, feed noise)")
-    t0 = time.monotonic()
-    studies = run_studies(dem.table, pbm_config, config.steady_state, out_dir, noise_members)
-    studies_time = time.monotonic() - t0
+        log("running the PBM studies (length, diameter, feed noise)")
+        t0 = time.monotonic()
+        studies = run_studies(dem.table, pbm_config, config.steady_state, out_dir, noise_members)
+        studies_time = time.monotonic() - t0
 
-    notes = _notes(dem)
-    provenance = {
-        "preset": config.name,
-        "input_hash": dem.key,
-        "liggghts_version": dem.provenance.get("liggghts_version"),
-        "commit": _git_commit(),
-        "dem_source": {"run": "LIGGGHTS ran now", "cache": "cache", "reference": "shipped reference data"}[dem.source],
-        "dem_results_made": dem.provenance.get("created"),
-        "dem_ranks": dem.provenance.get("np"),
-        "dem_cache_file": str(dem.cache_file),
-        "rtd_tag_time_s": tag_time,
-        "steady_state_rule": f"window {config.steady_state.window_s:g} s, relative tolerance {config.steady_state.rel_tol:g}",
-        "pbm_conservation_max_rel_error": pbm_conservation_error(pbm_result),
-        "pbm_feed_weights_a": pbm_config.feed_weights_a,
-        "pbm_feed_weights_b": pbm_config.feed_weights_b,
-        "studies_wall_time_s": round(studies_time, 2),
-        "report_made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "config_toml": dump_toml(config),
-    }
-    page = render_html(f"DEM vs PBM — preset {config.name} ({dem.key})", metrics, figures, provenance, studies, notes)
-    (out_dir / "report.html").write_text(page)
-    summary = {
-        "metrics": metrics,
-        "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
-        "dem_summary": dem.results.summary,
-        "pbm_summary": pbm_result.summary,
-        "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
-        "notes": notes,
-    }
-    (out_dir / "summary.json").write_text(json.dumps(json_ready(summary), indent=1, sort_keys=True))
-    dem_view.timeseries.to_csv(out_dir / "dem_timeseries.csv", index=False)
-    pbm_view.timeseries.to_csv(out_dir / "pbm_timeseries.csv", index=False)
-    if paraview:
-        write_paraview(config, dem, out_dir / "paraview", log)
+        notes = _notes(dem)
+        provenance = {
+            "preset": config.name,
+            "input_hash": dem.key,
+            "liggghts_version": dem.provenance.get("liggghts_version"),
+            "commit": _git_commit(),
+            "dem_source": {"run": "LIGGGHTS ran now", "cache": "cache",
+                           "reference": "shipped reference data"}[dem.source],
+            "dem_results_made": dem.provenance.get("created"),
+            "dem_ranks": dem.provenance.get("np"),
+            "dem_cache_file": str(dem.cache_file),
+            "rtd_tag_time_s": tag_time,
+            "steady_state_rule": (f"window {config.steady_state.window_s:g} s, "
+                                  f"relative tolerance {config.steady_state.rel_tol:g}"),
+            "pbm_conservation_max_rel_error": pbm_conservation_error(pbm_result),
+            "pbm_feed_weights_a": pbm_config.feed_weights_a,
+            "pbm_feed_weights_b": pbm_config.feed_weights_b,
+            "studies_wall_time_s": round(studies_time, 2),
+            "report_made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "config_toml": dump_toml(config),
+        }
+        page = render_html(f"DEM vs PBM — preset {config.name} ({dem.key})", metrics, figures, provenance, studies,
+                           notes)
+        (out_dir / "report.html").write_text(page)
+        summary = {
+            "metrics": metrics,
+            "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
+            "dem_summary": dem.results.summary,
+            "pbm_summary": pbm_result.summary,
+            "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
+            "notes": notes,
+        }
+        (out_dir / "summary.json").write_text(json.dumps(json_ready(summary), indent=1, sort_keys=True))
+        dem_view.timeseries.to_csv(out_dir / "dem_timeseries.csv", index=False)
+        pbm_view.timeseries.to_csv(out_dir / "pbm_timeseries.csv", index=False)
+        if paraview:
+            write_paraview(config, dem, out_dir / "paraview", log)
+    except OSError as exc:
+        raise OutputError(f"cannot write the report in {out_dir}: {os_reason(exc)}") from exc
     return out_dir / "report.html"
 
 
