@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,9 +25,7 @@ def to_builtin(value: Any) -> Any:
         return value.item()
     if isinstance(value, (str, int, float, bool)) or value is None:
         return value
-    if isinstance(value, Path):
-        return str(value)
-    return str(value)
+    return str(value)  # paths and anything else
 
 
 def json_ready(value: Any) -> Any:

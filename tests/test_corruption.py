@@ -71,17 +71,21 @@ def damage(data: bytes, kind: str, rng: np.random.Generator) -> bytes:
     return bytes(buf)
 
 
-def test_randomly_damaged_cache_files_are_refused_or_identical(tmp_path, entry):
-    original_path = save_entry(tmp_path / "original.h5", entry)
+def damaged_loads(entry, directory: Path, count: int = 300, seed: int = 20261123):
+    """Load ``count`` seeded damaged copies of ``entry``'s cache file (bit flips,
+    truncations, garbage blocks in turn). Returns (outcomes, changed, crashed): how many
+    were refused or loaded identical data, and the ones that loaded changed data or raised
+    anything but CacheError."""
+    original_path = save_entry(directory / "original.h5", entry)
     original = load_entry(original_path, key="k1")
     assert differences(original, entry) == []
     data = original_path.read_bytes()
-    rng = np.random.default_rng(20261123)
+    rng = np.random.default_rng(seed)
     outcomes = {"refused": 0, "identical": 0}
     changed, crashed = [], []
-    for i in range(300):
+    for i in range(count):
         kind = ("flip", "truncate", "garbage")[i % 3]
-        path = tmp_path / f"dem-{i}.h5"
+        path = directory / f"dem-{i}.h5"
         path.write_bytes(damage(data, kind, rng))
         try:
             loaded = load_entry(path, key="k1")
@@ -97,6 +101,11 @@ def test_randomly_damaged_cache_files_are_refused_or_identical(tmp_path, entry):
             else:
                 outcomes["identical"] += 1
         path.unlink()
+    return outcomes, changed, crashed
+
+
+def test_randomly_damaged_cache_files_are_refused_or_identical(tmp_path, entry):
+    outcomes, changed, crashed = damaged_loads(entry, tmp_path)
     assert crashed == [], crashed[:5]
     assert changed == [], changed[:5]
     # the damage is real: most files are refused (measured: 219 of 300; the others were
@@ -193,3 +202,21 @@ def test_randomly_damaged_table_files_raise_table_error_only(tmp_path, entry):
     directory.mkdir()
     with pytest.raises(TableError, match="is a directory"):
         read_table(directory)
+
+
+if __name__ == "__main__":  # python tests/test_corruption.py: the same damage with and without the digest
+    import tempfile
+    from unittest import mock
+
+    import coupling.cache
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = config()
+        write_synthetic(Path(tmp), cfg)
+        results = postprocess(str(Path(tmp) / "dump.*.txt"), cfg, provenance={"input_hash": "abc"})
+        sample = results.to_cache_entry({"key": "k1", "config_toml": 'name = "x"\n'})
+        for label, check in (("digest checked", None), ("digest not checked", "off")):
+            with mock.patch.object(coupling.cache, "file_digest",
+                                   (lambda h5: h5.attrs.get(DIGEST_ATTR, "unchecked")) if check else coupling.cache.file_digest):
+                outcomes, changed, crashed = damaged_loads(sample, Path(tmp))
+            print(f"{label:20s} {outcomes}, loaded changed data: {len(changed)}, other exceptions: {len(crashed)}")
