@@ -89,6 +89,13 @@ class CacheEntry:
         return str(self.provenance.get("key", ""))
 
 
+def _compressed(data) -> dict:
+    """gzip for the datasets HDF5 can chunk: per-particle records and transition counts are
+    most of an entry and compress several times (scalars and empty arrays cannot be)."""
+    data = np.asarray(data)
+    return {"compression": "gzip", "shuffle": True} if data.ndim and data.size else {}
+
+
 def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
     """Write ``entry`` atomically to ``path``."""
     path = Path(path)
@@ -104,10 +111,11 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
                 sub = frames.create_group(name)
                 sub.attrs["columns"] = json.dumps([str(c) for c in frame.columns])
                 for column in frame.columns:
-                    sub.create_dataset(str(column), data=frame[column].to_numpy())
+                    sub.create_dataset(str(column), data=frame[column].to_numpy(),
+                                       **_compressed(frame[column].to_numpy()))
             arrays = group.create_group("arrays")
             for name, values in entry.arrays.items():
-                arrays.create_dataset(name, data=np.asarray(values))
+                arrays.create_dataset(name, data=np.asarray(values), **_compressed(values))
             h5.attrs["format"] = CACHE_FORMAT
             h5.attrs["format_version"] = CACHE_FORMAT_VERSION
             h5.attrs["key"] = entry.key

@@ -17,15 +17,33 @@ vy_neg         (K,NX,NY)   mean of max(-vy, 0) [m/s]
 count_A        (K,NX,NY)   mean number of A particles in the compartment per snapshot
 count_B        (K,NX,NY)   mean number of B particles in the compartment per snapshot
 n_samples      (K,NX,NY)   particle-snapshots behind the velocity means (int)
+rate_x_pos     (K,NX,NY)   optional: measured rate of moves (i,j) -> (i+1,j) [1/s per
+                           particle]; for the last slice, the discharge rate
+rate_x_neg     (K,NX,NY)   optional: measured rate of moves (i,j) -> (i-1,j) [1/s]
+rate_y_pos     (K,NX,NY)   optional: measured rate of moves (i,j) -> (i,j+1) [1/s]
+rate_y_neg     (K,NX,NY)   optional: measured rate of moves (i,j) -> (i,j-1) [1/s]
 =============  ==========  ===============================================================
 
-Root attributes of the group: ``schema_version`` (this module's :data:`SCHEMA_VERSION`),
+The four ``rate_*`` datasets (schema 2) are measured by the DEM post-processing from
+ID-tracked transitions between dumps; they have the layout and meaning of vx_pos/dx,
+vx_neg/dx, vy_pos/dy and vy_neg/dy. A table carries all four or none
+(:attr:`VelocityTable.has_rates`). NaN marks a rate not measured (too few observations):
+the PBM fills it (``pbm.model.fill_missing_rates``) by the rule that fills missing
+velocities. Rates through a wall (x_neg of slice 0, y_neg of j = 0, y_pos of j = NY-1)
+are 0: no transition crosses a wall.
+
+Root attributes of the group: ``schema_version`` (written: this module's :data:`SCHEMA_VERSION`;
+read: any of :data:`READABLE_VERSIONS`),
 ``window_s``, ``min_samples`` (a compartment-window with fewer samples carries no velocity
 information: see :attr:`VelocityTable.valid`), ``units`` (JSON) and free provenance
 (``input_hash``, ``liggghts_version``, ``preset``, ``created``...).
 
 Velocities of compartments without samples are stored as 0 *and* flagged by ``n_samples``;
 the PBM decides how to fill them, never reading the 0 as a measured velocity.
+
+Versions: every table is written as version 2, with the rate datasets only when it has
+rates. A version-2 file without them holds exactly what a version-1 file holds, so
+version-1 files (which never carry rates) are still read.
 """
 
 from __future__ import annotations
@@ -42,9 +60,12 @@ import numpy as np
 
 from coupling.errors import TableError, os_reason
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 GROUP = "velocity_table"
 VELOCITY_NAMES = ("vx_pos", "vx_neg", "vy_pos", "vy_neg")
+# In the order of VELOCITY_NAMES: rate_x_pos plays the role of vx_pos / dx, and so on.
+RATE_NAMES = ("rate_x_pos", "rate_x_neg", "rate_y_pos", "rate_y_neg")
 FIELD_NAMES = (*VELOCITY_NAMES, "count_A", "count_B", "n_samples")
 UNITS = {
     "t": "s",
@@ -54,6 +75,7 @@ UNITS = {
     "count_A": "particles",
     "count_B": "particles",
     "n_samples": "particle-snapshots",
+    **{name: "1/s" for name in RATE_NAMES},
     "window_s": "s",
 }
 
@@ -75,14 +97,24 @@ class VelocityTable:
     window_s: float
     min_samples: int = 1
     attrs: dict[str, Any] = field(default_factory=dict)
+    rate_x_pos: np.ndarray | None = None
+    rate_x_neg: np.ndarray | None = None
+    rate_y_pos: np.ndarray | None = None
+    rate_y_neg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for name in ("t", "x_edges", "y_edges", *VELOCITY_NAMES, "count_A", "count_B"):
+        present = [name for name in RATE_NAMES if getattr(self, name) is not None]
+        for name in ("t", "x_edges", "y_edges", *VELOCITY_NAMES, "count_A", "count_B", *present):
             object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), dtype=float))
         object.__setattr__(self, "n_samples", np.ascontiguousarray(self.n_samples, dtype=np.int64))
         object.__setattr__(self, "window_s", float(self.window_s))
         object.__setattr__(self, "min_samples", int(self.min_samples))
         _validate(self)
+
+    @property
+    def has_rates(self) -> bool:
+        """The table carries the four measured transition rates (schema 2, :data:`RATE_NAMES`)."""
+        return self.rate_x_pos is not None
 
     @property
     def nx(self) -> int:
@@ -143,20 +175,35 @@ def _validate(table: VelocityTable) -> None:
             raise TableError(f"dataset '{name}' must be finite and strictly increasing, got {edges}")
     shape = (t.size, table.x_edges.size - 1, table.y_edges.size - 1)
     for name in FIELD_NAMES:
-        values = getattr(table, name)
-        if values.shape != shape:
-            raise TableError(
-                f"dataset '{name}' has shape {values.shape}; expected (K, NX, NY) = {shape} "
-                "from 't', 'x_edges' and 'y_edges'"
-            )
-        if not np.all(np.isfinite(values)):
-            raise TableError(f"dataset '{name}' contains NaN or infinite values; every entry must be finite")
-        if np.any(values < 0):
-            k, i, j = np.argwhere(values < 0)[0]
-            raise TableError(
-                f"dataset '{name}' must be >= 0 everywhere; window {k}, compartment ({i}, {j}) "
-                f"holds {values[k, i, j]}"
-            )
+        _check_field(name, getattr(table, name), shape, nan_allowed=False)
+    present = [name for name in RATE_NAMES if getattr(table, name) is not None]
+    if present and len(present) < len(RATE_NAMES):
+        missing = [name for name in RATE_NAMES if name not in present]
+        raise TableError(
+            f"dataset(s) {missing} missing while {present} are given; a table carries all four "
+            f"measured rates {RATE_NAMES} or none"
+        )
+    for name in present:
+        # NaN is how the DEM post-processing marks a rate it observed too few transitions for.
+        _check_field(name, getattr(table, name), shape, nan_allowed=True)
+
+
+def _check_field(name: str, values: np.ndarray, shape: tuple[int, ...], nan_allowed: bool) -> None:
+    if values.shape != shape:
+        raise TableError(
+            f"dataset '{name}' has shape {values.shape}; expected (K, NX, NY) = {shape} "
+            "from 't', 'x_edges' and 'y_edges'"
+        )
+    if nan_allowed and np.any(np.isinf(values)):
+        raise TableError(f"dataset '{name}' contains infinite values; every entry must be finite or NaN (not measured)")
+    if not nan_allowed and not np.all(np.isfinite(values)):
+        raise TableError(f"dataset '{name}' contains NaN or infinite values; every entry must be finite")
+    if np.any(values < 0):
+        k, i, j = np.argwhere(values < 0)[0]
+        raise TableError(
+            f"dataset '{name}' must be >= 0 everywhere; window {k}, compartment ({i}, {j}) "
+            f"holds {values[k, i, j]}"
+        )
 
 
 def make_table(
@@ -173,12 +220,17 @@ def make_table(
     window_s: float | None = None,
     min_samples: int = 1,
     attrs: dict[str, Any] | None = None,
+    rate_x_pos=None,
+    rate_x_neg=None,
+    rate_y_pos=None,
+    rate_y_neg=None,
 ) -> VelocityTable:
     """Build a table from arrays; scalars and (NX, NY) arrays are broadcast to every window.
 
     Missing counts default to 0 and missing ``n_samples`` to ``min_samples`` (every
     compartment-window trusted), which is what synthetic tables for tests and studies want.
-    ``window_s`` defaults to the spacing of ``t`` (1 s for a single window).
+    ``window_s`` defaults to the spacing of ``t`` (1 s for a single window). The measured
+    rates are given all four or none (None: a table without rates); NaN marks "not measured".
     """
     t = np.atleast_1d(np.asarray(t, dtype=float))
     x_edges = np.asarray(x_edges, dtype=float)
@@ -208,6 +260,8 @@ def make_table(
         window_s=window_s,
         min_samples=min_samples,
         attrs=dict(attrs or {}),
+        **{name: None if value is None else full(value, np.nan)
+           for name, value in zip(RATE_NAMES, (rate_x_pos, rate_x_neg, rate_y_pos, rate_y_neg))},
     )
 
 
@@ -216,7 +270,7 @@ def table_to_group(group: h5py.Group, table: VelocityTable) -> None:
     group.create_dataset("t", data=table.t)
     group.create_dataset("x_edges", data=table.x_edges)
     group.create_dataset("y_edges", data=table.y_edges)
-    for name in FIELD_NAMES:
+    for name in FIELD_NAMES + (RATE_NAMES if table.has_rates else ()):
         group.create_dataset(name, data=getattr(table, name), compression="gzip", shuffle=True)
     for key, value in table.attrs.items():
         group.attrs[key] = _attr_value(value)
@@ -232,15 +286,19 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     version = group.attrs.get("schema_version")
     if version is None:
         raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
-    if int(version) != SCHEMA_VERSION:
+    if int(version) not in READABLE_VERSIONS:
         raise TableError(
-            f"unknown velocity-table schema_version {int(version)}{where}; this version reads {SCHEMA_VERSION}"
+            f"unknown velocity-table schema_version {int(version)}{where}; this version reads {READABLE_VERSIONS}"
         )
     arrays = {}
     for name in ("t", "x_edges", "y_edges", *FIELD_NAMES):
         if name not in group:
             raise TableError(f"dataset '{name}' is missing{where}; a velocity table needs {('t', 'x_edges', 'y_edges', *FIELD_NAMES)}")
         arrays[name] = group[name][()]
+    # Version 1 predates the rates; in version 2 they are optional, and VelocityTable
+    # refuses a partial set by name.
+    if int(version) >= 2:
+        arrays.update({name: group[name][()] for name in RATE_NAMES if name in group})
     for name in ("window_s", "min_samples"):
         if name not in group.attrs:
             raise TableError(f"attribute '{name}' is missing{where}")

@@ -70,6 +70,11 @@ class GeometryConfig(_Section):
         0.04, gt=0, description="target triangle edge of curved/long surfaces [m] (coarse: moving triangles cost per step)"
     )
     box_margin_m: float = Field(0.005, gt=0, description="simulation box clearance around the barrel [m]")
+    inlet_margin_m: float | None = Field(
+        None, gt=0, description="simulation box extent upstream of the inlet wall [m]; None = box_margin_m. "
+        "Under MPI the deck cuts the box along x into equal slabs: a longer margin moves the cut between 2 ranks "
+        "toward the feed end, which holds most of the particles"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> "GeometryConfig":

@@ -28,7 +28,8 @@ What is built, and why
   cross-section at ``x = L + discharge_offset_m``. It is not a wall: ``fix massflow/mesh``
   counts and deletes particles whose centre crosses it. A particle centre can only get past
   ``x = L`` by going over the weir, so every crossing is a discharge.
-* **Simulation box**: ``x`` from ``-box_margin_m`` to ``L + outlet_length_m``, ``y`` and
+* **Simulation box**: ``x`` from ``-inlet_margin_m`` (default ``-box_margin_m``) to
+  ``L + outlet_length_m``, ``y`` and
   ``z`` within ``D/2 + box_margin_m``.
 * **Feed zones**: two boxes above the first axial compartment, upstream of the first blade,
   A on the +y side and B on the -y side (mirror images).
@@ -183,7 +184,8 @@ def feed_zones(g: GeometryConfig) -> dict[str, Box]:
 
 def simulation_box(g: GeometryConfig) -> Box:
     r = g.radius_m + g.box_margin_m
-    return Box(-g.box_margin_m, g.length_m + g.outlet_length_m, -r, r, -r, r)
+    upstream = g.inlet_margin_m if g.inlet_margin_m is not None else g.box_margin_m
+    return Box(-upstream, g.length_m + g.outlet_length_m, -r, r, -r, r)
 
 
 def discharge_x_m(g: GeometryConfig) -> float:

@@ -16,6 +16,10 @@ The steps, each a function of this module, in the order :func:`postprocess` runs
 5. the steady state -- :class:`coupling.metrics.SteadyStateRule` on that hold-up.
 6. :func:`tagged_rtd` -- residence times of the particles that entered in the tag window.
 7. :func:`accounting` -- inserted = held + discharged, and the cross-checks with the solver.
+8. :func:`particle_records` -- one row per particle: component, entry, exit.
+9. :func:`measured_rates` -- transfer rates fitted to the ID-tracked moves between dumps
+   (:mod:`dem.rates`), stored in the table beside the velocities.
+10. :mod:`dem.steady` -- the steady-state quantities with 95 % intervals, and the pooled RTD.
 
 The CQAs are defined in :mod:`coupling.metrics` (shared with the PBM); the conventions
 below are the DEM's own.
@@ -60,8 +64,10 @@ from coupling.tables import VELOCITY_NAMES, VelocityTable
 from dem import deck
 from dem.config import DemConfig
 from dem.massflow import massflow_files
+from dem.rates import fit_windows
+from dem.steady import pooled_rtd, steady_quantities
 from dem.tracking import (EXIT_MASSFLOW, EXIT_PAST_WEIR, EXIT_VANISHED, SUM_ROWS, Accumulation, Exits, accumulate,
-                          find_exits)
+                          find_exits, transition_counts)
 
 __all__ = ["DemResults", "postprocess"]
 
@@ -79,6 +85,9 @@ class DemResults:
     * ``rsd_by_slice`` / ``rsd_by_slice_floor``: (NX,) RSD of each axial slice at the last dump.
     * ``rtd``: t_s (1 s bin centres), E_per_s, count.
     * ``residence_times_s``: per recovered tagged particle [s].
+    * ``particles``: :func:`particle_records`.
+    * ``transitions``: (K, S+1, S+1) particle moves between consecutive dumps
+      (:func:`dem.tracking.transition_counts`), what the measured rates were fitted to.
     * ``summary``: scalars (see :func:`postprocess`).
     """
 
@@ -89,18 +98,20 @@ class DemResults:
     rsd_by_slice_floor: np.ndarray
     rtd: pd.DataFrame
     residence_times_s: np.ndarray
+    particles: pd.DataFrame
+    transitions: np.ndarray
     summary: dict[str, Any] = field(default_factory=dict)
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
-        frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd}
+        frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
         arrays = {"rsd_by_slice": self.rsd_by_slice, "rsd_by_slice_floor": self.rsd_by_slice_floor,
-                  "residence_times_s": self.residence_times_s}
+                  "residence_times_s": self.residence_times_s, "transitions": self.transitions}
         return CacheEntry(self.table, self.summary, frames, arrays, provenance)
 
     @classmethod
     def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
         return cls(table=entry.table, summary=entry.summary, **entry.frames,
-                   **{name: np.asarray(values, dtype=float) for name, values in entry.arrays.items()})
+                   **{name: np.asarray(values) for name, values in entry.arrays.items()})
 
 
 # ----------------------------------------------------------------------------- 2. table
@@ -257,6 +268,40 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
     return out, warnings
 
 
+# ----------------------------------------------------------------------------- 8. records
+def particle_records(acc: Accumulation, exits: Exits) -> pd.DataFrame:
+    """One row per particle seen: ``id``, ``component`` (1 A, 2 B, 3 other), ``entry_t_s``
+    and ``entry_y_m`` (first sight), ``exit_t_s`` (NaN while inside, or lost) and
+    ``exit_cell`` (flat index i * NY + j of the last compartment it was seen in before it
+    left; -1 while inside)."""
+    log = acc.particles
+    ids = np.flatnonzero(log.seen)
+    exited = exits.exited[ids]
+    return pd.DataFrame({
+        "id": ids.astype(np.int64),
+        "component": log.kind[ids].astype(np.int8),
+        "entry_t_s": log.first_t[ids],
+        "entry_y_m": log.first_y[ids],
+        "exit_t_s": np.where(exited, exits.time[ids], np.nan),
+        "exit_cell": np.where(exited, log.last_cell[ids], -1).astype(np.int32),
+    })
+
+
+# ----------------------------------------------------------------------------- 9. rates
+def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tuple[VelocityTable, np.ndarray]:
+    """The table with its measured rates (:mod:`dem.rates`, fitted per window to the moves
+    between consecutive dumps), and the transition counts they were fitted to. A run with
+    a single dump has no moves: its table is returned without rates."""
+    nx, ny = table.nx, table.ny
+    counts = transition_counts(acc, exits, table.n_windows, nx * ny)
+    if not math.isfinite(acc.transition_interval_s) or not counts.any():
+        return table, counts
+    rates = fit_windows(counts, nx, ny, acc.transition_interval_s)
+    attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s),
+             "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)"}
+    return table.replace(**rates, attrs=attrs), counts
+
+
 # ----------------------------------------------------------------------------- the whole
 def postprocess(
     dump_paths: str | os.PathLike | Iterable[str | os.PathLike],
@@ -294,6 +339,8 @@ def postprocess(
     acc = accumulate(dump_paths, config, types_a, types_b)
     table = velocity_table(acc, config, dict(provenance or {}))
     exits = find_exits(acc, config, massflow_files(massflow_dir))
+    table, transitions = measured_rates(acc, exits, table)
+    records = particle_records(acc, exits)
     timeseries = cqa_timeseries(acc, exits, config)
     steady_time = steady.time(timeseries["t_s"], timeseries["holdup_A"] + timeseries["holdup_B"])
     t_ss = float("nan") if steady_time is None else steady_time
@@ -304,6 +351,13 @@ def postprocess(
     recovered = residence.size / n_tagged if n_tagged else float("nan")
     recovered_ok = bool(np.isfinite(recovered) and recovered >= 0.95)
     balance, warnings = accounting(acc, exits, solver_counters)
+    block_s = float(config.tables.window_s)
+    steady_stats = steady_quantities(acc.snapshot_t, acc.snapshot_counts, timeseries, steady_time, block_s)
+    little = steady_stats.get("little_mean_residence_time_s", {}).get("value", float("nan"))
+    pooled = pooled_rtd(records, steady_time, float(acc.snapshot_t[-1]), little, block_s)
+    if acc.irregular_gaps:
+        warnings.append(f"{acc.irregular_gaps} pairs of consecutive dumps are not {acc.transition_interval_s:g} s "
+                        "apart: their particle moves are left out of the measured rates")
 
     notes: list[str] = []
     if acc.other_types:
@@ -315,6 +369,9 @@ def postprocess(
     elif not recovered_ok:
         notes.append(f"RTD: only {recovered:.1%} of the {n_tagged} tagged particles were recovered "
                      "(the paper requires >= 95 %); run longer")
+    if pooled.get("n_entered") and not pooled["recovered_ok"]:
+        notes.append(f"pooled RTD: only {pooled['recovered_fraction']['value']:.1%} of "
+                     f"{pooled['n_entered']} particles recovered within the horizon")
     last_a, last_b = acc.snapshot_counts[-1]
     summary: dict[str, Any] = {
         "mean_residence_time_s": float(residence.mean()) if residence.size else float("nan"),
@@ -337,10 +394,13 @@ def postprocess(
         "last_dump_step": acc.last_step,
         "n_snapshots": int(acc.snapshot_t.size),
         **balance,
+        "steady": steady_stats,
+        "pooled_rtd": pooled,
         "warnings": notes + warnings,
     }
     holdup = pd.DataFrame({"t_s": acc.snapshot_t, "holdup_A": acc.snapshot_counts[:, 0].sum(axis=(1, 2)),
                            "holdup_B": acc.snapshot_counts[:, 1].sum(axis=(1, 2))})
     return DemResults(table=table, timeseries=timeseries, holdup=holdup,
                       rsd_by_slice=rsd(last_a, last_b, axis=1), rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
-                      rtd=rtd, residence_times_s=residence, summary=summary)
+                      rtd=rtd, residence_times_s=residence, particles=records, transitions=transitions,
+                      summary=summary)

@@ -165,19 +165,17 @@ def run_dem(
     start raises SolverNotFoundError.
     """
     config = inputs.config
+    if not fresh:
+        done = completed_run(inputs, runs_root)
+        if done is not None:
+            return done
     if inputs.key is None:
-        if not fresh:
-            done = _completed_for_deck(Path(runs_root), inputs.deck_hash)
-            if done is not None:
-                return _record_from_status(done, read_status(done) or {}, reused=True)
         # asked again for the message naming what is missing (or the solver appeared since)
         version = liggghts_version(config.run.liggghts)
         inputs = replace(inputs, liggghts_version=version, key=run_key(inputs.files, version))
     key = inputs.key
     run_dir = Path(runs_root) / key
     status = read_status(run_dir)
-    if not fresh and status and status.get("state") == "completed":
-        return _record_from_status(run_dir, status, reused=True)
     nprocs = int(np if np is not None else config.run.np)
     # Every argument and program is checked before anything in the run directory changes:
     # a typo must never cost the outputs of an interrupted run.
@@ -386,6 +384,19 @@ def _record_from_status(run_dir: Path, status: dict[str, Any], reused: bool) -> 
         np=int(status.get("np", 1)), resumed_from=status.get("resumed_from"),
         solver_counters=dict(status.get("solver_counters") or {}),
     )
+
+
+def completed_run(inputs: RunInputs, runs_root: str | os.PathLike = "runs") -> RunRecord | None:
+    """The completed run of these inputs under ``runs_root`` (``reused=True``), or None.
+    Without a solver (``inputs.key`` None) the newest completed run of the same deck."""
+    if inputs.key is None:
+        done = _completed_for_deck(Path(runs_root), inputs.deck_hash)
+        return _record_from_status(done, read_status(done) or {}, reused=True) if done is not None else None
+    run_dir = Path(runs_root) / inputs.key
+    status = read_status(run_dir)
+    if status and status.get("state") == "completed":
+        return _record_from_status(run_dir, status, reused=True)
+    return None
 
 
 def _completed_for_deck(runs_root: Path, deck_digest: str) -> Path | None:

@@ -37,14 +37,24 @@ EXIT_NONE, EXIT_PAST_WEIR, EXIT_MASSFLOW, EXIT_VANISHED = 0, 1, 2, 3
 
 
 class ParticleLog:
-    """Per-particle state indexed by ID, grown by doubling. Times [s]; NaN = not yet."""
+    """Per-particle state indexed by ID, grown by doubling. Times [s]; NaN = not yet.
 
-    FLOATS = ("first_t", "last_t", "last_x", "exit_t", "vanish_t")
+    States (``last_state``, ``vanish_state``): a flat compartment index c = i * NY + j,
+    :func:`outside_state` (past the weir), or -1 (not seen / in no compartment).
+    ``last_cell`` is the last compartment a particle was seen in (the compartment it left
+    the blender from, once it has exited)."""
+
+    FLOATS = ("first_t", "first_y", "last_t", "last_x", "exit_t", "vanish_t")
+    #: integer arrays, -1 = none: states, the snapshot index of the last sight, the window
+    #: of the snapshot a particle vanished after
+    INTS = ("last_state", "last_cell", "last_snapshot", "vanish_state", "vanish_window")
 
     def __init__(self) -> None:
         self.size = 0
         for name in self.FLOATS:
             setattr(self, name, np.zeros(0))
+        for name in self.INTS:
+            setattr(self, name, np.zeros(0, np.int32))
         self.kind = np.zeros(0, np.int8)  # 0 unseen, 1 A, 2 B, 3 other type
         self.scratch = np.zeros(0, bool)
 
@@ -54,6 +64,10 @@ class ParticleLog:
         new = max(1024, 2 * self.size, max_id + 1)
         for name in self.FLOATS:
             grown = np.full(new, np.nan)
+            grown[: self.size] = getattr(self, name)
+            setattr(self, name, grown)
+        for name in self.INTS:
+            grown = np.full(new, -1, np.int32)
             grown[: self.size] = getattr(self, name)
             setattr(self, name, grown)
         for name, dtype in (("kind", np.int8), ("scratch", bool)):
@@ -91,6 +105,14 @@ class Accumulation:
 
     particles: ParticleLog
     window_sums: dict[int, np.ndarray]
+    #: window index -> flat (S+1)^2 counts of particles in state a at one snapshot and b at
+    #: the next (S = NX*NY: past the weir); particles deleted in between are added by
+    #: :func:`transition_counts`, which knows who was discharged
+    transitions: dict[int, np.ndarray]
+    #: the time between consecutive snapshots that the transitions are counted over [s]
+    #: (the first gap seen; pairs of snapshots further or closer apart are skipped)
+    transition_interval_s: float
+    irregular_gaps: int
     window_snapshots: dict[int, int]
     snapshot_t: np.ndarray
     snapshot_counts: np.ndarray
@@ -109,6 +131,9 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
     log = ParticleLog()
     window_sums: dict[int, np.ndarray] = {}
     window_snapshots: dict[int, int] = {}
+    transitions: dict[int, np.ndarray] = {}
+    n_states = ncell + 1
+    interval, irregular, prev_t, prev_k = float("nan"), 0, float("nan"), -1
     times: list[float] = []
     counts: list[np.ndarray] = []
     prev_ids = np.zeros(0, np.int64)
@@ -145,14 +170,25 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
 
         new = np.isnan(log.first_t[ids])
         log.first_t[ids[new]] = t
+        log.first_y[ids[new]] = y[new]
         n_seen += int(np.count_nonzero(new))  # an id listed twice counts twice: a looser bound, no sort
         log.kind[ids] = np.where(is_a, 1, np.where(is_b, 2, 3))
         back = ~new & ~np.isnan(log.vanish_t[ids])
         if back.any():
             reappeared += int(back.sum())
             log.vanish_t[ids[back]] = np.nan
+        k = int(math.floor((t + tol) / window))
+        gap = t - prev_t
+        if math.isnan(interval) and gap > tol:
+            interval = gap
+        # dumps every N steps are exactly periodic; 1 % admits step rounding, not a missed dump
+        regular = abs(gap - interval) <= max(tol, 0.01 * interval)
+        irregular += int(bool(prev_ids.size) and not regular)
         log.scratch[ids] = True
-        log.vanish_t[prev_ids[~log.scratch[prev_ids]]] = t
+        gone = prev_ids[~log.scratch[prev_ids]]
+        log.vanish_t[gone] = t
+        log.vanish_state[gone] = log.last_state[gone]
+        log.vanish_window[gone] = prev_k if regular else -1
         log.scratch[ids] = False
         prev_ids = ids
         log.last_t[ids] = t
@@ -161,6 +197,21 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
         log.exit_t[ids[past]] = t
 
         inside, cell = bin_particles(x, y, length, diameter, nx, ny)
+        state = np.full(ids.size, -1, np.int32)
+        state[inside] = cell
+        state[x > length] = ncell
+        if regular:
+            was = log.last_state[ids]
+            moved = (log.last_snapshot[ids] == len(times) - 1) & (was >= 0) & (was < ncell) & (state >= 0)
+            pairs = np.bincount(was[moved].astype(np.int64) * n_states + state[moved], minlength=n_states**2)
+            if prev_k in transitions:
+                transitions[prev_k] += pairs
+            else:
+                transitions[prev_k] = pairs
+        log.last_state[ids] = state
+        log.last_snapshot[ids] = len(times)
+        log.last_cell[ids[inside]] = cell
+        prev_t, prev_k = t, k
         vxi, vyi = vx[inside], vy[inside]
         a_in, b_in = is_a[inside], is_b[inside]
         sums = np.empty((len(SUM_ROWS), ncell))
@@ -171,7 +222,6 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
         sums[4] = np.bincount(cell, minlength=ncell)
         sums[5] = np.bincount(cell[a_in], minlength=ncell)
         sums[6] = np.bincount(cell[b_in], minlength=ncell)
-        k = int(math.floor((t + tol) / window))
         if k in window_sums:
             window_sums[k] += sums
             window_snapshots[k] += 1
@@ -181,8 +231,8 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
         counts.append(sums[5:7].reshape(2, nx, ny).copy())  # the window sums grow in place
     if not times:
         raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
-    return Accumulation(log, window_sums, window_snapshots, np.asarray(times), np.stack(counts), prev_ids,
-                        last_step, reappeared, other_types)
+    return Accumulation(log, window_sums, transitions, interval, irregular, window_snapshots, np.asarray(times),
+                        np.stack(counts), prev_ids, last_step, reappeared, other_types)
 
 
 @dataclass
@@ -236,3 +286,19 @@ def find_exits(acc: Accumulation, config: DemConfig, massflow_paths: Sequence[Pa
         exit_t[use] = log.vanish_t[use]
     how[use] = EXIT_MASSFLOW
     return exits
+
+
+def transition_counts(acc: Accumulation, exits: Exits, n_windows: int, n_cells: int) -> np.ndarray:
+    """(K, S+1, S+1) counts of particles in state a at a snapshot of window k and in b at the
+    next one (S = ``n_cells``: discharged). A particle deleted by the solver between two
+    snapshots moved to S if it was discharged (:func:`find_exits`); one lost is not counted.
+    Windows past ``n_windows`` join the last one, as the velocity sums do."""
+    n_states = n_cells + 1
+    counts = np.zeros((n_windows, n_states * n_states), np.int64)
+    for k, pairs in acc.transitions.items():
+        counts[min(max(k, 0), n_windows - 1)] += pairs
+    log = acc.particles
+    left = exits.exited & (log.vanish_window >= 0) & (log.vanish_state >= 0) & (log.vanish_state < n_cells)
+    k = np.minimum(log.vanish_window[left], n_windows - 1)
+    np.add.at(counts, (k, log.vanish_state[left].astype(np.int64) * n_states + n_cells), 1)
+    return counts.reshape(n_windows, n_states, n_states)

@@ -19,7 +19,7 @@ from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
 from pbm._blas import single_threaded_blas
 from pbm.config import PbmConfig
-from pbm.model import feed_distribution, fill_missing_velocities
+from pbm.model import feed_distribution, filled_table
 from pbm.simulate import check_run, noise_factors
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
@@ -86,9 +86,9 @@ def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma:
         raise ConfigError(f"members must be an integer >= 1, got {members!r}")
     members = int(members)
     t_end = check_run(table, config)
-    filled, _ = fill_missing_velocities(table)
+    filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
-    props = Propagators(filled, feed)
+    props = Propagators(filled, feed, config.rates)
     nx, ny = table.nx, table.ny
     n = nx * ny
 

@@ -6,7 +6,7 @@ the passive tracer, every ensemble member) obeys the same linear operator, so th
 propagates them together as the columns of one matrix. Below the NX*NY populations the
 state carries three accumulator rows, shared by all columns:
 
-* ``OUT`` (row n):   discharged particles, dOUT/dt = sum over the last slice of (vx_pos/dx) N
+* ``OUT`` (row n):   discharged particles, dOUT/dt = sum over the last slice of forward rate x N
 * ``INT1`` (row n+1): time integral of the hold-up, dINT1/dt = sum(N)         [particle s]
 * ``INT2`` (row n+2): time integral of INT1,        dINT2/dt = INT1           [particle s^2]
 
@@ -15,8 +15,11 @@ distribution come out of the same exact propagation, with no quadrature error.
 
 Rates (``coupling/DEFINITIONS.md``, "PBM rates"): particles in (i, j) leave to (i+1, j) at
 vx_pos/dx_i, to (i-1, j) at vx_neg/dx_i, to (i, j+1) at vy_pos/dy_j and to (i, j-1) at
-vy_neg/dy_j [1/s per particle], with the leaving compartment's velocities. The last slice's forward
-flux is the outflow; there is no flux through the inlet wall nor through the side walls.
+vy_neg/dy_j [1/s per particle], with the leaving compartment's velocities (mode "velocity");
+or at the table's measured rate_x_pos, rate_x_neg, rate_y_pos, rate_y_neg (mode "measured").
+The mode only chooses the four rate arrays; one generator builder serves both. The last
+slice's forward flux is the outflow; there is no flux through the inlet wall nor through
+the side walls.
 """
 
 from __future__ import annotations
@@ -26,9 +29,12 @@ import scipy.sparse as sp
 
 from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError, TableError
-from coupling.tables import VELOCITY_NAMES, VelocityTable
+from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 
 N_ACCUMULATORS = 3
+# Where the per-particle transfer rates come from: "velocity" = v/dx (the paper's eq. 4),
+# "measured" = the table's rate_* fields (transitions counted by the DEM post-processing).
+RATE_MODES = ("velocity", "measured")
 
 
 def fill_missing_velocities(table: VelocityTable) -> tuple[VelocityTable, np.ndarray]:
@@ -60,12 +66,40 @@ def fill_missing_velocities(table: VelocityTable) -> tuple[VelocityTable, np.nda
             f"no compartment-window of the velocity table has n_samples >= min_samples = {table.min_samples}; "
             "the table carries no velocity information"
         )
-    k_count = table.n_windows
-    filled = {name: getattr(table, name).copy() for name in VELOCITY_NAMES}
+    fields = {name: getattr(table, name) for name in VELOCITY_NAMES}
+    return table.replace(**_fill_by_rule(table.t, valid, fields)), ~valid
+
+
+def fill_missing_rates(table: VelocityTable) -> tuple[VelocityTable, np.ndarray]:
+    """Give every unmeasured (NaN) rate of a table with rates a value, by the rule of
+    :func:`fill_missing_velocities`, applied to each rate field with its own NaNs as the
+    missing entries (one rate can be measured where another is not).
+
+    Returns ``(filled_table, filled_mask)``, the mask (K, NX, NY) True where any of the four
+    rates was filled. Raises ConfigError for a table without rates and TableError when a
+    rate field has no measured entry at all.
+    """
+    require_rates(table, "measured")
+    filled, mask = {}, np.zeros((table.n_windows, table.nx, table.ny), dtype=bool)
+    for name in RATE_NAMES:
+        values = getattr(table, name)
+        valid = ~np.isnan(values)
+        if not valid.any():
+            raise TableError(f"dataset '{name}' is NaN (not measured) everywhere; there is no rate to fill from")
+        if not valid.all():
+            filled.update(_fill_by_rule(table.t, valid, {name: values}))
+            mask |= ~valid
+    return (table.replace(**filled) if filled else table), mask
+
+
+def _fill_by_rule(times: np.ndarray, valid: np.ndarray, fields: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The fill rule of :func:`fill_missing_velocities` for (K, NX, NY) ``fields`` that share
+    the mask ``valid`` (which has at least one True): filled copies of the fields."""
+    k_count, nx = valid.shape[:2]
+    filled = {name: values.copy() for name, values in fields.items()}
 
     # Rule 1: nearest valid window of the same compartment. For each (k, i, j) find the
     # last valid window at or before k and the first at or after k, then pick the closer.
-    window_times = table.t
     idx = np.arange(k_count)[:, None, None]
     last_before = np.where(valid, idx, -1)
     last_before = np.maximum.accumulate(last_before, axis=0)
@@ -73,33 +107,52 @@ def fill_missing_velocities(table: VelocityTable) -> tuple[VelocityTable, np.nda
     first_after = np.minimum.accumulate(first_after[::-1], axis=0)[::-1]
     has_before = last_before >= 0
     has_after = first_after < k_count
-    t_k = np.broadcast_to(window_times[:, None, None], valid.shape)
-    gap_before = np.where(has_before, t_k - window_times[np.clip(last_before, 0, None)], np.inf)
-    gap_after = np.where(has_after, window_times[np.clip(first_after, None, k_count - 1)] - t_k, np.inf)
+    t_k = np.broadcast_to(times[:, None, None], valid.shape)
+    gap_before = np.where(has_before, t_k - times[np.clip(last_before, 0, None)], np.inf)
+    gap_after = np.where(has_after, times[np.clip(first_after, None, k_count - 1)] - t_k, np.inf)
     source = np.where(gap_before <= gap_after, last_before, first_after)
     rule1 = ~valid & (has_before | has_after)
     kk, ii, jj = np.nonzero(rule1)
-    for name in VELOCITY_NAMES:
+    for name in fields:
         filled[name][kk, ii, jj] = filled[name][source[kk, ii, jj], ii, jj]
 
     # Rules 2-4 for compartments that are valid in no window at all.
     never_valid = ~valid.any(axis=0)
     if never_valid.any():
-        all_valid_mean = {name: getattr(table, name)[valid].mean() for name in VELOCITY_NAMES}
+        all_valid_mean = {name: values[valid].mean() for name, values in fields.items()}
         for k in range(k_count):
             slice_has = valid[k].any(axis=1)  # (NX,)
             for i, j in zip(*np.nonzero(never_valid)):
                 if not slice_has.any():
-                    for name in VELOCITY_NAMES:
+                    for name in fields:
                         filled[name][k, i, j] = all_valid_mean[name]
                     continue
-                distance = np.abs(np.arange(table.nx) - i).astype(float)
+                distance = np.abs(np.arange(nx) - i).astype(float)
                 distance[~slice_has] = np.inf
                 slices = np.nonzero(distance == distance.min())[0]
-                for name in VELOCITY_NAMES:
-                    values = getattr(table, name)[k]
-                    filled[name][k, i, j] = np.mean([values[s][valid[k, s]].mean() for s in slices])
-    return table.replace(**filled), ~valid
+                for name, values in fields.items():
+                    filled[name][k, i, j] = np.mean([values[k][s][valid[k, s]].mean() for s in slices])
+    return filled
+
+
+def require_rates(table: VelocityTable, rates: str) -> None:
+    """Raise ConfigError unless ``rates`` is a known mode that this table can drive."""
+    if rates not in RATE_MODES:
+        raise ConfigError(f"unknown rate mode rates = {rates!r}; valid: {', '.join(map(repr, RATE_MODES))}")
+    if rates == "measured" and not table.has_rates:
+        raise ConfigError(
+            "rates = 'measured' needs the velocity table's measured transition rates, but this table has no "
+            f"measured rates ({', '.join(RATE_NAMES)}): use a schema-2 table from a DEM run with transition "
+            "tracking, or rates = 'velocity'"
+        )
+
+
+def filled_table(table: VelocityTable, rates: str) -> tuple[VelocityTable, np.ndarray]:
+    """The table with the fields that mode ``rates`` reads filled where missing, and the
+    (K, NX, NY) mask of the compartment-windows filled: velocities for "velocity"
+    (:func:`fill_missing_velocities`), measured rates for "measured" (:func:`fill_missing_rates`)."""
+    require_rates(table, rates)
+    return fill_missing_velocities(table) if rates == "velocity" else fill_missing_rates(table)
 
 
 def default_feed_weights(y_edges: np.ndarray, side: int) -> np.ndarray:
@@ -144,33 +197,46 @@ def feed_distribution(table: VelocityTable, weights_a, weights_b) -> np.ndarray:
     return np.stack(columns, axis=1)
 
 
-def transfer_rates(table: VelocityTable, k) -> dict[str, np.ndarray]:
+def transfer_rates(table: VelocityTable, k, rates: str = "velocity") -> dict[str, np.ndarray]:
     """Per-particle rates [1/s] of window ``k``, each (NX, NY), walls already closed.
 
     ``k`` may also be an index array or slice: the rates then carry a leading window axis.
     Keys: ``forward`` (to i+1; for the last slice: the outflow), ``backward`` (to i-1),
-    ``up`` (to j+1), ``down`` (to j-1). Rates through the inlet wall and the side walls are
-    set to 0 here, so that the velocities recorded there by DEM (particles bouncing off
-    a wall) never move particles out of the domain.
+    ``up`` (to j+1), ``down`` (to j-1). ``rates`` (:data:`RATE_MODES`) says where they come
+    from: "velocity" = vx_pos/dx, vx_neg/dx, vy_pos/dy, vy_neg/dy; "measured" = the table's
+    rate_x_pos, rate_x_neg, rate_y_pos, rate_y_neg, filled beforehand
+    (:func:`fill_missing_rates`; a NaN left raises TableError). Rates through the inlet wall
+    and the side walls are set to 0 here, so that the velocities recorded there by DEM
+    (particles bouncing off a wall) never move particles out of the domain.
     """
-    dx = table.dx[:, None]
-    dy = table.dy[None, :]
-    forward = table.vx_pos[k] / dx
-    backward = table.vx_neg[k] / dx
-    up = table.vy_pos[k] / dy
-    down = table.vy_neg[k] / dy
+    require_rates(table, rates)
+    if rates == "velocity":
+        dx = table.dx[:, None]
+        dy = table.dy[None, :]
+        forward = table.vx_pos[k] / dx
+        backward = table.vx_neg[k] / dx
+        up = table.vy_pos[k] / dy
+        down = table.vy_neg[k] / dy
+    else:
+        # Copies: the wall entries are zeroed below, and the table's arrays are its own.
+        forward, backward, up, down = (np.array(getattr(table, name)[k], dtype=float) for name in RATE_NAMES)
+        if any(np.isnan(r).any() for r in (forward, backward, up, down)):
+            raise TableError(
+                f"window(s) {k} of the table hold unmeasured (NaN) rates; fill them first with "
+                "pbm.model.fill_missing_rates"
+            )
     backward[..., 0, :] = 0.0
     up[..., :, -1] = 0.0
     down[..., :, 0] = 0.0
     return {"forward": forward, "backward": backward, "up": up, "down": down}
 
 
-def _generator_triplets(table: VelocityTable, k):
+def _generator_triplets(table: VelocityTable, k, rates: str):
     """Row, column and value arrays of the generator entries; values carry the leading
     window axis of ``k`` (if any), rows and columns are the same for every window."""
     nx, ny = table.nx, table.ny
     n = nx * ny
-    r = transfer_rates(table, k)
+    r = transfer_rates(table, k, rates)
     lead = r["forward"].shape[:-2]
     c = np.arange(n).reshape(nx, ny)
     rows, cols, vals = [], [], []
@@ -193,12 +259,13 @@ def _generator_triplets(table: VelocityTable, k):
     return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals, axis=-1), n + N_ACCUMULATORS
 
 
-def generator_matrix(table: VelocityTable, k) -> np.ndarray:
-    """Dense (n+3, n+3) generator of window ``k``: dz/dt = G z for the augmented state.
+def generator_matrix(table: VelocityTable, k, rates: str = "velocity") -> np.ndarray:
+    """Dense (n+3, n+3) generator of window ``k``: dz/dt = G z for the augmented state,
+    with the transfer rates of mode ``rates`` (:func:`transfer_rates`).
 
     With an index array ``k`` of windows: the stack (len(k), n+3, n+3), built at once.
     """
-    rows, cols, vals, m = _generator_triplets(table, k)
+    rows, cols, vals, m = _generator_triplets(table, k, rates)
     g = np.zeros((*vals.shape[:-1], m, m))
     # Every (destination, source) pair occurs once (the stencil's neighbours, the
     # diagonal and the accumulator rows are distinct), so plain assignment is exact.
@@ -206,7 +273,7 @@ def generator_matrix(table: VelocityTable, k) -> np.ndarray:
     return g
 
 
-def generator_sparse(table: VelocityTable, k: int) -> sp.csr_matrix:
+def generator_sparse(table: VelocityTable, k: int, rates: str = "velocity") -> sp.csr_matrix:
     """The same generator as a sparse CSR matrix (for the BDF Jacobian)."""
-    rows, cols, vals, m = _generator_triplets(table, k)
+    rows, cols, vals, m = _generator_triplets(table, k, rates)
     return sp.csr_matrix((vals, (rows, cols)), shape=(m, m))

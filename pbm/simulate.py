@@ -24,7 +24,7 @@ from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fracti
 from coupling.tables import VelocityTable
 from pbm._blas import single_threaded_blas
 from pbm.config import PbmConfig
-from pbm.model import feed_distribution, fill_missing_velocities
+from pbm.model import feed_distribution, filled_table
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 BDF_ATOL_PARTICLES = 1e-9
@@ -135,8 +135,9 @@ def simulate(
     ``initial_counts`` (2, NX, NY) [particles]: A and B already in the blender at t = 0
     (default empty).
 
-    Compartment-windows without enough samples are filled by
-    :func:`pbm.model.fill_missing_velocities`. The tracer pulse holds as many particles
+    ``config.rates`` chooses the transfer rates (:func:`pbm.model.transfer_rates`); the fields
+    it reads are filled where missing by :func:`pbm.model.filled_table` (velocities of
+    compartment-windows without enough samples, or unmeasured rates). The tracer pulse holds as many particles
     as the nominal feed delivers in one second (1 if the feed is 0), distributed over the
     inlet like the nominal total feed; E(t) is normalised by it, so the amount is moot.
 
@@ -146,8 +147,10 @@ def simulate(
     no steady state), final_rsd_outlet, final_rsd_blender, final_rsd_by_slice (list,
     inlet -> outlet, None where undefined), holdup_final, holdup_final_A, holdup_final_B,
     steady_state_time_s (None if not detected), rtd_pulse_s, rtd_pulse_rule,
-    filled_compartment_windows, nx, ny, duration_s, method, wall_time_s. Raises
-    ConfigError for settings this table cannot satisfy, TableError for an empty table.
+    filled_compartment_windows (of the fields ``config.rates`` reads), nx, ny, duration_s,
+    method, wall_time_s. Raises
+    ConfigError for settings this table cannot satisfy (rates = "measured" on a table
+    without measured rates), TableError for an empty table.
     """
     wall0 = time.perf_counter()
     config = config or PbmConfig()
@@ -155,9 +158,9 @@ def simulate(
     pulse = config.rtd_pulse_s if rtd_pulse_s is None else float(rtd_pulse_s)
     if pulse is not None and not (0.0 <= pulse < t_end):
         raise ConfigError(f"RTD pulse time {pulse} s must lie in [0, {t_end}) s, the simulated time")
-    filled, filled_mask = fill_missing_velocities(table)
+    filled, filled_mask = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
-    props = Propagators(filled, feed)
+    props = Propagators(filled, feed, config.rates)
     n = table.nx * table.ny
     m = props.n_states
 
@@ -177,7 +180,7 @@ def simulate(
     n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
     factors = noise_factors(config, n_noise)
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
-    tracer_amount, tracer_vector = _tracer_pulse(feed, rates, m)
+    tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)
 
     def run(t_start, columns, pulse_at, record):
         return _run_columns(props, config, t_start, t_end, columns, z0_for(columns), factors, rates, record, pulse_at,
@@ -281,25 +284,38 @@ def simulate(
     )
 
 
-def rtd_moments(amount: float, held: float, int1: float, int2: float, elapsed_s: float) -> dict[str, float]:
-    """Mean and variance of the residence time of the recovered tracer, exactly.
+def recovered_moments(amount, held, int1, int2, elapsed_s):
+    """Raw moments of the residence time of the tracer recovered within ``elapsed_s``.
 
     From the tracer's hold-up at the end ``held`` = H(T), and its time integrals since the
     pulse ``int1`` = int_0^T H dtau and ``int2`` = int_0^T int1 dtau, with T = ``elapsed_s``
     since the pulse and the outflow q = -dH/dtau. Integration by parts gives
-    int tau q = int1 - T H(T) and int tau^2 q = 2 (T int1 - int2) - T^2 H(T). Moments are
-    conditional on recovery by the end, like the DEM's tagged particles that left.
+    int tau q = int1 - T H(T) and int tau^2 q = 2 (T int1 - int2) - T^2 H(T). Returns
+    ``(recovered, m1, m2)`` = (int q, int tau q, int tau^2 q) over [0, T]; element-wise
+    for arrays (one pulse per entry).
     """
     recovered = amount - held
     m1 = int1 - elapsed_s * held
     m2 = 2.0 * (elapsed_s * int1 - int2) - elapsed_s**2 * held
+    return recovered, m1, m2
+
+
+def rtd_moments(amount: float, held: float, int1: float, int2: float, elapsed_s: float) -> dict[str, float]:
+    """Mean and variance of the residence time of the recovered tracer, exactly
+    (:func:`recovered_moments`). Moments are conditional on recovery by the end, like the
+    DEM's tagged particles that left.
+    """
+    recovered, m1, m2 = recovered_moments(amount, held, int1, int2, elapsed_s)
     if recovered <= 0:
         return {"recovered_fraction": 0.0, "mean_s": float("nan"), "variance_s2": float("nan")}
     mean = m1 / recovered
     return {"recovered_fraction": recovered / amount, "mean_s": mean, "variance_s2": m2 / recovered - mean**2}
 
 
-def _tracer_pulse(feed: np.ndarray, rates: np.ndarray, m: int) -> tuple[float, np.ndarray]:
+def tracer_pulse(feed: np.ndarray, rates: np.ndarray, m: int) -> tuple[float, np.ndarray]:
+    """``(amount, vector)``: a tracer pulse of as many particles as the feed ``rates`` (A, B)
+    deliver in one second (1 if they are 0), spread over the inlet like the total feed;
+    ``vector`` is its (m,) augmented state."""
     total = rates.sum()
     shape = feed @ rates / total if total > 0 else feed.mean(axis=1)
     amount = float(total) if total > 0 else 1.0

@@ -127,12 +127,14 @@ def multiples(step: float, t_start: float, t_end: float) -> np.ndarray:
 class Propagators:
     """Exact step operators of one (filled) table and one feed distribution, cached.
 
-    ``feed`` is (n, 2): the inlet distribution of one particle/s of A and of B.
+    ``feed`` is (n, 2): the inlet distribution of one particle/s of A and of B. ``rates``
+    is the rate mode of the generators (:data:`pbm.model.RATE_MODES`).
     :meth:`step` returns ``(P, Q)`` with P (m, m) and Q (m, 2), m = n + 3.
     """
 
     table: VelocityTable
     feed: np.ndarray
+    rates: str = "velocity"
     _cache: dict = field(default_factory=dict, repr=False)
     _generators: dict = field(default_factory=dict, repr=False)
 
@@ -142,7 +144,7 @@ class Propagators:
 
     def generator(self, k: int) -> np.ndarray:
         if k not in self._generators:
-            self._generators[k] = generator_matrix(self.table, k)
+            self._generators[k] = generator_matrix(self.table, k, self.rates)
         return self._generators[k]
 
     def step(self, k: int, h: float) -> tuple[np.ndarray, np.ndarray]:
@@ -168,7 +170,7 @@ class Propagators:
         missing = sorted({k for k, _h in todo.values()} - self._generators.keys())
         for start in range(0, len(missing), _GENERATOR_CHUNK):
             chunk = missing[start : start + _GENERATOR_CHUNK]
-            for k, g in zip(chunk, generator_matrix(self.table, np.array(chunk))):
+            for k, g in zip(chunk, generator_matrix(self.table, np.array(chunk), self.rates)):
                 self._generators[k] = g
         workers = min(len(todo), os.cpu_count() or 1, MAX_THREADS)
         if workers <= 1:
@@ -248,7 +250,7 @@ def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol,
         e = s + 1
         while e < n_steps and windows[e] == windows[s] and feed_key[e] == feed_key[s] and e not in injections:
             e += 1
-        gen = generator_sparse(props.table, int(windows[s]))
+        gen = generator_sparse(props.table, int(windows[s]), props.rates)
         jac = sp.kron(sp.identity(c, format="csr"), gen, format="csr")
         source = (feed @ feed_rates(int(feed_key[s]))).T.ravel()
 

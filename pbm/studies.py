@@ -24,7 +24,12 @@ def scale_blender(table: VelocityTable, length_factor: float = 1.0, diameter_fac
             raise ConfigError(f"{name} must be a finite number > 0, got {value}")
     attrs = dict(table.attrs)
     attrs["geometry_scaling"] = {"length_factor": float(length_factor), "diameter_factor": float(diameter_factor)}
-    return table.replace(x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs)
+    rates = {}
+    if table.has_rates:  # measured rates are per compartment: the same speeds over longer cells
+        rates = {"rate_x_pos": table.rate_x_pos / length_factor, "rate_x_neg": table.rate_x_neg / length_factor,
+                 "rate_y_pos": table.rate_y_pos / diameter_factor, "rate_y_neg": table.rate_y_neg / diameter_factor}
+    return table.replace(x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs,
+                         **rates)
 
 
 def _overlap(old_edges: np.ndarray, new_edges: np.ndarray) -> np.ndarray:
@@ -55,6 +60,10 @@ def regrid(table: VelocityTable, nx: int | None = None, ny: int | None = None, x
     """
     new_x = _new_edges(table.x_edges, nx, x_edges, "x")
     new_y = _new_edges(table.y_edges, ny, y_edges, "y")
+    if table.has_rates:
+        # measured rates belong to the grid they were fitted on; refitting them on another
+        # grid needs the DEM's moves between its compartments (bin the dumps at that NX)
+        table = table.replace(rate_x_pos=None, rate_x_neg=None, rate_y_pos=None, rate_y_neg=None)
     filled, _ = fill_missing_velocities(table)
     # Shares of each old compartment's content landing in each new one.
     sx = _overlap(table.x_edges, new_x) / table.dx[None, :]  # (NXn, NXo)

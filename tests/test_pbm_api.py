@@ -33,6 +33,7 @@ def small_table():
         ({"rtd_bin_s": 0.0}, "'pbm.rtd_bin_s' = 0.0"),
         ({"steady_window_s": 5.0}, "unknown key 'pbm.steady_window_s'"),  # one rule, in [steady_state]
         ({"method": "rk4"}, "'pbm.method' = 'rk4'"),
+        ({"rates": "dem"}, "'pbm.rates' = 'dem'"),
         ({"rtd_pulse_s": -1.0}, "'pbm.rtd_pulse_s' = -1.0"),
         ({"feed_rate_a": 1.0}, "did you mean 'feed_rate_a_per_s'"),
     ],

@@ -7,8 +7,11 @@
 2. :func:`workflows.pipeline.pbm_config_for` -- the PBM configuration of the same process.
 3. :func:`pbm.simulate.simulate` on the DEM's own table, tracer pulse at the DEM's RTD
    tagging time, steady state by the same rule as the DEM.
-4. :func:`workflows.studies.run_studies` -- the paper's length, diameter and noise studies.
-5. :mod:`workflows.report` -- metrics, figures, HTML and ``summary.json``; ParaView files.
+4. :mod:`workflows.agreement` -- both PBM rate modes against every DEM quantity's 95 %
+   interval, and the grid sensitivity (the DEM binned at twice the NX, when its dumps,
+   cache or shipped results allow it without running LIGGGHTS).
+5. :func:`workflows.studies.run_studies` -- the paper's length, diameter and noise studies.
+6. :mod:`workflows.report` -- metrics, figures, HTML and ``summary.json``; ParaView files.
 """
 
 from __future__ import annotations
@@ -25,9 +28,11 @@ import numpy as np
 from coupling.errors import OutputError, os_reason
 from coupling.jsonable import json_ready
 from pbm.simulate import PbmResult, simulate
-from workflows.config import Config, dump_toml
+from workflows.agreement import agreement_rows, dem_density, nx_sensitivity, run_modes
+from workflows.config import Config, config_from_dict, dump_toml
 from workflows.pipeline import DemSide, dem_stage, pbm_config_for, writable_directory
-from workflows.report import SideResults, comparison_metrics, plot_comparison, render_html
+from workflows.report import (SideResults, agreement_html, comparison_metrics, plot_agreement, plot_comparison,
+                              render_html)
 from workflows.studies import run_studies
 
 NOISE_MEMBERS = 200
@@ -98,8 +103,18 @@ def full_comparison(
     pbm_view = SideResults("PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final,
                            dict(pbm_result.summary))
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
+
+    log("running both PBM rate modes against the DEM's intervals")
+    modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
+    rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
+    sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     try:  # every file of the report: a full disk or a vanished directory is one line naming it
         figures = plot_comparison(dem_view, pbm_view, out_dir)
+        pooled_spec = dem.results.summary.get("pooled_rtd") or {}
+        dem_rtd = dem_density(dem.results.particles, pooled_spec)[:2] if pooled_spec.get("n_entered") else None
+        pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.density_per_s / m.pooled.recovered_fraction)
+                   for mode, m in modes.items() if m.pooled is not None}
+        figures.update(plot_agreement(rows, dem_rtd, pbm_rtd, out_dir))
         try:
             from dem.render import render_geometry
 
@@ -135,10 +150,13 @@ def full_comparison(
             "config_toml": dump_toml(config),
         }
         page = render_html(f"DEM vs PBM — preset {config.name} ({dem.key})", metrics, figures, provenance, studies,
-                           notes)
+                           notes, agreement_html(rows, sensitivity))
         (out_dir / "report.html").write_text(page)
         summary = {
             "metrics": metrics,
+            "agreement": rows,
+            "nx_sensitivity": sensitivity,
+            "pbm_modes": {mode: m.result.summary for mode, m in modes.items()},
             "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
             "dem_summary": dem.results.summary,
             "pbm_summary": pbm_result.summary,
@@ -153,6 +171,20 @@ def full_comparison(
     except OSError as exc:
         raise OutputError(f"cannot write the report in {out_dir}: {os_reason(exc)}") from exc
     return out_dir / "report.html"
+
+
+def grid_sensitivity(config: Config, dem: DemSide, pbm_config, modes, runs_root: Path, log: Log) -> dict | None:
+    """:func:`workflows.agreement.nx_sensitivity` on the same DEM run binned at twice the
+    NX, when that needs no new LIGGGHTS run; None (and a line in the log) otherwise."""
+    data = config.to_dict()
+    data["dem"]["tables"]["nx"] = 2 * config.dem.tables.nx
+    fine = config_from_dict(data, source="the grid-sensitivity configuration")
+    try:
+        fine_dem = dem_stage(fine, runs_root, solver=False, progress=False, log=log)
+    except LookupError as exc:
+        log(f"grid sensitivity skipped: {exc}")
+        return None
+    return nx_sensitivity(fine_dem.table, pbm_config, config.steady_state, dem.results.summary, modes)
 
 
 def write_paraview(config: Config, dem: DemSide, out_dir: Path, log: Log, max_snapshots: int = 60) -> None:

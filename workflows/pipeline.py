@@ -30,7 +30,7 @@ from dem.deck import DECK_INFO, MAIN_DECK, MESH_DIR, build_deck, deck_hash, writ
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
 from dem.post import DemResults, postprocess
-from dem.run import RunInputs, prepare_run, read_status, run_dem
+from dem.run import RunInputs, completed_run, prepare_run, read_status, run_dem
 from coupling.tables import read_table
 from pbm.config import PbmConfig
 from pbm.outputs import write_outputs
@@ -39,7 +39,7 @@ from workflows.config import Config, config_from_dict, dump_toml
 
 REFERENCE_DIR = Path(__file__).parent / "reference"
 #: Bump when the post-processing computes anything differently: cached results are redone.
-POST_VERSION = 2
+POST_VERSION = 3
 
 Log = Callable[[str], None]
 
@@ -132,6 +132,7 @@ def dem_stage(
     progress: bool = True,
     log: Log = _quiet,
     reference_dir: Path = REFERENCE_DIR,
+    solver: bool = True,
 ) -> DemSide:
     """The DEM's velocity table and CQAs for ``config``.
 
@@ -140,7 +141,9 @@ def dem_stage(
     inputs; ``resume`` continues an interrupted one) followed by the post-processing,
     whose result is cached. ``fresh`` skips both caches and reruns the solver. The deck is
     built and the input hash computed once, here. Without LIGGGHTS installed, cached or
-    shipped results made from the same deck are still found."""
+    shipped results made from the same deck are still found. ``solver=False`` never starts
+    LIGGGHTS: only cached or shipped results, or the dumps of a completed run, serve, else
+    LookupError."""
     runs_root = writable_directory(Path(runs_root).resolve(), "runs directory")  # absolute: recorded in the cache
     cache_root = writable_directory(cache_root if cache_root is not None else runs_root / "cache", "cache directory")
     inputs = prepare_run(config.dem)
@@ -151,7 +154,13 @@ def dem_stage(
             if found.source == "reference":
                 log(f"DEM results for inputs {found.key} taken from the shipped reference data")
             return found
-    record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress)
+    if solver:
+        record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress)
+    else:
+        record = completed_run(inputs, runs_root)
+        if record is None:
+            raise LookupError(f"no cached or shipped DEM results, nor a completed run under {runs_root}, for the "
+                              f"deck {inputs.deck_hash} binned as configured")
     key = results_key(record.key, post)
     log(f"run {'reused' if record.reused else 'finished'}: {record.run_dir}; post-processing the dumps")
     t0 = time.monotonic()

@@ -196,6 +196,80 @@ def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[s
     return files
 
 
+MODE_STYLES = {"velocity": ("--", "PBM, velocity rates (paper eq. 4)"), "measured": ("-", "PBM, measured rates")}
+
+
+def plot_agreement(rows: list[dict[str, Any]], dem_rtd: tuple[np.ndarray, np.ndarray] | None,
+                   pbm_rtd: dict[str, tuple[np.ndarray, np.ndarray]], out_dir: Path) -> dict[str, str]:
+    """The pooled RTD (DEM histogram, each PBM mode's density on the same bins, all
+    conditional on recovery within the horizon) and the steady axial hold-up profile (DEM
+    means with their 95 % intervals, each PBM mode). Returns figure key -> file name."""
+    files: dict[str, str] = {}
+    if dem_rtd is not None:
+        fig = Figure(figsize=(6.4, 4.0), layout="constrained")
+        ax = fig.add_subplot()
+        edges, density = dem_rtd
+        ax.stairs(density, edges, color=DEM_COLOUR, label="DEM (pooled)")
+        for mode, (m_edges, m_density) in pbm_rtd.items():
+            style, label = MODE_STYLES[mode]
+            ax.plot(0.5 * (m_edges[:-1] + m_edges[1:]), m_density, style, color=PBM_COLOUR, label=label)
+        ax.set(title="Pooled RTD, entry window after steady state", xlabel="residence time [s]", ylabel="E [1/s]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.savefig(out_dir / "rtd_pooled.png", dpi=110)
+        files["rtd_pooled"] = "rtd_pooled.png"
+    slices = [r for r in rows if r["key"].startswith("holdup_slice_")]
+    if slices:
+        fig = Figure(figsize=(6.4, 4.0), layout="constrained")
+        ax = fig.add_subplot()
+        i = np.arange(1, len(slices) + 1)
+        dem = np.array([r["dem"] for r in slices], dtype=float)
+        err = np.abs(np.array([[r["dem_ci_low"], r["dem_ci_high"]] for r in slices], dtype=float).T - dem)
+        ax.errorbar(i, dem, yerr=err, fmt="o", color=DEM_COLOUR, capsize=3, label="DEM (95 % interval)")
+        for mode, (style, label) in MODE_STYLES.items():
+            values = np.array([r.get(f"pbm_{mode}", np.nan) for r in slices], dtype=float)
+            if np.isfinite(values).any():
+                ax.plot(i, values, style, marker=".", color=PBM_COLOUR, label=label)
+        ax.set(title="Steady hold-up per axial slice", xlabel="axial compartment (inlet = 1)", ylabel="particles")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.savefig(out_dir / "holdup_profile.png", dpi=110)
+        files["holdup_profile"] = "holdup_profile.png"
+    return files
+
+
+def agreement_html(rows: list[dict[str, Any]], nx_sensitivity: dict[str, Any] | None) -> str:
+    """The agreement table (:mod:`workflows.agreement`) and the NX sensitivity as HTML."""
+    if not rows:
+        return "<p>No agreement table: the DEM run has no steady state to average over.</p>"
+
+    def verdict(flag) -> str:
+        return "–" if flag is None else ("inside" if flag else "<b>outside</b>")
+
+    body = "".join(
+        f"<tr><td>{html.escape(r['quantity'])}</td><td>{html.escape(r['unit'])}</td><td>{_fmt(r['dem'])}</td>"
+        f"<td>{_fmt(r['dem_ci_low'])} – {_fmt(r['dem_ci_high'])}</td>"
+        + "".join(f"<td>{_fmt(r.get(f'pbm_{m}'))}</td><td>{verdict(r.get(f'inside_{m}'))}</td>" for m in MODE_STYLES)
+        + "</tr>" for r in rows)
+    head = ("<tr><th>quantity</th><th>unit</th><th>DEM</th><th>DEM 95 % interval</th>"
+            + "".join(f"<th>{html.escape(label)}</th><th>verdict</th>" for _, label in MODE_STYLES.values()) + "</tr>")
+    out = f"<table>{head}{body}</table>"
+    if nx_sensitivity:
+        lines = []
+        for mode in MODE_STYLES:
+            entry = nx_sensitivity.get(mode)
+            if entry:
+                lines.append(f"<tr><td>{html.escape(MODE_STYLES[mode][1])}</td><td>{_fmt(entry['mean_s'])}</td>"
+                             f"<td>{_fmt(entry['change_mean'])}</td><td>{_fmt(entry['variance_s2'])}</td>"
+                             f"<td>{_fmt(entry['change_variance'])}</td></tr>")
+        if lines:
+            nx = ", ".join(str(v) for v in nx_sensitivity.get("nx", []))
+            out += (f"<h3>Grid sensitivity (NX = {html.escape(nx)})</h3><table><tr><th>mode</th><th>mean [s]</th>"
+                    "<th>relative change</th><th>variance [s²]</th><th>relative change</th></tr>"
+                    + "".join(lines) + "</table>")
+    return out
+
+
 # --- HTML ----------------------------------------------------------------------------------
 
 
@@ -231,8 +305,10 @@ def render_html(
     provenance: dict[str, Any],
     studies: list[Study],
     notes: list[str],
+    agreement: str = "",
 ) -> str:
-    """The report page. ``figures`` maps keys to PNG names beside the page."""
+    """The report page. ``figures`` maps keys to PNG names beside the page; ``agreement``
+    is the HTML of :func:`agreement_html`."""
     rows = "".join(
         f"<tr><td>{label}</td><td>{_fmt(metrics.get(d))}</td><td>{_fmt(metrics.get(p))}</td></tr>"
         for label, d, p in METRIC_ROWS
@@ -281,7 +357,11 @@ figcaption {{ font-size: 0.9em; color: #555; }}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
 <ul class="notes">{note_html}</ul>
-<h2>Metrics</h2>
+<h2>Agreement: each PBM rate mode against the DEM's 95 % intervals</h2>
+{agreement}
+{img("rtd_pooled", "Pooled RTD: DEM and both PBM rate modes")}
+{img("holdup_profile", "Steady hold-up along the blender")}
+<h2>Metrics (PBM with the paper's velocity rates; RTD from the paper's 1-s tag window)</h2>
 <table><tr><th>quantity</th><th>DEM</th><th>PBM</th></tr>{rows}{derived_rows}</table>
 <h2>DEM and PBM side by side</h2>
 {img("geometry", "Blender geometry (impeller, weir)")}

@@ -1,0 +1,149 @@
+"""The PBM's pooled residence-time distribution, defined like the DEM's.
+
+The DEM pools every particle that entered during an entry window (t0, t1]: its residence
+time is tau = exit - entry, and it counts as recovered only if tau <= H (the horizon,
+t1 = t_end - H). Moments are over the recovered particles, reported with the recovered
+fraction (``coupling/DEFINITIONS.md``, "RTD").
+
+The PBM's like-for-like quantity follows from linearity: tracer entering uniformly over
+(t0, t1] is the average over entry times s of the pulse responses E_s(tau), each pulse
+spread over the inlet like the total feed (A and B weighted by their feed rates). The
+average is taken at the centres of equal sub-intervals of (t0, t1] (midpoint rule), one
+pulse per centre, every pulse a column of one exact propagation through the table's own
+windows: for a time-varying table each pulse sees the windows in force after its entry.
+(The outlet flux of a rectangular feed would instead mix the entry times into one curve.)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable
+from pbm._blas import single_threaded_blas
+from pbm.config import PbmConfig
+from pbm.model import feed_distribution, filled_table
+from pbm.simulate import BDF_ATOL_PARTICLES, check_run, recovered_moments, tracer_pulse
+from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
+
+
+@dataclass(frozen=True)
+class PooledRtd:
+    """The pooled RTD over an entry window, truncated at the horizon.
+
+    ``bin_edges`` [s]: residence-time bin edges over [0, H] (width ``rtd_bin_s``; the last
+    bin is shorter when H is not a multiple of it); ``density_per_s`` [1/s]: tracer
+    discharged in each bin / tracer fed / bin width, averaged over the pulses, so that its
+    integral over [0, H] is ``recovered_fraction``; ``mean_s`` [s] and ``variance_s2``
+    [s^2]: moments of tau over the tracer recovered within H (exact, not from the bins; NaN
+    if none is recovered); ``entry_times_s`` [s]: the pulse times, ``n_pulses`` of them.
+    """
+
+    bin_edges: np.ndarray
+    density_per_s: np.ndarray
+    recovered_fraction: float
+    mean_s: float
+    variance_s2: float
+    n_pulses: int
+    entry_times_s: np.ndarray
+
+    @property
+    def bin_centres(self) -> np.ndarray:
+        return 0.5 * (self.bin_edges[:-1] + self.bin_edges[1:])
+
+
+@single_threaded_blas()
+def pooled_rtd(
+    table: VelocityTable,
+    config: PbmConfig | None = None,
+    entry_window: tuple[float, float] = (0.0, 1.0),
+    horizon_s: float = 60.0,
+    pulse_interval_s: float | None = None,
+) -> PooledRtd:
+    """The PBM's RTD of tracer entering uniformly during ``entry_window`` = (t0, t1] [s],
+    recovered within ``horizon_s`` = H [s] of entry: the DEM's pooled RTD, like for like.
+
+    Pulses sit at the centres of n equal sub-intervals of (t0, t1], n = ceil((t1 - t0) /
+    ``pulse_interval_s``) (default ``config.rtd_bin_s``). Uses ``config``'s feed rates and
+    weights (the tracer's inlet distribution), ``rates``, ``method``, ``rtd_bin_s`` and
+    ``duration_s``; the A and B populations themselves do not enter (the system is linear).
+    Raises ConfigError unless 0 <= t0 < t1, H > 0, pulse_interval_s > 0 and t1 + H lies
+    within the run (``duration_s``, or the table's end): a pulse must be followed for all
+    of H.
+    """
+    config = config or PbmConfig()
+    t_end = check_run(table, config)
+    t0, t1 = (float(v) for v in entry_window)
+    horizon = float(horizon_s)
+    spacing = config.rtd_bin_s if pulse_interval_s is None else float(pulse_interval_s)
+    if not (math.isfinite(t0) and math.isfinite(t1) and 0.0 <= t0 < t1):
+        raise ConfigError(f"entry_window must satisfy 0 <= t0 < t1 (finite) [s], got ({t0}, {t1})")
+    if not (math.isfinite(horizon) and horizon > 0):
+        raise ConfigError(f"horizon_s must be a finite number > 0 s, got {horizon_s}")
+    if not (math.isfinite(spacing) and spacing > 0):
+        raise ConfigError(f"pulse_interval_s must be a finite number > 0 s, got {pulse_interval_s}")
+    if t1 + horizon > t_end + TIME_TOLERANCE_S:
+        raise ConfigError(
+            f"entry window end {t1} s + horizon {horizon} s = {t1 + horizon} s is beyond the run's end "
+            f"{t_end} s; the last entrants must be followed for the whole horizon (t1 <= {t_end - horizon} s)"
+        )
+
+    filled, _ = filled_table(table, config.rates)
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
+    props = Propagators(filled, feed, config.rates)
+    n = table.nx * table.ny
+    m = props.n_states
+    amount, vector = tracer_pulse(feed, np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s]), m)
+
+    n_pulses = max(1, math.ceil((t1 - t0) / spacing - 1e-9))
+    entries = t0 + (t1 - t0) / n_pulses * (np.arange(n_pulses) + 0.5)
+    edges = multiples(config.rtd_bin_s, 0.0, horizon)
+    if horizon - edges[-1] > TIME_TOLERANCE_S:
+        edges = np.append(edges, horizon)
+    record = entries[:, None] + edges[None, :]  # (pulse, edge): absolute times to read
+    times = breakpoints(entries[0], entries[-1] + horizon, record.ravel(), table.t)
+    at = np.clip(np.searchsorted(times, record - TIME_TOLERANCE_S), 0, times.size - 1)
+
+    injections = {}
+    for p, b in enumerate(at[:, 0].tolist()):
+        inj = np.zeros((m, n_pulses))
+        inj[:, p] = vector
+        injections[b] = inj
+    no_feed = np.zeros((2, n_pulses))
+    # Per breakpoint and pulse: tracer held, discharged, and the two hold-up integrals.
+    rows = np.empty((times.size, 4, n_pulses))
+    z0 = np.zeros((m, n_pulses))
+    rows[0] = _tracked_rows(z0 + injections.get(0, 0.0), n)
+    for b, z in march(props, times, z0, lambda _key: no_feed, np.zeros(times.size - 1, int), injections,
+                      method=config.method, rtol=config.bdf_rtol, atol=BDF_ATOL_PARTICLES):
+        rows[b] = _tracked_rows(z, n)
+
+    pulse_index = np.arange(n_pulses)[:, None]
+    discharged = rows[at, 1, pulse_index]  # (pulse, edge)
+    density = (np.diff(discharged, axis=1) / (amount * np.diff(edges))).mean(axis=0)
+    last = rows[at[:, -1], :, np.arange(n_pulses)]  # (pulse, row): state at entry + H
+    # Every tracer column starts at its pulse with zero integrals: the columns are empty
+    # before, so the integrals accumulated from the march's start are those since entry.
+    recovered, m1, m2 = recovered_moments(amount, last[:, 0], last[:, 2], last[:, 3], horizon)
+    total = recovered.sum()
+    if total > 0:
+        mean = float(m1.sum() / total)
+        variance = float(m2.sum() / total - mean**2)
+    else:
+        mean = variance = float("nan")
+    return PooledRtd(
+        bin_edges=edges,
+        density_per_s=density,
+        recovered_fraction=float(total / (amount * n_pulses)),
+        mean_s=mean,
+        variance_s2=variance,
+        n_pulses=n_pulses,
+        entry_times_s=entries,
+    )
+
+
+def _tracked_rows(z: np.ndarray, n: int) -> np.ndarray:
+    return np.stack([z[:n].sum(axis=0), z[n], z[n + 1], z[n + 2]])

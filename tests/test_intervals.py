@@ -1,0 +1,143 @@
+"""Resampling intervals (coupling.intervals): the block bootstrap keeps time correlation
+(wider than the iid bootstrap, near-nominal coverage on an AR(1) series), the RTD overlap
+noise band, and the argument checks."""
+
+import math
+
+import numpy as np
+import pytest
+
+from coupling.intervals import Interval, NoiseBand, block_bootstrap, inside, overlap_noise_band, time_blocks
+from coupling.metrics import rtd_density, rtd_overlap
+
+
+def _ar1(rng, n, phi):
+    """A stationary AR(1) series with zero mean and unit marginal variance."""
+    noise = rng.normal(0.0, math.sqrt(1 - phi * phi), n)
+    x = np.empty(n)
+    x[0] = rng.normal()
+    for i in range(1, n):
+        x[i] = phi * x[i - 1] + noise[i]
+    return x
+
+
+def test_block_bootstrap_of_an_ar1_mean_is_wider_than_iid_and_covers_nominally():
+    rng = np.random.default_rng(2013)
+    n, phi, reps = 1000, 0.8, 200
+    blocks = time_blocks(np.arange(n), 50.0)  # 20 blocks of 50 steps, >> the correlation time
+    iid = np.arange(n)
+    covered = {"block": 0, "iid": 0}
+    widths = {"block": [], "iid": []}
+    for r in range(reps):
+        x = _ar1(rng, n, phi)
+
+        def mean(idx, x=x):
+            return x[idx].mean()
+
+        for name, labels in (("block", blocks), ("iid", iid)):
+            est, low, high = block_bootstrap(mean, labels, n_boot=400, seed=r)
+            assert est == pytest.approx(x.mean())
+            covered[name] += bool(inside(0.0, low, high))
+            widths[name].append(high - low)
+    # the true variance of the mean is (1 + phi) / (1 - phi) = 9 times the iid one
+    assert np.mean(widths["block"]) > 2 * np.mean(widths["iid"])
+    assert 0.85 <= covered["block"] / reps <= 0.99
+    assert covered["iid"] / reps < 0.75
+
+
+def test_block_bootstrap_indices_resample_whole_blocks():
+    labels = np.array([3, 1, 3, 2, 1, 3])  # blocks of sizes 2 (label 1), 1 (2), 3 (3), interleaved
+    seen = []
+
+    def record(idx):
+        seen.append(np.sort(labels[idx]))
+        return float(len(idx))
+
+    est, low, high = block_bootstrap(record, labels, n_boot=50, seed=1)
+    assert est == 6.0 and list(seen[0]) == list(np.sort(labels))
+    for drawn in seen[1:]:
+        values, counts = np.unique(drawn, return_counts=True)
+        size = {1: 2, 2: 1, 3: 3}
+        assert all(c % size[v] == 0 for v, c in zip(values, counts))  # blocks come whole
+        assert sum(c // size[v] for v, c in zip(values, counts)) == 3  # three blocks each time
+    assert 3.0 <= low <= high <= 9.0
+
+
+def test_block_bootstrap_vector_statistic_and_determinism():
+    rng = np.random.default_rng(4)
+    tau = rng.exponential(10.0, 600)
+    labels = time_blocks(rng.uniform(0, 60, 600), 5.0)
+
+    def moments(idx):
+        return np.array([tau[idx].mean(), tau[idx].var()])
+
+    result = block_bootstrap(moments, labels, n_boot=300, seed=9)
+    assert isinstance(result, Interval) and result.estimate.shape == (2,)
+    assert np.all(result.low < result.estimate) and np.all(result.estimate < result.high)
+    again = block_bootstrap(moments, labels, n_boot=300, seed=9)
+    assert np.array_equal(result.low, again.low) and np.array_equal(result.high, again.high)
+    wider = block_bootstrap(moments, labels, n_boot=300, level=0.99, seed=9)
+    assert np.all(wider.high - wider.low > result.high - result.low)
+
+
+@pytest.mark.parametrize("kwargs, word", [
+    ({"data_blocks": np.zeros(5)}, "two distinct blocks"),
+    ({"data_blocks": np.zeros((2, 2))}, "data_blocks"),
+    ({"data_blocks": []}, "data_blocks"),
+    ({"data_blocks": [0, 1], "n_boot": 0}, "n_boot"),
+    ({"data_blocks": [0, 1], "level": 95}, "level"),
+])
+def test_block_bootstrap_refuses_bad_arguments(kwargs, word):
+    with pytest.raises(ValueError, match=word):
+        block_bootstrap(lambda idx: 0.0, **kwargs)
+
+
+def test_time_blocks():
+    assert list(time_blocks([0.0, 4.9, 5.0, 12.0], 5.0)) == [0, 0, 1, 2]
+    assert list(time_blocks([39.5, 44.0, 44.5], 5.0, origin=39.5)) == [0, 0, 1]
+    with pytest.raises(ValueError, match="block_s"):
+        time_blocks([1.0], 0.0)
+    with pytest.raises(ValueError, match="times"):
+        time_blocks([np.nan], 5.0)
+
+
+def _exponential_density(mean_s=15.0, horizon=60.0, bin_s=1.0):
+    edges = np.arange(0.0, horizon + bin_s, bin_s)
+    mass = np.diff(-np.exp(-edges / mean_s))
+    return mass / (mass.sum() * bin_s)
+
+
+def test_overlap_noise_band_tends_to_one_and_matches_a_direct_sample():
+    e = _exponential_density()
+    bands = [overlap_noise_band(e, 1.0, n, draws=400, seed=2) for n in (30, 300, 3000, 300_000)]
+    assert all(isinstance(b, NoiseBand) and b.low <= b.median <= 1.0 for b in bands)
+    medians = [b.median for b in bands]
+    assert medians == sorted(medians) and medians[-1] > 0.99 and medians[0] < 0.85
+    # a real sample of that size from the same distribution scores inside the band
+    rng = np.random.default_rng(8)
+    inside_count = 0
+    band = bands[1]
+    for _ in range(200):
+        tau = rng.exponential(15.0, 2000)
+        tau = tau[tau <= 60.0][:300]
+        _, sample = rtd_density(tau, 1.0, 60.0)
+        inside_count += bool(inside(rtd_overlap(sample, e, 1.0), band.low, 1.0))
+    assert inside_count / 200 == pytest.approx(0.95, abs=0.04)
+
+
+def test_overlap_noise_band_is_deterministic_and_checks_arguments():
+    e = _exponential_density()
+    assert overlap_noise_band(e, 1.0, 100, seed=5) == overlap_noise_band(e, 1.0, 100, seed=5)
+    for kwargs, word in [({"n_particles": 0}, "n_particles"), ({"draws": 0}, "draws"),
+                         ({"level": 0.0}, "level"), ({"bin_s": -1.0}, "bin_s")]:
+        args = {"density": e, "bin_s": 1.0, "n_particles": 100, **kwargs}
+        with pytest.raises(ValueError, match=word):
+            overlap_noise_band(**args)
+    with pytest.raises(ValueError, match="density"):
+        overlap_noise_band(np.zeros(5), 1.0, 100)
+
+
+def test_inside():
+    assert inside(0.5, 0.0, 1.0) and inside(1.0, 0.0, 1.0) and not inside(1.5, 0.0, 1.0)
+    assert not inside(math.nan, 0.0, 1.0)
+    assert list(inside(np.array([0.2, 2.0]), np.array([0.0, 0.0]), 1.0)) == [True, False]
