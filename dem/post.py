@@ -296,7 +296,11 @@ def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tup
     counts = transition_counts(acc, exits, table.n_windows, nx * ny)
     if not math.isfinite(acc.transition_interval_s) or not counts.any():
         return table, counts
-    rates = fit_windows(counts, nx, ny, acc.transition_interval_s)
+    # the velocities' own threshold: below min_samples observations a compartment-window
+    # carries no information, and the PBM fills it by the velocities' rule
+    rates = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
+    if all(np.isnan(values).all() for values in rates.values()):
+        return table, counts
     attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s),
              "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)"}
     return table.replace(**rates, attrs=attrs), counts

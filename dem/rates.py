@@ -60,6 +60,8 @@ import numpy as np
 from scipy.linalg import expm, expm_frechet
 from scipy.optimize import minimize
 
+from coupling.blas import single_threaded_blas
+
 RATE_KEYS = ("x_pos", "x_neg", "y_pos", "y_neg")
 MIN_RATE = 1e-6
 MAX_RATE_X_INTERVAL = 50.0
@@ -312,6 +314,7 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
                    iterations=int(iterations), converged=bool(result.success))
 
 
+@single_threaded_blas()
 def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
                 max_iterations: int = 500) -> dict[str, np.ndarray]:
     """:func:`fit_rates` for each window of ``counts`` (K, S+1, S+1), each warm-started from

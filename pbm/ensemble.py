@@ -17,7 +17,7 @@ import numpy as np
 from coupling.errors import ConfigError
 from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
-from pbm._blas import single_threaded_blas
+from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table
 from pbm.simulate import check_run, noise_factors

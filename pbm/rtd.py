@@ -23,7 +23,7 @@ import numpy as np
 
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
-from pbm._blas import single_threaded_blas
+from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table
 from pbm.simulate import BDF_ATOL_PARTICLES, check_run, recovered_moments, tracer_pulse

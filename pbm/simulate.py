@@ -22,7 +22,7 @@ import pandas as pd
 from coupling.errors import ConfigError
 from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
-from pbm._blas import single_threaded_blas
+from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples

@@ -116,7 +116,22 @@ def test_cli_synth_then_run(tmp_path, capsys):
     fed = smoke.feed_rate_a_per_s + smoke.feed_rate_b_per_s
     ts = np.genfromtxt(out / "timeseries.csv", delimiter=",", names=True)
     assert ts["holdup_A"][0] + ts["holdup_B"][0] == pytest.approx(fed * 1.0, rel=0.05)
-    assert "PBM 4x4" in capsys.readouterr().out
+    assert "PBM (velocity rates) 4x4" in capsys.readouterr().out
+    # a synthetic table has no measured rates: asking for them is refused before writing
+    assert main(["pbm", "run", "--tables", str(table_path), "--rates", "both", "--out", str(tmp_path / "both")]) == 2
+    assert "no measured rates" in capsys.readouterr().err and not (tmp_path / "both").exists()
+
+
+def test_cli_runs_both_rate_modes(tmp_path, capsys):
+    table = synthetic_table(nx=3, ny=2, n_windows=2)
+    rates = {name: table.vx_pos / table.dx[:, None] for name in ("rate_x_pos", "rate_x_neg")}
+    rates.update({name: table.vy_pos / table.dy[None, :] for name in ("rate_y_pos", "rate_y_neg")})
+    write_table(tmp_path / "t.h5", table.replace(**rates))
+    assert main(["pbm", "run", "--tables", str(tmp_path / "t.h5"), "--rates", "both", "--out", str(tmp_path / "o"),
+                 "--no-figures"]) == 0
+    out = capsys.readouterr().out
+    assert "(velocity rates)" in out and "(measured rates)" in out
+    assert (tmp_path / "o" / "velocity" / "summary.json").exists() and (tmp_path / "o" / "measured" / "summary.json").exists()
 
 
 def test_cli_errors_exit_2_with_a_message(tmp_path, capsys):

@@ -12,6 +12,7 @@ import sys
 BENCHMARKS = (
     ("PBM solver and ensembles", "workflows.bench_pbm"),
     ("DEM dump reader and post-processing", "workflows.bench_dem_post"),
+    ("Transfer-rate estimators on a known chain", "workflows.bench_rates"),
     ("DEM deck efficiency and core-hours", "workflows.bench_dem_deck"),
     ("Post-processing vs DEM wall time of the shipped runs", "workflows.bench_reference"),
 )

@@ -138,6 +138,8 @@ def full_comparison(
                            "reference": "shipped reference data"}[dem.source],
             "dem_results_made": dem.provenance.get("created"),
             "dem_ranks": dem.provenance.get("np"),
+            "dem_wall_time_s": dem.provenance.get("wall_time_s"),
+            "dem_postprocess_time_s": dem.provenance.get("postprocess_time_s"),
             "dem_cache_file": str(dem.cache_file),
             "rtd_tag_time_s": tag_time,
             "steady_state_rule": (f"window {config.steady_state.window_s:g} s, "

@@ -34,6 +34,7 @@ from dem.run import RunInputs, completed_run, prepare_run, read_status, run_dem
 from coupling.tables import read_table
 from pbm.config import PbmConfig
 from pbm.outputs import write_outputs
+from pbm.model import require_rates
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, config_from_dict, dump_toml
 
@@ -203,14 +204,24 @@ def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir:
 
 
 def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: float | None = None,
-            method: str | None = None, figures: bool = True) -> tuple[PbmResult, dict[str, Path]]:
+            method: str | None = None, figures: bool = True,
+            rates: str | None = None) -> dict[str, tuple[PbmResult, dict[str, Path]]]:
     """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
-    rule) on the velocity table in ``tables``; files written to ``out``."""
-    pbm = config.pbm if method is None else config.pbm.model_copy(update={"method": method})
+    rule) on the velocity table in ``tables``, in the rate mode ``rates`` ("velocity",
+    "measured", or "both": one subdirectory of ``out`` per mode; default the config's).
+    Returns mode -> (result, files written)."""
+    updates = {"method": method} if method is not None else {}
+    modes = ("velocity", "measured") if rates == "both" else (rates or config.pbm.rates,)
     table = read_table(tables)
+    for mode in modes:  # refused before anything is written
+        require_rates(table, mode)
     writable_directory(out, "output directory")
-    result = simulate(table, pbm, rtd_pulse_s=rtd_pulse_s, steady=config.steady_state)
-    return result, write_outputs(result, out, figures=figures)
+    runs = {}
+    for mode in modes:
+        pbm = config.pbm.model_copy(update={**updates, "rates": mode})
+        result = simulate(table, pbm, rtd_pulse_s=rtd_pulse_s, steady=config.steady_state)
+        runs[mode] = (result, write_outputs(result, Path(out) / mode if len(modes) > 1 else out, figures=figures))
+    return runs
 
 
 def write_run_directory(config: Config, out: str | Path, resume_from: str | None = None, view_stl: bool = False,

@@ -20,6 +20,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from coupling.metrics import TIMESERIES_COLUMNS
+from coupling.metrics import rtd_overlap as shared_rtd_overlap
 
 DEM_COLOUR, PBM_COLOUR = "#b2182b", "#2166ac"
 
@@ -59,20 +60,19 @@ class Study:
 
 
 def rtd_overlap(dem_rtd: pd.DataFrame, pbm_rtd: pd.DataFrame) -> float:
-    """1 - 1/2 * integral |E_DEM - E_PBM| dt on the DEM's bins (1 = identical, 0 = disjoint).
-
-    Both E(t) are put on the DEM's time grid (PBM interpolated, zero outside its range) and
-    renormalised there, so a truncated tail does not count as a difference in shape."""
+    """:func:`coupling.metrics.rtd_overlap` of the two E(t) on the DEM's (uniform) bins: the
+    PBM's interpolated there (zero outside its range), both renormalised on those bins, so a
+    truncated tail does not count as a difference in shape (1 = identical, 0 = disjoint)."""
     t = dem_rtd["t_s"].to_numpy(float)
     if t.size < 2:
         return float("nan")
     e_dem = dem_rtd["E_per_s"].to_numpy(float)
     e_pbm = np.interp(t, pbm_rtd["t_s"].to_numpy(float), pbm_rtd["E_per_s"].to_numpy(float), left=0.0, right=0.0)
-    dt = np.gradient(t)
-    norm_dem, norm_pbm = np.sum(e_dem * dt), np.sum(e_pbm * dt)
+    bin_s = float(t[1] - t[0])
+    norm_dem, norm_pbm = e_dem.sum() * bin_s, e_pbm.sum() * bin_s
     if norm_dem <= 0 or norm_pbm <= 0:
         return float("nan")
-    return float(1.0 - 0.5 * np.sum(np.abs(e_dem / norm_dem - e_pbm / norm_pbm) * dt))
+    return shared_rtd_overlap(e_dem / norm_dem, e_pbm / norm_pbm, bin_s)
 
 
 def comparison_metrics(dem: SideResults, pbm: SideResults, feed_rate_per_s: float) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Run BLAS single-threaded inside the PBM's hot loops.
+"""Run BLAS single-threaded inside hot loops of small matrices (the PBM, the rate fits).
 
 Why: the PBM multiplies ~100 x 100 matrices a few thousand times. Threading cannot speed
 up products that small, but OpenBLAS's spinning worker threads can slow them down by two
