@@ -132,3 +132,21 @@ def test_shipped_reference_covers_the_reduced_preset(tmp_path):
     dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs")
     assert dem.source == "reference", dem.cache_file
 
+
+
+def test_shipped_reference_covers_the_grid_sensitivity(tmp_path):
+    """The comparison's NX sensitivity bins the same reduced run at twice the NX: shipped
+    too, so a fresh clone never needs the dumps; found without starting any solver."""
+    data = load_preset("reduced").to_dict()
+    data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
+    data["dem"]["tables"]["nx"] = 2 * data["dem"]["tables"]["nx"]
+    dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
+    assert dem.source == "reference" and dem.table.nx == 20 and dem.table.has_rates
+
+
+def test_without_a_solver_run_nothing_is_started(tmp_path):
+    data = load_preset("smoke").to_dict()
+    data["dem"]["tables"]["nx"] = 7  # binned as nothing cached or shipped is
+    with pytest.raises(LookupError, match="no cached or shipped DEM results"):
+        dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
+    assert not any((tmp_path / "runs").glob("*/in.blender"))

@@ -108,9 +108,10 @@ def test_randomly_damaged_cache_files_are_refused_or_identical(tmp_path, entry):
     outcomes, changed, crashed = damaged_loads(entry, tmp_path)
     assert crashed == [], crashed[:5]
     assert changed == [], changed[:5]
-    # the damage is real: most files are refused (measured: 219 of 300; the others were
-    # damaged in bytes HDF5 leaves unused, so they load the original data)
-    assert outcomes["refused"] >= 200, outcomes
+    # the damage is real: most files are refused (measured: 173 of 300 since the datasets are
+    # gzip-compressed in chunks; the others were damaged in bytes HDF5 leaves unused, so they
+    # load the original data)
+    assert outcomes["refused"] >= 150, outcomes
 
 
 @pytest.mark.parametrize("where", ["summary", "provenance"])
