@@ -5,7 +5,9 @@ text*; :func:`write_deck` is the only function here that touches the disk. Nothi
 written unless the geometry and the deck validate (:class:`~coupling.errors.GeometryError`,
 :class:`~coupling.errors.DeckError`). :func:`build_box_deck` builds the yardstick of the
 deck's efficiency: the same particles and contact physics in a plain box, built from the
-same section builders as the blender deck.
+same section builders as the blender deck; :func:`build_drum_deck` the fair one: the
+same particles tumbling in the blender's barrel spun as a drum (a stirred bed, like the
+blender's, where a still box hardly ever rebuilds its neighbour lists).
 
 This module is longer than the others: the section builders are private to it, shared by
 the two decks, and every line of the blender deck's text feeds the input hash of shipped
@@ -85,7 +87,7 @@ from scipy.optimize import brentq
 from coupling.cache import stable_hash
 from coupling.errors import DeckError, OutputError, os_reason
 from dem.config import MAX_STABLE_RAYLEIGH_FRACTION, DemConfig
-from dem.geometry import Box, build_geometry, stl_text
+from dem.geometry import Box, build_geometry, simulation_box, stl_text
 
 MAIN_DECK = "in.blender"
 RESUME_DECK = "in.resume"
@@ -148,6 +150,13 @@ FEED_BATCH_S = 0.05  # the feeders insert a batch every this much simulated time
 BOX_DECK = "in.box"
 BOX_LOG_FILE = "log.box.liggghts"
 BOX_FILL_BATCH_S = 0.1
+#: The rotating drum (:func:`build_drum_deck`): its deck, its log, and its Froude number
+#: Fr = omega^2 R / g. 0.5 is the cascading regime: a stirred bed that neither rests (like the
+#: box's) nor centrifuges (Fr >= 1; the impeller's tip speed would centrifuge it).
+DRUM_DECK = "in.drum"
+DRUM_LOG_FILE = "log.drum.liggghts"
+DRUM_FROUDE = 0.5
+GRAVITY_M_S2 = 9.81
 
 
 # --------------------------------------------------------------------------------------
@@ -539,6 +548,73 @@ def build_box_deck(config: DemConfig, particles: int, steps: int, fill_s: float 
         f"run             {steps}",
     ]
     return {BOX_DECK: "\n".join(L) + "\n"}
+
+
+def drum_wall_speed_m_s(config: DemConfig) -> float:
+    """Tangential speed of the drum's wall: V = sqrt(Fr g R) at Froude number :data:`DRUM_FROUDE`."""
+    return math.sqrt(DRUM_FROUDE * GRAVITY_M_S2 * config.geometry.radius_m)
+
+
+def build_drum_deck(config: DemConfig, particles: int, steps: int, fill_s: float = 1.0) -> dict[str, str]:
+    """``{DRUM_DECK: text}``: ``particles`` particles in the blender's barrel spinning as a
+    drum, then ``steps`` measured steps (the log's last ``Loop time``); nothing is written.
+
+    The fair reference for the blender deck's efficiency: a stirred bed rebuilds its
+    neighbour lists about as often as the blender's, a still one (:func:`build_box_deck`)
+    almost never. The same setup, neighbour settings, materials, pair style, timestep,
+    gravity, particle templates, integration, timestep check and thermo interval as
+    :func:`build_deck` (the same section builders), in the blender's own simulation box;
+    the barrel is the blender's ``xcylinder`` primitive spinning about x (``shear y V``,
+    V = :func:`drum_wall_speed_m_s`), closed by ``xplane`` primitives at 0 and L. No
+    impeller, meshes, feeders, discharge or dumps. A and B are inserted through one
+    number-weighted distribution as in the box. ``fix insert/pack`` fills the whole barrel
+    (so particles carried up by the wall stay counted) to ``particles`` for ``fill_s`` of
+    tumbling, then ``unfix`` and the measured run. Raises :class:`DeckError`.
+    """
+    if particles < 1 or steps < 1:
+        raise DeckError(f"drum deck: particles = {particles} and steps = {steps}; both must be >= 1")
+    if not fill_s > 0:
+        raise DeckError(f"drum deck: fill_s = {fill_s}: must be > 0")
+    info = deck_parameters(config)
+    dt, thermo_every = info["timestep_s"], info["thermo_every_steps"]
+    p, g = config.particles, config.geometry
+    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
+    n_cls = len(diam)
+    seeds = _seeds(config.numerics.seed, n_cls)
+    speed = drum_wall_speed_m_s(config)
+    templates = [f"pt{comp}{k}" for comp in ("A", "B") for k in range(n_cls)]
+    fill_steps = max(1, round(fill_s / dt))
+
+    L: list[str] = [
+        "# pbmdem: rotating drum of the blender deck's particles (dem.deck.build_drum_deck).",
+        f"# {particles} particles in the blender's barrel (R = {_g(g.radius_m)} m, L = {_g(g.length_m)} m) spinning "
+        f"at Froude number {_g(DRUM_FROUDE)} (wall speed {_g(speed)} m/s), then {steps} measured steps "
+        "(the last Loop time).",
+        "",
+        *_setup_lines(simulation_box(g)), "", *_neighbour_lines(config), "", *_material_lines(config), "",
+        *_contact_lines(dt), "",
+        "# the drum: the blender's barrel spinning about x (shear y = tangential wall speed), closed at both ends",
+        _steel_wall("barrel", f"xcylinder {_g(g.radius_m)} 0. 0. shear y {_g(speed)}"),
+        _steel_wall("inletwall", "xplane 0.0"),
+        _steel_wall("outletwall", f"xplane {_g(g.length_m)}"),
+        "",
+        *_template_lines(config, "A", diam, seeds["templates"]["A"]),
+        *_template_lines(config, "B", diam, seeds["templates"]["B"]),
+        _distribution_line("pdddrum", seeds["box_distribution"], templates, np.concatenate([weights, weights]) / 2),
+        f"region          fill cylinder x 0 0 {_g(g.radius_m)} 0 {_g(g.length_m)} units box",
+        f"fix ins all insert/pack seed {seeds['box_insertion']} distributiontemplate pdddrum insert_every "
+        f"{max(1, round(BOX_FILL_BATCH_S / dt))} overlapcheck yes all_in yes particles_in_region {particles} "
+        "region fill ntry_mc 10000",
+        "",
+        *_integration_lines(thermo_every), "",
+        *_thermo_lines("step atoms ke", thermo_every), "",
+        f"# fill: top the drum up to {particles} particles every {_g(BOX_FILL_BATCH_S)} s while it turns, then stop inserting",
+        f"run             {fill_steps}",
+        "unfix           ins",
+        "# measured",
+        f"run             {steps}",
+    ]
+    return {DRUM_DECK: "\n".join(L) + "\n"}
 
 
 def deck_hash(files: dict[str, str | bytes], liggghts_version: str = "") -> str:

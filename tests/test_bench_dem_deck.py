@@ -42,7 +42,7 @@ Loop time of 4 on 2 procs for 20000 steps with 1550 atoms, finish time x
 
 def test_paper_core_hours_follow_estimate_cost():
     smoke = load_preset("smoke")
-    out = paper_core_hours(4.0e6, 1.8, 1500.0, smoke, box_rate_serial=6.0e6)
+    out = paper_core_hours(4.0e6, 1.8, 1500.0, smoke, reference_rate_serial=6.0e6)
     paper = load_preset("paper").dem
     assert set(out["cores"]) == {"2", "8", "32"}
     for cores, est in out["cores"].items():
