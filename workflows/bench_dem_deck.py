@@ -559,8 +559,8 @@ def _fmt(x, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
 
-def _pm(spread: float | None) -> str:
-    return "" if spread is None else f" ±{spread / 2:.0%}"
+def _spread_text(spread: float | None) -> str:
+    return "" if spread is None else f" ({spread:.0%})"
 
 
 def _load(lo: float, hi: float) -> str:
@@ -576,13 +576,13 @@ def _cost_text(c: dict) -> str:
 def print_table(record: dict, nps: list[int]) -> None:
     summary, targets = record["summary"], record["targets"]
     print(f"\n{record['particles']} particles, {record['steps']} steps, median of {record['repeats']} repeat(s) "
-          "(± half the spread); particle-steps per second (Loop time):")
-    print(f"{'ranks':>6} {'blender':>14} {'drum':>14} {'eff.':>6}  target")
+          "(spread (max - min) / median); particle-steps per second (Loop time):")
+    print(f"{'ranks':>6} {'blender':>16} {'drum':>16} {'eff.':>6}  target")
     for np in nps:
         tag = "serial" if np == 1 else f"np{np}"
-        b, d = summary.get(f"blender_np{np}"), summary.get(f"drum_np{np}")
-        print(f"{np:>6} {_fmt(b and b['particle_steps_per_s'], '8.3g')}{_pm(b and b['rate_spread']):>6} "
-              f"{_fmt(d and d['particle_steps_per_s'], '8.3g')}{_pm(d and d['rate_spread']):>6} "
+        b, d = summary[f"blender_np{np}"], summary[f"drum_np{np}"]
+        print(f"{np:>6} {_fmt(b['particle_steps_per_s'], '9.3g')}{_spread_text(b['rate_spread']):>7} "
+              f"{_fmt(d['particle_steps_per_s'], '9.3g')}{_spread_text(d['rate_spread']):>7} "
               f"{_fmt(record.get(f'efficiency_{tag}'), '6.0%')}  "
               + (f">= {targets['efficiency_min']:.0%}" if np == 1 else "(none)  ")
               + f"  {_load(min(b['load_min'], d['load_min']), max(b['load_max'], d['load_max']))}")
@@ -598,8 +598,8 @@ def print_table(record: dict, nps: list[int]) -> None:
         if whole:
             f1, fn = record["fills"]["np1"], record["fills"][f"np{np}"]
             print(f"speed-up {np} ranks, whole smoke run, filling included ({record['fill_s']:g} s from empty, one run "
-                  f"each): {whole:.2f}x (target >= {targets['speedup_np2_whole_run_min']}x; loop {f1['loop_s']:.0f} s "
-                  f"vs {fn['loop_s']:.0f} s)  "
+                  f"each): {whole:.2f}x (target >= {targets['speedup_np2_whole_run_min']}x; loop {f1['loop_s']:.4g} s "
+                  f"vs {fn['loop_s']:.4g} s)  "
                   f"{_load(min(f1['load_before'], fn['load_before']), max(f1['load_after'], fn['load_after']))}")
     costs = record["variant_costs"]
     for np in nps:
