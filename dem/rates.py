@@ -15,17 +15,25 @@ assumes at most one jump per interval. With the DEM's rates (up to ~10 /s) and d
 ... or comes back, and the neighbour counts undercount the rates.
 
 Method: maximum likelihood of the discretely observed chain,
-``L(theta) = sum_ab counts[a, b] log P_ab`` with ``P = expm(Q interval)``, over the log-rates
-theta (positivity for free). The gradient is exact: with ``G_ab = counts_ab / P_ab``,
+``L(Q) = sum_ab counts[a, b] log P_ab`` with ``P = expm(Q interval)``, over the free rates.
+The gradient is exact: with ``G_ab = counts_ab / P_ab``,
 ``dL/dQ = interval * L_expm(Q^T interval, G)`` (the adjoint of the Frechet derivative of
 expm, ``scipy.linalg.expm_frechet``; the transpose convention is checked against finite
 differences in ``tests/test_rates.py``), then the chain rule onto each allowed entry Q_ab
-and the diagonal ``-sum``. L-BFGS-B with bounds ``rate in [1e-6, 50 / interval]`` starts
-from the naive estimate (or a previous window's fit). A compartment never observed as a
-start state has no information of its own: its rates are held fixed (they still shape P for
+and the diagonal ``-sum``. L-BFGS-B with bounds ``0 <= rate <= 2 / interval`` starts from
+the naive estimate (or a previous window's fit). A compartment never observed as a start
+state has no information of its own: its rates are held fixed (they still shape P for
 particles passing through it) and reported as NaN, as are those of every compartment with
-fewer than ``min_observations`` observations. A rate the data drive to the lower bound is
-a genuine ~0.
+fewer than ``min_observations`` observations.
+
+The cap: a rate above ~2 / interval means a particle leaves and the neighbours relax to
+their local balance within one dump interval (e^-2 of it left), so the likelihood is flat
+in it and the data cannot tell 20 /s from 500 /s. Uncapped, the DEM's transverse rates
+between compartments two particle diameters wide ran to the bound at every value tried
+(50 / interval and 5 / interval) and the fit crawled along that flat valley for thousands
+of iterations. For the PBM a capped rate is as good as infinite: it relaxes in 0.05 s
+(at 0.1-s dumps) against a residence time of ~20 s. The fit reports how many rates sit at
+the cap (:attr:`RateFit.capped`).
 
 Numbers (``OPENBLAS_NUM_THREADS=1 python -m workflows.bench_rates``; 10 x 10 grid,
 forward-biased axial rates and faster transverse rates, 4e6 particles followed for 30
@@ -47,8 +55,8 @@ counts, whereas the MLE is a valid generator by construction and uses the struct
 Fit time per window (fit_windows, warm start, 1e5 transitions, largest rate x interval
 1.0, single-threaded BLAS on a shared 2-core machine): 0.14 s for 10 x 10 (101 states),
 0.86 s for 20 x 10 (201 states); a cold start takes 0.18 s and 1.0 s. The cost is one
-expm and one expm_frechet per evaluation, ~20-60 iterations; weighting each log-rate by
-the square root of its expected number of jumps cut the iterations ~3x.
+expm and one expm_frechet per evaluation. On the DEM's own windows (reduced preset, 10 x 10,
+~1.1e5 transitions each) a fit takes 300-500 iterations, 1.5-3 s.
 """
 
 from __future__ import annotations
@@ -63,11 +71,11 @@ from scipy.optimize import minimize
 from coupling.blas import single_threaded_blas
 
 RATE_KEYS = ("x_pos", "x_neg", "y_pos", "y_neg")
-MIN_RATE = 1e-6
-MAX_RATE_X_INTERVAL = 50.0
+MIN_RATE = 0.0
+MAX_RATE_X_INTERVAL = 2.0
 # P entries of transitions that were observed are floored here before the log: far-away
 # entries of expm can round to zero or slightly below while counts say they happened.
-_P_FLOOR = 1e-300
+_P_FLOOR = 1e-12
 
 
 @dataclass
@@ -83,9 +91,15 @@ class RateFit:
     log_likelihood: float
     iterations: int
     converged: bool
+    cap_per_s: float = float("inf")
 
     def rates(self) -> dict[str, np.ndarray]:
         return {key: getattr(self, key) for key in RATE_KEYS}
+
+    @property
+    def capped(self) -> int:
+        """Reported rates at the cap (module docstring): faster than the dumps resolve."""
+        return int(sum(np.count_nonzero(getattr(self, key) >= 0.999 * self.cap_per_s) for key in RATE_KEYS))
 
 
 def _check_grid(nx: int, ny: int) -> None:
@@ -184,12 +198,15 @@ def naive_rates(counts, nx: int, ny: int, interval_s: float) -> dict[str, np.nda
 
 
 class _Objective:
-    """-L / n_observations over z = weight * (free log-rates), with its exact gradient.
+    """-L / n_observations over z = weight * (free rates), with its exact gradient.
 
-    The weights are the square roots of each log-rate's approximate Fisher information
-    (expected jumps, n_observations(source) * rate * interval, per observation): without
-    them a rarely visited compartment's rates sit in a valley flatter than a busy one's by
-    the ratio of their observations, and L-BFGS-B needs several times more iterations.
+    Rates, not log-rates: a rate the data put at 0 then meets its bound and L-BFGS-B fixes
+    it there, whereas a log-rate crawls towards minus infinity along a vanishing gradient
+    (measured on a reduced-run window: 500 iterations without converging, against ~50).
+    The weights are the square roots of each rate's approximate Fisher information
+    (n_observations(source) * interval / rate, per observation): without them a rarely
+    visited compartment's rates sit in a valley flatter than a busy one's by the ratio of
+    their observations, and L-BFGS-B needs several times more iterations.
     """
 
     def __init__(self, counts: np.ndarray, nx: int, ny: int, interval_s: float, start: np.ndarray,
@@ -204,11 +221,12 @@ class _Objective:
         # Normalised so that the tolerances mean the same for 1e3 or 1e7 observations.
         self.scale = 1.0 / counts.sum()
         n_src = counts[src[free]].sum(axis=1)
-        self.weight = np.sqrt(np.maximum(n_src * start[free] * interval_s, 1.0) * self.scale)
+        typical = np.maximum(start[free], 0.1 / interval_s)
+        self.weight = np.sqrt(np.maximum(n_src * interval_s / typical, 1.0 / typical) * self.scale)
 
     def all_rates(self, z: np.ndarray) -> np.ndarray:
         rates = self.start.copy()
-        rates[self.free] = np.exp(z / self.weight)
+        rates[self.free] = z / self.weight
         return rates
 
     def generator(self, rates: np.ndarray) -> np.ndarray:
@@ -225,7 +243,7 @@ class _Objective:
 
     def __call__(self, z: np.ndarray) -> tuple[float, np.ndarray]:
         value, d_rate, rates = self.rate_gradient(z)
-        return -value * self.scale, -d_rate * rates[self.free] * self.scale / self.weight
+        return -value * self.scale, -d_rate * self.scale / self.weight
 
 
 def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
@@ -268,8 +286,7 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
         known = block & free & np.isfinite(start)
         fill = float(np.median(start[known])) if known.any() else 1.0 / interval_s
         start[block & ~np.isfinite(start)] = fill
-    # A naive 0 is usually a rate the one-jump count missed; starting at the lower bound
-    # would leave log-rate gradients ~0 there, so start from a small positive rate instead.
+    # A naive 0 is usually a rate the one-jump count missed: start it off the bound.
     start = np.clip(start, max(lo, 1e-3 / interval_s), hi)
 
     report = {key: np.full((nx, ny), np.nan) for key in RATE_KEYS}
@@ -279,27 +296,10 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
 
     objective = _Objective(counts, nx, ny, interval_s, start, free, src, dst)
     w = objective.weight
-    bounds = list(zip(np.log(lo) * w, np.log(hi) * w))
-    options = {"maxiter": max_iterations, "ftol": 1e-13, "gtol": 1e-9, "maxcor": 20}
-    result = minimize(objective, np.log(start[free]) * w, jac=True, method="L-BFGS-B", bounds=bounds, options=options)
+    bounds = list(zip(lo * w, hi * w))
+    options = {"maxiter": max_iterations, "ftol": 1e-10, "gtol": 1e-6, "maxcor": 20}
+    result = minimize(objective, start[free] * w, jac=True, method="L-BFGS-B", bounds=bounds, options=options)
     iterations = result.nit
-    # In log-rates a rate that a long line-search step threw near 0 has a vanishing
-    # gradient, so L-BFGS-B stops there even when the likelihood still rises with that
-    # rate (seen on 20 x 10 windows: a 1.4 /s rate stuck at 3e-6, log-likelihood 7 lower).
-    # Such rates restart from a moderate value; the better optimum wins, and what stays
-    # near 0 afterwards is a genuine ~0.
-    for _ in range(3):
-        _, d_rate, rates = objective.rate_gradient(result.x)
-        stuck = (rates[free] * interval_s < 1e-3) & (d_rate > 0)
-        if not stuck.any():
-            break
-        z = result.x.copy()
-        z[stuck] = np.log(0.1 / interval_s) * w[stuck]
-        retry = minimize(objective, z, jac=True, method="L-BFGS-B", bounds=bounds, options=options)
-        iterations += retry.nit
-        if retry.fun >= result.fun:
-            break
-        result = retry
     rates = objective.all_rates(result.x)
 
     reported = n_obs >= min_observations
@@ -311,7 +311,7 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
         r[~reported] = np.nan
         report[key] = r.reshape(nx, ny)
     return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=-result.fun / objective.scale,
-                   iterations=int(iterations), converged=bool(result.success))
+                   iterations=int(iterations), converged=bool(result.success), cap_per_s=hi)
 
 
 @single_threaded_blas()
@@ -319,10 +319,11 @@ def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: i
                 max_iterations: int = 500) -> dict[str, np.ndarray]:
     """:func:`fit_rates` for each window of ``counts`` (K, S+1, S+1), each warm-started from
     the previous window's fit. Returns "rate_x_pos", "rate_x_neg", "rate_y_pos",
-    "rate_y_neg", each (K, NX, NY) [1/s]."""
+    "rate_y_neg", each (K, NX, NY) [1/s], and "capped": how many of them sit at the cap."""
     _check_grid(nx, ny)
     counts = _check_counts(counts, nx, ny, windows=True)
     out = {f"rate_{key}": np.full((counts.shape[0], nx, ny), np.nan) for key in RATE_KEYS}
+    out["capped"] = 0
     previous = None
     for k, window in enumerate(counts):
         fit = fit_rates(window, nx, ny, interval_s, min_observations=min_observations, initial=previous,
@@ -332,6 +333,7 @@ def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: i
                           RuntimeWarning, stacklevel=2)
         for key in RATE_KEYS:
             out[f"rate_{key}"][k] = getattr(fit, key)
+        out["capped"] += fit.capped
         # Only the reported rates carry over: a start from a poorly observed fit is worse
         # than this window's own naive estimate.
         previous = fit.rates()
