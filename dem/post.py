@@ -299,10 +299,11 @@ def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tup
     # the velocities' own threshold: below min_samples observations a compartment-window
     # carries no information, and the PBM fills it by the velocities' rule
     rates = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
-    capped = rates.pop("capped")
+    capped, unconverged = rates.pop("capped"), rates.pop("unconverged")
     if all(np.isnan(values).all() for values in rates.values()):
         return table, counts
     attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s), "rates_capped": int(capped),
+             "rates_unconverged_windows": [int(k) for k in unconverged],
              "rates_finite": int(sum(np.isfinite(values).sum() for values in rates.values())),
              "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)"}
     return table.replace(**rates, attrs=attrs), counts

@@ -125,7 +125,7 @@ def test_fit_windows_warm_start_tracks_changing_rates(rng):
     truths = [blender_rates(nx, ny, 10.0, rng) for _ in range(3)]
     counts = np.stack([_observe(t, nx, ny, 400_000, 20, rng) for t in truths])
     out = fit_windows(counts, nx, ny, DT, min_observations=2000)
-    assert set(out) == {f"rate_{k}" for k in RATE_KEYS} | {"capped"} and out["capped"] == 0
+    assert set(out) == {f"rate_{k}" for k in RATE_KEYS} | {"capped", "unconverged"} and out["capped"] == 0
     for k, truth in enumerate(truths):
         assert out["rate_x_pos"][k].shape == (nx, ny)
         window = {key: out[f"rate_{key}"][k] for key in RATE_KEYS}
