@@ -14,6 +14,7 @@ BENCHMARKS = (
     ("DEM dump reader and post-processing", "workflows.bench_dem_post"),
     ("Transfer-rate estimators on a known chain", "workflows.bench_rates"),
     ("DEM deck efficiency and core-hours", "workflows.bench_dem_deck"),
+    ("What two ranks can gain on this machine at all", "workflows.bench_machine"),
     ("A deck change against the seed-to-seed scatter", "workflows.bench_scatter"),
     ("Post-processing vs DEM wall time of the shipped runs", "workflows.bench_reference"),
 )

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import json
 import os
 import sys
@@ -61,6 +62,14 @@ def _parse_value(text: str) -> Any:
         except ValueError:
             pass
     return {"true": True, "false": False, "none": None}.get(text.lower(), text)
+
+
+def next_prime(n: int) -> int:
+    """The smallest prime >= n (LIGGGHTS' random seeds must be primes > 10000)."""
+    n = max(int(n), 10007)
+    while any(n % k == 0 for k in range(2, math.isqrt(n) + 1)):
+        n += 1
+    return n
 
 
 def _field(table: VelocityTable, name: str) -> np.ndarray:
@@ -117,9 +126,9 @@ def main(argv: list[str] | None = None) -> dict:
     runs: dict[str, DemSide] = {}
     load = [os.getloadavg()[0]]
     for n in range(args.seeds):
-        name = f"seed {seed0 + 1000 * n}"
-        print(f"  {name} ...", flush=True)
-        runs[name] = dem_stage(_with(base, "dem.numerics.seed", seed0 + 1000 * n), args.runs_dir, progress=False)
+        seed = seed0 if n == 0 else next_prime(seed0 + 1000 * n)
+        print(f"  seed {seed} ...", flush=True)
+        runs[f"seed {seed}"] = dem_stage(_with(base, "dem.numerics.seed", seed), args.runs_dir, progress=False)
     print(f"  change {args.change} ...", flush=True)
     runs["change"] = dem_stage(changed, args.runs_dir, progress=False)
     load.append(os.getloadavg()[0])
