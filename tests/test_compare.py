@@ -150,3 +150,12 @@ def test_without_a_solver_run_nothing_is_started(tmp_path):
     with pytest.raises(LookupError, match="no cached or shipped DEM results"):
         dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
     assert not any((tmp_path / "runs").glob("*/in.blender"))
+
+
+def test_paper_hold_up_is_scaled_from_the_shipped_reduced_run():
+    """The reduced preset's inlet margin and blade clearance do not change the vessel: its
+    shipped run still sets the paper preset's hold-up for the cost estimate."""
+    from workflows.pipeline import reference_holdup
+
+    held, source = reference_holdup(load_preset("paper").dem)
+    assert "dem-" in source and 30_000 < held < 45_000

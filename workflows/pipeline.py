@@ -293,8 +293,10 @@ def reference_holdup(dem_config) -> tuple[float, str]:
         if entry is None:
             continue
         ref = config_from_dict(tomllib.loads(entry.provenance["config_toml"])).dem
-        clearance = {"blade_tip_clearance_m": ref.geometry.blade_tip_clearance_m}
-        if ref.geometry != dem_config.geometry.model_copy(update=clearance):
+        # neither the blade clearance nor the empty box upstream of the inlet changes the vessel
+        same_vessel = {"blade_tip_clearance_m": ref.geometry.blade_tip_clearance_m,
+                       "inlet_margin_m": ref.geometry.inlet_margin_m}
+        if ref.geometry != dem_config.geometry.model_copy(update=same_vessel):
             continue
         held = float(entry.summary["holdup_final"])
         scale = (ref.particles.diameter_m / dem_config.particles.diameter_m) ** 3
