@@ -3,11 +3,10 @@
 :func:`build_deck` turns a :class:`~dem.config.DemConfig` into a dict *relative file name →
 text*; :func:`write_deck` is the only function here that touches the disk. Nothing is
 written unless the geometry and the deck validate (:class:`~coupling.errors.GeometryError`,
-:class:`~coupling.errors.DeckError`). :func:`build_box_deck` builds the yardstick of the
-deck's efficiency: the same particles and contact physics in a plain box, built from the
-same section builders as the blender deck; :func:`build_drum_deck` the fair one: the
-same particles tumbling in the blender's barrel spun as a drum (a stirred bed, like the
-blender's, where a still box hardly ever rebuilds its neighbour lists).
+:class:`~coupling.errors.DeckError`). :func:`build_drum_deck` builds the yardstick of the
+deck's efficiency, from the same section builders as the blender deck: the same particles
+tumbling in the blender's barrel spun as a drum (a stirred bed, like the blender's; a still
+box of them, the earlier yardstick, hardly ever rebuilt its neighbour lists).
 
 This module is longer than the others: the section builders are private to it, shared by
 the two decks, and every line of the blender deck's text feeds the input hash of shipped
@@ -146,15 +145,13 @@ _THERMO_VARIABLES = {
 HERTZ_WARN_FRACTION = 0.2
 FEED_VELOCITY_M_S = 0.5  # downward speed given to inserted particles
 FEED_BATCH_S = 0.05  # the feeders insert a batch every this much simulated time
-#: The plain box (:func:`build_box_deck`): its deck, its log, and how often it is topped up.
-BOX_DECK = "in.box"
-BOX_LOG_FILE = "log.box.liggghts"
-BOX_FILL_BATCH_S = 0.1
-#: The rotating drum (:func:`build_drum_deck`): its deck, its log, and its Froude number
-#: Fr = omega^2 R / g. 0.5 is the cascading regime: a stirred bed that neither rests (like the
-#: box's) nor centrifuges (Fr >= 1; the impeller's tip speed would centrifuge it).
+#: The rotating drum (:func:`build_drum_deck`): its deck, its log, how often it is topped up
+#: while it fills, and its Froude number Fr = omega^2 R / g. 0.5 is the cascading regime: a
+#: stirred bed that neither rests nor centrifuges (Fr >= 1; the impeller's tip speed would
+#: centrifuge it).
 DRUM_DECK = "in.drum"
 DRUM_LOG_FILE = "log.drum.liggghts"
+DRUM_FILL_BATCH_S = 0.1
 DRUM_FROUDE = 0.5
 GRAVITY_M_S2 = 9.81
 
@@ -275,7 +272,7 @@ def deck_parameters(config: DemConfig) -> dict:
 
 
 # --------------------------------------------------------------------------------------
-# deck sections: lists of lines, shared by the blender deck and the plain box
+# deck sections: lists of lines, shared by the blender deck and the drum
 # --------------------------------------------------------------------------------------
 
 _CONTACT_MODEL = "model hertz tangential history rolling_friction cdt"
@@ -287,14 +284,14 @@ def _box_args(b: Box) -> str:
 
 def _seeds(seed: int, n_classes: int) -> dict:
     """Random seeds of every fix, all distinct primes: one particle template per size class
-    and component, then the distributions and the insertions of A and B, then the plain
-    box's distribution and insertion (drawn last so the blender's seeds do not depend on it)."""
+    and component, then the distributions and the insertions of A and B, then the drum's
+    distribution and insertion (drawn last so the blender's seeds do not depend on it)."""
     n = n_classes
     primes = _primes_from(seed, 2 * n + 6)
     return {"templates": {"A": primes[:n], "B": primes[n : 2 * n]},
             "distribution": {"A": primes[2 * n], "B": primes[2 * n + 1]},
             "insertion": {"A": primes[2 * n + 2], "B": primes[2 * n + 3]},
-            "box_distribution": primes[2 * n + 4], "box_insertion": primes[2 * n + 5]}
+            "reference_distribution": primes[2 * n + 4], "reference_insertion": primes[2 * n + 5]}
 
 
 def _setup_lines(domain: Box) -> list[str]:
@@ -469,85 +466,8 @@ def build_deck(config: DemConfig, resume_from: str | None = None, dumps: bool = 
 
 
 # --------------------------------------------------------------------------------------
-# the plain box: the blender's particles and contact physics without the blender
+# the rotating drum: the blender's particles and contact physics, stirred, without the blender
 # --------------------------------------------------------------------------------------
-
-
-def box_geometry(config: DemConfig, particles: int) -> dict:
-    """Box of the blender's length and of width = barrel radius (about the blender's bed
-    depth); insertion height so that random packing at ~25 % solids holds every particle;
-    expected settled depth at 60 % solids; wall margin of the domain = largest diameter."""
-    p, g = config.particles, config.geometry
-    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
-    mean_volume = float((weights * math.pi / 6 * diam**3).sum())
-    length, width = g.length_m, g.radius_m
-    solid = particles * mean_volume
-    height = max(solid / (0.25 * length * width), 4 * float(diam.max()))
-    return {"length_m": length, "width_m": width, "fill_height_m": height,
-            "bed_depth_m": solid / (0.6 * length * width), "margin_m": float(diam.max())}
-
-
-def build_box_deck(config: DemConfig, particles: int, steps: int, fill_s: float = 1.0,
-                   settle_s: float = 0.5) -> dict[str, str]:
-    """``{BOX_DECK: text}``: a settled bed of ``particles`` particles in a plain box, then
-    ``steps`` measured steps (the log's last ``Loop time``); nothing is written.
-
-    The reference for the blender deck's efficiency: the same setup, neighbour settings,
-    materials, pair style, timestep, gravity, particle templates, integration, timestep
-    check and thermo interval as :func:`build_deck` (the same section builders), in a box
-    of five steel ``wall/gran`` primitives with the barrel's contact model
-    (:func:`box_geometry`). No impeller, meshes, feeders, discharge or dumps. A and B are
-    inserted through one number-weighted distribution, each class at half its own
-    component's weight (the blender's feed at 50/50; A and B are the same material).
-    ``fix insert/pack`` tops the box up every :data:`BOX_FILL_BATCH_S` for ``fill_s``, the
-    bed settles for ``settle_s``, then the measured run. Raises :class:`DeckError`.
-    """
-    if particles < 1 or steps < 1:
-        raise DeckError(f"plain box deck: particles = {particles} and steps = {steps}; both must be >= 1")
-    info = deck_parameters(config)
-    dt, thermo_every = info["timestep_s"], info["thermo_every_steps"]
-    p = config.particles
-    diam, weights = size_classes(p.diameter_m, p.diameter_sd_m, p.size_classes)
-    n_cls = len(diam)
-    seeds = _seeds(config.numerics.seed, n_cls)
-    box = box_geometry(config, particles)
-    length, half, height, margin = box["length_m"], box["width_m"] / 2, box["fill_height_m"], box["margin_m"]
-    domain = Box(-margin, length + margin, -half - margin, half + margin, -margin, height + margin)
-    templates = [f"pt{comp}{k}" for comp in ("A", "B") for k in range(n_cls)]
-    fill_steps, settle_steps = max(1, round(fill_s / dt)), max(1, round(settle_s / dt))
-
-    L: list[str] = [
-        "# pbmdem: plain box of the blender deck's particles (dem.deck.build_box_deck).",
-        f"# {particles} particles settled in a {_g(length)} x {_g(2 * half)} m box of steel wall/gran primitives, "
-        f"then {steps} measured steps (the last Loop time).",
-        "",
-        *_setup_lines(domain), "", *_neighbour_lines(config), "", *_material_lines(config), "",
-        *_contact_lines(dt), "",
-        "# the box: five steel primitives with the blender barrel's contact model",
-        _steel_wall("boxfloor", "zplane 0.0"),
-        _steel_wall("boxxlo", "xplane 0.0"),
-        _steel_wall("boxxhi", f"xplane {_g(length)}"),
-        _steel_wall("boxylo", f"yplane {_g(-half)}"),
-        _steel_wall("boxyhi", f"yplane {_g(half)}"),
-        "",
-        *_template_lines(config, "A", diam, seeds["templates"]["A"]),
-        *_template_lines(config, "B", diam, seeds["templates"]["B"]),
-        _distribution_line("pddbox", seeds["box_distribution"], templates, np.concatenate([weights, weights]) / 2),
-        f"region          fill block 0 {_g(length)} {_g(-half)} {_g(half)} 0 {_g(height)} units box",
-        f"fix ins all insert/pack seed {seeds['box_insertion']} distributiontemplate pddbox insert_every "
-        f"{max(1, round(BOX_FILL_BATCH_S / dt))} overlapcheck yes all_in yes particles_in_region {particles} "
-        "region fill ntry_mc 10000",
-        "",
-        *_integration_lines(thermo_every), "",
-        *_thermo_lines("step atoms ke", thermo_every), "",
-        f"# fill: top the box up to {particles} particles every {_g(BOX_FILL_BATCH_S)} s, then settle without insertion",
-        f"run             {fill_steps}",
-        "unfix           ins",
-        f"run             {settle_steps}",
-        "# measured",
-        f"run             {steps}",
-    ]
-    return {BOX_DECK: "\n".join(L) + "\n"}
 
 
 def drum_wall_speed_m_s(config: DemConfig) -> float:
@@ -560,14 +480,13 @@ def build_drum_deck(config: DemConfig, particles: int, steps: int, fill_s: float
     drum, then ``steps`` measured steps (the log's last ``Loop time``); nothing is written.
 
     The fair reference for the blender deck's efficiency: a stirred bed rebuilds its
-    neighbour lists about as often as the blender's, a still one (:func:`build_box_deck`)
-    almost never. The same setup, neighbour settings, materials, pair style, timestep,
+    neighbour lists about as often as the blender's, a still one almost never. The same setup, neighbour settings, materials, pair style, timestep,
     gravity, particle templates, integration, timestep check and thermo interval as
     :func:`build_deck` (the same section builders), in the blender's own simulation box;
     the barrel is the blender's ``xcylinder`` primitive spinning about x (``shear y V``,
     V = :func:`drum_wall_speed_m_s`), closed by ``xplane`` primitives at 0 and L. No
     impeller, meshes, feeders, discharge or dumps. A and B are inserted through one
-    number-weighted distribution as in the box. ``fix insert/pack`` fills the whole barrel
+    number-weighted distribution, each class at half its own component's weight (the blender's feed at 50/50; A and B are the same material). ``fix insert/pack`` fills the whole barrel
     (so particles carried up by the wall stay counted) to ``particles`` for ``fill_s`` of
     tumbling, then ``unfix`` and the measured run. Raises :class:`DeckError`.
     """
@@ -600,15 +519,15 @@ def build_drum_deck(config: DemConfig, particles: int, steps: int, fill_s: float
         "",
         *_template_lines(config, "A", diam, seeds["templates"]["A"]),
         *_template_lines(config, "B", diam, seeds["templates"]["B"]),
-        _distribution_line("pdddrum", seeds["box_distribution"], templates, np.concatenate([weights, weights]) / 2),
+        _distribution_line("pdddrum", seeds["reference_distribution"], templates, np.concatenate([weights, weights]) / 2),
         f"region          fill cylinder x 0 0 {_g(g.radius_m)} 0 {_g(g.length_m)} units box",
-        f"fix ins all insert/pack seed {seeds['box_insertion']} distributiontemplate pdddrum insert_every "
-        f"{max(1, round(BOX_FILL_BATCH_S / dt))} overlapcheck yes all_in yes particles_in_region {particles} "
+        f"fix ins all insert/pack seed {seeds['reference_insertion']} distributiontemplate pdddrum insert_every "
+        f"{max(1, round(DRUM_FILL_BATCH_S / dt))} overlapcheck yes all_in yes particles_in_region {particles} "
         "region fill ntry_mc 10000",
         "",
         *_integration_lines(thermo_every), "",
         *_thermo_lines("step atoms ke", thermo_every), "",
-        f"# fill: top the drum up to {particles} particles every {_g(BOX_FILL_BATCH_S)} s while it turns, then stop inserting",
+        f"# fill: top the drum up to {particles} particles every {_g(DRUM_FILL_BATCH_S)} s while it turns, then stop inserting",
         f"run             {fill_steps}",
         "unfix           ins",
         "# measured",

@@ -15,7 +15,6 @@ import pytest
 
 from coupling.errors import ConfigError, DeckError, GeometryError
 from dem.deck import (
-    BOX_DECK,
     DECK_INFO,
     DUMP_GLOB,
     MAIN_DECK,
@@ -23,7 +22,6 @@ from dem.deck import (
     MESH_FILES,
     RESUME_DECK,
     THERMO_COLUMNS,
-    build_box_deck,
     build_deck,
     deck_hash,
     deck_parameters,
@@ -31,7 +29,6 @@ from dem.deck import (
     write_deck,
 )
 from dem.liggghts import run_solver, solver_command, text_tail
-from dem.liggghts_log import parse_runs
 from workflows.cli import main
 from workflows.config import config_from_dict, load_preset
 
@@ -168,91 +165,6 @@ def test_deck_without_dumps_differs_only_by_the_dump_command():
         k: v for k, v in with_dumps.items() if k not in (MAIN_DECK, RESUME_DECK)}
 
 
-def _fixes(text: str) -> dict[str, list[str]]:
-    """fix style -> the fixes' argument texts (after 'fix ID group style')."""
-    out: dict[str, list[str]] = {}
-    for line in text.splitlines():
-        tokens = line.split()
-        if len(tokens) >= 4 and tokens[0] == "fix":
-            out.setdefault(tokens[3], []).append(" ".join(tokens[4:]))
-    return out
-
-
-def _commands(text: str, name: str) -> list[str]:
-    return [" ".join(line.split()[1:]) for line in text.splitlines() if line.split()[:1] == [name]]
-
-
-def _physics(text: str) -> dict:
-    fixes = _fixes(text)
-    walls = fixes.get("wall/gran", [])
-    return {
-        "pair_style": _commands(text, "pair_style"),
-        "pair_coeff": _commands(text, "pair_coeff"),
-        "timestep": [float(v) for v in _commands(text, "timestep")],
-        "neighbor": _commands(text, "neighbor"),
-        "neigh_modify": _commands(text, "neigh_modify"),
-        "hard_particles": _commands(text, "hard_particles"),
-        "newton": _commands(text, "newton"),
-        "communicate": _commands(text, "communicate"),
-        "processors": _commands(text, "processors"),
-        "thermo": _commands(text, "thermo"),
-        "materials": sorted(fixes["property/global"]),
-        "templates": sorted(fixes["particletemplate/sphere"]),
-        "gravity": fixes["gravity"],
-        "integration": fixes["nve/sphere"],
-        "timestep_check": fixes["check/timestep/gran"],
-        # contact model and atom type of the primitive walls
-        "wall_models": sorted({re.match(r"(.*?) primitive type (\d+)", w).groups() for w in walls if " primitive " in w}),
-    }
-
-
-@pytest.mark.parametrize("preset", ["smoke", "paper"])
-def test_box_deck_has_the_blender_physics(preset):
-    dem = load_preset(preset).dem
-    blender = build_deck(dem)[MAIN_DECK]
-    box = build_box_deck(dem, particles=1234, steps=5000)[BOX_DECK]
-    want, got = _physics(blender), _physics(box)
-    assert got == want
-    assert want["pair_style"] == ["gran model hertz tangential history rolling_friction cdt"]
-    assert len(want["templates"]) == 2 * dem.particles.size_classes
-    assert want["timestep"] == [pytest.approx(dem.timestep_s, rel=1e-9)]
-
-
-def test_box_deck_is_a_plain_box_of_the_same_particles():
-    dem = load_preset("smoke").dem
-    box = build_box_deck(dem, particles=1234, steps=5000)[BOX_DECK]
-    fixes = _fixes(box)
-    # no impeller, meshes, feeders, discharge or dumps
-    for style in ("mesh/surface", "mesh/surface/planar", "move/mesh", "massflow/mesh", "insert/rate/region"):
-        assert style not in fixes
-    assert not _commands(box, "dump") and not _commands(box, "read_restart")
-    # five steel primitive walls: floor and four sides
-    prims = sorted(w.split()[-2] for w in fixes["wall/gran"])
-    assert prims == ["xplane", "xplane", "yplane", "yplane", "zplane"]
-    # one insertion topping the box up to the particle count, with every template of A and B
-    (ins,) = fixes["insert/pack"]
-    assert "particles_in_region 1234" in ins and "all_in yes" in ins
-    (pdd,) = fixes["particledistribution/discrete/numberbased"]
-    tokens = pdd.split()
-    assert int(tokens[1]) == 2 * dem.particles.size_classes
-    weights = [float(w) for w in tokens[3::2]]
-    assert sum(weights) == pytest.approx(1.0, abs=1e-12)
-    assert weights[: len(weights) // 2] == pytest.approx(weights[len(weights) // 2 :], abs=1e-7)  # A and B 50/50
-    assert sorted(tokens[2::2]) == sorted(t.split()[0] for t in _commands(box, "fix") if "particletemplate/sphere" in t)
-    # the templates are the blender's; the box's own seeds are new ones
-    blender = build_deck(dem)[MAIN_DECK]
-    assert sorted(fixes["particletemplate/sphere"]) == sorted(_fixes(blender)["particletemplate/sphere"])
-    blender_seeds = set(re.findall(r"(?:sphere|numberbased|seed) (\d+) ", blender))
-    assert len(blender_seeds) == 2 * dem.particles.size_classes + 4  # templates, distributions, feeders
-    assert tokens[0] not in blender_seeds and ins.split()[1] not in blender_seeds and tokens[0] != ins.split()[1]
-    # the measured run is the last one and the insertion is gone by then
-    runs = _commands(box, "run")
-    assert runs[-1] == "5000" and len(runs) == 3
-    assert box.index("unfix           ins") < box.rindex("run ")
-    with pytest.raises(DeckError, match="particles = 0"):
-        build_box_deck(dem, particles=0, steps=10)
-
-
 @pytest.mark.parametrize(
     "data, error, fragment",
     [
@@ -359,10 +271,3 @@ def test_liggghts_smoke_inserts_and_restart_resumes(tmp_path):
         assert list(tmp_path.glob(fname + "*")), fname
     assert (tmp_path / "log.liggghts").read_text().count("Loop time") == 1
     assert (tmp_path / "log.resume.liggghts").is_file()
-
-
-@pytest.mark.liggghts
-def test_liggghts_fills_the_plain_box(tmp_path):
-    write_deck(build_box_deck(load_preset("smoke").dem, particles=30, steps=200, fill_s=0.2, settle_s=0.05), tmp_path)
-    measured = parse_runs(_run_liggghts(tmp_path, BOX_DECK, log="log.box.liggghts"))[-1]
-    assert measured.loop.steps == 200 and measured.loop.atoms == 30
