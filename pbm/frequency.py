@@ -48,6 +48,8 @@ from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table, generator_matrix
 
+#: Correlation times [s] of the first-order feeder noises studied (0: white noise).
+NOISE_TAUS_S = (0.0, 1.0, 5.0, 20.0)
 FEEDERS = ("A", "B")
 # Frequencies solved at once: bounds the (chunk, n, n) complex stack to a few MiB at n = 100.
 _SOLVE_CHUNK = 64

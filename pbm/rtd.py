@@ -54,6 +54,12 @@ class PooledRtd:
     def bin_centres(self) -> np.ndarray:
         return 0.5 * (self.bin_edges[:-1] + self.bin_edges[1:])
 
+    @property
+    def recovered_density_per_s(self) -> np.ndarray:
+        """E over the recovered tracer only (integral 1 over [0, H]): the DEM's pooled E is
+        normalised the same way, so the two compare in shape."""
+        return self.density_per_s / self.recovered_fraction
+
 
 @single_threaded_blas()
 def pooled_rtd(

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from coupling.tables import make_table
-from workflows.bench_scatter import _parse_value, _with, next_prime, table_difference
-from workflows.config import load_preset
+from coupling.errors import ConfigError
+from workflows.bench_scatter import next_prime, table_difference
+from workflows.config import load_preset, override
 
 
 def _table(scale=1.0, windows=5):
@@ -26,10 +27,14 @@ def test_identical_tables_differ_by_nothing_and_a_scaled_one_by_its_scale():
 
 def test_a_change_and_a_seed_are_config_overrides():
     base = load_preset("smoke")
-    changed = _with(base, "dem.geometry.inlet_margin_m", _parse_value("0.005"))
+    changed = override(base, "dem.geometry.inlet_margin_m=0.005")
     assert changed.dem.geometry.inlet_margin_m == 0.005 and base.dem.geometry.inlet_margin_m == 0.12
     seed = next_prime(15486863)
-    assert seed > 15486863 and _with(base, "dem.numerics.seed", seed).dem.numerics.seed == seed
-    with pytest.raises(KeyError, match="no section 'nonsense'"):
-        _with(base, "dem.nonsense.x", 1)
-    assert _parse_value("3") == 3 and _parse_value("none") is None and _parse_value("abc") == "abc"
+    assert seed > 15486863 and override(base, f"dem.numerics.seed={seed}").dem.numerics.seed == seed
+    assert override(base, "dem.geometry.inlet_margin_m=none").dem.geometry.inlet_margin_m is None
+    with pytest.raises(ConfigError, match="no section 'nonsense'"):
+        override(base, "dem.nonsense.x=1")
+    with pytest.raises(ConfigError, match="expected PATH=VALUE"):
+        override(base, "dem.geometry.inlet_margin_m")
+    with pytest.raises(ConfigError, match="not prime"):
+        override(base, "dem.numerics.seed=15486863")

@@ -87,7 +87,7 @@ def test_generator_reduces_to_paper_eq4_for_uniform_velocities():
     table = make_table(t=[0.0], x_edges=np.linspace(0, 0.33, 6), y_edges=np.linspace(-0.05, 0.05, 6), vx_pos=vf,
                        vx_neg=vb, vy_pos=vr, vy_neg=vr)
     g = generator_matrix(table, 0)
-    dx, dy, ny = 0.066, 0.02, 5
+    dx, dy = 0.066, 0.02
     rng = np.random.default_rng(1)
     n_vec = rng.random(25)
     dn = (g[:25, :25] @ n_vec).reshape(5, 5)

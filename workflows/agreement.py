@@ -54,12 +54,13 @@ class PbmMode:
 
 def run_modes(table: VelocityTable, config: PbmConfig, steady: SteadyStateRule,
               dem_summary: dict[str, Any]) -> dict[str, PbmMode]:
-    """The PBM in each rate mode the table supports (``measured`` needs its rates), with the
-    pooled RTD over the DEM's entry window and horizon when the DEM has one."""
+    """The PBM in each rate mode the table supports (``measured`` needs its rates; asked
+    for by ``config`` on a table without them, it raises ConfigError), with the pooled RTD
+    over the DEM's entry window and horizon when the DEM has one."""
     pooled_spec = dem_summary.get("pooled_rtd") or {}
     modes = {}
     for mode in MODES:
-        if mode == "measured" and not table.has_rates:
+        if mode == "measured" and not table.has_rates and config.rates != "measured":
             continue
         cfg = config.model_copy(update={"rates": mode})
         result = simulate(table, cfg, steady=steady)
@@ -86,7 +87,10 @@ def pbm_steady(result: PbmResult, dem_steady: dict[str, Any]) -> dict[str, Any]:
     totals_pbm = outlet.sum(axis=0)
     fraction = np.divide(outlet[0], totals_pbm, out=np.full(totals_pbm.shape, np.nan), where=totals_pbm > 0)
     dem_totals = np.asarray(dem_steady.get("outlet_totals", totals_pbm), dtype=float)
-    fraction = np.where(dem_totals >= 1, np.nan_to_num(fraction, nan=0.5), np.nan)
+    # a compartment the DEM fills but the PBM leaves empty has no PBM composition of its
+    # own: it is sampled at the PBM's composition of the whole outlet slice
+    pooled = outlet[0].sum() / totals_pbm.sum() if totals_pbm.sum() > 0 else np.nan
+    fraction = np.where(dem_totals >= 1, np.where(np.isnan(fraction), pooled, fraction), np.nan)
     return {
         "holdup": holdup,
         "holdup_by_slice": slices.tolist(),
@@ -158,8 +162,7 @@ def agreement_rows(dem_summary: dict[str, Any], records: pd.DataFrame, modes: di
             if m is None or m.pooled is None or n == 0:
                 row[f"pbm_{mode}"], row[f"inside_{mode}"] = math.nan, None
                 continue
-            # both densities conditional on recovery within H: each integrates to 1 over [0, H]
-            e_pbm = np.asarray(m.pooled.density_per_s, dtype=float) / m.pooled.recovered_fraction
+            e_pbm = m.pooled.recovered_density_per_s
             overlap = rtd_overlap(density, e_pbm[: density.size], bin_s)
             band = overlap_noise_band(e_pbm, bin_s, n)
             lows.append(band.low)

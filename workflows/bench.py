@@ -7,7 +7,10 @@ never asserted in tests: the machines are shared and noisy.
 from __future__ import annotations
 
 import importlib
+import json
 import sys
+from pathlib import Path
+from typing import Any
 
 BENCHMARKS = (
     ("PBM solver and ensembles", "workflows.bench_pbm"),
@@ -18,6 +21,15 @@ BENCHMARKS = (
     ("A deck change against the seed-to-seed scatter", "workflows.bench_scatter"),
     ("Post-processing vs DEM wall time of the shipped runs", "workflows.bench_reference"),
 )
+
+
+def write_json(path: str | Path, record: Any) -> Path:
+    """Write one benchmark's record as indented JSON (values JSON cannot hold as text),
+    creating the folder; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    return path
 
 
 def main(argv: list[str] | None = None) -> int:

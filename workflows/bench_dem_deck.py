@@ -83,7 +83,6 @@ balancing: expect less).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import re
@@ -101,7 +100,8 @@ from dem import deck
 from dem.cluster import estimate_cost
 from dem.liggghts import SolverResult, liggghts_version, run_solver, solver_command, text_tail
 from dem.liggghts_log import loop_details, parse_runs
-from workflows.config import config_from_dict, load_preset
+from workflows.bench import write_json
+from workflows.config import config_from_dict, load_preset, override
 
 OUT = Path("results/bench/dem_deck.json")
 #: the paper's cost: 6.5 days on 8 workers
@@ -409,6 +409,8 @@ def _key(kind: str, np: int, variant: str | None) -> str:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m workflows.bench_dem_deck", description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="smoke", help="blender preset to measure (default smoke)")
+    parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
+                        help="change one value of the preset, e.g. dem.geometry.inlet_margin_m=0.005 (repeatable)")
     parser.add_argument("--steps", type=int, default=20000, help="measured steps per run (default 20000)")
     parser.add_argument("--fill-s", type=float, default=25.0,
                         help="simulated seconds of filling before measuring (default 25: smoke's hold-up is near steady)")
@@ -424,6 +426,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv if argv is not None else [])
 
     config = load_preset(args.preset)
+    for assignment in args.set:
+        config = override(config, assignment)
     run_config = config.dem.run
     nps = [int(n) for n in args.nps.split(",") if n.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -547,9 +551,7 @@ def main(argv: list[str] | None = None) -> dict:
     record["machine"] = {"node": platform.node(), "python": platform.python_version(), "processor": platform.processor()}
     record["wall_s"] = time.monotonic() - t_start
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    out = write_json(args.out, record)
     print_table(record, nps)
     print(f"wrote {out}")
     return record

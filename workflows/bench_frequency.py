@@ -19,13 +19,11 @@ Prints a table and writes ``results/bench/frequency.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
@@ -34,6 +32,7 @@ from coupling.jsonable import json_ready
 from pbm.config import PbmConfig
 from pbm.frequency import (
     FEEDERS,
+    NOISE_TAUS_S,
     noise_frequencies,
     noise_spectrum,
     sinusoid_response,
@@ -45,8 +44,8 @@ from pbm.frequency import (
 )
 from pbm.rtd import pooled_rtd
 from pbm.synthetic import synthetic_table
+from workflows.bench import write_json
 
-NOISE_TAUS_S = (0.0, 1.0, 5.0, 20.0)
 
 
 def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.03, 0.1), t_start_s: float = 100.0,
@@ -153,9 +152,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args([] if argv is None else list(argv))
     report = json_ready(run_benchmark(points=args.points, check_hz=args.check_hz, t_start_s=args.t_start,
                                       timing_points=args.timing_points, seed=args.seed))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
+    out = write_json(args.out, report)
     print(format_report(report))
     print(f"wrote {out}")
     return 0

@@ -15,7 +15,6 @@ memory bandwidth, a virtual machine's scheduling), not the deck's; no decomposit
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import subprocess
@@ -26,6 +25,7 @@ from coupling.errors import SolverRunError
 from dem import deck
 from dem.liggghts import solver_command
 from dem.liggghts_log import parse_runs
+from workflows.bench import write_json
 from workflows.config import load_preset
 
 OUT = Path("results/bench/machine.json")
@@ -72,9 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
               "together": together, "bound_two_ranks": bound, "load_average": load, "cpus": os.cpu_count()}
     print(f"two single-rank runs at once deliver {bound:.2f}x one alone (median of {args.repeats}; load "
           f"{load[0]:.2f}-{load[1]:.2f}): no 2-rank run can speed up more on this machine")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2) + "\n")
+    print(f"wrote {write_json(args.out, record)}")
     return record
 
 

@@ -19,7 +19,6 @@ are noisy: compare medians, and read ``load_average`` in the JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -27,7 +26,6 @@ import sys
 import time
 import tracemalloc
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
@@ -35,6 +33,7 @@ from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
 from pbm.simulate import simulate
 from pbm.synthetic import synthetic_table
+from workflows.bench import write_json
 
 COMPARED = ("holdup_A", "holdup_B", "discharged_A", "discharged_B", "outflow_A", "outflow_B", "rtd_E")
 DERIVED = ("C_A", "rsd_outlet", "rsd_blender")
@@ -140,9 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # parse that program's own command line.
     args = parser.parse_args([] if argv is None else list(argv))
     report = run_benchmark(repeats=args.repeats, bdf_repeats=args.bdf_repeats, members=args.members)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
+    out = write_json(args.out, report)
     print(format_report(report))
     print(f"wrote {out}")
     return 0

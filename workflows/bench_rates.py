@@ -22,18 +22,17 @@ fighting other jobs for the cores made expm several times slower in our measurem
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 from scipy.linalg import logm
 
 from dem.rates import RATE_KEYS, fit_rates, fit_windows, generator, naive_rates, simulate_observations
+from workflows.bench import write_json
 
 INTERVAL_S = 0.1
 RATE_X_INTERVAL = (0.1, 0.3, 0.5, 1.0)
@@ -183,9 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args([] if argv is None else list(argv))
     report = run_benchmark(particles=args.particles, steps=args.steps, min_observations=args.min_observations,
                            windows=args.windows, observations=args.observations, seed=args.seed)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
+    out = write_json(args.out, report)
     print(format_report(report))
     print(f"wrote {out}")
     return 0

@@ -26,42 +26,20 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
-import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from coupling.tables import VelocityTable
-from workflows.config import Config, config_from_dict, load_preset
+from workflows.bench import write_json
+from workflows.config import load_preset, override
 from workflows.pipeline import DemSide, dem_stage
 
 OUT = Path("results/bench/scatter.json")
 RUNS = Path("results/bench/scatter-runs")
 FIELDS = ("vx_pos", "vx_neg", "vy_pos", "vy_neg", "particles")
-
-
-def _with(config: Config, path: str, value: Any) -> Config:
-    data = config.to_dict()
-    node = data
-    *parents, leaf = path.split(".")
-    for key in parents:
-        if key not in node or not isinstance(node[key], dict):
-            raise KeyError(f"--change {path}: no section '{key}' in the configuration")
-        node = node[key]
-    node[leaf] = value
-    return config_from_dict(data, source=f"--change {path}={value}")
-
-
-def _parse_value(text: str) -> Any:
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False, "none": None}.get(text.lower(), text)
 
 
 def next_prime(n: int) -> int:
@@ -117,18 +95,15 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv if argv is not None else [])
     if args.seeds < 2:
         parser.error(f"--seeds {args.seeds}: the scatter needs at least 2 seed runs")
-    path, _, text = args.change.partition("=")
-    if not text:
-        parser.error(f"--change {args.change!r}: expected PATH=VALUE, e.g. dem.geometry.inlet_margin_m=0.005")
     base = load_preset(args.preset)
-    changed = _with(base, path, _parse_value(text))
+    changed = override(base, args.change)
     seed0 = base.dem.numerics.seed
     runs: dict[str, DemSide] = {}
     load = [os.getloadavg()[0]]
     for n in range(args.seeds):
         seed = seed0 if n == 0 else next_prime(seed0 + 1000 * n)
         print(f"  seed {seed} ...", flush=True)
-        runs[f"seed {seed}"] = dem_stage(_with(base, "dem.numerics.seed", seed), args.runs_dir, progress=False)
+        runs[f"seed {seed}"] = dem_stage(override(base, f"dem.numerics.seed={seed}"), args.runs_dir, progress=False)
     print(f"  change {args.change} ...", flush=True)
     runs["change"] = dem_stage(changed, args.runs_dir, progress=False)
     load.append(os.getloadavg()[0])
@@ -146,9 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"\n{'metric':<16} {'seed scatter':>13} {'change':>10}  verdict")
     for m in metrics:
         print(f"{m:<16} {scatter[m]:>13.3g} {effect[m]:>10.3g}  {'within' if within[m] else 'OUTSIDE'}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2) + "\n")
+    out = write_json(args.out, record)
     print(f"wrote {out}")
     return record
 

@@ -114,6 +114,31 @@ def config_from_dict(data: dict[str, Any], source: str = "configuration") -> Con
         raise ConfigError(_explain(exc, data, source)) from None
 
 
+def override(config: Config, assignment: str) -> Config:
+    """``config`` with one value replaced: ``assignment`` is ``dotted.path=value`` (e.g.
+    ``dem.geometry.inlet_margin_m=0.005``); the value is read as an int, a float, true /
+    false / none, else text. The result is validated like any configuration (ConfigError)."""
+    path, sep, text = assignment.partition("=")
+    if not sep or not path:
+        raise ConfigError(f"{assignment!r}: expected PATH=VALUE, e.g. dem.geometry.inlet_margin_m=0.005")
+    value: Any = {"true": True, "false": False, "none": None}.get(text.lower(), text)
+    for kind in (int, float):
+        try:
+            value = kind(text)
+            break
+        except ValueError:
+            pass
+    data = config.to_dict()
+    node = data
+    *parents, leaf = path.split(".")
+    for key in parents:
+        if not isinstance(node.get(key), dict):
+            raise ConfigError(f"{assignment!r}: no section '{key}' in the configuration")
+        node = node[key]
+    node[leaf] = value
+    return config_from_dict(data, source=assignment)
+
+
 def dump_toml(config: Config) -> str:
     """TOML text of a resolved configuration (every value explicit), loadable by load_config."""
     data = config.to_dict()

@@ -18,7 +18,6 @@ lag-1 counts.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -30,6 +29,7 @@ from coupling.compartments import bin_particles
 from dem.dumps import iter_snapshots
 from dem.post import DemResults
 from pbm.rtd import pooled_rtd
+from workflows.bench import write_json
 from workflows.config import load_preset
 from workflows.pipeline import REFERENCE_DIR, pbm_config_for
 
@@ -121,9 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
                   f"{pooled.variance_s2:.1f} s^2 ({capped} rates at the cap)", flush=True)
     finally:
         rates_module.MAX_RATE_X_INTERVAL = default_cap
-    path = Path(args.out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=2, default=float) + "\n")
+    write_json(args.out, out)
     return out
 
 
