@@ -7,7 +7,7 @@ NP ?= 2
 FRESH ?=
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup setup-system setup-python test full-comparison bench clean
+.PHONY: setup setup-system setup-python test full-comparison validate bench clean
 
 setup: setup-system setup-python
 
@@ -29,6 +29,11 @@ test: setup
 
 full-comparison: setup
 	$(PYTHON) -m workflows.cli compare --preset $(PRESET) --np $(NP) $(if $(FRESH),--fresh)
+
+# The validation campaign's report; its DEM results ship, so this needs no LIGGGHTS run
+# unless FRESH=1 (about 1.5 h of DEM on 2 cores).
+validate: setup
+	$(PYTHON) -m workflows.cli validate $(if $(FRESH),--fresh)
 
 bench: setup
 	$(PYTHON) -m workflows.bench

@@ -15,6 +15,15 @@ def os_reason(exc: OSError) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+def error_line(exc: BaseException) -> str:
+    """A project error or a file-system refusal as the CLIs print it: one line, naming the
+    path(s) the file system refused."""
+    if isinstance(exc, OSError):
+        where = " -> ".join(str(name) for name in (exc.filename, exc.filename2) if name)
+        return os_reason(exc) + (f": {where}" if where else "")
+    return str(exc)
+
+
 class PbmDemError(Exception):
     """Base class of every error this project raises on purpose."""
 

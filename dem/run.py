@@ -386,6 +386,18 @@ def _record_from_status(run_dir: Path, status: dict[str, Any], reused: bool) -> 
     )
 
 
+def can_resume(inputs: RunInputs, runs_root: str | os.PathLike = "runs") -> bool:
+    """An interrupted run of these inputs under ``runs_root`` has a complete restart file
+    to continue from (what ``run_dem(resume=True)`` needs)."""
+    if inputs.key is None:
+        return False
+    run_dir = Path(runs_root) / inputs.key
+    status = read_status(run_dir)
+    if status and status.get("state") == "completed":
+        return False
+    return run_dir.is_dir() and bool(_restart_files(run_dir))
+
+
 def completed_run(inputs: RunInputs, runs_root: str | os.PathLike = "runs") -> RunRecord | None:
     """The completed run of these inputs under ``runs_root`` (``reused=True``), or None.
     Without a solver (``inputs.key`` None) the newest completed run of the same deck."""

@@ -1,5 +1,6 @@
-"""Studies on a velocity table: the paper's blender length and diameter (Figs 3-4) and the
-compartment grid. Each builds modified tables that feed the same :func:`pbm.simulate.simulate`.
+"""Studies on a velocity table: the paper's blender length and diameter (Figs 3-4), the
+compartment grid, the impeller speed (scaled, or interpolated between DEM runs at other
+speeds). Each builds modified tables that feed the same :func:`pbm.simulate.simulate`.
 """
 
 from __future__ import annotations
@@ -8,8 +9,8 @@ import numpy as np
 
 from coupling.errors import ConfigError
 from coupling.metrics import SteadyStateRule
-from coupling.tables import VELOCITY_NAMES, VelocityTable
-from pbm.model import fill_missing_velocities
+from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
+from pbm.model import fill_missing_rates, fill_missing_velocities
 from pbm.simulate import simulate
 
 
@@ -30,6 +31,52 @@ def scale_blender(table: VelocityTable, length_factor: float = 1.0, diameter_fac
                  "rate_y_pos": table.rate_y_pos / diameter_factor, "rate_y_neg": table.rate_y_neg / diameter_factor}
     return table.replace(x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs,
                          **rates)
+
+
+def scale_speed(table: VelocityTable, factor: float) -> VelocityTable:
+    """Every velocity and measured rate times ``factor``: the naive hypothesis that the
+    flow follows the impeller speed (``factor`` = new rpm / old rpm) with an unchanged bed."""
+    if not (np.isfinite(factor) and factor > 0):
+        raise ConfigError(f"speed factor must be a finite number > 0, got {factor}")
+    fields = {name: getattr(table, name) * factor for name in VELOCITY_NAMES}
+    if table.has_rates:
+        fields.update({name: getattr(table, name) * factor for name in RATE_NAMES})
+    attrs = {**table.attrs, "speed_scaling": float(factor)}
+    return table.replace(attrs=attrs, **fields)
+
+
+def interpolate_tables(points, at: float) -> VelocityTable:
+    """A table library's answer at an operating value ``at`` (e.g. an impeller speed):
+    ``points`` are (value, table) pairs of DEM runs on the same grid and windows; the two
+    that bracket ``at`` are interpolated linearly, field by field and window by window,
+    after each has had its missing velocities (and rates) filled. Outside the library's
+    range it raises ConfigError rather than extrapolate. Measured rates are kept only when
+    both bracketing tables carry them."""
+    points = sorted(((float(v), t) for v, t in points), key=lambda p: p[0])
+    values = [v for v, _ in points]
+    if len(points) < 2 or len(set(values)) != len(values):
+        raise ConfigError(f"a table library needs >= 2 tables at distinct values, got values {values}")
+    if not (values[0] <= at <= values[-1]):
+        raise ConfigError(f"{at:g} lies outside the table library's range {values[0]:g}..{values[-1]:g}: "
+                          "a run there is needed (no extrapolation)")
+    hi = int(np.clip(np.searchsorted(values, at, side="left"), 1, len(points) - 1))
+    (v0, t0), (v1, t1) = points[hi - 1], points[hi]
+    same = (t1.t.shape == t0.t.shape and np.allclose(t1.t, t0.t) and t1.window_s == t0.window_s
+            and t1.x_edges.shape == t0.x_edges.shape and np.allclose(t1.x_edges, t0.x_edges)
+            and t1.y_edges.shape == t0.y_edges.shape and np.allclose(t1.y_edges, t0.y_edges))
+    if not same:
+        raise ConfigError(f"the tables at {v0:g} and {v1:g} differ in grid or windows; a library needs one layout")
+    w = (at - v0) / (v1 - v0)
+    a, b = fill_missing_velocities(t0)[0], fill_missing_velocities(t1)[0]
+    fields = {name: (1 - w) * getattr(a, name) + w * getattr(b, name)
+              for name in (*VELOCITY_NAMES, "count_A", "count_B")}
+    fields["n_samples"] = np.maximum(1, np.rint((1 - w) * a.n_samples + w * b.n_samples)).astype(np.int64)
+    rates = {name: None for name in RATE_NAMES}
+    if a.has_rates and b.has_rates:
+        ra, rb = fill_missing_rates(a)[0], fill_missing_rates(b)[0]
+        rates = {name: (1 - w) * getattr(ra, name) + w * getattr(rb, name) for name in RATE_NAMES}
+    attrs = {**t0.attrs, "interpolated": {"at": float(at), "between": [v0, v1]}}
+    return a.replace(min_samples=1, attrs=attrs, **fields, **rates)
 
 
 def _overlap(old_edges: np.ndarray, new_edges: np.ndarray) -> np.ndarray:

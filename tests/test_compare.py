@@ -71,6 +71,19 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
     assert "3.8.0" in page and summary["provenance"]["dem_source"] in ("LIGGGHTS ran now", "cache")
     assert (out / "paraview" / "compartments.pvd").is_file() and (out / "paraview" / "particles.pvd").is_file()
 
+    # Agreement: both rate modes judged against the DEM's intervals, by the numbers; the grid
+    # sensitivity from the same run binned at twice the NX (no new solver run).
+    rows = {row["key"]: row for row in summary["agreement"]}
+    assert {"holdup", "outflow_per_s", "C_A"} <= set(rows)
+    for row in rows.values():
+        for mode in ("velocity", "measured"):
+            low, high, value = row["dem_ci_low"], row["dem_ci_high"], row[f"pbm_{mode}"]
+            if row["key"] != "rtd_overlap" and None not in (low, high, value):
+                assert row[f"inside_{mode}"] == (low <= value <= high)
+    assert summary["pbm_modes"].keys() == {"velocity", "measured"}
+    assert summary["nx_sensitivity"]["nx"] == [10, 20]
+    assert "Agreement" in page
+
 
 @pytest.fixture(scope="module")
 def some_results(tmp_path_factory):

@@ -1,4 +1,4 @@
-"""The ``pbmdem`` command line: ``pbmdem config``, ``pbmdem compare``, ``pbmdem pbm ...``
+"""The ``pbmdem`` command line: ``pbmdem config``, ``pbmdem compare``, ``pbmdem validate``, ``pbmdem pbm ...``
 (:mod:`workflows.cli_pbm`) and ``pbmdem dem ...`` (:mod:`workflows.cli_dem`).
 
 Every command parses its arguments and makes one library call; library code raises, and
@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from coupling.errors import ConfigError, PbmDemError, os_reason
+from coupling.errors import ConfigError, PbmDemError, error_line
 from workflows.config import add_config_arguments, dump_toml, preset_names, resolve_config
 from workflows.pipeline import stderr_log
 
@@ -43,6 +43,14 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--no-progress", action="store_true", help="no progress bar")
     compare.set_defaults(func=compare_command)
 
+    validate = sub.add_parser(
+        "validate", help="the validation campaign: DEM runs with one factor changed, predicted by PBMs built without them")
+    validate.add_argument("--out", default="results/validation", help="where report.html goes")
+    validate.add_argument("--runs-dir", default="runs/validation", help="the campaign's DEM runs and their cache")
+    validate.add_argument("--np", type=int, default=None, help="MPI ranks per run (default: the preset's)")
+    validate.add_argument("--fresh", action="store_true", help="ignore cached and shipped results: rerun every DEM run")
+    validate.set_defaults(func=validate_command)
+
     cli_pbm.register(sub)
     cli_dem.register(sub)
     return parser
@@ -69,16 +77,20 @@ def compare_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def validate_command(args: argparse.Namespace) -> int:
+    from workflows.validation import validation_report
+
+    page = validation_report(args.out, args.runs_dir, fresh=args.fresh, nprocs=args.np, log=stderr_log)
+    print(f"report: {page}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except PbmDemError as exc:
-        print(f"pbmdem: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # the file system said no (a path, the disk, a permission): one line
-        where = " -> ".join(str(name) for name in (exc.filename, exc.filename2) if name)
-        print(f"pbmdem: error: {os_reason(exc)}" + (f": {where}" if where else ""), file=sys.stderr)
+    except (PbmDemError, OSError) as exc:  # OSError: the file system said no (a path, the disk, a permission)
+        print(f"pbmdem: error: {error_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("pbmdem: interrupted", file=sys.stderr)

@@ -5,11 +5,13 @@
 1. :func:`workflows.pipeline.dem_stage` -- the DEM's velocity table and CQAs: cache,
    shipped reference data, or a LIGGGHTS run post-processed by :mod:`dem.post`.
 2. :func:`workflows.pipeline.pbm_config_for` -- the PBM configuration of the same process.
-3. :func:`pbm.simulate.simulate` on the DEM's own table, tracer pulse at the DEM's RTD
-   tagging time, steady state by the same rule as the DEM.
+3. :func:`workflows.agreement.run_modes` -- the PBM on the DEM's own table in each rate
+   mode, tracer pulse at the DEM's RTD tagging time, steady state by the same rule as the
+   DEM; the configured mode's run gives the report's metrics and curves.
 4. :mod:`workflows.agreement` -- both PBM rate modes against every DEM quantity's 95 %
    interval, and the grid sensitivity (the DEM binned at twice the NX, when its dumps,
-   cache or shipped results allow it without running LIGGGHTS).
+   cache or shipped results allow it without running LIGGGHTS); :mod:`workflows.vrr` --
+   the feeder-noise filtering VRR(f) of both modes against the DEM's pooled RTD.
 5. :func:`workflows.studies.run_studies` -- the paper's length, diameter and noise studies.
 6. :mod:`workflows.report` -- metrics, figures, HTML and ``summary.json``; ParaView files.
 """
@@ -27,8 +29,9 @@ import numpy as np
 
 from coupling.errors import OutputError, os_reason
 from coupling.jsonable import json_ready
-from pbm.simulate import PbmResult, simulate
+from pbm.simulate import PbmResult
 from workflows.agreement import agreement_rows, dem_density, nx_sensitivity, run_modes
+from workflows.vrr import plot_vrr, vrr_comparison, vrr_html
 from workflows.config import Config, config_from_dict, dump_toml
 from workflows.pipeline import DemSide, dem_stage, pbm_config_for, writable_directory
 from workflows.report import (SideResults, agreement_html, comparison_metrics, plot_agreement, plot_comparison,
@@ -94,8 +97,9 @@ def full_comparison(
     tag_time = dem.results.summary.get("rtd_tag_time_s")
     pulse = tag_time if tag_time is not None and np.isfinite(tag_time) else None
     pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=pulse)
-    log("running the PBM on the DEM's velocity tables")
-    pbm_result = simulate(dem.table, pbm_config, steady=config.steady_state)
+    log("running the PBM on the DEM's tables, in each rate mode the table supports")
+    modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
+    pbm_result = modes[pbm_config.rates].result  # the configured mode: the report's metrics and curves
 
     dem_view = SideResults("DEM", dem.results.timeseries, dem.results.rtd[["t_s", "E_per_s"]],
                            dem.results.rsd_by_slice, dict(dem.results.summary),
@@ -104,17 +108,20 @@ def full_comparison(
                            dict(pbm_result.summary))
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
 
-    log("running both PBM rate modes against the DEM's intervals")
-    modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
+    vrr = feeder_filtering(dem, pbm_config, log)
     try:  # every file of the report: a full disk or a vanished directory is one line naming it
         figures = plot_comparison(dem_view, pbm_view, out_dir)
         pooled_spec = dem.results.summary.get("pooled_rtd") or {}
         dem_rtd = dem_density(dem.results.particles, pooled_spec)[:2] if pooled_spec.get("n_entered") else None
-        pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.density_per_s / m.pooled.recovered_fraction)
+        pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.recovered_density_per_s)
                    for mode, m in modes.items() if m.pooled is not None}
         figures.update(plot_agreement(rows, dem_rtd, pbm_rtd, out_dir))
+        vrr_section = ""
+        if vrr is not None:
+            figures["vrr"] = plot_vrr(vrr, out_dir / "vrr.png").name
+            vrr_section = vrr_html(vrr, figures["vrr"])
         try:
             from dem.render import render_geometry
 
@@ -152,12 +159,13 @@ def full_comparison(
             "config_toml": dump_toml(config),
         }
         page = render_html(f"DEM vs PBM — preset {config.name} ({dem.key})", metrics, figures, provenance, studies,
-                           notes, agreement_html(rows, sensitivity))
+                           notes, agreement_html(rows, sensitivity) + vrr_section)
         (out_dir / "report.html").write_text(page)
         summary = {
             "metrics": metrics,
             "agreement": rows,
             "nx_sensitivity": sensitivity,
+            "vrr": vrr,
             "pbm_modes": {mode: m.result.summary for mode, m in modes.items()},
             "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
             "dem_summary": dem.results.summary,
@@ -173,6 +181,18 @@ def full_comparison(
     except OSError as exc:
         raise OutputError(f"cannot write the report in {out_dir}: {os_reason(exc)}") from exc
     return out_dir / "report.html"
+
+
+def feeder_filtering(dem: DemSide, pbm_config, log: Log) -> dict | None:
+    """:func:`workflows.vrr.vrr_comparison` of the DEM's pooled RTD and the PBM's modes, when
+    the DEM has a pooled RTD; None (and a line in the log) otherwise."""
+    summary = dem.results.summary
+    steady = summary.get("steady_state_time_s")
+    if not (summary.get("pooled_rtd") or {}).get("n_entered") or steady is None or not np.isfinite(steady):
+        log("feeder-noise filtering skipped: the DEM has no pooled RTD")
+        return None
+    log("feeder-noise filtering: VRR(f) of the PBM against the DEM's pooled RTD")
+    return vrr_comparison(dem.table, pbm_config, float(steady), summary, dem.results.particles)
 
 
 def grid_sensitivity(config: Config, dem: DemSide, pbm_config, modes, runs_root: Path, log: Log) -> dict | None:

@@ -16,12 +16,13 @@ import json
 import sys
 import tempfile
 import time
+import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from coupling.cache import cache_path, save_entry, stable_hash, try_load_entry
+from coupling.cache import cache_path, load_entry, save_entry, stable_hash, try_load_entry
 from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
@@ -36,9 +37,11 @@ from pbm.config import PbmConfig
 from pbm.outputs import write_outputs
 from pbm.model import require_rates
 from pbm.simulate import PbmResult, simulate
-from workflows.config import Config, config_from_dict, dump_toml
+from workflows.config import Config, config_from_dict, dump_toml, load_preset
 
 REFERENCE_DIR = Path(__file__).parent / "reference"
+#: The shipped reduced run (NX = 10): the default input of the studies run on DEM results.
+REFERENCE_RUN = REFERENCE_DIR / "dem-17ea4c9cc143cd3e.h5"
 #: Bump when the post-processing computes anything differently: cached results are redone.
 POST_VERSION = 3
 
@@ -258,6 +261,22 @@ def _check_same_deck(config: Config, run_dir: Path) -> None:
     elif (run_dir / DECK_INFO).is_file() and (run_dir / DECK_INFO).read_text() != files[DECK_INFO]:
         raise ConfigError(f"the dumps in {run_dir} come from a deck whose {DECK_INFO} differs from the one the "
                           "configuration given makes (timestep, intervals or geometry): pass the configuration of that run")
+
+
+def load_results(path: str | Path) -> tuple[DemResults, Config]:
+    """The DEM results in a cache or shipped results file, with the configuration they were
+    made with (:func:`config_of`). A missing or corrupt file raises CacheError naming it."""
+    entry = load_entry(path)
+    return DemResults.from_cache_entry(entry), config_of(entry)
+
+
+def config_of(entry) -> Config:
+    """The configuration a cached or shipped DEM results entry was made with (stored with
+    it), else the reduced preset, from which the shipped reference was made."""
+    text = entry.provenance.get("config_toml")
+    if not text:
+        return load_preset("reduced")
+    return config_from_dict(tomllib.loads(text), "the configuration stored with the DEM results")
 
 
 def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:
