@@ -95,10 +95,21 @@ def test_judge_compares_the_prediction_with_the_self_built_pbm_plus_the_dem_inte
     assert verdict["measured"]["failing"] == ["holdup", "rtd_overlap"] and not verdict["measured"]["predicts"]
     assert verdict_text(verdict) == "the hybrid predicts this (velocity rates)"
     both_fail = judge([row("holdup", 100, 98, 102, 130, 130)], own)
-    assert verdict_text(both_fail) == "this needs a new DEM run (outside tolerance: holdup)"
+    assert verdict_text(both_fail) == ("this needs a new DEM run (nearest: velocity rates, 1 of 1 quantities "
+                                       "outside tolerance: holdup)")
     slices = judge([row(f"holdup_slice_{i}", 10, 9, 11, 20, 20) for i in (1, 2)],
                    [row(f"holdup_slice_{i}", 10, 9, 11, 10, 10) for i in (1, 2)])
-    assert verdict_text(slices) == "this needs a new DEM run (outside tolerance: hold-up of 2 axial slices)"
+    assert verdict_text(slices).endswith("2 of 2 quantities outside tolerance: hold-up of 2 axial slices)")
+
+
+def test_judge_is_calibrated_on_the_baseline_not_on_a_poor_self_built_pbm():
+    baseline = [row("holdup", 100, 98, 102, 110, 100)]  # the hybrid: 10 % off (velocity), exact (measured)
+    own = [row("holdup", 200, 196, 204, 400, 200)]  # on the new run the velocity PBM is 100 % off
+    verdict = judge([row("holdup", 200, 196, 204, 230, 203)], own, baseline)
+    velocity, measured = verdict["velocity"]["rows"][0], verdict["measured"]["rows"][0]
+    assert velocity["tolerance"] == pytest.approx(0.10 * 200 + 4) and not velocity["ok"]  # 30 > 24
+    assert measured["tolerance"] == pytest.approx(4) and measured["ok"]  # 3 <= 0 + 4
+    assert velocity["self"] == 400  # reported, not the yardstick
 
 
 def test_judge_lists_quantities_missing_on_either_side():
