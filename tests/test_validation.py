@@ -76,8 +76,10 @@ def test_prediction_tables_from_the_baseline_and_the_library():
 
 
 def row(key, dem, low, high, velocity, measured):
+    """An agreement row; the overlap's interval is its noise band [noise low, 1] per mode."""
+    noise = {f"noise_low_{mode}": low for mode in ("velocity", "measured")} if key == "rtd_overlap" else {}
     return {"key": key, "quantity": key, "dem": dem, "dem_ci_low": low, "dem_ci_high": high,
-            "pbm_velocity": velocity, "pbm_measured": measured}
+            "pbm_velocity": velocity, "pbm_measured": measured, **noise}
 
 
 def test_judge_compares_the_prediction_with_the_self_built_pbm_plus_the_dem_interval():
@@ -130,6 +132,8 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
     summary = json.loads((page.parent / "summary.json").read_text())
     assert [row["run"] for row in summary["campaign"]] == [c.name for c in CHANGES]
     assert all(row["source"] == "reference" for row in summary["campaign"])
+    walls = [row["dem_wall_time_s"] for row in summary["campaign"]]
+    assert max(walls) <= summary["campaign_elapsed_s"] <= sum(walls)
     # every change is judged from the baseline, and 250 rpm from the library of 150 and 350
     judged = {(v["run"], v["source"]) for v in summary["verdicts"] if v["judged"]}
     assert {(c.name, "baseline") for c in CHANGES[1:]} | {("baseline", "library")} <= judged

@@ -11,7 +11,7 @@ import pytest
 from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.config import PbmConfig
-from workflows.vrr import dem_transfer, main, plot_vrr, vrr_comparison
+from workflows.vrr import dem_transfer, main, plot_vrr, vrr_comparison, vrr_html
 
 WINDOW = (40.0, 200.0)
 # Horizon 10 mean residence times: the conditional-on-recovery H differs from the
@@ -135,6 +135,11 @@ def test_pbm_and_dem_agree_on_the_pbm_own_erlang_rtd(rng, tmp_path):
             assert abs(row["uncorrected"] - row["value"]) < row["high"] - row["low"]
     out = plot_vrr(c, tmp_path / "vrr.png")
     assert out.stat().st_size > 10_000
+    # the comparison report's section: every mode's count of resolved points, every noise row
+    section = vrr_html(c, out.name)
+    for mode, m in c["pbm"].items():
+        assert f"<td>{mode}</td><td>{m['n_inside']}/{m['n_judged']} resolved points</td>" in section
+    assert section.count("<tr><td>A, ") == len(c["noise"]["taus_s"]) and "vrr.png" in section
 
 
 def test_velocity_only_table_gives_one_mode(rng):

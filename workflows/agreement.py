@@ -126,6 +126,18 @@ def _row(quantity: str, unit: str, dem: dict[str, Any] | None, pbm: dict[str, fl
     return row
 
 
+def half_width(row: dict[str, Any], mode: str) -> float:
+    """Half the width of a row's DEM 95 % interval, the scale below which a PBM value cannot
+    be told from the DEM's; for the RTD overlap, whose interval is the noise band
+    [noise low of the mode, 1], the whole band 1 - noise low. NaN when it is not known."""
+    if row["key"] == "rtd_overlap":
+        return 1.0 - float(row.get(f"noise_low_{mode}", math.nan))
+    low, high = row.get("dem_ci_low"), row.get("dem_ci_high")
+    if low is None or high is None:
+        return math.nan
+    return 0.5 * (float(high) - float(low))
+
+
 def dem_density(records: pd.DataFrame, pooled_spec: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, int]:
     """(bin edges, density, recovered particles) of the DEM's pooled RTD."""
     sample = rtd_pooled(records["entry_t_s"].to_numpy(float), records["exit_t_s"].to_numpy(float),

@@ -33,7 +33,7 @@ from pbm.simulate import PbmResult
 from workflows.agreement import agreement_rows, dem_density, nx_sensitivity, run_modes
 from workflows.vrr import plot_vrr, vrr_comparison, vrr_html
 from workflows.config import Config, config_from_dict, dump_toml
-from workflows.pipeline import DemSide, dem_stage, pbm_config_for, writable_directory
+from workflows.pipeline import DemSide, dem_stage, pbm_config_for, rtd_pulse, writable_directory
 from workflows.report import (SideResults, agreement_html, comparison_metrics, plot_agreement, plot_comparison,
                               render_html)
 from workflows.studies import run_studies
@@ -94,9 +94,8 @@ def full_comparison(
     dem = dem_stage(config, runs_root, np=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
     out_dir = writable_directory(Path(results_root) / f"{config.name}-{dem.key}", "results directory")
 
-    tag_time = dem.results.summary.get("rtd_tag_time_s")
-    pulse = tag_time if tag_time is not None and np.isfinite(tag_time) else None
-    pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=pulse)
+    tag_time = rtd_pulse(dem.results.summary)
+    pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=tag_time)
     log("running the PBM on the DEM's tables, in each rate mode the table supports")
     modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
     pbm_result = modes[pbm_config.rates].result  # the configured mode: the report's metrics and curves

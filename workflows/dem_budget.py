@@ -36,10 +36,10 @@ from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from dem.post import DemResults
 from dem.rates import RATE_KEYS, fit_rates
 from pbm.model import fill_missing_velocities
-from workflows.agreement import MODES, agreement_rows, run_modes
+from workflows.agreement import MODES, agreement_rows, half_width, run_modes
 from workflows.bench import write_json
 from workflows.config import Config
-from workflows.pipeline import REFERENCE_RUN, load_results, pbm_config_for
+from workflows.pipeline import REFERENCE_RUN, load_results, pbm_config_for, rtd_pulse
 
 DEFAULT_T = (30.0, 45.0, 60.0, 90.0, 120.0, 180.0, 260.0)
 OUT = Path("results/dem_budget")
@@ -165,15 +165,7 @@ def refit_rates(results: DemResults, windows: np.ndarray):
 def half_widths(rows: list[dict], mode: str) -> dict[str, float]:
     """Per judged row key: half the width of the DEM 95 % interval; for the RTD overlap,
     whose interval is the noise band [noise low of the mode, 1], 1 - noise low."""
-    out = {}
-    for row in rows:
-        if row["key"] in SKIPPED:
-            continue
-        if row["key"] == "rtd_overlap":
-            out[row["key"]] = 1.0 - float(row.get(f"noise_low_{mode}", math.nan))
-        else:
-            out[row["key"]] = 0.5 * (float(row["dem_ci_high"]) - float(row["dem_ci_low"]))
-    return out
+    return {row["key"]: half_width(row, mode) for row in rows if row["key"] not in SKIPPED}
 
 
 def judge(rows_t: list[dict], reference_rows: list[dict], mode: str) -> list[dict]:
@@ -260,9 +252,7 @@ def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
     qualifies). Raises ValueError when the run never reaches the steady state.
     """
     table, summary = results.table, results.summary
-    tag_time = summary.get("rtd_tag_time_s")
-    pulse = tag_time if tag_time is not None and math.isfinite(tag_time) else None
-    pbm_config = pbm_config_for(config, table, pulse)
+    pbm_config = pbm_config_for(config, table, rtd_pulse(summary))
     t_end = table.t_end
     steady_full = summary.get("steady_state_time_s")
     if steady_full is None or not math.isfinite(steady_full):

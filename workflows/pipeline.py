@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import json
+import math
 import sys
 import tempfile
 import time
@@ -277,6 +278,12 @@ def config_of(entry) -> Config:
     if not text:
         return load_preset("reduced")
     return config_from_dict(tomllib.loads(text), "the configuration stored with the DEM results")
+
+
+def rtd_pulse(dem_summary: dict[str, Any]) -> float | None:
+    """The PBM's tracer pulse time: the DEM's RTD tagging time, None when it tagged none."""
+    tag_time = dem_summary.get("rtd_tag_time_s")
+    return float(tag_time) if tag_time is not None and math.isfinite(tag_time) else None
 
 
 def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:

@@ -247,9 +247,9 @@ def agreement_html(rows: list[dict[str, Any]], nx_sensitivity: dict[str, Any] | 
         return "–" if flag is None else ("inside" if flag else "<b>outside</b>")
 
     body = "".join(
-        f"<tr><td>{html.escape(r['quantity'])}</td><td>{html.escape(r['unit'])}</td><td>{_fmt(r['dem'])}</td>"
-        f"<td>{_fmt(r['dem_ci_low'])} – {_fmt(r['dem_ci_high'])}</td>"
-        + "".join(f"<td>{_fmt(r.get(f'pbm_{m}'))}</td><td>{verdict(r.get(f'inside_{m}'))}</td>" for m in MODE_STYLES)
+        f"<tr><td>{html.escape(r['quantity'])}</td><td>{html.escape(r['unit'])}</td><td>{fmt(r['dem'])}</td>"
+        f"<td>{fmt(r['dem_ci_low'])} – {fmt(r['dem_ci_high'])}</td>"
+        + "".join(f"<td>{fmt(r.get(f'pbm_{m}'))}</td><td>{verdict(r.get(f'inside_{m}'))}</td>" for m in MODE_STYLES)
         + "</tr>" for r in rows)
     head = ("<tr><th>quantity</th><th>unit</th><th>DEM</th><th>DEM 95 % interval</th>"
             + "".join(f"<th>{html.escape(label)}</th><th>verdict</th>" for _, label in MODE_STYLES.values()) + "</tr>")
@@ -259,9 +259,9 @@ def agreement_html(rows: list[dict[str, Any]], nx_sensitivity: dict[str, Any] | 
         for mode in MODE_STYLES:
             entry = nx_sensitivity.get(mode)
             if entry:
-                lines.append(f"<tr><td>{html.escape(MODE_STYLES[mode][1])}</td><td>{_fmt(entry['mean_s'])}</td>"
-                             f"<td>{_fmt(entry['change_mean'])}</td><td>{_fmt(entry['variance_s2'])}</td>"
-                             f"<td>{_fmt(entry['change_variance'])}</td></tr>")
+                lines.append(f"<tr><td>{html.escape(MODE_STYLES[mode][1])}</td><td>{fmt(entry['mean_s'])}</td>"
+                             f"<td>{fmt(entry['change_mean'])}</td><td>{fmt(entry['variance_s2'])}</td>"
+                             f"<td>{fmt(entry['change_variance'])}</td></tr>")
         if lines:
             nx = ", ".join(str(v) for v in nx_sensitivity.get("nx", []))
             out += (f"<h3>Grid sensitivity (NX = {html.escape(nx)})</h3><table><tr><th>mode</th><th>mean [s]</th>"
@@ -273,15 +273,19 @@ def agreement_html(rows: list[dict[str, Any]], nx_sensitivity: dict[str, Any] | 
 # --- HTML ----------------------------------------------------------------------------------
 
 
-def _fmt(value: Any) -> str:
+def fmt(value: Any, digits: int = 4) -> str:
+    """A value for an HTML cell: numbers to ``digits`` significant figures, "–" for a
+    missing or non-finite one, yes / no for a flag."""
     if value is None:
         return "–"
-    if isinstance(value, float):
+    if isinstance(value, (bool, np.bool_)):
+        return "yes" if value else "no"
+    if isinstance(value, (float, np.floating)):
         if not math.isfinite(value):
             return "–"
-        return f"{value:.4g}"
+        return f"{float(value):.{digits}g}"
     if isinstance(value, (list, tuple)):
-        return ", ".join(_fmt(v) for v in value)
+        return ", ".join(fmt(v, digits) for v in value)
     return html.escape(str(value))
 
 
@@ -310,7 +314,7 @@ def render_html(
     """The report page. ``figures`` maps keys to PNG names beside the page; ``agreement``
     is the HTML of :func:`agreement_html`."""
     rows = "".join(
-        f"<tr><td>{label}</td><td>{_fmt(metrics.get(d))}</td><td>{_fmt(metrics.get(p))}</td></tr>"
+        f"<tr><td>{label}</td><td>{fmt(metrics.get(d))}</td><td>{fmt(metrics.get(p))}</td></tr>"
         for label, d, p in METRIC_ROWS
     )
     derived = [
@@ -321,7 +325,7 @@ def render_html(
         ("DEM random-mixture floor of the final whole-blender RSD", metrics.get("final_rsd_blender_dem_floor")),
         ("PBM speed-up over DEM (wall time)", metrics.get("speedup_pbm_over_dem")),
     ]
-    derived_rows = "".join(f"<tr><td>{label}</td><td colspan=2>{_fmt(v)}</td></tr>" for label, v in derived)
+    derived_rows = "".join(f"<tr><td>{label}</td><td colspan=2>{fmt(v)}</td></tr>" for label, v in derived)
 
     def img(key: str, caption: str) -> str:
         if key not in figures:
@@ -331,14 +335,14 @@ def render_html(
     study_html = ""
     for study in studies:
         header = "".join(f"<th>{html.escape(k)}</th>" for k in study.rows[0]) if study.rows else ""
-        body = "".join("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row.values()) + "</tr>" for row in study.rows)
+        body = "".join("<tr>" + "".join(f"<td>{fmt(v)}</td>" for v in row.values()) + "</tr>" for row in study.rows)
         study_html += (
             f"<h3>{html.escape(study.title)}</h3><p>{html.escape(study.trend)}</p>"
             f"<table><tr>{header}</tr>{body}</table>"
             f'<figure><img src="{html.escape(study.figure)}" alt="{html.escape(study.title)}"></figure>'
         )
     prov_rows = "".join(
-        f"<tr><td>{html.escape(k)}</td><td>{_fmt(v) if not isinstance(v, dict) else '<pre>' + html.escape(json.dumps(v, indent=1)) + '</pre>'}</td></tr>"
+        f"<tr><td>{html.escape(k)}</td><td>{fmt(v) if not isinstance(v, dict) else '<pre>' + html.escape(json.dumps(v, indent=1)) + '</pre>'}</td></tr>"
         for k, v in provenance.items()
         if k != "config_toml"
     )

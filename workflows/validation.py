@@ -26,6 +26,7 @@
 
 from __future__ import annotations
 
+import datetime as _dt
 import html
 import math
 import time
@@ -41,11 +42,12 @@ from coupling.jsonable import json_ready
 from coupling.tables import VelocityTable
 from dem.run import can_resume, prepare_run
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
-from workflows.agreement import MODES, agreement_rows, run_modes
+from workflows.agreement import MODES, agreement_rows, half_width, run_modes
 from workflows.bench import write_json
 from workflows.config import Config, load_preset, override
 from workflows.dem_budget import budget_study, plot_budget
-from workflows.pipeline import DemSide, Log, dem_stage, pbm_config_for, stderr_log, writable_directory
+from workflows.pipeline import DemSide, Log, dem_stage, pbm_config_for, rtd_pulse, stderr_log, writable_directory
+from workflows.report import fmt
 
 REFERENCE_DIR = Path(__file__).resolve().parent / "reference" / "validation"
 PRESET = "validation"
@@ -169,24 +171,14 @@ def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log 
     out = []
     for name, tables in prediction_tables(sides, configs).items():
         config, dem = configs[name], sides[name].results
-        pulse = dem.summary.get("rtd_tag_time_s")
-        pulse = pulse if pulse is not None and np.isfinite(pulse) else None
         for source, table in tables.items():
             if isinstance(table, str):
                 out.append(Prediction(name, source, note=table))
                 continue
             log(f"PBM of {name} from {source}")
-            modes = run_modes(table, pbm_config_for(config, table, pulse), config.steady_state, dem.summary)
+            modes = run_modes(table, pbm_config_for(config, table, rtd_pulse(dem.summary)), config.steady_state, dem.summary)
             out.append(Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes)))
     return out
-
-
-def _half_width(row: dict[str, Any]) -> float:
-    low, high = row.get("dem_ci_low"), row.get("dem_ci_high")
-    if low is None or high is None or not (np.isfinite(low) and np.isfinite(high)):
-        return math.nan
-    # the overlap's interval is one-sided: [noise low, 1]
-    return float(high - low) if row["key"] == "rtd_overlap" else float(high - low) / 2
 
 
 def judge(predicted: list[dict[str, Any]], own: list[dict[str, Any]],
@@ -210,7 +202,7 @@ def judge(predicted: list[dict[str, Any]], own: list[dict[str, Any]],
             cal = cal_rows.get(key, {})
             dem, pred, self_value = row.get("dem"), row.get(f"pbm_{mode}"), own_rows.get(key, {}).get(f"pbm_{mode}")
             cal_dem, cal_pbm = cal.get("dem"), cal.get(f"pbm_{mode}")
-            half = _half_width(row)
+            half = half_width(row, mode)
             values = (dem, pred, self_value, cal_dem, cal_pbm, half)
             if any(v is None or not np.isfinite(v) for v in values) or (key != "rtd_overlap" and cal_dem == 0):
                 missing.append(key)
@@ -341,16 +333,6 @@ def plot_profiles(preds: list[Prediction], runs: list[str], path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def _num(value: Any, digits: int = 4) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "–"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, (int, float, np.floating)):
-        return f"{float(value):.{digits}g}"
-    return html.escape(str(value))
-
-
 def _campaign_rows(sides: dict[str, DemSide]) -> list[dict[str, Any]]:
     rows = []
     labels = {c.name: c.label for c in CHANGES}
@@ -366,8 +348,23 @@ def _campaign_rows(sides: dict[str, DemSide]) -> list[dict[str, Any]]:
     return rows
 
 
+def campaign_span_s(sides: dict[str, DemSide]) -> float | None:
+    """Elapsed time of the campaign's solver runs [s]: from the first run's start to the
+    last one's end, each start taken as its end minus its recorded wall time (so a resumed
+    run counts from its first attempt). None when a run lacks the timestamps."""
+    starts, ends = [], []
+    for side in sides.values():
+        finished, wall = side.provenance.get("run_finished"), side.provenance.get("wall_time_s")
+        if not finished or wall is None:
+            return None
+        end = _dt.datetime.fromisoformat(str(finished)).timestamp()
+        starts.append(end - float(wall))
+        ends.append(end)
+    return max(ends) - min(starts) if ends else None
+
+
 def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], figures: dict[str, str],
-                  budget: dict[str, Any] | None = None) -> str:
+                  budget: dict[str, Any] | None = None, span_s: float | None = None) -> str:
     """The validation page: the campaign, a verdict per change, the numbers behind each."""
     total = sum(r["dem_wall_time_s"] or 0 for r in campaign)
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Validation campaign</title>",
@@ -386,10 +383,12 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
              "<th>steady hold-up</th><th>mean residence time [s]</th><th>tracers</th><th>recovered</th></tr>"]
     for r in campaign:
         parts.append(f"<tr><td>{html.escape(r['run'])}</td><td>{html.escape(r['change'])}</td>"
-                     f"<td>{html.escape(r['source'])}</td><td>{_num(r['dem_wall_time_s'])}</td>"
-                     f"<td>{_num(r['holdup'])}</td><td>{_num(r['mean_residence_time_s'])}</td>"
-                     f"<td>{_num(r['tracers'])}</td><td>{_num(r['recovered'])}</td></tr>")
-    parts.append(f"</table><p>DEM wall time of the whole campaign: {total / 3600:.2f} h.</p>")
+                     f"<td>{html.escape(r['source'])}</td><td>{fmt(r['dem_wall_time_s'])}</td>"
+                     f"<td>{fmt(r['holdup'])}</td><td>{fmt(r['mean_residence_time_s'])}</td>"
+                     f"<td>{fmt(r['tracers'])}</td><td>{fmt(r['recovered'])}</td></tr>")
+    span = "" if span_s is None else (f"; elapsed from the first run's start to the last one's end: "
+                                      f"{span_s / 3600:.2f} h (runs that overlap count once)")
+    parts.append(f"</table><p>Sum of the runs' DEM wall times: {total / 3600:.2f} h{span}.</p>")
     parts.append("<h2>Verdicts</h2><table><tr><th>run</th><th>predicted from</th><th>velocity rates</th>"
                  "<th>measured rates</th><th>verdict</th></tr>")
     for v in judged:
@@ -413,8 +412,8 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
                      "<th>fraction of the run</th><th>without the slice hold-ups [s]</th></tr>")
         for mode, best in budget["smallest_T"].items():
             other = budget["smallest_T_without_slices"].get(mode, {})
-            parts.append(f"<tr><td>{mode}</td><td>{_num(best['t_s'])}</td><td>{_num(best['fraction'], 2)}</td>"
-                         f"<td>{_num(other.get('t_s'))}</td></tr>")
+            parts.append(f"<tr><td>{mode}</td><td>{fmt(best['t_s'])}</td><td>{fmt(best['fraction'], 2)}</td>"
+                         f"<td>{fmt(other.get('t_s'))}</td></tr>")
         parts.append("</table>")
         if "budget" in figures:
             parts.append(f"<p><img src='{figures['budget']}' style='max-width:100%'></p>")
@@ -434,10 +433,10 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
             for m in MODES:
                 r = by_mode[m].get(key)
                 cells += ("<td>–</td><td>–</td><td>–</td>" if r is None else
-                          f"<td>{_num(r['predicted'])}</td><td>{_num(r['self'])}</td>"
-                          f"<td class='{'yes' if r['ok'] else 'no'}'>{_num(r['ok'])}</td>")
-            parts.append(f"<tr><td>{html.escape(first['quantity'])}</td><td>{_num(first['dem'])}</td>"
-                         f"<td>{_num(first['dem_ci_low'])} – {_num(first['dem_ci_high'])}</td>{cells}</tr>")
+                          f"<td>{fmt(r['predicted'])}</td><td>{fmt(r['self'])}</td>"
+                          f"<td class='{'yes' if r['ok'] else 'no'}'>{fmt(r['ok'])}</td>")
+            parts.append(f"<tr><td>{html.escape(first['quantity'])}</td><td>{fmt(first['dem'])}</td>"
+                         f"<td>{fmt(first['dem_ci_low'])} – {fmt(first['dem_ci_high'])}</td>{cells}</tr>")
         parts.append("</table>")
     parts.append("</body></html>")
     return "\n".join(parts)
@@ -455,6 +454,7 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
     preds = predictions(sides, configs, log=log)
     judged = verdicts(preds)
     campaign = _campaign_rows(sides)
+    span_s = campaign_span_s(sides)
     base = sides["baseline"].results
     budget_t = [round(f * base.table.t_end / base.table.window_s) * base.table.window_s for f in BUDGET_FRACTIONS]
     log("how little DEM: PBMs from the baseline's first T seconds")
@@ -472,10 +472,10 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
         else:
             figures.pop("budget")
         write_json(out_dir / "summary.json", json_ready({
-            "campaign": campaign, "verdicts": judged, "dem_budget": budget,
+            "campaign": campaign, "campaign_elapsed_s": span_s, "verdicts": judged, "dem_budget": budget,
             "predictions": [{"run": p.run, "source": p.source, "note": p.note, "agreement": p.rows} for p in preds]}))
         page = out_dir / "report.html"
-        page.write_text(render_report(campaign, judged, figures, budget))
+        page.write_text(render_report(campaign, judged, figures, budget, span_s))
     except OSError as exc:
         raise OutputError(f"cannot write the validation report in {out_dir}: {os_reason(exc)}") from exc
     return page
