@@ -178,9 +178,27 @@ class OperationConfig(_Section):
     feed_fraction_a: float = Field(0.5, gt=0, lt=1, description="share of the feed that is component A")
     impeller_rpm: float = Field(250.0, gt=0)
     duration_s: float = Field(260.0, gt=0)
+    step_time_s: float | None = Field(
+        None, gt=0, description="feeder A's rate is multiplied by step_factor_a from this time on (None: steady feed)")
+    step_factor_a: float = Field(1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _step(self) -> "OperationConfig":
+        if self.step_time_s is None:
+            if self.step_factor_a != 1.0:
+                raise ValueError(f"step_factor_a = {self.step_factor_a} needs step_time_s (when the step happens)")
+            return self
+        if not self.step_factor_a > 1.0:
+            raise ValueError(
+                f"step_factor_a = {self.step_factor_a}: a feed step raises feeder A's rate (a second feeder of A "
+                "starts at step_time_s), so it must be > 1")
+        if not self.step_time_s < self.duration_s:
+            raise ValueError(f"step_time_s = {self.step_time_s} s must lie before the end, duration_s = {self.duration_s} s")
+        return self
 
     @property
     def feed_rate_a_per_s(self) -> float:
+        """Feeder A's rate before any step."""
         return self.feed_rate_total_per_s * self.feed_fraction_a
 
     @property

@@ -20,7 +20,7 @@ from coupling.tables import VelocityTable
 from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table
-from pbm.simulate import check_run, noise_factors
+from pbm.simulate import check_run, feed_factors
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 BAND_QUANTILES = (0.05, 0.95)
@@ -95,13 +95,15 @@ def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma:
     # With sigma = 0 every member is the same run: propagate one and replicate it.
     distinct = members if sigma > 0 else 1
     n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
-    factors = np.stack([noise_factors(config, n_noise, member=m, sigma=sigma) for m in range(distinct)], axis=1)
+    factors = np.stack([feed_factors(config, n_noise, member=m, sigma=sigma) for m in range(distinct)], axis=1)
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
 
     out_times = multiples(config.output_interval_s, config.output_interval_s, t_end)
     switch_sets = [table.t]
     if sigma > 0:
         switch_sets.append(multiples(config.noise_interval_s, 0.0, t_end))
+    if config.feed_step_s is not None:
+        switch_sets.append(np.array([config.feed_step_s]))
     times = breakpoints(0.0, t_end, out_times, *switch_sets)
     mids = 0.5 * (times[:-1] + times[1:])
     feed_key = np.clip(np.floor(mids / config.noise_interval_s).astype(int), 0, n_noise - 1)

@@ -92,6 +92,17 @@ def noise_factors(config: PbmConfig, n_intervals: int, member: int = 0, sigma: f
     return np.clip(1.0 + sigma * rng.standard_normal((n_intervals, 2)), 0.0, None)
 
 
+def feed_factors(config: PbmConfig, n_intervals: int, member: int = 0, sigma: float | None = None) -> np.ndarray:
+    """(n_intervals, 2) factors of the A and B feed rates per interval: the noise of
+    :func:`noise_factors` times feeder A's step (``config.feed_step_factor_a`` from
+    ``config.feed_step_s`` on)."""
+    factors = noise_factors(config, n_intervals, member, sigma)
+    if config.feed_step_s is not None:
+        first = round(config.feed_step_s / config.noise_interval_s)
+        factors[first:, 0] *= config.feed_step_factor_a
+    return factors
+
+
 def cumulative_feed(times: np.ndarray, rate_per_s: float, factors: np.ndarray, interval_s: float) -> np.ndarray:
     """Particles fed by ``times`` [s] at ``rate_per_s`` x the piecewise-constant factors."""
     edges = interval_s * np.arange(factors.size + 1)
@@ -178,7 +189,7 @@ def simulate(
     dt_out = config.output_interval_s
     out_times = multiples(dt_out, dt_out, t_end)
     n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
-    factors = noise_factors(config, n_noise)
+    factors = feed_factors(config, n_noise)
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
     tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)
 
@@ -342,13 +353,16 @@ def _run_columns(props, config, t_start, t_end, columns, z0, factors, rates, rec
     """March the columns (species 0 = A, 1 = B, 2 = tracer) and record every breakpoint."""
     table = props.table
     noise = config.noise_sigma > 0
+    step = config.feed_step_s is not None
     switch_sets = [table.t]
     if noise:
         switch_sets.append(multiples(config.noise_interval_s, t_start, t_end))
+    if step:
+        switch_sets.append(np.array([config.feed_step_s]))
     extra = [] if pulse_at is None else [[pulse_at]]
     times = breakpoints(t_start, t_end, record_times, *switch_sets, *extra)
     mids = 0.5 * (times[:-1] + times[1:])
-    feed_key = (np.floor(mids / config.noise_interval_s).astype(int) if noise else np.zeros(mids.size, int))
+    feed_key = (np.floor(mids / config.noise_interval_s).astype(int) if noise or step else np.zeros(mids.size, int))
     feed_key = np.clip(feed_key, 0, factors.shape[0] - 1)
     c = len(columns)
     injections = {}

@@ -68,7 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     slurm.add_argument("--holdup", type=float, default=None,
                        help="steady hold-up [particles]; default: scaled from the shipped reduced run")
     slurm.add_argument("--throughput", type=float, default=None,
-                       help="particle-steps per second per core; default: results/bench/dem_deck.json or 3.9e6")
+                       help="particle-steps per second per core; default: the shipped paper-scale measurement "
+                            "for the paper's particles, else results/bench/dem_deck.json, else 3.9e6")
     slurm.set_defaults(func=slurm_command)
 
 

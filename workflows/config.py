@@ -114,29 +114,45 @@ def config_from_dict(data: dict[str, Any], source: str = "configuration") -> Con
         raise ConfigError(_explain(exc, data, source)) from None
 
 
-def override(config: Config, assignment: str) -> Config:
-    """``config`` with one value replaced: ``assignment`` is ``dotted.path=value`` (e.g.
+def override(config: Config, *assignments: str) -> Config:
+    """``config`` with values replaced: each assignment is ``dotted.path=value`` (e.g.
     ``dem.geometry.inlet_margin_m=0.005``); the value is read as an int, a float, true /
-    false / none, else text. The result is validated like any configuration (ConfigError)."""
-    path, sep, text = assignment.partition("=")
-    if not sep or not path:
-        raise ConfigError(f"{assignment!r}: expected PATH=VALUE, e.g. dem.geometry.inlet_margin_m=0.005")
-    value: Any = {"true": True, "false": False, "none": None}.get(text.lower(), text)
-    for kind in (int, float):
-        try:
-            value = kind(text)
-            break
-        except ValueError:
-            pass
+    false / none, else text. All are applied before the result is validated like any
+    configuration (ConfigError), so values that must change together can."""
     data = config.to_dict()
-    node = data
-    *parents, leaf = path.split(".")
-    for key in parents:
-        if not isinstance(node.get(key), dict):
-            raise ConfigError(f"{assignment!r}: no section '{key}' in the configuration")
-        node = node[key]
-    node[leaf] = value
-    return config_from_dict(data, source=assignment)
+    for assignment in assignments:
+        path, sep, text = assignment.partition("=")
+        if not sep or not path:
+            raise ConfigError(f"{assignment!r}: expected PATH=VALUE, e.g. dem.geometry.inlet_margin_m=0.005")
+        value: Any = {"true": True, "false": False, "none": None}.get(text.lower(), text)
+        for kind in (int, float):
+            try:
+                value = kind(text)
+                break
+            except ValueError:
+                pass
+        node = data
+        *parents, leaf = path.split(".")
+        for key in parents:
+            if not isinstance(node.get(key), dict):
+                raise ConfigError(f"{assignment!r}: no section '{key}' in the configuration")
+            node = node[key]
+        node[leaf] = value
+    return config_from_dict(data, source=", ".join(assignments))
+
+
+def config_without(config: Config, *paths: str) -> dict[str, Any]:
+    """``config`` as a dictionary without its name and the values at the dotted ``paths``:
+    what two runs must share to differ only in those values."""
+    data = config.to_dict()
+    data.pop("name", None)
+    for path in paths:
+        *parents, leaf = path.split(".")
+        node = data
+        for key in parents:
+            node = node[key]
+        node.pop(leaf, None)
+    return data
 
 
 def dump_toml(config: Config) -> str:

@@ -28,6 +28,7 @@ from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from dem.cluster import estimate_cost, mpi_command, slurm_script
+from workflows.paper_scale import measured_throughput
 from dem.deck import DECK_INFO, MAIN_DECK, MESH_DIR, build_deck, deck_hash, write_deck
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
@@ -344,8 +345,11 @@ class ClusterPlan:
 def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | None = None,
                      holdup: float | None = None, throughput: float | None = None) -> ClusterPlan:
     """Write the run directory (deck, meshes, resolved config) and ``job.slurm`` with a
-    core-hour estimate: hold-up given or scaled from the shipped reference, throughput
-    given, else measured by ``make bench``, else the development machine's."""
+    core-hour estimate: hold-up given or scaled from the shipped reference; throughput
+    given, else the shipped paper-scale measurement when the particles are the same
+    (:func:`workflows.paper_scale.measured_throughput`), else measured by ``make bench``,
+    else the development machine's."""
+
     if holdup is not None:
         holdup_source = "given with --holdup"
     else:
@@ -353,8 +357,11 @@ def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | 
             holdup, holdup_source = reference_holdup(config.dem)
         except LookupError as exc:
             raise ConfigError(str(exc)) from None
+    measured = None if throughput is not None else measured_throughput(config.dem)
     if throughput is not None:
         throughput_source = "given with --throughput"
+    elif measured is not None:
+        throughput, throughput_source = measured
     elif BENCH_FILE.is_file():
         throughput = float(json.loads(BENCH_FILE.read_text())["blender_particle_steps_per_s_serial"])
         throughput_source = f"measured by make bench ({BENCH_FILE})"

@@ -44,10 +44,11 @@ from dem.run import can_resume, prepare_run
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
 from workflows.agreement import MODES, agreement_rows, half_width, run_modes
 from workflows.bench import write_json
-from workflows.config import Config, load_preset, override
+from workflows.config import Config, config_without, load_preset, override
 from workflows.dem_budget import budget_study, plot_budget
 from workflows.pipeline import DemSide, Log, dem_stage, pbm_config_for, rtd_pulse, stderr_log, writable_directory
 from workflows.report import fmt
+from workflows.step_response import plot_step, run_step, step_comparison, step_config, step_html, summary_rows
 
 REFERENCE_DIR = Path(__file__).resolve().parent / "reference" / "validation"
 PRESET = "validation"
@@ -110,18 +111,6 @@ def run_campaign(runs_root: str | Path = "runs/validation", fresh: bool = False,
 NOT_JUDGED = ("rtd_recovered_fraction",)
 
 
-def _without(config: Config, *paths: str) -> dict[str, Any]:
-    data = config.to_dict()
-    data.pop("name", None)
-    for path in paths:
-        *parents, leaf = path.split(".")
-        node = data
-        for key in parents:
-            node = node[key]
-        node.pop(leaf, None)
-    return data
-
-
 def prediction_tables(sides: dict[str, DemSide], configs: dict[str, Config],
                       baseline: str = "baseline") -> dict[str, dict[str, VelocityTable | str]]:
     """For every run: its own table ("self"), the prediction from the baseline alone
@@ -143,9 +132,9 @@ def prediction_tables(sides: dict[str, DemSide], configs: dict[str, Config],
             if not math.isclose(speed, 1.0):
                 table = scale_speed(table, speed)
             tables["baseline"] = table
-        same_but_rpm = _without(config, rpm_key)
+        same_but_rpm = config_without(config, rpm_key)
         library = [(other.dem.operation.impeller_rpm, sides[o].table) for o, other in configs.items()
-                   if o != name and _without(other, rpm_key) == same_but_rpm]
+                   if o != name and config_without(other, rpm_key) == same_but_rpm]
         if len(library) >= 2:
             try:
                 tables["library"] = interpolate_tables(library, config.dem.operation.impeller_rpm)
@@ -364,7 +353,8 @@ def campaign_span_s(sides: dict[str, DemSide]) -> float | None:
 
 
 def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], figures: dict[str, str],
-                  budget: dict[str, Any] | None = None, span_s: float | None = None) -> str:
+                  budget: dict[str, Any] | None = None, span_s: float | None = None,
+                  step_section: str | None = None) -> str:
     """The validation page: the campaign, a verdict per change, the numbers behind each."""
     total = sum(r["dem_wall_time_s"] or 0 for r in campaign)
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Validation campaign</title>",
@@ -417,6 +407,8 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
         parts.append("</table>")
         if "budget" in figures:
             parts.append(f"<p><img src='{figures['budget']}' style='max-width:100%'></p>")
+    if step_section:
+        parts.append(step_section)
     parts.append("<h2>The numbers behind each verdict</h2>")
     for v in judged:
         if not v["judged"]:
@@ -463,8 +455,18 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
     except ValueError as exc:  # a baseline that never reaches the steady state has no budget
         log(f"no DEM budget: {exc}")
         budget = None
+    log("the dynamic check: the feed-step run")
+    try:
+        step_side = run_step(runs_root, fresh=fresh, nprocs=nprocs, log=log, solver=solver)
+        step = step_comparison(step_side, sides["baseline"], step_config())
+    except LookupError as exc:  # neither shipped nor cached, and the solver may not run
+        log(f"no dynamic check: {exc}")
+        step = None
     try:
         figures = {"parity": "parity.png", "profiles": "profiles.png", "budget": "budget.png"}
+        if step is not None:
+            figures["step"] = "step.png"
+            plot_step(step, out_dir / figures["step"])
         plot_parity(preds, out_dir / figures["parity"])
         plot_profiles(preds, list(sides), out_dir / figures["profiles"])
         if budget is not None:
@@ -473,9 +475,11 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
             figures.pop("budget")
         write_json(out_dir / "summary.json", json_ready({
             "campaign": campaign, "campaign_elapsed_s": span_s, "verdicts": judged, "dem_budget": budget,
+            "step_response": None if step is None else summary_rows(step),
             "predictions": [{"run": p.run, "source": p.source, "note": p.note, "agreement": p.rows} for p in preds]}))
         page = out_dir / "report.html"
-        page.write_text(render_report(campaign, judged, figures, budget, span_s))
+        page.write_text(render_report(campaign, judged, figures, budget, span_s,
+                                      None if step is None else step_html(step, figures.get("step"))))
     except OSError as exc:
         raise OutputError(f"cannot write the validation report in {out_dir}: {os_reason(exc)}") from exc
     return page

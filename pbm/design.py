@@ -1,0 +1,363 @@
+"""Design inversion: the smallest blender, and the impeller speeds, that meet a spec.
+
+A spec (:class:`DesignSpec`) bounds what leaves the blender at steady state:
+
+* the outlet composition C_A within +-``ca_tolerance`` (``coverage_sigmas`` standard
+  deviations of it, 3 by default) and/or its relative standard deviation below
+  ``rsd_max``, for a feeder whose rate fluctuates with relative SD ``noise_sigma``,
+  correlation time ``noise_tau_s`` and bandwidth ``noise_band_hz``;
+* the mean residence time within [``mrt_min_s``, ``mrt_max_s``].
+
+The composition follows from the variance reduction ratio of :mod:`pbm.frequency`: a
+feeder noise of relative SD sigma moves the inlet composition by C (1 - C) sigma (SD), the
+blender divides its variance by VRR, so the outlet's SD is C (1 - C) sigma / sqrt(VRR)
+and its RSD that over C. The mean residence time is Little's law on the stationary system,
+hold-up / feed rate, each feeder weighted by its rate.
+
+The candidates come from a table library (:class:`TableLibrary`): DEM velocity tables at
+several impeller speeds on one grid. A speed between two of them is interpolated
+(:func:`pbm.studies.interpolate_tables`), a length is the paper's rescaling of the
+compartments (:func:`pbm.studies.scale_blender`, every axial rate over the length factor).
+Both are models: the speed range ends at the library's, and the length factor at
+:data:`LENGTH_FACTOR_LIMITS`; a spec that asks for more is refused, never extrapolated.
+
+For each speed of a grid over the range, the feasible length factors form an interval
+(the composition and the lower residence bound improve with length, the upper bound
+worsens), found by a scan and refined by root finding on the binding margin
+(:func:`design`). The answer is the smallest length over the speeds, and the speed range
+in which that length meets the spec, with every criterion's margin.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from scipy.optimize import brentq
+
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable
+from pbm.config import PbmConfig
+from pbm.frequency import noise_frequencies, noise_spectrum, stationary_system, system_response, vrr_spectrum
+from pbm.studies import interpolate_tables, scale_blender
+
+#: Length factors the rescaling may be asked for, relative to the library's blender: the
+#: paper's own study spans 0.5-1.5, and the campaign checked x1.25 against DEM.
+LENGTH_FACTOR_LIMITS = (0.5, 2.0)
+#: Frequencies of the VRR quadrature: 201 log-spaced points hold the VRR within 0.06 %
+#: of a 2001-point grid on a DEM-like 10 x 10 table, at a tenth of the cost.
+N_FREQUENCIES = 201
+#: Length factors scanned per speed before the edges are refined, and speeds per library span.
+SCAN_POINTS = 13
+SPEEDS_PER_SPAN = 4
+#: Relative precision of the refined feasible edges.
+EDGE_RTOL = 1e-6
+
+
+class DesignSpec(BaseModel):
+    """What the blender must deliver, and the design space to search."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    ca_tolerance: float | None = Field(None, gt=0, lt=1, description="outlet C_A within +- this (absolute fraction)")
+    coverage_sigmas: float = Field(3.0, gt=0, description="standard deviations of C_A that must fit in the tolerance")
+    rsd_max: float | None = Field(None, gt=0, description="largest relative SD of the outlet C_A")
+    noise_sigma: float = Field(0.0, ge=0, description="relative SD of the noisy feeder's rate")
+    noise_tau_s: float = Field(0.0, ge=0, description="correlation time of the feeder noise [s] (0: white)")
+    noise_band_hz: float = Field(0.5, gt=0, description="the feeder noise's bandwidth [Hz] (0.5: a rate set every second)")
+    noise_feeder: Literal["A", "B"] = "A"
+    mrt_min_s: float | None = Field(None, gt=0, description="shortest acceptable mean residence time [s]")
+    mrt_max_s: float | None = Field(None, gt=0, description="longest acceptable mean residence time [s]")
+    rpm_min: float | None = Field(None, gt=0, description="lowest impeller speed to consider (default: the library's)")
+    rpm_max: float | None = Field(None, gt=0, description="highest impeller speed to consider (default: the library's)")
+    length_factor_min: float = Field(LENGTH_FACTOR_LIMITS[0], gt=0)
+    length_factor_max: float = Field(LENGTH_FACTOR_LIMITS[1], gt=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "DesignSpec":
+        composition = self.ca_tolerance is not None or self.rsd_max is not None
+        if not composition and self.mrt_min_s is None and self.mrt_max_s is None:
+            raise ValueError("give at least one criterion: ca_tolerance, rsd_max, mrt_min_s or mrt_max_s")
+        if composition and self.noise_sigma <= 0:
+            raise ValueError("a composition criterion (ca_tolerance, rsd_max) needs the feeder noise: noise_sigma > 0")
+        if self.mrt_min_s is not None and self.mrt_max_s is not None and self.mrt_min_s >= self.mrt_max_s:
+            raise ValueError(f"mrt_min_s ({self.mrt_min_s}) must be < mrt_max_s ({self.mrt_max_s})")
+        if self.rpm_min is not None and self.rpm_max is not None and self.rpm_min > self.rpm_max:
+            raise ValueError(f"rpm_min ({self.rpm_min}) must be <= rpm_max ({self.rpm_max})")
+        lo, hi = LENGTH_FACTOR_LIMITS
+        if not lo <= self.length_factor_min < self.length_factor_max <= hi:
+            raise ValueError(
+                f"length factors {self.length_factor_min}..{self.length_factor_max} must satisfy "
+                f"{lo} <= min < max <= {hi}: the rescaling is not trusted beyond that (a DEM run of that blender is "
+                "needed)")
+        return self
+
+    @property
+    def composition(self) -> bool:
+        return self.ca_tolerance is not None or self.rsd_max is not None
+
+
+def design_spec(**values: Any) -> DesignSpec:
+    """A validated :class:`DesignSpec`; ConfigError names the bad value."""
+    try:
+        return DesignSpec(**values)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'spec'}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"design spec: {problems}") from None
+
+
+@dataclass(frozen=True)
+class TableLibrary:
+    """DEM velocity tables of one blender at several impeller speeds, on one grid.
+
+    ``points``: (rpm, table) pairs; ``pbm_config``: the feed (rates, inlet weights) and
+    rate mode the PBM uses; ``steady_time_s``: the windows from this time on are averaged
+    into the stationary system; ``length_m``: the library blender's length.
+    """
+
+    points: tuple[tuple[float, VelocityTable], ...]
+    pbm_config: PbmConfig
+    steady_time_s: float
+    length_m: float
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not self.points:
+            raise ConfigError("a table library needs at least one table")
+        speeds = [float(v) for v, _ in self.points]
+        if len(set(speeds)) != len(speeds) or not all(math.isfinite(v) and v > 0 for v in speeds):
+            raise ConfigError(f"the library's speeds must be distinct and > 0, got {speeds}")
+        if not (math.isfinite(self.length_m) and self.length_m > 0):
+            raise ConfigError(f"the library's blender length must be > 0 m, got {self.length_m}")
+        object.__setattr__(self, "points", tuple(sorted(((float(v), t) for v, t in self.points), key=lambda p: p[0])))
+
+    @property
+    def rpm_range(self) -> tuple[float, float]:
+        return self.points[0][0], self.points[-1][0]
+
+    def table_at(self, rpm: float) -> VelocityTable:
+        """The library's table at ``rpm``: a run's own, else interpolated between the two
+        that bracket it (ConfigError outside the range)."""
+        for value, table in self.points:
+            if math.isclose(value, rpm, rel_tol=1e-12):
+                return table
+        if rpm not in self._cache:
+            self._cache[rpm] = interpolate_tables(self.points, rpm)
+        return self._cache[rpm]
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One candidate (speed, length factor): its outlet quantities and every margin
+    (positive: met, by that much, in the criterion's own unit)."""
+
+    rpm: float
+    length_factor: float
+    mean_residence_time_s: float
+    ca_sd: float | None
+    ca_rsd: float | None
+    vrr: float | None
+    margins: dict[str, float]
+
+    @property
+    def feasible(self) -> bool:
+        return all(m >= 0 for m in self.margins.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rpm": self.rpm, "length_factor": self.length_factor,
+                "mean_residence_time_s": self.mean_residence_time_s, "ca_sd": self.ca_sd, "ca_rsd": self.ca_rsd,
+                "vrr": self.vrr, "margins": dict(self.margins), "feasible": self.feasible}
+
+
+def evaluate(library: TableLibrary, spec: DesignSpec, rpm: float, length_factor: float) -> Evaluation:
+    """The outlet quantities and margins of the blender ``length_factor`` x the library's
+    length at ``rpm`` (within the library's range)."""
+    config = library.pbm_config
+    table = scale_blender(library.table_at(rpm), length_factor=length_factor)
+    system = stationary_system(table, config, t_start_s=library.steady_time_s)
+    rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
+    if not rates.sum() > 0:
+        raise ConfigError("the library's feed rates are both 0: nothing flows through the blender")
+    # Little's law: the hold-up of one particle/s of each feeder is its mean residence time.
+    per_feeder = np.linalg.solve(system.generator, -system.feed).sum(axis=0)
+    mrt = float(per_feeder @ rates / rates.sum())
+    margins: dict[str, float] = {}
+    if spec.mrt_min_s is not None:
+        margins["mrt_min_s"] = mrt - spec.mrt_min_s
+    if spec.mrt_max_s is not None:
+        margins["mrt_max_s"] = spec.mrt_max_s - mrt
+    sd = rsd = vrr = None
+    if spec.composition:
+        c = float(rates[0] / rates.sum())
+        freqs = noise_frequencies(spec.noise_band_hz, N_FREQUENCIES)
+        h = system_response(system, freqs, spec.noise_feeder)
+        vrr = vrr_spectrum(freqs, h, noise_spectrum(freqs, spec.noise_tau_s))
+        sd = c * (1 - c) * spec.noise_sigma / math.sqrt(vrr)
+        rsd = sd / c if c > 0 else math.inf
+        if spec.ca_tolerance is not None:
+            margins["ca_tolerance"] = spec.ca_tolerance - spec.coverage_sigmas * sd
+        if spec.rsd_max is not None:
+            margins["rsd_max"] = spec.rsd_max - rsd
+    return Evaluation(float(rpm), float(length_factor), mrt, sd, rsd, vrr, margins)
+
+
+#: Margins that grow with the blender's length; the others shrink with it.
+_GROWING = ("mrt_min_s", "ca_tolerance", "rsd_max")
+
+
+@dataclass(frozen=True)
+class SpeedRow:
+    """The feasible length factors at one speed: [lo, hi], None when none is."""
+
+    rpm: float
+    length_factor_lo: float | None
+    length_factor_hi: float | None
+    at_lo: Evaluation | None
+    scanned: list[Evaluation]
+
+    @property
+    def feasible(self) -> bool:
+        return self.length_factor_lo is not None
+
+
+@dataclass(frozen=True)
+class DesignResult:
+    """The smallest length (``best``, None when nothing meets the spec), the speed ranges
+    in which the library's own blender meets it, and every searched speed's feasible lengths."""
+
+    spec: DesignSpec
+    library_rpm: tuple[float, ...]
+    length_m: float
+    rows: list[SpeedRow]
+    best: Evaluation | None
+    rpm_ranges: list[tuple[float, float]]
+    notes: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "spec": self.spec.model_dump(), "library_rpm": list(self.library_rpm), "library_length_m": self.length_m,
+            "best": None if self.best is None else {**self.best.to_dict(),
+                                                    "length_m": self.best.length_factor * self.length_m},
+            "rpm_ranges_at_library_length": [list(r) for r in self.rpm_ranges],
+            "speeds": [{"rpm": r.rpm, "length_factor_lo": r.length_factor_lo, "length_factor_hi": r.length_factor_hi,
+                        "length_m_lo": None if r.length_factor_lo is None else r.length_factor_lo * self.length_m,
+                        "length_m_hi": None if r.length_factor_hi is None else r.length_factor_hi * self.length_m,
+                        "at_lo": None if r.at_lo is None else r.at_lo.to_dict()} for r in self.rows],
+            "notes": list(self.notes),
+        }
+
+
+def speed_grid(library: TableLibrary, spec: DesignSpec) -> np.ndarray:
+    """The speeds searched: the spec's range (default the library's), refused where it
+    leaves the library; every library speed inside it plus SPEEDS_PER_SPAN - 1 between
+    neighbours."""
+    lo_lib, hi_lib = library.rpm_range
+    lo = lo_lib if spec.rpm_min is None else spec.rpm_min
+    hi = hi_lib if spec.rpm_max is None else spec.rpm_max
+    if lo < lo_lib - 1e-9 or hi > hi_lib + 1e-9:
+        covered = f"{lo_lib:g} rpm only" if lo_lib == hi_lib else f"{lo_lib:g}..{hi_lib:g} rpm"
+        raise ConfigError(f"impeller speeds {lo:g}..{hi:g} rpm leave the table library, which covers {covered}: "
+                          "a DEM run at the missing speed is needed (no extrapolation)")
+    knots = np.array([v for v, _ in library.points])
+    grid = [lo, hi, *knots[(knots > lo) & (knots < hi)]]
+    for a, b in zip(knots[:-1], knots[1:]):
+        grid += list(np.linspace(a, b, SPEEDS_PER_SPAN + 1)[1:-1])
+    return np.array(sorted({float(v) for v in grid if lo <= v <= hi}))
+
+
+def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> SpeedRow:
+    """The interval of length factors that meet ``spec`` at ``rpm``: a geometric scan over
+    [length_factor_min, length_factor_max], then each edge refined on the margin that
+    binds there. Margins that grow with length set the lower edge, the others the upper;
+    the first feasible stretch of the scan is returned."""
+    factors = np.geomspace(spec.length_factor_min, spec.length_factor_max, SCAN_POINTS)
+    scanned = [evaluate(library, spec, rpm, f) for f in factors]
+    ok = [e.feasible for e in scanned]
+    if not any(ok):
+        return SpeedRow(rpm, None, None, None, scanned)
+    first = ok.index(True)
+    last = first
+    while last + 1 < len(ok) and ok[last + 1]:
+        last += 1
+
+    def edge(outside: float, inside: float, kinds: tuple[str, ...]) -> float:
+        def margin(f: float) -> float:
+            m = evaluate(library, spec, rpm, f).margins
+            return min(m[k] for k in kinds)
+        if margin(outside) * margin(inside) > 0:  # not the margin that failed: keep the scanned point
+            return inside
+        return _feasible_root(margin, outside, inside)
+
+    growing = tuple(k for k in scanned[0].margins if k in _GROWING)
+    shrinking = tuple(k for k in scanned[0].margins if k not in _GROWING)
+    lo = factors[first]
+    if first > 0 and growing:
+        lo = edge(factors[first - 1], factors[first], growing)
+    hi = factors[last]
+    if last + 1 < len(factors) and shrinking:
+        hi = edge(factors[last], factors[last + 1], shrinking)
+    return SpeedRow(rpm, float(lo), float(hi), evaluate(library, spec, rpm, lo), scanned)
+
+
+def speed_ranges(library: TableLibrary, spec: DesignSpec, speeds, length_factor: float = 1.0,
+                 ) -> list[tuple[float, float]]:
+    """The speed intervals in which the blender ``length_factor`` x the library's meets
+    ``spec``: the feasible stretches of ``speeds``, each open edge refined between its grid
+    speeds by root finding on the smallest margin."""
+    speeds = [float(v) for v in speeds]
+
+    def margin(rpm: float) -> float:
+        return min(evaluate(library, spec, rpm, length_factor).margins.values())
+
+    values = [margin(v) for v in speeds]
+    ranges = []
+    k = 0
+    while k < len(speeds):
+        if values[k] < 0:
+            k += 1
+            continue
+        first = k
+        while k + 1 < len(speeds) and values[k + 1] >= 0:
+            k += 1
+        lo, hi = speeds[first], speeds[k]
+        if first > 0:
+            lo = _feasible_root(margin, speeds[first - 1], speeds[first])
+        if k + 1 < len(speeds):
+            hi = _feasible_root(margin, speeds[k + 1], speeds[k])
+        ranges.append((lo, hi))
+        k += 1
+    return ranges
+
+
+def _feasible_root(margin, outside: float, inside: float) -> float:
+    """Where ``margin`` crosses 0 between ``outside`` (< 0) and ``inside`` (>= 0), on the
+    feasible side of the crossing."""
+    root = brentq(margin, min(outside, inside), max(outside, inside), rtol=EDGE_RTOL, xtol=1e-12)
+    return root if margin(root) >= 0 else root + math.copysign(2 * EDGE_RTOL * abs(root), inside - outside)
+
+
+def design(library: TableLibrary, spec: DesignSpec) -> DesignResult:
+    """The smallest blender length over the searched speeds that meets ``spec``, the speed
+    ranges in which the library's own blender meets it, and every speed's feasible lengths."""
+    speeds = speed_grid(library, spec)
+    rows = [feasible_lengths(library, spec, rpm) for rpm in speeds]
+    feasible = [r for r in rows if r.feasible]
+    ranges = speed_ranges(library, spec, speeds)
+    library_rpm = tuple(v for v, _ in library.points)
+    notes: list[str] = []
+    if not ranges:
+        notes.append(f"the library's own {library.length_m:g}-m blender meets the spec at none of the speeds searched")
+    if not feasible:
+        notes.append(f"no blender of {spec.length_factor_min:g}-{spec.length_factor_max:g} x {library.length_m:g} m "
+                     "at these speeds meets the spec")
+        return DesignResult(spec, library_rpm, library.length_m, rows, None, ranges, notes)
+    best = min(feasible, key=lambda r: r.length_factor_lo).at_lo
+    if math.isclose(best.length_factor, spec.length_factor_min, rel_tol=1e-9):
+        notes.append(f"the smallest length searched ({spec.length_factor_min:g} x) already meets the spec: a shorter "
+                     "blender may too, but the rescaling is not trusted below it")
+    if len(feasible) < len(rows):
+        notes.append("no length meets the spec at " + ", ".join(f"{r.rpm:g}" for r in rows if not r.feasible) + " rpm")
+    return DesignResult(spec, library_rpm, library.length_m, rows, best, ranges, notes)

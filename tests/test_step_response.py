@@ -1,0 +1,100 @@
+"""The feed step: the deck's second feeder, the PBM's step against a single tank's closed
+form, and the step judge on synthetic DEM counts with known answers."""
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from coupling.errors import ConfigError
+from coupling.tables import make_table
+from dem.deck import STEP_FEEDER, build_deck, deck_parameters
+from pbm.config import PbmConfig
+from pbm.simulate import simulate
+from workflows.config import load_preset, override
+from workflows.step_response import judge, mean_delay, step_config
+
+
+def test_step_config_adds_a_second_feeder_that_starts_on_time():
+    config = step_config()
+    op = config.dem.operation
+    info = deck_parameters(config.dem)
+    step = info["feed_step"]
+    assert step["extra_rate_a_per_s"] == pytest.approx((op.step_factor_a - 1) * op.feed_rate_a_per_s)
+    assert 0 < step["start_s"] - op.step_time_s <= 0.05  # half a batch later: never on a batch of the first
+    deck = build_deck(config.dem)["in.blender"]
+    assert f"fix {STEP_FEEDER} gA insert/rate/region" in deck and f"start {step['start_step']}" in deck
+    assert f"variable        insA equal f_insA[1]+f_{STEP_FEEDER}[1]" in deck
+    # resumed past the start, the fix restores its state and must not be given a start in the past
+    resumed = build_deck(config.dem, resume_from=f"restart/restart.{step['start_step'] + 1}.bin")["in.resume"]
+    assert f"fix {STEP_FEEDER}" in resumed and " start " not in resumed
+    # a steady run's deck has no trace of it
+    assert STEP_FEEDER not in build_deck(load_preset("validation").dem)["in.blender"]
+
+
+@pytest.mark.parametrize("assignments, message", [
+    (("dem.operation.step_time_s=80", "dem.operation.step_factor_a=0.5"), "must be > 1"),
+    (("dem.operation.step_factor_a=2",), "needs step_time_s"),
+    (("dem.operation.step_time_s=300", "dem.operation.step_factor_a=2"), "before the end"),
+])
+def test_bad_steps_are_refused(assignments, message):
+    with pytest.raises(ConfigError, match=message):
+        override(load_preset("validation"), *assignments)
+
+
+def test_pbm_step_is_off_its_feed_grid_refused():
+    with pytest.raises(ValueError, match="multiple of noise_interval_s"):
+        PbmConfig(feed_step_s=20.5, feed_step_factor_a=2.0)
+
+
+def test_pbm_step_matches_a_single_tank():
+    k, f_a, f_b, t0, factor = 0.1, 10.0, 10.0, 20.0, 2.0
+    v = k * 0.33  # one compartment of length 0.33 m: rate v / dx = k
+    table = make_table(t=[0.0, 30.0], x_edges=[0.0, 0.33], y_edges=[-0.05, 0.05], vx_pos=v, vx_neg=0.0, vy_pos=0.0,
+                       vy_neg=0.0, window_s=30.0)
+    config = PbmConfig(feed_rate_a_per_s=f_a, feed_rate_b_per_s=f_b, feed_weights_a=[1.0], feed_weights_b=[1.0],
+                       feed_step_s=t0, feed_step_factor_a=factor, duration_s=60.0)
+    result = simulate(table, config)
+
+    def discharged(rate, t, start):  # particles out of an empty tank fed `rate` from `start`
+        s = np.clip(t - start, 0, None)
+        return rate * (s - (1 - np.exp(-k * s)) / k)
+
+    t = result.times
+    out_a = discharged(f_a, t, 0.0) + discharged((factor - 1) * f_a, t, t0)
+    out_b = discharged(f_b, t, 0.0)
+    da, db = np.diff(out_a, prepend=0.0), np.diff(out_b, prepend=0.0)
+    np.testing.assert_allclose(result.C_A, da / (da + db), rtol=1e-9)
+
+
+def synthetic(step_s=80.0, t_end=170.0, tau=15.0, c0=0.5, c1=2 / 3, n=100):
+    t = np.arange(1.0, t_end + 1)
+    c = np.where(t > step_s, c1 - (c1 - c0) * np.exp(-(t - step_s) / tau), c0)
+    return t, c, np.full(t.size, n)
+
+
+def test_mean_delay_of_a_first_order_response():
+    t, c, _ = synthetic(tau=15.0)
+    # sampled at the ends of the 90 1-s intervals after the step: sum_i exp(-i / tau)
+    expected = np.sum(np.exp(-np.arange(1, 91) / 15.0))
+    assert expected == pytest.approx(15.0 - 0.5, abs=0.05)  # about tau, less half an interval
+    assert mean_delay(t, c, 80.0, 1.0, (0.5, 2 / 3)) == pytest.approx(expected, rel=1e-9)
+    with pytest.raises(ConfigError, match="does not change"):
+        mean_delay(t, c, 80.0, 1.0, (0.5, 0.5))
+
+
+def test_judge_accepts_its_own_curve_and_rejects_a_slower_one():
+    t, c, n = synthetic(tau=15.0, n=100)
+    rng = np.random.default_rng(7)
+    n_a = rng.binomial(n, c)
+    dem = pd.DataFrame({"t_s": t, "n_A": n_a, "n_B": n - n_a})
+    levels = (0.5, 2 / 3)
+    same = judge(dem, pd.DataFrame({"t_s": t, "C_A": c}), 80.0, 1.0, levels)
+    assert same["predicted"] and same["delay_inside"] and same["inside_share"] >= 0.89
+    lo, hi = same["dem_delay_s"]["low"], same["dem_delay_s"]["high"]
+    assert lo < same["pbm_delay_s"] < hi and hi - lo < 12  # 90 intervals of ~100 particles: +-5 s
+    _, slow, _ = synthetic(tau=25.0)
+    other = judge(dem, pd.DataFrame({"t_s": t, "C_A": slow}), 80.0, 1.0, levels)
+    assert not other["predicted"] and not other["delay_inside"]
+    assert math.isclose(other["dem_delay_s"]["value"], same["dem_delay_s"]["value"])
