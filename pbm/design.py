@@ -38,6 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy.optimize import brentq
 
+from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
@@ -51,10 +52,10 @@ LENGTH_FACTOR_LIMITS = (0.5, 2.0)
 #: of a 2001-point grid on a DEM-like 10 x 10 table, at a tenth of the cost.
 N_FREQUENCIES = 201
 #: Length factors scanned per speed before the edges are refined, and speeds per library span.
-SCAN_POINTS = 13
+SCAN_POINTS = 7
 SPEEDS_PER_SPAN = 4
 #: Relative precision of the refined feasible edges.
-EDGE_RTOL = 1e-6
+EDGE_RTOL = 1e-5
 
 
 class DesignSpec(BaseModel):
@@ -172,6 +173,7 @@ class Evaluation:
                 "vrr": self.vrr, "margins": dict(self.margins), "feasible": self.feasible}
 
 
+@single_threaded_blas()
 def evaluate(library: TableLibrary, spec: DesignSpec, rpm: float, length_factor: float) -> Evaluation:
     """The outlet quantities and margins of the blender ``length_factor`` x the library's
     length at ``rpm`` (within the library's range)."""

@@ -32,8 +32,8 @@ def library(points) -> TableLibrary:
 def test_residence_time_bound_gives_the_length_of_l_over_v():
     v, target = 0.02, 20.0
     result = design(library([(250.0, tanks(5, v))]), design_spec(mrt_min_s=target))
-    assert result.best.length_factor == pytest.approx(target * v / L, rel=1e-5)
-    assert result.best.mean_residence_time_s == pytest.approx(target, rel=1e-5)
+    assert result.best.length_factor == pytest.approx(target * v / L, rel=1e-4)
+    assert result.best.mean_residence_time_s == pytest.approx(target, rel=1e-4)
     assert result.best.margins["mrt_min_s"] >= 0  # the answer lies on the feasible side of the edge
     # 330 mm gives 16.5 s < 20 s: the library's own blender fails at its only speed
     assert result.rpm_ranges == []
@@ -53,7 +53,7 @@ def test_composition_bound_matches_the_single_tank_closed_form():
     result = design(library([(250.0, tanks(1, v))]), spec)
     # the VRR's quadrature (201 log-spaced frequencies) is good to ~1e-3
     assert result.best.length_factor == pytest.approx(expected, rel=2e-3)
-    assert coverage * result.best.ca_sd == pytest.approx(tolerance, rel=1e-6)
+    assert coverage * result.best.ca_sd == pytest.approx(tolerance, rel=1e-4)
     assert result.best.ca_rsd == pytest.approx(result.best.ca_sd / c)
 
 
@@ -63,14 +63,14 @@ def test_speed_library_gives_the_analytic_feasible_region():
     lib = library([(100.0, tanks(4, 100 * c)), (300.0, tanks(4, 300 * c))])
     result = design(lib, design_spec(mrt_min_s=20.0, mrt_max_s=30.0))
     for row in result.rows:
-        assert row.length_factor_lo == pytest.approx(20.0 * c * row.rpm / L, rel=1e-5)
-        assert row.length_factor_hi == pytest.approx(min(2.0, 30.0 * c * row.rpm / L), rel=1e-5)
+        assert row.length_factor_lo == pytest.approx(20.0 * c * row.rpm / L, rel=1e-4)
+        assert row.length_factor_hi == pytest.approx(min(2.0, 30.0 * c * row.rpm / L), rel=1e-4)
     assert result.best.rpm == 100.0
-    assert result.best.length_factor == pytest.approx(20.0 * c * 100 / L, rel=1e-5)
+    assert result.best.length_factor == pytest.approx(20.0 * c * 100 / L, rel=1e-4)
     # the library's own blender: L / (c rpm) in [20, 30] s <=> rpm in [L / (30 c), L / (20 c)]
     (lo, hi), = result.rpm_ranges
-    assert lo == pytest.approx(L / (30 * c), rel=1e-5)
-    assert hi == pytest.approx(L / (20 * c), rel=1e-5)
+    assert lo == pytest.approx(L / (30 * c), rel=1e-4)
+    assert hi == pytest.approx(L / (20 * c), rel=1e-4)
     assert all(min(evaluate(lib, result.spec, rpm, 1.0).margins.values()) >= 0 for rpm in (lo, hi))
 
 
