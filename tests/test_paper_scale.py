@@ -49,13 +49,15 @@ def test_thermo_rows_of_a_resumed_log_keep_one_row_per_step():
 
 def test_summary_finds_rate_losses_weir_and_warnings():
     config = probe_config()
-    text = log_text(feed_rows(lost_at=6.0, out_from=8.0), ["WARNING: time-step is 30 % of Rayleigh time"])
+    text = log_text(feed_rows(lost_at=6.0, out_from=8.0), ["WARNING: time-step is 30 % of Rayleigh time",
+                                                         "WARNING: Forced restart written (./src/output.cpp:427)"])
     s = summarise(text, thermo_rows(text), throughput(), config, 2, 600.0)
     assert s["insertion"]["fitted_per_s"] == pytest.approx(1990.0)
     assert s["insertion"]["relative_error"] == pytest.approx(0.0, abs=1e-12)
     assert s["lost_max"] == 3
     assert s["first_discharge_s"] == pytest.approx(8.5) and s["sustained_discharge_s"] == pytest.approx(8.5)
-    assert s["timestep_check"]["warnings"] == 1
+    assert s["timestep_check"]["warnings"] == 1 and s["other_warnings"] == ["WARNING: Forced restart written "
+                                                                            "(./src/output.cpp:427)"]
     assert s["throughput"]["late_particle_steps_per_s_per_core"] == pytest.approx(5e4)
     clean = log_text(feed_rows())
     s = summarise(clean, thermo_rows(clean), throughput(), config, 2, 600.0)
@@ -83,8 +85,8 @@ def test_measured_throughput_only_for_the_same_particles(tmp_path):
     path.write_text(json.dumps({"config_toml": dump_toml(probe_config()), "np": 2, "simulated_s": 12.0,
                                 "throughput": {"late_particle_steps_per_s_per_core": 1.7e6,
                                                "late_particles_mean": 22000.0}}))
-    rate, source = measured_throughput(load_preset("paper").dem, path)
-    assert rate == 1.7e6 and "paper scale" in source
+    rate, source, ranks = measured_throughput(load_preset("paper").dem, path)
+    assert rate == 1.7e6 and "paper scale" in source and ranks == 2
     assert measured_throughput(load_preset("smoke").dem, path) is None
     assert measured_throughput(load_preset("paper").dem, tmp_path / "absent.json") is None
     path.write_text("{broken")
@@ -98,4 +100,4 @@ def test_shipped_measurement_drives_the_paper_estimate(tmp_path, capsys):
     assert abs(summary["insertion"]["relative_error"]) < 0.01
     assert main(["dem", "slurm", "--preset", "paper", "--np", "2", "--out", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
-    assert "measured at paper scale" in out
+    assert "measured at paper scale" in out and "at 100% parallel efficiency" in out  # measured on 2 ranks

@@ -131,6 +131,8 @@ def summarise(log_text: str, thermo: dict[str, np.ndarray], throughput: dict[str
     flow = np.diff(discharged) / np.diff(t)
     sustained = t[1:][flow >= SUSTAINED_FRACTION * dem.operation.feed_rate_total_per_s]
     warnings = [line.strip() for line in log_text.splitlines() if re.match(r"\s*WARNING", line)]
+    # what fix check/timestep/gran prints; other warnings (a restart forced by the stop) are kept apart
+    timestep_warnings = [w for w in warnings if re.search(r"time-?step|rayleigh|hertz", w, re.IGNORECASE)]
     late = throughput["step"] >= throughput["step"].min() + (1 - LATE_FRACTION) * np.ptp(throughput["step"])
     rates = throughput["particle_steps_per_s"]
     steps_reached = int(thermo["Step"].max())
@@ -162,9 +164,10 @@ def summarise(log_text: str, thermo: dict[str, np.ndarray], throughput: dict[str
             "max_hertz_fraction": float(thermo["ts[2]"].max()),
             "rayleigh_limit": MAX_STABLE_RAYLEIGH_FRACTION,
             "hertz_warn_fraction": deck.HERTZ_WARN_FRACTION,
-            "warnings": len(warnings),
-            "warning_lines": sorted(set(warnings))[:20],
+            "warnings": len(timestep_warnings),
+            "warning_lines": sorted(set(timestep_warnings))[:20],
         },
+        "other_warnings": sorted(set(warnings) - set(timestep_warnings))[:20],
         "throughput": {
             "source": "dump files' modification times, interval by interval",
             "late_particles_mean": float(throughput["particles"][late].mean()),
@@ -177,9 +180,10 @@ def summarise(log_text: str, thermo: dict[str, np.ndarray], throughput: dict[str
     }
 
 
-def measured_throughput(dem_config, summary_file: Path = SUMMARY_FILE) -> tuple[float, str] | None:
+def measured_throughput(dem_config, summary_file: Path = SUMMARY_FILE) -> tuple[float, str, int] | None:
     """The probe's per-core throughput when ``dem_config`` uses the probe's particles (same
-    diameter and spread) in the same vessel, with a line naming its source; else None."""
+    diameter and spread) in the same vessel, with a line naming its source and the number
+    of ranks it was measured on; else None."""
     if not summary_file.is_file():
         return None
     try:
@@ -194,7 +198,7 @@ def measured_throughput(dem_config, summary_file: Path = SUMMARY_FILE) -> tuple[
         return None
     t = summary["throughput"]
     return rate, (f"measured at paper scale ({summary_file.name}: {summary['np']} ranks, "
-                  f"{t['late_particles_mean']:.0f} particles held, {summary['simulated_s']:.0f} s simulated)")
+                  f"{t['late_particles_mean']:.0f} particles held, {summary['simulated_s']:.0f} s simulated)"), int(summary["np"])
 
 
 def measure(runs_root: str | Path = "runs/paper_scale", duration_s: float = PROBE_DURATION_S, np_ranks: int = PROBE_NP,
@@ -204,17 +208,17 @@ def measure(runs_root: str | Path = "runs/paper_scale", duration_s: float = PROB
 
     The solver is stopped after ``max_wall_s`` seconds of wall time (as a scheduler would:
     SIGTERM, the run is marked interrupted and ``resume`` continues it); what it simulated
-    until then is summarised. A probe already stopped at that limit is summarised again
-    without running."""
+    until then is summarised. A probe found stopped is summarised again without running,
+    unless ``resume`` (continue it) or ``fresh`` (start again) says otherwise."""
     if not max_wall_s > 0:
         raise ConfigError(f"max_wall_s must be > 0 s, got {max_wall_s}")
     config = probe_config(duration_s)
     inputs = prepare_run(config.dem)
     run_dir = Path(runs_root) / str(inputs.key)
     status = read_status(run_dir) or {}
-    stopped_at_limit = (status.get("state") == "interrupted" and float(status.get("wall_time_s") or 0) >= max_wall_s
-                        and not (resume or fresh))
-    if not stopped_at_limit:
+    # a stopped probe is summarised as it stands unless told to continue or start again
+    stopped = status.get("state") == "interrupted" and not (resume or fresh)
+    if not stopped:
         prior = float(status.get("wall_time_s") or 0) if resume else 0.0
         timer = threading.Timer(max(1.0, max_wall_s - prior), os.kill, (os.getpid(), signal.SIGTERM))
         timer.start()
@@ -317,7 +321,8 @@ def report_lines(summary: dict[str, Any]) -> str:
                                                             else "not reached"),
         f"timestep check: at most {ts['max_rayleigh_fraction']:.3f} of the Rayleigh time (limit {ts['rayleigh_limit']:g}),"
         f" {ts['max_hertz_fraction']:.3f} of the Hertz time (warns above {ts['hertz_warn_fraction']:g});"
-        f" {ts['warnings']} warning lines",
+        f" {ts['warnings']} timestep warnings" + (f"; other warnings: {'; '.join(summary['other_warnings'])}"
+                                                  if summary.get("other_warnings") else ""),
         f"throughput: {tp['late_particle_steps_per_s']:.3g} particle-steps/s on {summary['np']} ranks with "
         f"{tp['late_particles_mean']:.0f} particles held (10-90 %: {tp['late_spread'][0]:.3g}-{tp['late_spread'][1]:.3g});"
         f" {tp['late_particle_steps_per_s_per_core']:.3g} per core",

@@ -358,16 +358,19 @@ def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | 
         except LookupError as exc:
             raise ConfigError(str(exc)) from None
     measured = None if throughput is not None else measured_throughput(config.dem)
+    efficiency = 0.85
     if throughput is not None:
         throughput_source = "given with --throughput"
     elif measured is not None:
-        throughput, throughput_source = measured
+        throughput, throughput_source, measured_np = measured
+        if np == measured_np:  # measured on these ranks: their parallel efficiency is in the rate
+            efficiency = 1.0
     elif BENCH_FILE.is_file():
         throughput = float(json.loads(BENCH_FILE.read_text())["blender_particle_steps_per_s_serial"])
         throughput_source = f"measured by make bench ({BENCH_FILE})"
     else:
         throughput, throughput_source = DEFAULT_THROUGHPUT_PER_CORE, "measured on the development machine"
-    estimate = estimate_cost(config.dem, holdup, throughput, np)
+    estimate = estimate_cost(config.dem, holdup, throughput, np, efficiency)
     files = build_deck(config.dem)
     writable_directory(out, "run directory")
     files["config.toml"] = dump_toml(config)
