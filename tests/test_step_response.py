@@ -13,7 +13,7 @@ from dem.deck import STEP_FEEDER, build_deck, deck_parameters
 from pbm.config import PbmConfig
 from pbm.simulate import simulate
 from workflows.config import load_preset, override
-from workflows.step_response import judge, mean_delay, step_config
+from workflows.step_response import binomial_deviance, judge, mean_delay, step_config
 
 
 def test_step_config_adds_a_second_feeder_that_starts_on_time():
@@ -91,10 +91,20 @@ def test_judge_accepts_its_own_curve_and_rejects_a_slower_one():
     dem = pd.DataFrame({"t_s": t, "n_A": n_a, "n_B": n - n_a})
     levels = (0.5, 2 / 3)
     same = judge(dem, pd.DataFrame({"t_s": t, "C_A": c}), 80.0, 1.0, levels)
-    assert same["predicted"] and same["delay_inside"] and same["inside_share"] >= 0.89
+    assert same["predicted"] and same["delay_inside"] and same["time_scale_inside"] and same["deviance_p"] > 0.05
+    scale = same["time_scale"]
+    assert scale["low"] < 1 < scale["high"] and scale["high"] - scale["low"] < 0.6 and not scale["at_bound"]
     lo, hi = same["dem_delay_s"]["low"], same["dem_delay_s"]["high"]
     assert lo < same["pbm_delay_s"] < hi and hi - lo < 12  # 90 intervals of ~100 particles: +-5 s
-    _, slow, _ = synthetic(tau=25.0)
+    # a PBM twice as slow: the DEM runs faster by about 2, and 1 is far outside
+    _, slow, _ = synthetic(tau=30.0)
     other = judge(dem, pd.DataFrame({"t_s": t, "C_A": slow}), 80.0, 1.0, levels)
-    assert not other["predicted"] and not other["delay_inside"]
+    assert not other["predicted"] and not other["time_scale_inside"]
+    assert other["time_scale"]["low"] < 2.0 < other["time_scale"]["high"]
     assert math.isclose(other["dem_delay_s"]["value"], same["dem_delay_s"]["value"])
+
+
+def test_deviance_is_zero_at_the_counts_own_fractions():
+    k, n = np.array([3.0, 0.0, 10.0]), np.array([10.0, 5.0, 10.0])
+    assert binomial_deviance(k, n, k / n) == pytest.approx(0.0, abs=1e-9)
+    assert binomial_deviance(k, n, np.full(3, 0.5)) > 10
