@@ -329,6 +329,39 @@ def sinusoid_response(system: StationarySystem, frequencies_hz, feeder: str = "A
     return out.reshape(freqs.shape)
 
 
+def sampled_ca_sd(system: StationarySystem, feed_rates, sigma: float, noise_interval_s: float,
+                  output_interval_s: float, n_frequencies: int = 4001) -> float:
+    """Standard deviation of the outlet C_A, sampled as the flux-weighted mean over each
+    output interval, when both feeders' rates are multiplied by independent factors
+    N(1, sigma) redrawn every ``noise_interval_s`` (the PBM's noise ensemble), to first
+    order in sigma.
+
+    A rate held for Delta then redrawn (zero-order hold of white noise) has the one-sided
+    spectrum 2 sigma^2 Delta sinc^2(f Delta); the output interval's mean filters by
+    sinc^2(f T) more; each feeder's factor reaches the outlet through its H. With
+    C = F_A / (F_A + F_B):
+
+        var C_A = C^2 (1 - C)^2 sigma^2 int_0^inf 2 Delta sinc^2(f Delta) sinc^2(f T)
+                  (|H_A|^2 + |H_B|^2) df.
+
+    The integral runs to 50 / min(Delta, T) on a log grid (the integrand falls like f^-4
+    beyond both: the tail left out is below 1e-6 of it). Averaged over the phase of the
+    samples against the noise grid: exact for a blender slow against Delta."""
+    rates = np.asarray(feed_rates, dtype=float)
+    if rates.shape != (2,) or not np.all(np.isfinite(rates)) or np.any(rates < 0) or not rates.sum() > 0:
+        raise ConfigError(f"feed_rates must be the two rates (A, B) >= 0 with a positive sum, got {feed_rates!r}")
+    for name, value in (("sigma", sigma), ("noise_interval_s", noise_interval_s),
+                        ("output_interval_s", output_interval_s)):
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{name} must be a finite number > 0, got {value}")
+    c = rates[0] / rates.sum()
+    f_max = 50.0 / min(noise_interval_s, output_interval_s)
+    freqs = noise_frequencies(f_max, n_frequencies)
+    gain = sum(np.abs(system_response(system, freqs, feeder)) ** 2 for feeder in FEEDERS)
+    spectrum = 2 * noise_interval_s * np.sinc(freqs * noise_interval_s) ** 2 * np.sinc(freqs * output_interval_s) ** 2
+    return float(c * (1 - c) * sigma * math.sqrt(np.trapezoid(spectrum * gain, freqs)))
+
+
 def _frequencies(frequencies_hz) -> np.ndarray:
     freqs = np.asarray(frequencies_hz, dtype=float)
     bad = freqs[~(np.isfinite(freqs) & (freqs >= 0))]

@@ -11,6 +11,10 @@ magnitudes), with the mean generator of the windows from ``--t-start`` on:
   1-s histogram RTD (tracer spread like the total feed, so compared with the feed-weighted
   mean of H_A and H_B; the pooled RTD sees the table's windows in turn, the transfer
   function their mean generator, so they differ by the table's drift as well);
+* the noise ensemble in the time domain (:func:`pbm.ensemble.noise_ensemble`, 10 000
+  members, both feeders redrawn every second) on the steady table of the same mean
+  velocities: the spread of its outlet C_A against the frequency-domain prediction
+  (:func:`pbm.frequency.sampled_ca_sd`);
 * the time per frequency point of the transfer function.
 
 Prints a table and writes ``results/bench/frequency.json``.
@@ -29,12 +33,15 @@ import numpy as np
 
 from coupling.blas import single_threaded_blas
 from coupling.jsonable import json_ready
+from coupling.tables import VELOCITY_NAMES, make_table
 from pbm.config import PbmConfig
+from pbm.ensemble import noise_ensemble
 from pbm.frequency import (
     FEEDERS,
     NOISE_TAUS_S,
     noise_frequencies,
     noise_spectrum,
+    sampled_ca_sd,
     sinusoid_response,
     stationary_system,
     system_response,
@@ -48,8 +55,34 @@ from workflows.bench import write_json
 
 
 
+def ensemble_check(table, config: PbmConfig, t_start_s: float, members: int = 10000,
+                   sigmas: Sequence[float] = (0.02, 0.05, 0.1)) -> list[dict]:
+    """The time-domain noise ensemble against the frequency domain, per sigma: the SD of
+    the outlet C_A across members (the root of the variance over members, averaged over
+    the outputs from ``t_start_s`` on) and :func:`pbm.frequency.sampled_ca_sd`. Both on
+    the steady table holding the mean velocities of the windows from ``t_start_s``, so
+    that the ensemble's blender is the transfer function's."""
+    windows = table.t >= t_start_s
+    steady = make_table(t=table.t, x_edges=table.x_edges, y_edges=table.y_edges, window_s=table.window_s,
+                        **{name: getattr(table, name)[windows].mean(axis=0) for name in VELOCITY_NAMES})
+    system = stationary_system(steady, config)
+    rates = [config.feed_rate_a_per_s, config.feed_rate_b_per_s]
+    rows = []
+    for sigma in sigmas:
+        predicted = sampled_ca_sd(system, rates, sigma, config.noise_interval_s, config.output_interval_s)
+        t0 = time.perf_counter()
+        ens = noise_ensemble(steady, config, sigma=sigma, members=members)
+        elapsed = time.perf_counter() - t0
+        after = ens.times >= t_start_s
+        measured = float(np.sqrt(np.mean(np.var(ens.C_A_members[:, after], axis=0, ddof=1))))
+        rows.append({"sigma": sigma, "members": members, "sd_time_domain": measured, "sd_frequency_domain": predicted,
+                     "relative_difference": measured / predicted - 1, "ensemble_s": elapsed})
+    return rows
+
+
 def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.03, 0.1), t_start_s: float = 100.0,
-                  timing_points: int = 1000, quadrature_points: int = 2001, seed: int = 2013) -> dict:
+                  timing_points: int = 1000, quadrature_points: int = 2001, seed: int = 2013,
+                  ensemble_members: int = 10000) -> dict:
     """Run the measurements; return them as a JSON-ready dict (times in seconds)."""
     table = synthetic_table(seed=seed)
     config = PbmConfig()
@@ -85,6 +118,8 @@ def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.
         weights = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
         h_mixed = sum(w * system_response(system, rtd_freqs, f) for w, f in zip(weights / weights.sum(), FEEDERS))
 
+        ensemble = ensemble_check(table, config, t_start_s, members=ensemble_members)
+
         dense = np.logspace(-3, 0, timing_points)
         t0 = time.perf_counter()
         system_response(system, dense, "A")
@@ -104,6 +139,7 @@ def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.
         "rtd_route": {"frequency_hz": rtd_freqs, "abs_H_rtd": np.abs(h_rtd), "abs_H_generator_mixed": np.abs(h_mixed),
                       "abs_difference": np.abs(h_rtd - h_mixed), "rtd_mean_s": rtd.mean_s,
                       "recovered_fraction": rtd.recovered_fraction, "horizon_s": horizon},
+        "ensemble_check": ensemble,
         "timing": {"system_build_s": build_s, "seconds_per_frequency_point": per_point,
                    "points_timed": timing_points},
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
@@ -132,6 +168,10 @@ def format_report(r: dict) -> str:
               f"recovered {rr['recovered_fraction']:.4f}) vs the mean generator"]
     for f, a, b in zip(rr["frequency_hz"], rr["abs_H_rtd"], rr["abs_H_generator_mixed"]):
         lines.append(f"  {f:>8.4g} Hz: |H_rtd| {a:.3e}  |H_gen| {b:.3e}")
+    lines += ["", "time-domain noise ensemble vs the frequency domain: SD of the outlet C_A (both feeders, 1-s noise)"]
+    for row in r["ensemble_check"]:
+        lines.append(f"  sigma {row['sigma']:.2f}, {row['members']} members: {row['sd_time_domain']:.4e} vs "
+                     f"{row['sd_frequency_domain']:.4e} ({row['relative_difference']:+.2%}; {row['ensemble_s']:.2f} s)")
     t = r["timing"]
     lines += ["", f"system build {t['system_build_s'] * 1e3:.1f} ms; transfer function "
               f"{t['seconds_per_frequency_point'] * 1e6:.0f} us per frequency point ({t['points_timed']} points)",
