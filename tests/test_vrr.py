@@ -140,6 +140,10 @@ def test_pbm_and_dem_agree_on_the_pbm_own_erlang_rtd(rng, tmp_path):
     for mode, m in c["pbm"].items():
         assert f"<td>{mode}</td><td>{m['n_inside']}/{m['n_judged']} resolved points</td>" in section
     assert section.count("<tr><td>A, ") == len(c["noise"]["taus_s"]) and "vrr.png" in section
+    # the time-domain ensemble agrees with the transfer functions it is reported beside
+    for mode, m in c["pbm"].items():
+        (row,) = m["ensemble_check"]
+        assert abs(row["relative_difference"]) < 0.05 and f"<tr><td>{mode}</td><td>{row['sigma']:g}</td>" in section
 
 
 def test_velocity_only_table_gives_one_mode(rng):

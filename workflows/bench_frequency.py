@@ -33,15 +33,12 @@ import numpy as np
 
 from coupling.blas import single_threaded_blas
 from coupling.jsonable import json_ready
-from coupling.tables import VELOCITY_NAMES, make_table
 from pbm.config import PbmConfig
-from pbm.ensemble import noise_ensemble
 from pbm.frequency import (
     FEEDERS,
     NOISE_TAUS_S,
     noise_frequencies,
     noise_spectrum,
-    sampled_ca_sd,
     sinusoid_response,
     stationary_system,
     system_response,
@@ -51,33 +48,9 @@ from pbm.frequency import (
 )
 from pbm.rtd import pooled_rtd
 from pbm.synthetic import synthetic_table
+from workflows.vrr import ensemble_check
 from workflows.bench import write_json
 
-
-
-def ensemble_check(table, config: PbmConfig, t_start_s: float, members: int = 10000,
-                   sigmas: Sequence[float] = (0.02, 0.05, 0.1)) -> list[dict]:
-    """The time-domain noise ensemble against the frequency domain, per sigma: the SD of
-    the outlet C_A across members (the root of the variance over members, averaged over
-    the outputs from ``t_start_s`` on) and :func:`pbm.frequency.sampled_ca_sd`. Both on
-    the steady table holding the mean velocities of the windows from ``t_start_s``, so
-    that the ensemble's blender is the transfer function's."""
-    windows = table.t >= t_start_s
-    steady = make_table(t=table.t, x_edges=table.x_edges, y_edges=table.y_edges, window_s=table.window_s,
-                        **{name: getattr(table, name)[windows].mean(axis=0) for name in VELOCITY_NAMES})
-    system = stationary_system(steady, config)
-    rates = [config.feed_rate_a_per_s, config.feed_rate_b_per_s]
-    rows = []
-    for sigma in sigmas:
-        predicted = sampled_ca_sd(system, rates, sigma, config.noise_interval_s, config.output_interval_s)
-        t0 = time.perf_counter()
-        ens = noise_ensemble(steady, config, sigma=sigma, members=members)
-        elapsed = time.perf_counter() - t0
-        after = ens.times >= t_start_s
-        measured = float(np.sqrt(np.mean(np.var(ens.C_A_members[:, after], axis=0, ddof=1))))
-        rows.append({"sigma": sigma, "members": members, "sd_time_domain": measured, "sd_frequency_domain": predicted,
-                     "relative_difference": measured / predicted - 1, "ensemble_s": elapsed})
-    return rows
 
 
 def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.03, 0.1), t_start_s: float = 100.0,
@@ -118,7 +91,7 @@ def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.
         weights = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
         h_mixed = sum(w * system_response(system, rtd_freqs, f) for w, f in zip(weights / weights.sum(), FEEDERS))
 
-        ensemble = ensemble_check(table, config, t_start_s, members=ensemble_members)
+        ensemble = ensemble_check(table, config, t_start_s, members=ensemble_members, sigmas=(0.02, 0.05, 0.1))
 
         dense = np.logspace(-3, 0, timing_points)
         t0 = time.perf_counter()

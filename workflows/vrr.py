@@ -58,19 +58,22 @@ from coupling.errors import ConfigError, PbmDemError, error_line
 from coupling.intervals import Interval, block_bootstrap, inside, time_blocks
 from coupling.jsonable import json_ready
 from coupling.metrics import rtd_pooled
-from coupling.tables import VelocityTable
+from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from dem.steady import LEVEL, N_BOOT
 from pbm.config import PbmConfig
+from pbm.ensemble import noise_ensemble
 from pbm.frequency import (
     FEEDERS,
     NOISE_TAUS_S,
     noise_frequencies,
     noise_spectrum,
+    sampled_ca_sd,
     stationary_system,
     system_response,
     vrr_sinusoid,
     vrr_spectrum,
 )
+from pbm.model import filled_table
 from workflows.bench import write_json
 from workflows.pipeline import REFERENCE_RUN, load_results, pbm_config_for
 from workflows.report import DEM_COLOUR, MODE_STYLES, PBM_COLOUR
@@ -85,6 +88,10 @@ SEED = 2013
 RESOLVED_FACTOR = 3.0
 #: quadrature points of the noise VRR (as :func:`pbm.frequency.vrr_noise`)
 QUADRATURE_POINTS = 2001
+#: The time-domain cross-check: members (the superposition path's cost hardly depends on
+#: them; the SD of an SD estimate is ~1.6 % at 2000) and the feeder noise levels.
+ENSEMBLE_MEMBERS = 2000
+ENSEMBLE_SIGMAS = (0.1,)
 #: frequencies of the phasor sums evaluated at once: bounds the (N, chunk) cos/sin arrays
 #: to ~20 MB for the ~8500 particles of a feeder of the reduced run
 _CHUNK = 256
@@ -315,6 +322,45 @@ def _pbm_mode(table: VelocityTable, pbm_config: PbmConfig, mode: str, steady_tim
     }
 
 
+def steady_table(table: VelocityTable, rates: str, t_start_s: float) -> VelocityTable:
+    """A table whose every window holds the mean of ``table``'s windows from ``t_start_s``
+    on (after the rate mode's fill rule): the blender of :func:`pbm.frequency.stationary_system`,
+    whose mean generator is the generator of these mean fields (it is linear in them)."""
+    filled, _ = filled_table(table, rates)
+    windows = filled.t >= t_start_s
+    names = VELOCITY_NAMES + (RATE_NAMES if filled.has_rates else ())
+    return filled.replace(**{name: np.broadcast_to(getattr(filled, name)[windows].mean(axis=0), getattr(filled, name).shape).copy()
+                             for name in names})
+
+
+def ensemble_check(table: VelocityTable, config: PbmConfig, t_start_s: float, members: int = ENSEMBLE_MEMBERS,
+                   sigmas: Sequence[float] = ENSEMBLE_SIGMAS) -> list[dict[str, Any]]:
+    """The time-domain noise ensemble against the frequency domain, per sigma: the SD of
+    the outlet C_A across ``members`` (both feeders redrawn every noise interval; the root
+    of the variance over members, averaged over the outputs once the blender has filled)
+    and :func:`pbm.frequency.sampled_ca_sd`, both on :func:`steady_table`, so that the
+    ensemble's blender is the transfer function's."""
+    steady = steady_table(table, config.rates, t_start_s)
+    system = stationary_system(steady, config)
+    rates = [config.feed_rate_a_per_s, config.feed_rate_b_per_s]
+    weights = np.array(rates) / sum(rates)
+    mrt = float(np.linalg.solve(system.generator, -system.feed).sum(axis=0) @ weights)
+    # from an empty blender: five mean residence times fill it (to e^-5), within the run
+    t_from = min(5 * mrt, 0.5 * steady.t_end)
+    rows = []
+    for sigma in sigmas:
+        predicted = sampled_ca_sd(system, rates, sigma, config.noise_interval_s, config.output_interval_s)
+        t0 = time.perf_counter()
+        ens = noise_ensemble(steady, config, sigma=sigma, members=members)
+        elapsed = time.perf_counter() - t0
+        after = ens.times >= t_from
+        measured = float(np.sqrt(np.mean(np.nanvar(ens.C_A_members[:, after], axis=0, ddof=1))))
+        rows.append({"sigma": sigma, "members": members, "from_s": t_from, "sd_time_domain": measured,
+                     "sd_frequency_domain": predicted, "relative_difference": measured / predicted - 1,
+                     "ensemble_s": elapsed})
+    return rows
+
+
 def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: float, dem_summary: dict[str, Any],
                    particles: pd.DataFrame, frequencies=None, *, noise_taus_s: Sequence[float] = NOISE_TAUS_S,
                    n_boot: int = N_BOOT, seed: int = SEED) -> dict[str, Any]:
@@ -349,6 +395,8 @@ def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: f
                                n_boot=n_boot, seed=seed) for f in FEEDERS}
         pbm = {mode: _pbm_mode(table, pbm_config, mode, steady_time_s, freqs, grid, taus, spectra, dem)
                for mode in ["velocity"] + (["measured"] if table.has_rates else [])}
+        for mode, m in pbm.items():
+            m["ensemble_check"] = ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)
     return {
         "frequency_hz": freqs,
         "steady_time_s": float(steady_time_s),
@@ -460,6 +508,17 @@ def vrr_html(c: dict[str, Any], figure: str | None = None) -> str:
             parts.append(f"<tr><td>{f}, {tau:g}</td><td>{dn['value']:.4g} [{dn['low']:.4g}, {dn['high']:.4g}]</td>"
                          f"{cells}</tr>")
     parts.append("</table>")
+    parts.append("<p>The same PBM in the time domain: a noise ensemble, both feeders redrawn every "
+                 "noise interval, on the steady windows' mean table; the spread of its outlet C_A against the "
+                 "transfer functions' prediction for that noise (zero-order hold, output-interval means).</p>"
+                 "<table><tr><th>PBM rates</th><th>σ</th><th>members</th><th>SD of C_A, time domain</th>"
+                 "<th>predicted</th><th>difference</th></tr>")
+    for mode, m in c["pbm"].items():
+        for row in m.get("ensemble_check", []):
+            parts.append(f"<tr><td>{mode}</td><td>{row['sigma']:g}</td><td>{row['members']}</td>"
+                         f"<td>{row['sd_time_domain']:.4g}</td><td>{row['sd_frequency_domain']:.4g}</td>"
+                         f"<td>{row['relative_difference']:+.2%}</td></tr>")
+    parts.append("</table>")
     if figure:
         parts.append(f"<p><img src='{figure}' style='max-width:100%'></p>")
     return "\n".join(parts)
@@ -485,6 +544,11 @@ def _print_table(c: dict[str, Any]) -> None:
             cells = "  ".join(f"{mode} {m['feeders'][f]['noise'][i]['vrr']:8.4g}"
                               f"{'*' if m['feeders'][f]['noise'][i]['inside'] else ' '}" for mode, m in c["pbm"].items())
             print(f"  {f} tau {tau:>4g} s: DEM {dn['value']:8.4g} [{dn['low']:.4g}, {dn['high']:.4g}]  {cells}")
+    print("time-domain ensemble vs the transfer functions: SD of the outlet C_A")
+    for mode, m in c["pbm"].items():
+        for row in m.get("ensemble_check", []):
+            print(f"  {mode}, sigma {row['sigma']:g}, {row['members']} members: {row['sd_time_domain']:.4g} vs "
+                  f"{row['sd_frequency_domain']:.4g} predicted ({row['relative_difference']:+.2%})")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
