@@ -108,3 +108,20 @@ def test_deviance_is_zero_at_the_counts_own_fractions():
     k, n = np.array([3.0, 0.0, 10.0]), np.array([10.0, 5.0, 10.0])
     assert binomial_deviance(k, n, k / n) == pytest.approx(0.0, abs=1e-9)
     assert binomial_deviance(k, n, np.full(3, 0.5)) > 10
+
+
+@pytest.mark.slow
+def test_shipped_step_run_is_found_and_judged(tmp_path):
+    from workflows.step_response import run_step, step_comparison
+    from workflows.validation import campaign_configs, run_campaign
+
+    side = run_step(runs_root=tmp_path, solver=False, log=lambda message: None)
+    assert side.source == "reference"
+    base = run_campaign(tmp_path, solver=False, log=lambda message: None,
+                        configs={"baseline": campaign_configs()["baseline"]})["baseline"]
+    rows = {(r["source"], r["mode"]): r for r in step_comparison(side, base, step_config())["rows"]}
+    assert set(rows) == {(s, m) for s in ("self", "baseline") for m in ("velocity", "measured")}
+    own = rows[("self", "velocity")]
+    assert own["predicted"] and abs(own["pbm_delay_s"] - own["dem_delay_s"]["value"]) < 1.0
+    # the steady tables alone respond too slowly: the DEM runs faster than that PBM
+    assert rows[("baseline", "measured")]["time_scale"]["value"] > 1.1

@@ -214,9 +214,11 @@ def plot_step(comparison: dict[str, Any], path: str | Path) -> Path:
         colour, ls = styles.get(key, ("#31a354", "-"))
         ax.plot(pbm["t_s"], pbm["C_A"], color=colour, ls=ls, lw=1.5, label=f"PBM, {key.replace('/', ' tables, ')} rates")
     ax.axvline(comparison["step_s"], color="#636363", lw=0.8, ls=":")
+    start = max(0.0, comparison["step_s"] - 40)
+    shown = t >= start
     ax.set(xlabel="time [s]", ylabel="outlet C_A",
            title=f"Feeder A x{comparison['factor_a']:g} at {comparison['step_s']:g} s: the outlet's response",
-           xlim=(max(0.0, comparison["step_s"] - 40), t.max()), ylim=(max(0.0, lo.min() - 0.05), min(1.0, hi.max() + 0.05)))
+           xlim=(start, t.max()), ylim=(max(0.0, lo[shown].min() - 0.05), min(1.0, hi[shown].max() + 0.05)))
     ax.legend(fontsize=8, loc="lower right")
     out = Path(path)
     fig.savefig(out, dpi=120)
