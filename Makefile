@@ -31,7 +31,7 @@ full-comparison: setup
 	$(PYTHON) -m workflows.cli compare --preset $(PRESET) --np $(NP) $(if $(FRESH),--fresh)
 
 # The validation campaign's report; its DEM results ship, so this needs no LIGGGHTS run
-# unless FRESH=1 (about 2.5 h of DEM on 2 cores: five campaign runs and the feed-step run).
+# unless FRESH=1 (about 2 h of DEM on 2 cores: five campaign runs and the feed-step run).
 validate: setup
 	$(PYTHON) -m workflows.cli validate $(if $(FRESH),--fresh)
 
