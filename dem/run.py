@@ -82,6 +82,20 @@ class RunInputs:
     key: str | None
 
 
+#: The state of a run its caller stopped before the end (:class:`StopRun`).
+STOPPED = "stopped"
+
+
+class StopRun(Exception):
+    """Raised by a run's ``on_line`` callback to stop the solver before the end on purpose
+    (e.g. the DEM has converged): :func:`run_dem` stops every rank and returns the run
+    marked :data:`STOPPED`, with ``reason`` recorded."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
 @dataclass
 class RunRecord:
     """What a run produced and where. ``reused`` is True when nothing was started."""
@@ -157,7 +171,8 @@ def run_dem(
     ``inputs``: from :func:`prepare_run`. ``np``: MPI ranks (default
     ``inputs.config.run.np``). ``resume``: continue a crashed or interrupted run from its
     newest restart file. ``fresh``: delete the run directory and start again.
-    ``progress``: tqdm bar on stderr. ``on_line``: called with every solver output line.
+    ``progress``: tqdm bar on stderr. ``on_line``: called with every solver output line;
+    raising :class:`StopRun` there stops the run early on purpose (returned as :data:`STOPPED`).
 
     A completed run with the same inputs is returned as is (``reused=True``) without starting
     a simulation. Without a solver (``inputs.key`` None), a completed run of the same deck
@@ -229,6 +244,15 @@ def run_dem(
         with _terminate_as_interrupt():
             result = run_solver(command, run_dir, SOLVER_OUT, append=resume, on_start=solver_started,
                                 on_line=follow)
+    except StopRun as stop:
+        # asked for by the caller (it has what it needs): the run is kept, marked as stopped
+        # early so that it is never taken for a complete one; --resume continues it
+        bar.close()
+        _write_status(run_dir, {**base, "finished": _now(), "wall_time_s": prior_wall + time.monotonic() - t0,
+                                "state": STOPPED, "stop_reason": stop.reason,
+                                "stopped_at_s": None if parser.step is None else parser.step * dt,
+                                "solver_counters": parser.counters()})
+        return _record_from_status(run_dir, read_status(run_dir) or {}, reused=False)
     except BaseException as exc:
         bar.close()
         stopped = {"finished": _now(), "wall_time_s": prior_wall + time.monotonic() - t0}

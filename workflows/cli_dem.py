@@ -3,6 +3,7 @@
     pbmdem dem deck  --preset NAME|--config FILE.toml --out DIR [--resume-from R] [--png] [--view-stl]
     pbmdem dem run   --preset NAME|--config FILE.toml [--np N] [--resume] [--fresh]
                      [--runs-dir DIR] [--cache-dir DIR] [--no-progress]
+                     [--stop-when-converged [--check-every S]]
     pbmdem dem post  --preset NAME|--config FILE.toml --dumps 'GLOB' --out RESULTS.h5 [--massflow-dir DIR]
     pbmdem dem slurm --preset NAME|--config FILE.toml --out DIR [--np 32] [--partition P]
                      [--holdup N] [--throughput R]
@@ -15,10 +16,12 @@ and a batch script instead of running.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import sys
 from typing import Any
 
+from coupling.errors import ConfigError
 from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline import stderr_log
 
@@ -51,6 +54,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--runs-dir", default="runs", help="root of the run directories (default: ./runs)")
     run.add_argument("--cache-dir", default=None, help="where dem-<hash>.h5 goes (default: <runs-dir>/cache)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--stop-when-converged", action="store_true",
+                     help="stop the run once more DEM would not move the PBM by more than the DEM resolves "
+                          "(checked every --check-every simulated seconds; --resume continues a stopped run)")
+    run.add_argument("--check-every", type=float, default=None, metavar="S",
+                     help="simulated seconds between convergence checks (default 20)")
     run.set_defaults(func=run_command)
 
     post = dem_sub.add_parser("post", help="post-process existing dumps into a velocity table + DEM results file")
@@ -85,13 +93,27 @@ def deck_command(args: argparse.Namespace) -> int:
 def run_command(args: argparse.Namespace) -> int:
     from workflows.pipeline import dem_stage
 
-    dem = dem_stage(resolve_config(args.preset, args.config), runs_root=args.runs_dir, cache_root=args.cache_dir,
-                    np=args.np, resume=args.resume, fresh=args.fresh, progress=not args.no_progress, log=stderr_log)
+    config = resolve_config(args.preset, args.config)
+    watch = None
+    if args.stop_when_converged:
+        from workflows.converge import CHECK_EVERY_S, ConvergenceWatch
+
+        every = CHECK_EVERY_S if args.check_every is None else args.check_every
+        if not (math.isfinite(every) and every > 0):
+            raise ConfigError(f"--check-every must be a number of seconds > 0, got {every}")
+
+        watch = functools.partial(ConvergenceWatch, config, every_s=every, log=stderr_log)
+    elif args.check_every is not None:
+        raise ConfigError("--check-every needs --stop-when-converged")
+    dem = dem_stage(config, runs_root=args.runs_dir, cache_root=args.cache_dir, np=args.np, resume=args.resume,
+                    fresh=args.fresh, progress=not args.no_progress, log=stderr_log, watch=watch)
     if dem.source != "run":
         stderr_log(f"DEM results reused from the {dem.source} (LIGGGHTS not started)")
     print_summary(dem.results.summary)
     print(f"DEM results and velocity table: {dem.cache_file}")
     print(f"run directory: {dem.provenance.get('run_dir')}")
+    if dem.provenance.get("run_state") == "stopped":
+        print(f"stopped early: {dem.provenance.get('stop_reason')}; continue it to the end with --resume")
     return 0
 
 

@@ -33,7 +33,7 @@ from dem.deck import DECK_INFO, MAIN_DECK, MESH_DIR, build_deck, deck_hash, writ
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
 from dem.post import DemResults, postprocess
-from dem.run import RunInputs, completed_run, prepare_run, read_status, run_dem
+from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem
 from coupling.tables import read_table
 from pbm.config import PbmConfig
 from pbm.outputs import write_outputs
@@ -139,6 +139,7 @@ def dem_stage(
     log: Log = _quiet,
     reference_dir: Path = REFERENCE_DIR,
     solver: bool = True,
+    watch: Callable[[Path], Callable[[str], None]] | None = None,
 ) -> DemSide:
     """The DEM's velocity table and CQAs for ``config``.
 
@@ -149,7 +150,10 @@ def dem_stage(
     built and the input hash computed once, here. Without LIGGGHTS installed, cached or
     shipped results made from the same deck are still found. ``solver=False`` never starts
     LIGGGHTS: only cached or shipped results, or the dumps of a completed run, serve, else
-    LookupError."""
+    LookupError. ``watch``: called with the run directory, returns the solver's line
+    callback, which may stop the run early (:class:`workflows.converge.ConvergenceWatch`);
+    a stopped run's results are cached under a key of their own, never served as the
+    complete run's."""
     runs_root = writable_directory(Path(runs_root).resolve(), "runs directory")  # absolute: recorded in the cache
     cache_root = writable_directory(cache_root if cache_root is not None else runs_root / "cache", "cache directory")
     inputs = prepare_run(config.dem)
@@ -161,20 +165,26 @@ def dem_stage(
                 log(f"DEM results for inputs {found.key} taken from the shipped reference data")
             return found
     if solver:
-        record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress)
+        on_line = None if watch is None else watch(runs_root / str(inputs.key))
+        record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress,
+                         on_line=on_line)
     else:
         record = completed_run(inputs, runs_root)
         if record is None:
             raise LookupError(f"no cached or shipped DEM results, nor a completed run under {runs_root}, for the "
                               f"deck {inputs.deck_hash} binned as configured")
-    key = results_key(record.key, post)
-    log(f"run {'reused' if record.reused else 'finished'}: {record.run_dir}; post-processing the dumps")
+    stopped = record.state == STOPPED
+    stop_step = record.solver_counters.get("step")
+    key = results_key(f"{record.key}-stopped-{stop_step}" if stopped else record.key, post)
+    log(f"run {'reused' if record.reused else 'stopped early' if stopped else 'finished'}: {record.run_dir}; "
+        "post-processing the dumps")
     t0 = time.monotonic()
     provenance = {
         "key": key, "input_hash": key, "run_key": record.key, "deck_hash": inputs.deck_hash, "post_hash": post,
         "liggghts_version": record.liggghts_version, "preset": config.name, "config_toml": dump_toml(config),
         "run_dir": str(record.run_dir), "run_started": record.started, "run_finished": record.finished,
         "wall_time_s": record.wall_time_s, "np": record.np, "resumed_from": record.resumed_from, "created": _now(),
+        "run_state": record.state, "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
     }
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
     results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
