@@ -18,6 +18,11 @@ def test_criterion_on_the_shipped_validation_baseline():
     side = run_campaign(solver=False, configs={"baseline": config}, log=lambda message: None)["baseline"]
     early = converged(side.results, config, 60.0)
     assert not early["converged"] and "steady window" in early["why"]
+    # no pooled RTD yet (the run is younger than its horizon): nothing of the RTD is judged, so no stop
+    import dataclasses
+
+    young = dataclasses.replace(side.results, summary={**side.results.summary, "pooled_rtd": None})
+    assert "no pooled RTD" in converged(young, config, 180.0)["why"]
     late = converged(side.results, config, 180.0)
     assert late["converged"] and set(late["modes"]) == {"velocity", "measured"}
     assert all(v["n_inside"] == v["n_rows"] for v in late["modes"].values())

@@ -50,6 +50,11 @@ def converged(results: DemResults, config: Config, t_s: float, step_s: float = C
     if steady is None or not math.isfinite(steady):
         out["why"] = f"no steady state in the first {t_s:g} s"
         return out
+    if not (summary.get("pooled_rtd") or {}).get("n_entered"):
+        # without it the agreement table has no RTD rows: judging the rest would pass a
+        # PBM whose residence times nobody has checked
+        out["why"] = f"no pooled RTD in the first {t_s:g} s yet (its entry window ends a horizon before T)"
+        return out
     if t_s - step_s < steady + results.table.window_s:
         out["why"] = f"no complete steady window before {t_s - step_s:g} s (steady from {steady:g} s)"
         return out
