@@ -170,4 +170,8 @@ def test_bench_main_writes_json(tmp_path, capsys):
     report = json.loads(out.read_text())
     assert report["scenario"]["windows"] == 52 and report["ensemble"]["members"] == 4
     assert max(report["max_rel_diff_expm_vs_bdf"].values()) < 1e-5
-    assert "speed-up vs BDF" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "speed-up vs BDF" in out and "products alone" in out
+    profile = report["profile"]
+    assert profile["exponentials"] == 52 and profile["dense_products"] >= 5 * 52
+    assert 0 < profile["stages_s"]["operators (Propagators.prepare: matrix exponentials, threaded)"] <= profile["total_s"]
