@@ -127,17 +127,21 @@ def _check_counts(counts, nx: int, ny: int, windows: bool = False) -> np.ndarray
     return counts
 
 
-def _transitions(nx: int, ny: int) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _transitions(nx: int, ny: int, nz: int = 1) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """For each direction: (source state, target state, flat compartment index) of every
-    transition the nearest-neighbour model allows; walls have none."""
-    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    c = (i * ny + j).ravel()
-    i, j = i.ravel(), j.ravel()
-    s = nx * ny
-    out = {}
-    x_pos_dst = np.where(i == nx - 1, s, c + ny)
-    out["x_pos"] = (c, x_pos_dst, c)
-    for key, ok, step in (("x_neg", i > 0, -ny), ("y_pos", j < ny - 1, 1), ("y_neg", j > 0, -1)):
+    transition the nearest-neighbour model allows; walls have none.
+
+    With ``nz`` > 1 the compartments are also stacked in height (flat index
+    ``(i * ny + j) * nz + l``, layer l from the bottom; ``nz`` = 1 is the tables' grid) and
+    "z_pos" / "z_neg" move up and down a layer. Only the layered study uses that."""
+    i, j, layer = (a.ravel() for a in np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"))
+    c = (i * ny + j) * nz + layer
+    s = nx * ny * nz
+    out = {"x_pos": (c, np.where(i == nx - 1, s, c + ny * nz), c)}
+    steps = [("x_neg", i > 0, -ny * nz), ("y_pos", j < ny - 1, nz), ("y_neg", j > 0, -nz)]
+    if nz > 1:
+        steps += [("z_pos", layer < nz - 1, 1), ("z_neg", layer > 0, -1)]
+    for key, ok, step in steps:
         out[key] = (c[ok], c[ok] + step, c[ok])
     return out
 
@@ -208,11 +212,11 @@ class _Objective:
     their observations, and L-BFGS-B needs several times more iterations.
     """
 
-    def __init__(self, counts: np.ndarray, nx: int, ny: int, interval_s: float, start: np.ndarray,
-                 free: np.ndarray, src: np.ndarray, dst: np.ndarray):
+    def __init__(self, counts: np.ndarray, interval_s: float, start: np.ndarray, free: np.ndarray,
+                 src: np.ndarray, dst: np.ndarray):
         self.counts = counts
         self.interval_s = interval_s
-        self.n = nx * ny + 1
+        self.n = counts.shape[0]
         self.start = start
         self.free = free
         self.src = src
@@ -245,6 +249,50 @@ class _Objective:
         return -value * self.scale, -d_rate * self.scale / self.weight
 
 
+@dataclass
+class PatternFit:
+    """How :func:`fit_pattern` ended."""
+
+    log_likelihood: float
+    iterations: int
+    converged: bool
+
+
+def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                start: dict[str, np.ndarray], interval_s: float, max_iterations: int = 500
+                ) -> tuple[np.ndarray, PatternFit]:
+    """The maximum-likelihood core of :func:`fit_rates` for any pattern of allowed moves.
+
+    ``counts``: (S+1, S+1) checked counts with row S zeroed; ``transitions``: direction ->
+    (source, target, compartment) as :func:`_transitions` gives them; ``start``: direction ->
+    a starting rate per move (NaN: unknown). Returns every move's rate, in the order of
+    ``transitions`` (directions, then moves), and how the fit ended. Rates of compartments
+    never observed as a source stay at their (filled) start."""
+    lo, hi = MIN_RATE, MAX_RATE_X_INTERVAL / interval_s
+    n_obs = counts[:-1].sum(axis=1)
+    src = np.concatenate([t[0] for t in transitions.values()])
+    dst = np.concatenate([t[1] for t in transitions.values()])
+    first = np.concatenate([np.asarray(start[key], dtype=float) for key in transitions])
+    key_of = np.concatenate([np.full(t[0].size, k) for k, t in enumerate(transitions.values())])
+    free = n_obs[src] > 0
+    # Never-observed compartments: a typical value keeps the particles that pass through
+    # them between dumps plausible; it is not reported.
+    for k in range(len(transitions)):
+        block = key_of == k
+        known = block & free & np.isfinite(first)
+        fill = float(np.median(first[known])) if known.any() else 1.0 / interval_s
+        first[block & ~np.isfinite(first)] = fill
+    # A naive 0 is usually a rate the one-jump count missed: start it off the bound.
+    first = np.clip(first, max(lo, 1e-3 / interval_s), hi)
+    objective = _Objective(counts, interval_s, first, free, src, dst)
+    w = objective.weight
+    options = {"maxiter": max_iterations, "ftol": 1e-10, "gtol": 1e-6, "maxcor": 20}
+    result = minimize(objective, first[free] * w, jac=True, method="L-BFGS-B", bounds=list(zip(lo * w, hi * w)),
+                      options=options)
+    return objective.all_rates(result.x), PatternFit(-result.fun / objective.scale, int(result.nit),
+                                                      bool(result.success))
+
+
 def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
               initial: dict[str, np.ndarray] | None = None, max_iterations: int = 500) -> RateFit:
     """Maximum-likelihood nearest-neighbour rates of one window's transition counts.
@@ -271,35 +319,13 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
             warm = np.asarray(initial[key], dtype=float)
             start_dict[key] = np.where(np.isfinite(warm), warm, start_dict[key])
 
-    lo, hi = MIN_RATE, MAX_RATE_X_INTERVAL / interval_s
     transitions = _transitions(nx, ny)
-    src = np.concatenate([t[0] for t in transitions.values()])
-    dst = np.concatenate([t[1] for t in transitions.values()])
-    start = np.concatenate([start_dict[key].ravel()[t[2]] for key, t in transitions.items()])
-    key_of = np.concatenate([np.full(t[0].size, k) for k, t in enumerate(transitions.values())])
-    free = n_obs[src] > 0
-    # Never-observed compartments: a typical value keeps the particles that pass through
-    # them between dumps plausible; it is not reported.
-    for k in range(len(RATE_KEYS)):
-        block = key_of == k
-        known = block & free & np.isfinite(start)
-        fill = float(np.median(start[known])) if known.any() else 1.0 / interval_s
-        start[block & ~np.isfinite(start)] = fill
-    # A naive 0 is usually a rate the one-jump count missed: start it off the bound.
-    start = np.clip(start, max(lo, 1e-3 / interval_s), hi)
-
+    start = {key: start_dict[key].ravel()[comp] for key, (_, _, comp) in transitions.items()}
     report = {key: np.full((nx, ny), np.nan) for key in RATE_KEYS}
-    if not free.any():
+    if not n_obs.any():
         return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=0.0, iterations=0,
                        converged=True)
-
-    objective = _Objective(counts, nx, ny, interval_s, start, free, src, dst)
-    w = objective.weight
-    bounds = list(zip(lo * w, hi * w))
-    options = {"maxiter": max_iterations, "ftol": 1e-10, "gtol": 1e-6, "maxcor": 20}
-    result = minimize(objective, start[free] * w, jac=True, method="L-BFGS-B", bounds=bounds, options=options)
-    iterations = result.nit
-    rates = objective.all_rates(result.x)
+    rates, result = fit_pattern(counts, transitions, start, interval_s, max_iterations)
 
     reported = n_obs >= min_observations
     offset = 0
@@ -309,8 +335,9 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
         offset += k_src.size
         r[~reported] = np.nan
         report[key] = r.reshape(nx, ny)
-    return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=-result.fun / objective.scale,
-                   iterations=int(iterations), converged=bool(result.success), cap_per_s=hi)
+    return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=result.log_likelihood,
+                   iterations=result.iterations, converged=result.converged,
+                   cap_per_s=MAX_RATE_X_INTERVAL / interval_s)
 
 
 @single_threaded_blas()

@@ -86,7 +86,7 @@ def test_objective_gradient_with_chain_rule(rng):
     dst = np.concatenate([v[1] for v in t.values()])
     start = rng.uniform(0.5, 5.0, src.size)
     free = np.ones(src.size, dtype=bool)
-    objective = _Objective(counts, nx, ny, DT, start, free, src, dst)
+    objective = _Objective(counts, DT, start, free, src, dst)
     z = start * objective.weight
     err = check_grad(lambda v: objective(v)[0], lambda v: objective(v)[1], z, epsilon=1e-7)
     assert err < 1e-6 * np.linalg.norm(objective(z)[1]) + 1e-9
