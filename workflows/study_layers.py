@@ -229,7 +229,10 @@ def main(argv: list[str] | None = None) -> dict:
     spec = dem.summary.get("pooled_rtd")
     if not spec:
         parser.error(f"--results {args.results}: no pooled RTD in this run's results (too short a run)")
-    config = load_preset(args.preset).dem
+    try:
+        config = load_preset(args.preset).dem
+    except (KeyError, ValueError, OSError) as error:
+        parser.error(f"--preset {args.preset}: {error}")
     length, diameter = float(deck["length_m"]), float(config.geometry.diameter_m)
     timestep = float(deck["timestep_s"])
     interval = float(deck["dump_every_steps"]) * timestep
@@ -238,7 +241,10 @@ def main(argv: list[str] | None = None) -> dict:
     massflow = [Path(p) for pattern in deck["massflow_globs"].values()
                 for p in sorted(glob.glob(str(run_dir / pattern)))]
     discharged, _, _ = latest_records(massflow)
-    snaps = Snapshots(str(run_dir / deck["dump_glob"]), timestep)
+    try:
+        snaps = Snapshots(str(run_dir / deck["dump_glob"]), timestep)
+    except DumpFormatError as error:
+        parser.error(f"--run-dir {run_dir}: {error}")
 
     records = dem.particles
     entry_t = records["entry_t_s"].to_numpy()
