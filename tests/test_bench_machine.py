@@ -1,0 +1,37 @@
+"""The machine benchmark: its arguments are checked before any solver starts, and (marked
+``liggghts``) a tiny real run records a bound and a speed-up per launcher."""
+
+import json
+
+import pytest
+
+from workflows import bench_machine
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--particles", "1546,many"], "comma-separated whole numbers"),
+    (["--particles", "0"], ">= 1"),
+    (["--launchers", "mpirun -np 2"], "no {np}"),
+])
+def test_bad_arguments_are_refused_by_name(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        bench_machine.main(argv)
+    assert message in capsys.readouterr().err
+
+
+def test_launcher_labels():
+    assert bench_machine._label("mpirun --allow-run-as-root -np {np}") == "as the runs use it"
+    assert bench_machine._label("mpirun --allow-run-as-root --bind-to none -np {np}") == "--bind-to none"
+
+
+@pytest.mark.liggghts
+def test_tiny_run_records_bound_and_speedups(tmp_path):
+    out = tmp_path / "machine.json"
+    launcher = "mpirun --allow-run-as-root --oversubscribe -np {np}"
+    bench_machine.main(["--particles", "60", "--steps", "200", "--repeats", "1", "--launchers", launcher,
+                        "--out", str(out)])
+    record = json.loads(out.read_text())
+    (bed,) = record["beds"]
+    assert bed["particles"] == 60 and len(bed["alone"]) == len(bed["together"]) == 1
+    assert record["bound_two_ranks"] == bed["bound_two_ranks"] > 0
+    assert list(bed["two_ranks"]) == [launcher] and bed["two_ranks"][launcher]["speedup"] > 0
