@@ -127,7 +127,7 @@ def _check_counts(counts, nx: int, ny: int, windows: bool = False) -> np.ndarray
     return counts
 
 
-def _transitions(nx: int, ny: int, nz: int = 1) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def allowed_transitions(nx: int, ny: int, nz: int = 1) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """For each direction: (source state, target state, flat compartment index) of every
     transition the nearest-neighbour model allows; walls have none.
 
@@ -155,7 +155,7 @@ def generator(rates: dict[str, np.ndarray], nx: int, ny: int) -> np.ndarray:
         raise ValueError(f"rates has keys {sorted(rates)}; expected exactly {list(RATE_KEYS)}")
     n = nx * ny + 1
     q = np.zeros((n, n))
-    for key, (src, dst, comp) in _transitions(nx, ny).items():
+    for key, (src, dst, comp) in allowed_transitions(nx, ny).items():
         r = np.asarray(rates[key], dtype=float)
         if r.shape != (nx, ny):
             raise ValueError(f"rates[{key!r}] has shape {r.shape}; expected (nx, ny) = ({nx}, {ny})")
@@ -191,7 +191,7 @@ def naive_rates(counts, nx: int, ny: int, interval_s: float) -> dict[str, np.nda
     counts = _check_counts(counts, nx, ny)
     rows = counts[:-1].sum(axis=1)
     out = {}
-    for key, (src, dst, comp) in _transitions(nx, ny).items():
+    for key, (src, dst, comp) in allowed_transitions(nx, ny).items():
         r = np.zeros(nx * ny)
         with np.errstate(invalid="ignore", divide="ignore"):
             r[comp] = counts[src, dst] / (interval_s * rows[src])
@@ -264,7 +264,7 @@ def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.
     """The maximum-likelihood core of :func:`fit_rates` for any pattern of allowed moves.
 
     ``counts``: (S+1, S+1) checked counts with row S zeroed; ``transitions``: direction ->
-    (source, target, compartment) as :func:`_transitions` gives them; ``start``: direction ->
+    (source, target, compartment) as :func:`allowed_transitions` gives them; ``start``: direction ->
     a starting rate per move (NaN: unknown). Returns every move's rate, in the order of
     ``transitions`` (directions, then moves), and how the fit ended. Rates of compartments
     never observed as a source stay at their (filled) start."""
@@ -319,7 +319,7 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
             warm = np.asarray(initial[key], dtype=float)
             start_dict[key] = np.where(np.isfinite(warm), warm, start_dict[key])
 
-    transitions = _transitions(nx, ny)
+    transitions = allowed_transitions(nx, ny)
     start = {key: start_dict[key].ravel()[comp] for key, (_, _, comp) in transitions.items()}
     report = {key: np.full((nx, ny), np.nan) for key in RATE_KEYS}
     if not n_obs.any():

@@ -5,8 +5,8 @@ import pytest
 from scipy.linalg import expm, expm_frechet
 from scipy.optimize import check_grad
 
-from dem.rates import (RATE_KEYS, _Objective, _transitions, fit_rates, fit_windows, generator, log_likelihood, naive_rates,
-                       simulate_observations)
+from dem.rates import (RATE_KEYS, _Objective, allowed_transitions, fit_rates, fit_windows, generator, log_likelihood,
+                       naive_rates, simulate_observations)
 from workflows.bench_rates import blender_rates
 
 DT = 0.1
@@ -81,7 +81,7 @@ def test_objective_gradient_with_chain_rule(rng):
     nx, ny = 3, 2
     truth = blender_rates(nx, ny, 8.0, rng)
     counts = _observe(truth, nx, ny, 6000, 10, rng).astype(float)
-    t = _transitions(nx, ny)
+    t = allowed_transitions(nx, ny)
     src = np.concatenate([v[0] for v in t.values()])
     dst = np.concatenate([v[1] for v in t.values()])
     start = rng.uniform(0.5, 5.0, src.size)

@@ -4,7 +4,7 @@ chain fit and RTD on chains with known answers."""
 import numpy as np
 import pytest
 
-from dem.rates import _transitions, simulate_observations
+from dem.rates import allowed_transitions, simulate_observations
 from workflows.study_layers import chain_rtd, fit_chain, parse_grid, states
 
 DT = 0.1
@@ -19,12 +19,12 @@ def test_parse_grid():
 
 
 def test_layered_pattern_reduces_to_the_tables_grid():
-    flat, layered = _transitions(4, 3), _transitions(4, 3, 1)
+    flat, layered = allowed_transitions(4, 3), allowed_transitions(4, 3, 1)
     assert set(flat) == set(layered) == {"x_pos", "x_neg", "y_pos", "y_neg"}
     for key in flat:
         for a, b in zip(flat[key], layered[key]):
             np.testing.assert_array_equal(a, b)
-    three = _transitions(2, 1, 3)
+    three = allowed_transitions(2, 1, 3)
     assert set(three) == {"x_pos", "x_neg", "y_pos", "y_neg", "z_pos", "z_neg"}
     src, dst, _ = three["z_pos"]
     assert list(zip(src, dst)) == [(0, 1), (1, 2), (3, 4), (4, 5)]  # no move up out of the top layer
@@ -40,7 +40,7 @@ def test_states_bin_by_slice_side_and_layer():
 
 
 def _layered_truth(nx, nz):
-    transitions = _transitions(nx, 1, nz)
+    transitions = allowed_transitions(nx, 1, nz)
     rates = {"x_pos": 1.5, "x_neg": 0.6, "y_pos": 0.0, "y_neg": 0.0, "z_pos": 4.0, "z_neg": 6.0}
     q = np.zeros((nx * nz + 1,) * 2)
     for key, (src, dst, _) in transitions.items():

@@ -140,7 +140,7 @@ def chain_data(snaps: Snapshots, grid, z_edges, length_m: float, diameter_m: flo
 def fit_chain(counts: np.ndarray, grid, interval_s: float, max_iterations: int = 5000) -> tuple[np.ndarray, dict]:
     """Generator (S+1, S+1) of the nearest-neighbour chain on ``grid`` fitted to ``counts``."""
     nx, ny, nz = grid
-    transitions = rates_module._transitions(nx, ny, nz)
+    transitions = rates_module.allowed_transitions(nx, ny, nz)
     counts = counts.astype(float)
     counts[-1] = 0.0
     rows = counts[:-1].sum(axis=1)
