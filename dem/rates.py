@@ -267,7 +267,8 @@ def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.
     (source, target, compartment) as :func:`allowed_transitions` gives them; ``start``: direction ->
     a starting rate per move (NaN: unknown). Returns every move's rate, in the order of
     ``transitions`` (directions, then moves), and how the fit ended. Rates of compartments
-    never observed as a source stay at their (filled) start."""
+    never observed as a source stay at their (filled) start; with no observation at all
+    nothing is fitted."""
     lo, hi = MIN_RATE, MAX_RATE_X_INTERVAL / interval_s
     n_obs = counts[:-1].sum(axis=1)
     src = np.concatenate([t[0] for t in transitions.values()])
@@ -284,6 +285,8 @@ def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.
         first[block & ~np.isfinite(first)] = fill
     # A naive 0 is usually a rate the one-jump count missed: start it off the bound.
     first = np.clip(first, max(lo, 1e-3 / interval_s), hi)
+    if not free.any():
+        return first, PatternFit(0.0, 0, True)
     objective = _Objective(counts, interval_s, first, free, src, dst)
     w = objective.weight
     options = {"maxiter": max_iterations, "ftol": 1e-10, "gtol": 1e-6, "maxcor": 20}
@@ -322,9 +325,6 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
     transitions = allowed_transitions(nx, ny)
     start = {key: start_dict[key].ravel()[comp] for key, (_, _, comp) in transitions.items()}
     report = {key: np.full((nx, ny), np.nan) for key in RATE_KEYS}
-    if not n_obs.any():
-        return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=0.0, iterations=0,
-                       converged=True)
     rates, result = fit_pattern(counts, transitions, start, interval_s, max_iterations)
 
     reported = n_obs >= min_observations

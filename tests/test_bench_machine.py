@@ -12,6 +12,8 @@ from workflows import bench_machine
     (["--particles", "1546,many"], "comma-separated whole numbers"),
     (["--particles", "0"], ">= 1"),
     (["--launchers", "mpirun -np 2"], "no {np}"),
+    (["--repeats", "0"], "--repeats 0: expected a whole number >= 1"),
+    (["--steps", "-5"], "--steps -5: expected a whole number >= 1"),
 ])
 def test_bad_arguments_are_refused_by_name(argv, message, capsys):
     with pytest.raises(SystemExit):

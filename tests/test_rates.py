@@ -155,3 +155,9 @@ def test_wrong_shapes_name_the_expected_shape(rng):
         generator(rates, nx, ny)
     with pytest.raises(ValueError, match="interval_s"):
         fit_rates(np.zeros((13, 13)), nx, ny, 0.0)
+
+
+def test_a_window_without_observations_fits_nothing():
+    fit = fit_rates(np.zeros((3 * 2 + 1, 3 * 2 + 1)), 3, 2, DT)
+    assert (fit.iterations, fit.converged, fit.log_likelihood) == (0, True, 0.0)
+    assert all(np.isnan(getattr(fit, key)).all() for key in RATE_KEYS)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dem.rates import allowed_transitions, simulate_observations
-from workflows.study_layers import chain_rtd, fit_chain, parse_grid, states
+from workflows.study_layers import Snapshots, chain_data, chain_rtd, fit_chain, parse_grid, states
 
 DT = 0.1
 
@@ -68,3 +68,27 @@ def test_chain_rtd_of_one_tank_is_exponential():
     assert rtd["recovered_fraction"] == pytest.approx(1.0, abs=1e-10)
     assert rtd["mean_s"] == pytest.approx(1 / k, rel=1e-3)
     assert rtd["variance_s2"] == pytest.approx(1 / k**2, rel=1e-3)
+
+
+def _write_dump(path, step, atoms):
+    lines = ["ITEM: TIMESTEP", str(step), "ITEM: NUMBER OF ATOMS", str(len(atoms)), "ITEM: BOX BOUNDS ff ff ff",
+             "-0.1 0.5", "-0.1 0.1", "-0.1 0.1", "ITEM: ATOMS id type x y z"]
+    lines += [f"{pid} 1 {x} {y} {z}" for pid, x, y, z in atoms]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_chain_data_counts_moves_and_discharges_from_dumps(tmp_path):
+    # 2 slices x 1 side x 2 layers split at z = 0: states 0 / 1 (slice 0 bottom / top),
+    # 2 / 3 (slice 1), 4 outside
+    low, high = -0.02, 0.02
+    _write_dump(tmp_path / "dump.0.txt", 0, [(1, 0.05, 0, low), (2, 0.2, 0, low), (3, 0.2, 0, high)])
+    _write_dump(tmp_path / "dump.100.txt", 100, [(1, 0.05, 0, high), (4, 0.05, 0, low)])
+    _write_dump(tmp_path / "dump.200.txt", 200, [(1, 0.2, 0, high), (4, 0.05, 0, low)])
+    snaps = Snapshots(str(tmp_path / "dump.*.txt"), 1e-3)
+    assert snaps.t.tolist() == [0.0, 0.1, 0.2]
+    # particle 2 was discharged, particle 3 lost (not counted), particle 4 entered at 0.1 s
+    counts, first = chain_data(snaps, (2, 1, 2), np.array([0.0]), 0.3, 0.1, 0.0, discharged=np.array([2]))
+    expected = np.zeros((5, 5), int)
+    expected[0, 1] = expected[1, 3] = expected[2, 4] = expected[0, 0] = 1
+    np.testing.assert_array_equal(counts, expected)
+    assert first[1:5].tolist() == [0, 2, 3, 0]

@@ -110,6 +110,9 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--particles {args.particles!r}: expected comma-separated whole numbers, e.g. 1546,6000")
     if any(n < 1 for n in sizes):
         parser.error(f"--particles {args.particles!r}: every bed size must be >= 1")
+    for name in ("steps", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} {getattr(args, name)}: expected a whole number >= 1")
     config = load_preset(args.preset)
     load = [os.getloadavg()[0]]
     beds = [measure(config, n, args.steps, args.repeats, args.launchers) for n in sizes]
