@@ -52,6 +52,7 @@ import numpy as np
 import pandas as pd
 
 from coupling.errors import CacheError, os_reason
+from coupling.files import DIGEST_ATTR, h5_digest, regular_file
 from coupling.jsonable import dumps_exact
 from coupling.tables import GROUP as TABLE_GROUP
 from coupling.tables import VelocityTable, atomic_h5, table_from_group, table_to_group
@@ -59,7 +60,6 @@ from coupling.tables import VelocityTable, atomic_h5, table_from_group, table_to
 CACHE_FORMAT = "pbmdem-cache"
 CACHE_FORMAT_VERSION = 2
 RESULTS_GROUP = "results"
-DIGEST_ATTR = "sha256"
 
 
 def stable_hash(data: Any, length: int = 16) -> str:
@@ -131,11 +131,8 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
 def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
     """Read the entry in ``path``. Raises CacheError naming the problem if the file is
     missing, corrupt, foreign, incomplete or (when ``key`` is given) for other inputs."""
-    path = Path(path)
-    if path.is_dir():
-        raise CacheError(f"cache path {path} is a directory, not a cache file")
-    if not path.is_file():
-        raise CacheError(f"cache file {path} does not exist")
+    # a directory, a FIFO (would block), a device or a symlink loop: refused by name
+    path = regular_file(path, "cache file", CacheError)
     try:
         with h5py.File(path, "r") as h5:
             if h5.attrs.get("format") != CACHE_FORMAT:
@@ -152,7 +149,8 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
                 stored_digest = stored_digest.decode("ascii")
             actual = file_digest(h5)
             if stored_digest != actual:
-                raise CacheError(f"{path} is corrupt: its content does not match its {DIGEST_ATTR} digest")
+                raise CacheError(f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} "
+                                 "digest; regenerate it")
             stored_key = str(h5.attrs.get("key"))
             if key is not None and stored_key != key:
                 raise CacheError(f"{path} holds results for inputs {stored_key}, not {key}")
@@ -178,53 +176,9 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
 
 
 def file_digest(h5: h5py.File) -> str:
-    """SHA-256 (hex) of everything in an open cache file except its digest attribute."""
-    sha = hashlib.sha256()
-
-    def feed(tag: bytes, payload: bytes) -> None:
-        # tag + length prefix: no two different trees serialise to the same byte stream
-        sha.update(tag + len(payload).to_bytes(8, "little"))
-        sha.update(payload)
-
-    def attrs(where: str, obj: h5py.HLObject, skip: str | None) -> None:
-        for name in sorted(obj.attrs.keys()):
-            if name == skip:
-                continue
-            feed(b"A", f"{where}@{name}".encode())
-            feed(b"V", _value_bytes(obj.attrs[name]))
-
-    def walk(where: str, group: h5py.Group, skip: str | None = None) -> None:
-        attrs(where, group, skip)
-        for name in sorted(group.keys()):
-            obj = group[name]
-            child = f"{where}/{name}"
-            if isinstance(obj, h5py.Group):
-                feed(b"G", child.encode())
-                walk(child, obj)
-            elif isinstance(obj, h5py.Dataset):
-                feed(b"D", child.encode())
-                feed(b"V", _value_bytes(obj[()]))
-                attrs(child, obj, None)
-            else:
-                # load_entry names the file when it turns this into a CacheError
-                raise ValueError(f"unexpected HDF5 object {child!r} of type {type(obj).__name__}")
-
-    walk("", h5, skip=DIGEST_ATTR)
-    return sha.hexdigest()
-
-
-def _value_bytes(value: Any) -> bytes:
-    """Canonical bytes of an attribute or dataset value as h5py returns it."""
-    if isinstance(value, str):
-        return b"s" + value.encode("utf-8")
-    if isinstance(value, bytes):
-        return b"b" + value
-    array = np.asarray(value)
-    header = f"{array.dtype.str}{array.shape}".encode()
-    if array.dtype.hasobject:
-        parts = [_value_bytes(item) for item in array.ravel()]
-        return b"o" + header + b"".join(len(p).to_bytes(8, "little") + p for p in parts)
-    return b"n" + len(header).to_bytes(2, "little") + header + np.ascontiguousarray(array).tobytes()
+    """SHA-256 (hex) of everything in an open cache file except its digest attribute
+    (:func:`coupling.files.h5_digest`, shared with the velocity-table files)."""
+    return h5_digest(h5)
 
 
 def try_load_entry(path: str | os.PathLike, key: str | None = None) -> tuple[CacheEntry | None, str]:

@@ -59,10 +59,26 @@ import h5py
 import numpy as np
 
 from coupling.errors import TableError, os_reason
+from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5
 
 SCHEMA_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 GROUP = "velocity_table"
+#: Root attribute ``format`` of a table file written by :func:`write_table` (it also carries
+#: the ``sha256`` digest of :func:`coupling.files.h5_digest`).
+TABLE_FORMAT = "pbmdem-table"
+#: Physical bounds on a table's values, beyond which it is a corrupted file or a unit error,
+#: not a blender. Speeds: 100 m/s is 45x the fastest particle of these runs (2.2 m/s, smoke
+#: preset) and 75x the blade-tip speed of the paper's 250 rpm in a 100 mm barrel (1.3 m/s);
+#: a bladed powder blender with particles at 100 m/s is not a granular flow any DEM here
+#: resolves. Rates: 1e5 /s is above 1 / the DEM timestep (2e4 /s at 5e-5 s): no simulation
+#: can observe a faster transition. Sizes: compartment edges within 1 km, window times within
+#: 1e9 s (32 years), counts and samples below 2**53 (exact in float64).
+MAX_SPEED_M_S = 100.0
+MAX_RATE_PER_S = 1e5
+MAX_EDGE_M = 1e3
+MAX_TIME_S = 1e9
+MAX_COUNT = float(2**53)
 VELOCITY_NAMES = ("vx_pos", "vx_neg", "vy_pos", "vy_neg")
 # In the order of VELOCITY_NAMES: rate_x_pos plays the role of vx_pos / dx, and so on.
 RATE_NAMES = ("rate_x_pos", "rate_x_neg", "rate_y_pos", "rate_y_neg")
@@ -163,8 +179,10 @@ def _validate(table: VelocityTable) -> None:
         raise TableError(f"dataset 't' must be a non-empty 1-D array of window start times, got shape {t.shape}")
     if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
         raise TableError(f"dataset 't' must be finite and strictly increasing, got {t[:6]}...")
-    if not (np.isfinite(table.window_s) and table.window_s > 0):
-        raise TableError(f"attribute 'window_s' must be > 0 s, got {table.window_s}")
+    if np.abs(t).max() > MAX_TIME_S:
+        raise TableError(f"dataset 't' holds {t[np.argmax(np.abs(t))]:.6g} s; window times within {MAX_TIME_S:g} s are valid")
+    if not (np.isfinite(table.window_s) and 0 < table.window_s <= MAX_TIME_S):
+        raise TableError(f"attribute 'window_s' must be > 0 s (and at most {MAX_TIME_S:g} s), got {table.window_s}")
     if table.min_samples < 1:
         raise TableError(f"attribute 'min_samples' must be >= 1, got {table.min_samples}")
     for name in ("x_edges", "y_edges"):
@@ -173,9 +191,14 @@ def _validate(table: VelocityTable) -> None:
             raise TableError(f"dataset '{name}' must be 1-D with at least 2 edges, got shape {edges.shape}")
         if not np.all(np.isfinite(edges)) or np.any(np.diff(edges) <= 0):
             raise TableError(f"dataset '{name}' must be finite and strictly increasing, got {edges}")
+        if np.abs(edges).max() > MAX_EDGE_M:
+            raise TableError(f"dataset '{name}' holds {edges[np.argmax(np.abs(edges))]:.6g} m; compartment edges "
+                             f"within {MAX_EDGE_M:g} m are valid")
     shape = (t.size, table.x_edges.size - 1, table.y_edges.size - 1)
     for name in FIELD_NAMES:
         _check_field(name, getattr(table, name), shape, nan_allowed=False)
+        _check_bound(name, getattr(table, name), MAX_SPEED_M_S if name in VELOCITY_NAMES else MAX_COUNT,
+                     "m/s" if name in VELOCITY_NAMES else "")
     present = [name for name in RATE_NAMES if getattr(table, name) is not None]
     if present and len(present) < len(RATE_NAMES):
         missing = [name for name in RATE_NAMES if name not in present]
@@ -186,6 +209,35 @@ def _validate(table: VelocityTable) -> None:
     for name in present:
         # NaN is how the DEM post-processing marks a rate it observed too few transitions for.
         _check_field(name, getattr(table, name), shape, nan_allowed=True)
+        _check_bound(name, getattr(table, name), MAX_RATE_PER_S, "/s")
+
+
+def _check_bound(name: str, values: np.ndarray, bound: float, unit: str) -> None:
+    """Refuse a value beyond the physical bound of its dataset (module constants)."""
+    with np.errstate(invalid="ignore"):
+        over = values > bound
+    if over.any():
+        k, i, j = np.argwhere(over)[0]
+        raise TableError(
+            f"dataset '{name}' holds {values[k, i, j]:.6g}{' ' + unit if unit else ''} in window {k}, compartment "
+            f"({i}, {j}); values up to {bound:g}{' ' + unit if unit else ''} are physical (coupling.tables bounds)")
+
+
+def check_motion(table: VelocityTable, source: str = "") -> None:
+    """Refuse a table in which nothing moves: every velocity of every compartment-window
+    with enough samples is 0 (and no measured rate is > 0). A DEM of a turning blender never
+    gives that; it is an emptied or overwritten file, and the PBM would hold the feed forever."""
+    where = f" in {source}" if source else ""
+    valid = table.valid
+    if not valid.any():
+        raise TableError(f"no compartment-window has min_samples = {table.min_samples} samples{where}: "
+                         "the table carries no velocity information")
+    moving = any(np.any(getattr(table, name)[valid] > 0) for name in VELOCITY_NAMES)
+    if table.has_rates:
+        moving = moving or any(np.nansum(getattr(table, name)) > 0 for name in RATE_NAMES)
+    if not moving:
+        raise TableError(f"every velocity is 0 in all {int(valid.sum())} compartment-windows with samples{where}: "
+                         "a table of a moving blender needs some velocities > 0")
 
 
 def _check_field(name: str, values: np.ndarray, shape: tuple[int, ...], nan_allowed: bool) -> None:
@@ -286,6 +338,9 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     version = group.attrs.get("schema_version")
     if version is None:
         raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
+    if isinstance(version, (bool, np.bool_)) or not isinstance(version, (int, np.integer)):
+        raise TableError(f"attribute 'schema_version' = {version!r} ({type(version).__name__}){where} is not an "
+                         f"integer; valid versions: {READABLE_VERSIONS}")
     if int(version) not in READABLE_VERSIONS:
         raise TableError(
             f"unknown velocity-table schema_version {int(version)}{where}; this version reads {READABLE_VERSIONS}"
@@ -304,15 +359,20 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
             raise TableError(f"attribute '{name}' is missing{where}")
     reserved = {"schema_version", "window_s", "min_samples", "units"}
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
+    min_samples = group.attrs["min_samples"]
+    if isinstance(min_samples, (bool, np.bool_)) or not isinstance(min_samples, (int, np.integer)):
+        raise TableError(f"attribute 'min_samples' = {min_samples!r}{where} is not an integer; an integer >= 1 is needed")
     try:
-        return VelocityTable(
+        table = VelocityTable(
             **arrays,
             window_s=float(group.attrs["window_s"]),
-            min_samples=int(group.attrs["min_samples"]),
+            min_samples=int(min_samples),
             attrs=attrs,
         )
     except TableError as exc:
         raise TableError(f"{exc}{where}") from None
+    check_motion(table, source)
+    return table
 
 
 def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:
@@ -321,27 +381,27 @@ def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:
     try:
         with atomic_h5(path) as h5:
             table_to_group(h5.create_group(GROUP), table)
+            h5.attrs[FORMAT_ATTR] = TABLE_FORMAT
+            h5.attrs[DIGEST_ATTR] = h5_digest(h5)  # last: over everything written above
     except OSError as exc:
         raise TableError(f"cannot write velocity table {path}: {os_reason(exc)}") from exc
     return path
 
 
 def read_table(path: str | os.PathLike) -> VelocityTable:
-    """Read the velocity table stored in ``path`` (its ``velocity_table`` group)."""
+    """Read the velocity table stored in ``path`` (its ``velocity_table`` group): a table
+    file or a cache / results file (:mod:`coupling.cache`). The file goes through the one
+    verified loader (:func:`coupling.files.open_verified_h5`): a regular file, its digest
+    checked when it has one (every file this project writes does; a digest mismatch is
+    refused naming the file). Raises TableError naming the file and the problem."""
     path = Path(path)
-    if path.is_dir():
-        raise TableError(f"velocity table path {path} is a directory, not an HDF5 file")
-    if not path.is_file():
-        raise TableError(f"velocity table file {path} does not exist")
     try:
-        with h5py.File(path, "r") as h5:
+        with open_verified_h5(path, "velocity table file", TableError) as h5:
             if GROUP not in h5:
                 raise TableError(f"{path} has no '{GROUP}' group; groups present: {sorted(h5.keys())}")
             return table_from_group(h5[GROUP], source=str(path))
     except TableError:
         raise
-    except OSError as exc:
-        raise TableError(f"{path} is not a readable HDF5 file: {exc}") from exc
     except Exception as exc:  # noqa: BLE001 - h5py and numpy raise many types on damaged files
         # RuntimeError ("bad local heap signature"), KeyError, ValueError, UnicodeDecodeError...
         # from a damaged file all mean the same: this file holds no usable table.

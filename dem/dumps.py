@@ -27,8 +27,10 @@ value for a bad atom field). Checked: header bytes (column names are ASCII), ste
 counts in [0, 2**63), box bounds (two finite numbers lo < hi per axis; three, the last the
 tilt factor, for a triclinic ``BOX BOUNDS xy xz yz`` header), every field a number, no NaN,
 no infinity in the columns the caller asks for (all columns if it names none), ``id`` and
-``type`` integers >= 1 (ids up to 2**53, types up to 2**31 - 1), positions x, y, z within
-one box length of the box. The checks are vector reductions over each parsed snapshot; the
+``type`` integers >= 1 (ids up to 2**53, types up to 2**31 - 1), no id twice in one
+snapshot (the error names the file, the step, the id and both lines), positions x, y, z
+within one box length of the box. Every path must be a regular file: a FIFO matched by a
+glob would block the reader forever, a symlink loop would raise deep inside it. The checks are vector reductions over each parsed snapshot; the
 line and column are found by a slow scan only once a check has failed.
 
 One module for one file format: the header parser, the block parser and the error
@@ -53,6 +55,8 @@ import numpy as np
 import pandas as pd
 
 from coupling.errors import DumpFormatError
+from coupling.files import regular_file
+from coupling.tables import MAX_SPEED_M_S
 
 __all__ = [
     "Snapshot",
@@ -117,6 +121,8 @@ def dump_paths(pattern: str | os.PathLike | Sequence[str | os.PathLike]) -> list
         parts = re.split(r"(\d+)", path.name)
         return [int(p) if p.isdigit() else p for p in parts], str(path)
 
+    for path in paths:
+        regular_file(path, "dump file", DumpFormatError)
     return sorted(paths, key=key)
 
 
@@ -139,6 +145,8 @@ def iter_snapshots(
         files = dump_paths(paths) if any(c in str(paths) for c in "*?[") else [Path(paths)]
     else:
         files = [Path(p) for p in paths]
+    for path in files:  # a FIFO would block the reader forever; a loop, a device: one line
+        regular_file(path, "dump file", DumpFormatError)
     if threads is None:
         # parsing ahead pays off for big snapshot files (paper preset: ~1.5 MB); for small
         # ones the thread hand-off costs more than it saves (measured, bench_dem_post)
@@ -301,6 +309,7 @@ def _parse_single(buf, size: int, path: Path, checked=None) -> Snapshot | None:
     values = _checked_values(frame.to_numpy(), natoms, columns, checked, box)
     if values is None:
         return None
+    _refuse_duplicate_ids(values, columns, path, step, header_lines + 1)
     return Snapshot(step=step, columns=columns, data=values, box=box, source=str(path))
 
 
@@ -315,6 +324,11 @@ _INTEGER_COLUMNS = {"id": _MAX_ID, "type": _MAX_TYPE}
 #: side accepts any such position and refuses a corrupted one (1e300 would count as a
 #: discharge).
 _POSITION_AXES = {"x": 0, "y": 1, "z": 2}
+#: Velocities: at most coupling.tables.MAX_SPEED_M_S (100 m/s) in magnitude per component: a
+#: particle faster than that in a bladed blender is an exploded simulation or a corrupted
+#: field, and one such value would dominate its compartment's mean (the table refuses the
+#: same bound).
+_VELOCITY_COLUMNS = ("vx", "vy", "vz")
 #: Steps are LIGGGHTS' ``bigint`` (int64).
 _MAX_STEP = 2**63 - 1
 
@@ -354,7 +368,39 @@ def _checked_values(values: np.ndarray, natoms: int, columns: tuple[str, ...], c
             v = values[:, columns.index(name)]
             if v.min() < low or v.max() > high:
                 return None
+    for name in _VELOCITY_COLUMNS:
+        if name in columns:
+            v = values[:, columns.index(name)]
+            if v.min() < -MAX_SPEED_M_S or v.max() > MAX_SPEED_M_S:
+                return None
     return values
+
+
+def _refuse_duplicate_ids(values: np.ndarray, columns: tuple[str, ...], path: Path, step: int, first_line: int) -> None:
+    """DumpFormatError naming the file, the step, the id and both lines if an id occurs
+    twice in the snapshot (a LIGGGHTS atom id is unique: a repeated one is a corrupted or
+    concatenated dump, and would count a particle twice in the hold-up). ``first_line``:
+    the file line of the snapshot's first atom."""
+    if "id" not in columns or values.shape[0] < 2:
+        return
+    ids = values[:, columns.index("id")].astype(np.int64)  # checked: integers in [1, 2**53]
+    n = ids.size
+    top = int(ids.max())
+    if top <= 8 * n + (1 << 20):  # the usual case: ids near 1..N, one bincount
+        if np.bincount(ids, minlength=top + 1).max() <= 1:
+            return
+    order = np.argsort(ids, kind="stable")
+    ranked = ids[order]
+    same = np.flatnonzero(ranked[1:] == ranked[:-1])
+    if not same.size:
+        return
+    # the repeat that comes first in the file
+    seconds = order[same + 1]
+    k = int(np.argmin(seconds))
+    second, first = int(seconds[k]), int(order[same[k]])
+    raise DumpFormatError(
+        f"{path}: line {first_line + second}: snapshot at step {step} lists atom id {int(ids[second])} twice "
+        f"(lines {first_line + first} and {first_line + second}); every id must be unique within a snapshot")
 
 
 def _field_problem(name: str, text: bytes, checked, box: np.ndarray) -> str | None:
@@ -372,6 +418,9 @@ def _field_problem(name: str, text: bytes, checked, box: np.ndarray) -> str | No
     bound = _INTEGER_COLUMNS.get(name)
     if bound is not None and not (1 <= value <= bound and value == math.floor(value)):
         return f"column {name!r}: {shown!r} is not a valid {name}; an integer in [1, {int(bound)}] is needed"
+    if name in _VELOCITY_COLUMNS and math.isfinite(value) and abs(value) > MAX_SPEED_M_S:
+        return (f"column {name!r}: {shown!r} m/s is not a particle velocity of a blender; |{name}| up to "
+                f"{MAX_SPEED_M_S:g} m/s is accepted")
     axis = _POSITION_AXES.get(name)
     if axis is not None and math.isfinite(value):
         low, high = _position_range(box, axis)
@@ -458,6 +507,8 @@ def _parse_snapshot(buf, pos: int, size: int, path: Path, checked=None) -> tuple
     block = bytes(buf[body_start:end])
     at_eof = end == size
     data = _parse_block(block, natoms, columns, path, buf, body_start, at_eof, checked, box)
+    if natoms > 1 and "id" in columns:
+        _refuse_duplicate_ids(data, columns, path, step, _line_of(buf, body_start))
     return Snapshot(step=step, columns=columns, data=data, box=box, source=str(path)), end
 
 

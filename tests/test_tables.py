@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from coupling.errors import TableError
+from coupling.files import sign_h5
 from coupling.tables import RATE_NAMES, SCHEMA_VERSION, make_table, read_table, write_table
 
 
@@ -70,11 +71,13 @@ def test_missing_dataset_and_unknown_schema_are_refused(tmp_path, rng):
     path = write_table(tmp_path / "t.h5", _table(rng))
     with h5py.File(path, "a") as h5:
         del h5["velocity_table/vy_pos"]
+    sign_h5(path)  # an edit on purpose: signed again, so the check under test is reached
     with pytest.raises(TableError, match="dataset 'vy_pos' is missing"):
         read_table(path)
     path = write_table(tmp_path / "u.h5", _table(rng))
     with h5py.File(path, "a") as h5:
         h5["velocity_table"].attrs["schema_version"] = 99
+    sign_h5(path)  # an edit on purpose: signed again, so the check under test is reached
     with pytest.raises(TableError, match="unknown velocity-table schema_version 99"):
         read_table(path)
     (tmp_path / "junk.h5").write_text("not hdf5")
@@ -133,6 +136,7 @@ def test_version_1_files_still_read(tmp_path, rng):
     path = write_table(tmp_path / "v1.h5", table)
     with h5py.File(path, "a") as h5:  # exactly what version 1 wrote: no rates, schema_version 1
         h5["velocity_table"].attrs["schema_version"] = 1
+    sign_h5(path)  # an edit on purpose: signed again, so the check under test is reached
     back = read_table(path)
     assert not back.has_rates
     np.testing.assert_array_equal(back.vx_pos, table.vx_pos)
@@ -146,6 +150,7 @@ def test_rates_are_all_four_or_none(tmp_path, rng):
     path = write_table(tmp_path / "t.h5", _table(rng).replace(**rates))
     with h5py.File(path, "a") as h5:
         del h5["velocity_table/rate_x_neg"]
+    sign_h5(path)  # an edit on purpose: signed again, so the check under test is reached
     with pytest.raises(TableError, match=r"\['rate_x_neg'\] missing.*all four.*t.h5"):
         read_table(path)
 

@@ -1,0 +1,263 @@
+"""Paths and HDF5 files at the tool's entrances: one place that checks them.
+
+* :func:`regular_file` -- an input file: exists, is a regular file (a FIFO would block a
+  reader forever, a device or socket is no data file), no symlink loop on the way.
+* :func:`input_directory` / :func:`output_directory_path` -- a directory given by the
+  user (``--runs-dir``, ``--massflow-dir``): no symlink loop, a directory.
+* :func:`refuse_output_over_inputs` -- an output path that is one of the command's inputs
+  (resolved, symlinks and hard links followed) is refused before anything is written.
+* :func:`open_verified_h5` -- the one loader of every HDF5 file the tool reads (velocity
+  tables given with ``--tables``, caches, shipped reference and campaign results): it
+  checks the path as above and, when the file carries the ``sha256`` integrity digest
+  (:func:`h5_digest`; every file this project writes does), recomputes it before anything
+  is parsed. A digest mismatch is refused with one line naming the file.
+
+Every check raises one of :mod:`coupling.errors`' types (the caller chooses which, so a
+table reader raises TableError and the cache CacheError) with one line naming the path and
+what would have been valid.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import stat
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coupling.errors import OutputError, PbmDemError, os_reason
+
+__all__ = ["DIGEST_ATTR", "FORMAT_ATTR", "h5_digest", "input_directory", "open_verified_h5", "output_directory_path",
+           "refuse_output_over_inputs", "regular_file", "resolved"]
+
+#: Root attribute holding the SHA-256 of the file's canonical content (:func:`h5_digest`).
+DIGEST_ATTR = "sha256"
+#: Root attribute naming a file this project wrote ("pbmdem-cache", "pbmdem-table"): a file
+#: that says it is ours must carry its digest.
+FORMAT_ATTR = "format"
+OUR_FORMATS = ("pbmdem-cache", "pbmdem-table")
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def resolved(path: str | os.PathLike, what: str, error: type[Exception] = PbmDemError) -> Path:
+    """``path`` with every symlink followed (need not exist); a symlink loop raises
+    ``error`` naming the path, in one line."""
+    try:
+        return Path(path).resolve()
+    except RuntimeError as exc:  # Python 3.11: "Symlink loop from '...'"
+        raise error(f"{what} {path} is a symlink loop ({exc}); give a path that leads to a real file or directory") from None
+    except OSError as exc:
+        raise error(f"{what} {path}: {os_reason(exc)}") from None
+
+
+def regular_file(path: str | os.PathLike, what: str, error: type[Exception] = PbmDemError) -> Path:
+    """``path`` if it is an existing regular file (symlinks followed). Raises ``error``
+    naming the path for a missing file, a directory, a FIFO or device, a symlink loop, or
+    a file that cannot be examined."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise error(f"{what} {path} is a symlink loop; give a path that leads to a real file") from None
+        if exc.errno == errno.ENOENT:
+            raise error(f"{what} {path} does not exist") from None
+        raise error(f"{what} {path}: {os_reason(exc)}") from None
+    if not stat.S_ISREG(mode):
+        raise error(f"{what} {path} is {_kind(mode)}, not a regular file; give a regular file") from None
+    return path
+
+
+def input_directory(path: str | os.PathLike, what: str, error: type[Exception] = PbmDemError) -> Path:
+    """``path`` if it is an existing directory (symlinks followed); else ``error`` naming it
+    (missing, a file, a symlink loop)."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise error(f"{what} {path} is a symlink loop; give a real directory") from None
+        if exc.errno == errno.ENOENT:
+            raise error(f"{what} {path} does not exist; give an existing directory") from None
+        raise error(f"{what} {path}: {os_reason(exc)}") from None
+    if not stat.S_ISDIR(mode):
+        raise error(f"{what} {path} is {_kind(mode) if not stat.S_ISREG(mode) else 'a file'}, not a directory")
+    return path
+
+
+def output_directory_path(path: str | os.PathLike, what: str, error: type[Exception] = OutputError) -> Path:
+    """``path`` for a directory that will be created if missing (``--runs-dir``,
+    ``--out``): refused when it, or any parent on the way, is a symlink loop or exists as
+    something other than a directory. Nothing is created here."""
+    path = Path(path)
+    resolved(path, what, error)  # loops anywhere on the way
+    probe = path
+    while True:
+        try:
+            mode = os.stat(probe).st_mode
+        except FileNotFoundError:
+            if probe.parent == probe:
+                break
+            probe = probe.parent
+            continue
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise error(f"{what} {path}: {probe} is a symlink loop; give a real directory") from None
+            raise error(f"{what} {path}: {os_reason(exc)}") from None
+        if not stat.S_ISDIR(mode):
+            raise error(f"{what} {path}: {probe} is {_kind(mode) if not stat.S_ISREG(mode) else 'a file'}, "
+                        "not a directory")
+        break
+    return path
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def refuse_output_over_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike | None], what: str = "output",
+                              error: type[Exception] = OutputError) -> Path:
+    """``out`` unless it names one of ``inputs`` (after following symlinks, or the same
+    file through a hard link), or a directory holding one of them when ``out`` is a
+    directory to be cleared. Raises ``error`` naming both, before anything is written.
+    ``None`` inputs are skipped."""
+    out_path = resolved(out, what, error)
+    for item in inputs:
+        if item is None:
+            continue
+        source = resolved(item, "input", error)
+        if source == out_path or (out_path.exists() and source.exists() and _same_file(source, out_path)):
+            raise error(f"{what} {out} is one of this command's inputs ({item}); writing it would destroy the "
+                        "input: give another output path")
+    return out_path
+
+
+# ----------------------------------------------------------------------------- HDF5
+def h5_digest(h5) -> str:
+    """SHA-256 (hex) of everything in an open HDF5 file except its :data:`DIGEST_ATTR`:
+    every group, every dataset's dtype, shape and bytes, and every attribute's name and
+    value, walked in sorted order, each item length-prefixed (no two different trees
+    serialise to the same byte stream)."""
+    import h5py
+
+    sha = hashlib.sha256()
+
+    def feed(tag: bytes, payload: bytes) -> None:
+        sha.update(tag + len(payload).to_bytes(8, "little"))
+        sha.update(payload)
+
+    def attrs(where: str, obj, skip: str | None) -> None:
+        for name in sorted(obj.attrs.keys()):
+            if name == skip:
+                continue
+            feed(b"A", f"{where}@{name}".encode())
+            feed(b"V", _value_bytes(obj.attrs[name]))
+
+    def walk(where: str, group, skip: str | None = None) -> None:
+        attrs(where, group, skip)
+        for name in sorted(group.keys()):
+            obj = group[name]
+            child = f"{where}/{name}"
+            if isinstance(obj, h5py.Group):
+                feed(b"G", child.encode())
+                walk(child, obj)
+            elif isinstance(obj, h5py.Dataset):
+                feed(b"D", child.encode())
+                feed(b"V", _value_bytes(obj[()]))
+                attrs(child, obj, None)
+            else:
+                raise ValueError(f"unexpected HDF5 object {child!r} of type {type(obj).__name__}")
+
+    walk("", h5, skip=DIGEST_ATTR)
+    return sha.hexdigest()
+
+
+def _value_bytes(value: Any) -> bytes:
+    """Canonical bytes of an attribute or dataset value as h5py returns it."""
+    if isinstance(value, str):
+        return b"s" + value.encode("utf-8")
+    if isinstance(value, bytes):
+        return b"b" + value
+    array = np.asarray(value)
+    header = f"{array.dtype.str}{array.shape}".encode()
+    if array.dtype.hasobject:
+        parts = [_value_bytes(item) for item in array.ravel()]
+        return b"o" + header + b"".join(len(p).to_bytes(8, "little") + p for p in parts)
+    return b"n" + len(header).to_bytes(2, "little") + header + np.ascontiguousarray(array).tobytes()
+
+
+def stored_digest(h5) -> str | None:
+    value = h5.attrs.get(DIGEST_ATTR)
+    if value is None:
+        return None
+    if isinstance(value, bytes):
+        value = value.decode("ascii", errors="replace")
+    return str(value)
+
+
+def verify_digest(h5, path: str | os.PathLike, error: type[Exception] = PbmDemError, required: bool = False) -> bool:
+    """Check the digest of an open file: True when it carries one and it matches. A
+    mismatch raises ``error`` naming the file; so does a missing digest when ``required``
+    or when the file says it was written by this project (:data:`OUR_FORMATS`)."""
+    digest = stored_digest(h5)
+    if digest is None:
+        fmt = h5.attrs.get(FORMAT_ATTR)
+        fmt = fmt.decode(errors="replace") if isinstance(fmt, bytes) else fmt
+        if required or fmt in OUR_FORMATS:
+            raise error(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed, or "
+                        "the digest was removed); regenerate the file")
+        return False
+    if digest != h5_digest(h5):
+        raise error(f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} digest; "
+                    "regenerate the file")
+    return True
+
+
+@contextmanager
+def open_verified_h5(path: str | os.PathLike, what: str, error: type[Exception] = PbmDemError,
+                     digest_required: bool = False) -> Iterator[Any]:
+    """The one way this project opens an HDF5 file for reading: ``path`` checked
+    (:func:`regular_file`), opened, and its digest verified (:func:`verify_digest`) before
+    the block sees it. Any failure of h5py (a damaged or foreign file raises OSError,
+    RuntimeError, KeyError, ...) becomes ``error`` naming the file."""
+    path = regular_file(path, what, error)
+    import h5py
+
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as exc:
+        raise error(f"{what} {path} is not a readable HDF5 file: {' '.join(str(exc).split())}") from None
+    with handle as h5:
+        try:
+            verify_digest(h5, path, error, required=digest_required)
+        except PbmDemError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a damaged file surfaces as many types
+            raise error(f"{path} is corrupt or unreadable: {type(exc).__name__}: {' '.join(str(exc).split())}") from None
+        yield h5
+
+
+def sign_h5(path: str | os.PathLike) -> None:
+    """Write the digest of the file at ``path`` into it (root :data:`DIGEST_ATTR`): for a
+    file edited on purpose (a migration tool, a test that builds a damaged-but-signed file).
+    The digest guards against accidents -- a partial copy, a stray edit -- not against
+    someone who means to change the data."""
+    import h5py
+
+    with h5py.File(path, "a") as h5:
+        h5.attrs[DIGEST_ATTR] = h5_digest(h5)
