@@ -9,7 +9,10 @@ checks that need geometry (blade clearance, feed zones clear of the blades) live
 from __future__ import annotations
 
 import math
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+import shlex
+import string
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 
 def _is_prime(n: int) -> bool:
@@ -20,8 +23,12 @@ def _is_prime(n: int) -> bool:
 
 class _Section(BaseModel):
     # allow_inf_nan=False: an infinite feed rate or a NaN feed height would otherwise pass
-    # every gt/ge bound (or none is given) and be written into the LIGGGHTS deck verbatim
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # every gt/ge bound (or none is given) and be written into the LIGGGHTS deck verbatim.
+    # strict=True: no coercion. A boolean or a string where a number belongs (`np = true`,
+    # `nx = "10"`, `duration_s = true`) and a float where an integer belongs (`nx = 1e9`)
+    # are refused naming the key instead of being read as 1, 10 or 1000000000; an integer
+    # is still a valid float.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
 
 class GeometryConfig(_Section):
@@ -238,6 +245,53 @@ class RunConfig(_Section):
     np: int = Field(1, ge=1)
     launcher: str = "mpirun --allow-run-as-root -np {np}"
     liggghts: str = "liggghts"
+
+    @field_validator("launcher")
+    @classmethod
+    def _launcher_template(cls, launcher: str) -> str:
+        """Checked when the configuration is loaded, not when a run starts: the only field is
+        ``{np}``, braces balanced, quotes closed."""
+        return check_launcher(launcher)
+
+    @field_validator("liggghts")
+    @classmethod
+    def _liggghts_command(cls, liggghts: str) -> str:
+        try:
+            words = shlex.split(liggghts)
+        except ValueError as exc:
+            raise ValueError(f"is not a valid command line ({exc}); e.g. \"liggghts\"") from None
+        if not words:
+            raise ValueError("is empty; the LIGGGHTS command is needed, e.g. \"liggghts\" or \"/opt/bin/lmp_auto\"")
+        return liggghts
+
+
+#: The fields a launcher template may use.
+LAUNCHER_FIELDS = ("np",)
+
+
+def check_launcher(launcher: str) -> str:
+    """``launcher`` if it is a valid template (e.g. ``"mpirun -np {np}"``, ``"srun"``, ``""``):
+    only the field ``{np}`` (no conversion or format spec), balanced braces (``{{``/``}}`` for
+    literal ones), and a command line that shlex can split once filled in. Raises
+    ValueError saying what is wrong and what is valid."""
+    valid = f"the only field is {{np}} (the number of MPI ranks), e.g. \"mpirun -np {{np}}\" or \"srun\""
+    try:
+        parts = list(string.Formatter().parse(launcher))
+    except ValueError as exc:
+        raise ValueError(f"is not a valid template ({exc}); {valid}; write literal braces as {{{{ }}}}") from None
+    for _, name, spec, conversion in parts:
+        if name is None:
+            continue
+        if name not in LAUNCHER_FIELDS:
+            raise ValueError(f"uses the unknown field {{{name}}}; {valid}")
+        if spec or conversion:
+            raise ValueError(f"field {{{name}{'!' + conversion if conversion else ''}{':' + spec if spec else ''}}} "
+                             f"has a conversion or format spec; write it as plain {{{name}}}")
+    try:
+        shlex.split(launcher.format(np=1))
+    except ValueError as exc:
+        raise ValueError(f"is not a valid command line ({exc}); close every quote") from None
+    return launcher
 
 
 class TablesConfig(_Section):

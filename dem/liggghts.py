@@ -38,6 +38,41 @@ __all__ = ["INSTALL_HINT", "SolverResult", "launch_command", "liggghts_version",
 INSTALL_HINT = "install it with `apt-get install liggghts openmpi-bin` (or `make setup`)"
 
 
+def check_tmpdir(environ=None) -> None:
+    """Open MPI (which Debian's LIGGGHTS is linked against, even on one rank) creates its
+    session directory under ``$TMPDIR`` and aborts before LIGGGHTS prints anything when it
+    cannot: refuse a TMPDIR that is not an existing, writable directory, naming it.
+    Raises SolverRunError."""
+    environ = os.environ if environ is None else environ
+    tmpdir = environ.get("TMPDIR")
+    if not tmpdir:
+        return
+    probe = tmpdir
+    while not os.path.lexists(probe):  # Open MPI creates a missing TMPDIR (mkdir -p) if it can
+        parent = os.path.dirname(os.path.abspath(probe))
+        if parent == probe:
+            break
+        probe = parent
+    if not os.path.isdir(probe):
+        why = f"is not a directory ({probe} is a file)" if probe != tmpdir else "is not a directory"
+        raise SolverRunError(f"TMPDIR={tmpdir} {why}: Open MPI creates its session directory there and LIGGGHTS "
+                             "cannot start; set TMPDIR to a writable directory (or unset it for /tmp)")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise SolverRunError(f"TMPDIR={tmpdir} is not writable: Open MPI creates its session directory there and "
+                             "LIGGGHTS cannot start; set TMPDIR to a writable directory (or unset it for /tmp)")
+
+
+def _mpi_session_failure(output: str) -> str | None:
+    """The directory named by Open MPI's "unable to create the desired directory" message,
+    or None when the output is not that failure."""
+    if "session_dir" not in output and "unable to create the desired directory" not in output:
+        return None
+    match = re.search(r"Directory:\s*(\S+)", output)
+    error = re.search(r"Error:\s*(.+)", output)
+    where = match.group(1) if match else "its session directory"
+    return f"{where}" + (f" ({error.group(1).strip()})" if error else "")
+
+
 # ----------------------------------------------------------------------------- the command
 def liggghts_version(liggghts: str = "liggghts") -> str:
     """The banner of ``liggghts -h`` (e.g. 'LIGGGHTS-PUBLIC 3.8.0, compiled ...').
@@ -46,6 +81,7 @@ def liggghts_version(liggghts: str = "liggghts") -> str:
     exe = shlex.split(liggghts)
     if not exe or shutil.which(exe[0]) is None:
         raise SolverNotFoundError(f"LIGGGHTS executable {liggghts!r} not found on PATH; {INSTALL_HINT}")
+    check_tmpdir()
     try:
         # -log none: otherwise `liggghts -h` leaves a log.liggghts in the caller's directory
         out = subprocess.run([*exe, "-log", "none", "-h"], capture_output=True, text=True, errors="replace",
@@ -53,6 +89,10 @@ def liggghts_version(liggghts: str = "liggghts") -> str:
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise SolverNotFoundError(f"cannot run {liggghts!r} -h: {exc}; {INSTALL_HINT}") from exc
     match = re.search(r"LIGGGHTS \(Version ([^)]*)\)", out.stdout + out.stderr)
+    session = None if match else _mpi_session_failure(out.stdout + out.stderr)
+    if session is not None:
+        raise SolverRunError(f"LIGGGHTS is installed but could not start: Open MPI could not create {session}; "
+                             "set TMPDIR to a writable directory")
     if not match:
         raise SolverNotFoundError(f"{liggghts!r} -h did not print a LIGGGHTS version banner; {INSTALL_HINT}")
     return match.group(1).strip()
@@ -82,6 +122,7 @@ def solver_command(run_config, np: int | None = None, main_input: str = MAIN_DEC
 
     Raises SolverNotFoundError naming the missing executable."""
     prefix = _launcher(run_config, np)
+    check_tmpdir()
     if prefix and shutil.which(prefix[0]) is None:
         raise SolverNotFoundError(f"MPI launcher {prefix[0]!r} not found on PATH; {INSTALL_HINT}")
     exe = shlex.split(run_config.liggghts)

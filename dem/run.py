@@ -46,6 +46,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -60,8 +61,8 @@ from dem.config import DemConfig
 from dem.liggghts import liggghts_version, run_solver, solver_command, text_tail
 from dem.liggghts_log import ThermoParser
 
-__all__ = ["RunInputs", "RunRecord", "prepare_run", "run_dem", "run_key", "liggghts_version", "solver_command",
-           "read_status"]
+__all__ = ["RunInputs", "RunRecord", "diagnose_stale_status", "last_thermo_step", "prepare_run", "read_status",
+           "run_dem", "run_key", "liggghts_version", "solver_command", "solver_counters"]
 
 STATUS_FILE = "status.json"
 SOLVER_OUT = "solver.out"
@@ -190,13 +191,13 @@ def run_dem(
         inputs = replace(inputs, liggghts_version=version, key=run_key(inputs.files, version))
     key = inputs.key
     run_dir = Path(runs_root) / key
-    status = read_status(run_dir)
+    status = diagnose_stale_status(run_dir, read_status(run_dir), resume=resume)
     nprocs = int(np if np is not None else config.run.np)
     # Every argument and program is checked before anything in the run directory changes:
     # a typo must never cost the outputs of an interrupted run.
     command = solver_command(config.run, nprocs, deck.RESUME_DECK if resume else deck.MAIN_DECK)
-    if status and status.get("state") == "running" and _alive(status):
-        raise SolverRunError(f"run {key} is already running (pid {status.get('solver_pid') or status.get('pid')})",
+    if status and status.get("state") == "running":
+        raise SolverRunError(f"run {key} is already running ({_liveness(status)[1]}); wait for it, or stop it first",
                              run_dir=run_dir)
     if fresh and run_dir.exists():
         shutil.rmtree(run_dir)
@@ -219,7 +220,7 @@ def run_dem(
     base = {"key": key, "deck_hash": inputs.deck_hash, "liggghts_version": inputs.liggghts_version,
             "command": command, "np": nprocs, "started": started, "resumed_from": resumed_from,
             "previous": status if resume else None}
-    _write_status(run_dir, {**base, "state": "running", "pid": os.getpid()})
+    _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid())})
     if resume:
         with open(run_dir / SOLVER_OUT, "a") as out:
             out.write(f"\n# --- resumed from {resumed_from} at {started} ---\n")
@@ -235,7 +236,8 @@ def run_dem(
             bar.update(parser.step * dt, parser.atoms, parser.discharged)
 
     def solver_started(pid: int) -> None:
-        _write_status(run_dir, {**base, "state": "running", "pid": os.getpid(), "solver_pid": pid})
+        _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid()),
+                                "solver_pid": pid, "solver_start_ticks": _start_ticks(pid)})
 
     # wall time accumulates over the attempts of a resumed run
     prior_wall = float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0
@@ -281,9 +283,11 @@ def run_dem(
 # ----------------------------------------------------------------------------- run directory
 @contextmanager
 def _terminate_as_interrupt():
-    """SIGTERM (a scheduler's or ``timeout``'s stop) is handled like Ctrl-C while the solver
-    runs: every rank is stopped, the run is marked interrupted and can be resumed. Only the
-    main thread can own a signal handler; elsewhere the default stays."""
+    """SIGTERM (a scheduler's or ``timeout``'s stop) and SIGHUP (the terminal or ssh session
+    closed) are handled like Ctrl-C while the solver runs: every rank is stopped, the run is
+    marked interrupted and can be resumed. Only the main thread can own a signal handler;
+    elsewhere the default stays. SIGKILL cannot be caught: :func:`diagnose_stale_status`
+    recognises the "running" status it leaves."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -291,11 +295,12 @@ def _terminate_as_interrupt():
     def interrupt(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _refuse_to_discard(run_dir: Path, key: str, status: dict[str, Any] | None) -> None:
@@ -305,6 +310,8 @@ def _refuse_to_discard(run_dir: Path, key: str, status: dict[str, Any] | None) -
     restarts = list(run_dir.glob(deck.RESTART_GLOB))
     if dumps or restarts:
         state = (status or {}).get("state", "unknown")
+        if (status or {}).get("error"):
+            state += f": {status['error']}"
         raise SolverRunError(
             f"run {key} stopped ({state}) with {len(dumps)} dumps and {len(restarts)} restart files in {run_dir}; "
             "continue it with --resume (resume=True) or discard it and start again with --fresh (fresh=True)",
@@ -331,19 +338,52 @@ def _restart_files(run_dir: Path) -> list[Path]:
 
     A restart file carries no end marker, and a run killed while writing one leaves it
     truncated. LIGGGHTS writes a step's restart before that step's thermo line, so a restart
-    at step S is complete once solver.out shows a thermo row at a step >= S; newer ones
-    are ignored (the resume then starts from an older restart: safe, a little slower)."""
+    at step S is complete once the solver's log shows a thermo row at a step >= S; newer
+    ones are ignored (the resume then starts from an older restart: safe, a little slower).
+    The log judged is LIGGGHTS' own ``log.liggghts`` (written by the solver itself, so it
+    survives the death of the Python process that copied its output: after SIGHUP or
+    SIGKILL solver.out lacks the rows the solver printed after its reader died), together
+    with solver.out and the earlier attempts' logs: the newest step any of them shows."""
     files = [p for p in run_dir.glob(deck.RESTART_GLOB) if p.is_file() and p.stat().st_size > 0]
-    parser = ThermoParser()
-    last_step = -1
-    try:
-        with open(run_dir / SOLVER_OUT, errors="replace") as handle:
-            for line in handle:
-                if parser.feed(line) and parser.step is not None:
-                    last_step = max(last_step, parser.step)
-    except OSError:
-        return []
+    last_step = last_thermo_step(run_dir)
     return sorted((p for p in files if _step_of(p) <= last_step), key=_step_of)
+
+
+def last_thermo_step(run_dir: str | os.PathLike) -> int:
+    """The newest step of a thermo row in the run's logs (``log.liggghts``, its earlier
+    attempts and solver.out); -1 when none shows one."""
+    run_dir = Path(run_dir)
+    last_step = -1
+    for path in (run_dir / deck.LOG_FILE, *run_dir.glob(deck.LOG_FILE + ".attempt*"), run_dir / SOLVER_OUT):
+        parser = ThermoParser()
+        try:
+            with open(path, errors="replace") as handle:
+                for line in handle:
+                    if parser.feed(line) and parser.step is not None:
+                        last_step = max(last_step, parser.step)
+        except OSError:
+            continue
+    return last_step
+
+
+def solver_counters(run_dir: str | os.PathLike) -> dict[str, float]:
+    """The solver's own final counters of a run directory (discharged, inserted, atoms, step):
+    from status.json when the run recorded them, else from the last thermo row of
+    ``log.liggghts``. Empty when neither is there (dumps from elsewhere). For the
+    post-processing's accounting (:func:`dem.post.postprocess` ``solver_counters``)."""
+    run_dir = Path(run_dir)
+    status = read_status(run_dir) or {}
+    counters = status.get("solver_counters")
+    if isinstance(counters, dict) and counters:
+        return {name: float(value) for name, value in counters.items() if isinstance(value, (int, float))}
+    parser = ThermoParser(deck.THERMO_DISCHARGED, deck.THERMO_INSERTED, deck.THERMO_COLUMNS)
+    try:
+        with open(run_dir / deck.LOG_FILE, errors="replace") as handle:
+            for line in handle:
+                parser.feed(line)
+    except OSError:
+        return {}
+    return {name: float(value) for name, value in parser.counters().items()}
 
 
 def _prepare_resume(run_dir: Path, key: str, dt: float) -> str:
@@ -419,6 +459,8 @@ def can_resume(inputs: RunInputs, runs_root: str | os.PathLike = "runs") -> bool
     status = read_status(run_dir)
     if status and status.get("state") == "completed":
         return False
+    if status and status.get("state") == "running" and _alive(status):
+        return False
     return run_dir.is_dir() and bool(_restart_files(run_dir))
 
 
@@ -446,19 +488,69 @@ def _completed_for_deck(runs_root: Path, deck_digest: str) -> Path | None:
     return best[1] if best else None
 
 
-def _alive(status: dict[str, Any]) -> bool:
-    """Whether the run in ``status`` still runs: its solver (the process that matters: an
-    orphaned mpirun outlives a killed Python) or the Python process that started it."""
-    for pid in (status.get("solver_pid"), status.get("pid")):
+def _start_ticks(pid: int) -> int | None:
+    """The start time of process ``pid`` in clock ticks since boot (/proc/<pid>/stat field
+    22): with the pid it identifies a process, so a pid reused after a reboot or by another
+    program is not taken for the run's."""
+    try:
+        with open(f"/proc/{int(pid)}/stat") as handle:
+            fields = handle.read().rsplit(")", 1)[1].split()
+    except (OSError, ValueError):
+        return None
+    if fields[0] == "Z":  # a zombie has ended
+        return None
+    return int(fields[19])
+
+
+def _process_identity(pid: int) -> dict[str, Any]:
+    return {"pid": pid, "pid_start_ticks": _start_ticks(pid), "host": socket.gethostname()}
+
+
+def _liveness(status: dict[str, Any]) -> tuple[str, str]:
+    """("alive" | "dead" | "unknown", why) of the processes a "running" status names: its
+    solver (an orphaned mpirun outlives a killed Python) and the Python process that
+    started it. "unknown" when the run was started on another host (a shared file system)."""
+    host = status.get("host")
+    if host and host != socket.gethostname():
+        return "unknown", f"started on host {host}, pid {status.get('pid')}; this is {socket.gethostname()}"
+    for pid_key, ticks_key in (("solver_pid", "solver_start_ticks"), ("pid", "pid_start_ticks")):
+        pid = status.get(pid_key)
         if not pid or int(pid) == os.getpid():
             continue
-        try:
-            with open(f"/proc/{int(pid)}/stat") as handle:
-                if handle.read().rsplit(")", 1)[1].split()[0] != "Z":  # a zombie has ended
-                    return True
-        except OSError:
+        ticks = _start_ticks(int(pid))
+        if ticks is None:
             continue
-    return False
+        recorded = status.get(ticks_key)
+        if recorded is not None and int(recorded) != ticks:
+            continue  # the pid now belongs to another process
+        return "alive", f"{pid_key.replace('_', ' ')} {pid} is running"
+    names = ", ".join(f"{key.replace('_', ' ')} {status[key]}" for key in ("pid", "solver_pid") if status.get(key))
+    return "dead", f"its processes ({names or 'none recorded'}) no longer exist"
+
+
+def _alive(status: dict[str, Any]) -> bool:
+    """Whether the run in ``status`` may still run (alive, or on another host)."""
+    return _liveness(status)[0] != "dead"
+
+
+def diagnose_stale_status(run_dir: str | os.PathLike, status: dict[str, Any] | None,
+                          resume: bool = False) -> dict[str, Any] | None:
+    """A "running" status whose processes are gone (SIGKILL, a node failure, a closed
+    terminal before SIGHUP was handled) is rewritten as ``crashed`` with the reason, so that
+    a plain rerun names it and ``--resume`` continues it; any other status is returned as
+    is. A run started on another host cannot be checked from here: with ``resume`` the
+    caller says it is over (it is then marked crashed like a dead one), without it the
+    status stays "running"."""
+    if not status or status.get("state") != "running":
+        return status
+    state, why = _liveness(status)
+    if state == "alive" or (state == "unknown" and not resume):
+        return status
+    reason = (f"killed without a trace ({why}: SIGKILL, a node failure or a lost terminal); "
+              "its restart files can be continued with --resume")
+    stale = {**status, "state": "crashed", "error": reason, "diagnosed": _now()}
+    _write_status(Path(run_dir), stale)
+    return stale
 
 
 class _Progress:

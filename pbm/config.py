@@ -16,7 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 class PbmConfig(BaseModel):
     # for every float field, including those added later without their own allow_inf_nan
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # strict=True: a boolean or a string where a number belongs is refused naming the key
+    # (not read as 1 or as the number it spells); an integer is still a valid float
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
     feed_rate_a_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)
     feed_rate_b_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)

@@ -17,7 +17,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from coupling.errors import ConfigError
 from coupling.metrics import SteadyStateRule
@@ -38,6 +38,18 @@ class Config(BaseModel):
     dem: DemConfig = DemConfig()
     pbm: PbmConfig = PbmConfig()
     steady_state: SteadyStateRule = SteadyStateRule()
+
+    @field_validator("steady_state", mode="before")
+    @classmethod
+    def _steady_numbers(cls, value: Any) -> Any:
+        """The rule is a plain dataclass (shared with the PBM), validated in lax mode: its
+        numbers get the strict check of the pydantic sections here (no boolean or text)."""
+        if isinstance(value, dict):
+            for key, item in value.items():
+                if isinstance(item, (bool, str)):
+                    raise ValueError(f"steady_state.{key} = {_shown(item)} ({_type_name(item)}): "
+                                     f"{_TYPE_ERRORS['float_type']}")
+        return value
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(mode="json")
@@ -199,10 +211,36 @@ def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
                 + (f" (did you mean '{hint[0]}'?)" if hint else "")
                 + (f"; valid keys here: {', '.join(valid)}" if valid else "")
             )
+        elif err["type"] in _TYPE_ERRORS:
+            value = err.get("input")
+            problems.append(f"'{key}' = {_shown(value)} ({_type_name(value)}): {_TYPE_ERRORS[err['type']]}")
         else:
             msg = err["msg"].removeprefix("Value error, ")
             problems.append(f"'{key}' = {err.get('input')!r}: {msg}")
     return f"invalid {source}:\n  " + "\n  ".join(problems)
+
+
+#: Strict-mode type errors (no coercion): what the key needs.
+_TYPE_ERRORS = {
+    "int_type": "an integer is needed (a whole number without a decimal point or exponent, not a boolean or text)",
+    "float_type": "a number is needed (not a boolean or text)",
+    "string_type": "text is needed (in quotes)",
+    "bool_type": "true or false is needed",
+    "list_type": "a list is needed",
+}
+
+
+def _type_name(value: Any) -> str:
+    if isinstance(value, bool):
+        return "a boolean"
+    return {int: "an integer", float: "a float", str: "text", list: "a list", dict: "a table"}.get(
+        type(value), type(value).__name__)
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return repr(value)
 
 
 def _model_at(model: type, path: list[str]) -> type | None:
