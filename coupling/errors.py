@@ -77,3 +77,8 @@ class OutputError(PbmDemError):
 
 class CacheError(PbmDemError):
     """A cache file is corrupt, foreign or could not be written."""
+
+
+class ResourceLimitError(PbmDemError, ValueError):
+    """An input would need more memory or time than the machine can give (the message
+    carries the estimate, what is available and how to make the problem smaller)."""

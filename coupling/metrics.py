@@ -413,3 +413,30 @@ def binomial_interval(k, n, level: float = 0.95) -> tuple:
     low = np.clip((centre - half) / (n + z * z), 0.0, 1.0)
     high = np.clip((centre + half) / (n + z * z), 0.0, 1.0)
     return low[()], high[()]
+
+
+#: Below this fraction of the tracer recovered, the moments of the recovered part are
+#: differences of numbers that agree to round-off (the recovered amount is itself
+#: amount - held, ~1e-16 x amount when nothing left): not reported.
+MIN_RECOVERED_FRACTION = 1e-9
+
+
+def residence_moments(amount: float, recovered: float, m1: float, m2: float) -> dict[str, float]:
+    """Mean [s] and variance [s^2] of the residence time from the raw moments of the
+    recovered tracer (``recovered`` = int q, ``m1`` = int tau q, ``m2`` = int tau^2 q), with
+    the guard every CQA shares: a time or a variance below zero is never reported. NaN when
+    under :data:`MIN_RECOVERED_FRACTION` of ``amount`` was recovered (the moments are then
+    round-off), and NaN for a mean below zero; a variance below zero by round-off (>= -1e-9
+    mean^2) is 0, any other negative one NaN. Returns recovered_fraction, mean_s, variance_s2."""
+    fraction = float(recovered / amount) if amount > 0 else 0.0
+    nan = float("nan")
+    if not (math.isfinite(fraction) and fraction > MIN_RECOVERED_FRACTION):
+        return {"recovered_fraction": max(fraction, 0.0) if math.isfinite(fraction) else nan, "mean_s": nan,
+                "variance_s2": nan}
+    mean = float(m1 / recovered)
+    variance = float(m2 / recovered - mean**2)
+    if not (math.isfinite(mean) and mean >= 0):
+        return {"recovered_fraction": fraction, "mean_s": nan, "variance_s2": nan}
+    if variance < 0:
+        variance = 0.0 if variance >= -1e-9 * max(mean**2, 1e-300) else nan
+    return {"recovered_fraction": fraction, "mean_s": mean, "variance_s2": variance if math.isfinite(variance) else nan}

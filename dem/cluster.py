@@ -53,14 +53,31 @@ def estimate_cost(
     parallel_efficiency: float = 0.85,
 ) -> CostEstimate:
     """Estimate the cost of running ``config`` on ``cores`` cores."""
-    if particles_held <= 0 or particle_steps_per_core_s <= 0:
-        raise ConfigError(
-            f"particles_held ({particles_held}) and particle_steps_per_core_s ({particle_steps_per_core_s}) must be > 0"
-        )
-    if cores < 1 or not 0 < parallel_efficiency <= 1:
-        raise ConfigError(f"cores ({cores}) must be >= 1 and parallel_efficiency ({parallel_efficiency}) in (0, 1]")
+    check_positive_finite(particles_held, "the hold-up (--holdup)", "particles")
+    check_positive_finite(particle_steps_per_core_s, "the throughput (--throughput)", "particle-steps per second per core")
+    if isinstance(cores, bool) or int(cores) != cores or cores < 1:
+        raise ConfigError(f"the number of cores (--np) must be an integer >= 1, got {cores!r}")
+    if not (math.isfinite(parallel_efficiency) and 0 < parallel_efficiency <= 1):
+        raise ConfigError(f"parallel_efficiency must lie in (0, 1], got {parallel_efficiency}")
     steps = math.ceil(config.operation.duration_s / config.timestep_s)
     return CostEstimate(steps, particles_held, particle_steps_per_core_s, cores, parallel_efficiency)
+
+
+#: Largest value accepted for a hold-up or a throughput: beyond it a product with the
+#: number of steps overflows nothing but means nothing either (1e15 particles, 1e15
+#: particle-steps per core-second are both ~1e6x anything LIGGGHTS does).
+MAX_PLAUSIBLE = 1e15
+
+
+def check_positive_finite(value, what: str, unit: str) -> float:
+    """``value`` as a float if it is a finite number in (0, 1e15]; else ConfigError naming
+    ``what`` and the value (``--throughput nan``, ``--holdup inf``, a boolean)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{what} must be a number of {unit} > 0, got {value!r}")
+    value = float(value)
+    if not (math.isfinite(value) and 0 < value <= MAX_PLAUSIBLE):
+        raise ConfigError(f"{what} must be a finite number of {unit} in (0, {MAX_PLAUSIBLE:g}], got {value:g}")
+    return value
 
 
 def mpi_command(config: DemConfig, np: int, deck: str = MAIN_DECK) -> list[str]:
@@ -87,10 +104,9 @@ def slurm_script(
     wall-time request carries a 30 % margin and is at least 10 minutes, so that start-up
     on a busy node does not kill a short job.
     """
-    if np < 1:
-        raise ConfigError(f"np must be >= 1, got {np}")
-    if wall_hours <= 0:
-        raise ConfigError(f"wall_hours must be > 0, got {wall_hours}")
+    if isinstance(np, bool) or int(np) != np or np < 1:
+        raise ConfigError(f"np must be an integer >= 1, got {np!r}")
+    check_positive_finite(wall_hours, "the wall time", "hours")
     minutes = max(10, math.ceil(wall_hours * 1.3 * 60))
     lines = [
         "#!/bin/bash",

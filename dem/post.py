@@ -59,12 +59,15 @@ import pandas as pd
 
 from coupling.cache import CacheEntry
 from coupling.compartments import grid_edges
+from coupling.errors import ConfigError
+from coupling.files import input_directory
 from coupling.metrics import SteadyStateRule, outflow_fraction_a, random_mixture_rsd, rsd
 from coupling.tables import VELOCITY_NAMES, VelocityTable
 from dem import deck
 from dem.config import DemConfig
 from dem.massflow import massflow_files
 from dem.rates import fit_windows
+from dem.resources import check_postprocess_resources
 from dem.steady import pooled_rtd, steady_quantities
 from dem.tracking import (EXIT_MASSFLOW, EXIT_PAST_WEIR, EXIT_VANISHED, SUM_ROWS, Accumulation, Exits, accumulate,
                           find_exits, transition_counts)
@@ -112,6 +115,20 @@ class DemResults:
     def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
         return cls(table=entry.table, summary=entry.summary, **entry.frames,
                    **{name: np.asarray(values) for name, values in entry.arrays.items()})
+
+
+def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:
+    """Refuse (ConfigError) velocity windows longer than the dumps: the first window,
+    [0, window_s), must end by the last dump, or the table would claim velocities over a
+    span (and the PBM would run for a time) the DEM never simulated; the steady-state
+    bootstrap's blocks are window_s long too."""
+    window = float(config.tables.window_s)
+    last = float(snapshot_t[-1]) + 0.5 * float(config.timestep_s)
+    if window > last:
+        raise ConfigError(
+            f"tables.window_s = {window:g} s is longer than the dumps, which end at t = {float(snapshot_t[-1]):.6g} s "
+            f"({snapshot_t.size} snapshots from t = {float(snapshot_t[0]):.6g} s): a velocity window needs dumps over its "
+            f"whole length; choose tables.window_s <= {float(snapshot_t[-1]):.6g} s or give the dumps of a longer run")
 
 
 # ----------------------------------------------------------------------------- 2. table
@@ -265,6 +282,23 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
         out["solver_discharge_diff"] = (discharged - pending) - counters["discharged"]
     if counters.get("inserted") is not None and comparable:
         out["solver_inserted_diff"] = inserted - counters["inserted"]
+    if counters.get("atoms") is not None and comparable:
+        # the dumps' own particle number against the solver's: a dump that lists particles
+        # twice or loses some disagrees here, whatever the bookkeeping by ID says
+        out["dump_particles_last"] = int(acc.last_ids.size)
+        out["solver_atoms_diff"] = int(acc.last_ids.size) - int(counters["atoms"])
+        if out["solver_atoms_diff"]:
+            warnings.append(f"the last dump lists {acc.last_ids.size} particles, the solver's thermo {int(counters['atoms'])} "
+                            f"at the same step (difference {out['solver_atoms_diff']:+d})")
+    out["positions_outside_vessel"] = int(log.outside_vessel)
+    if log.outside_vessel:
+        warnings.append(f"{log.outside_vessel} particle-snapshots lie outside the vessel (beyond a wall by more than "
+                        "the largest particle diameter): counted as they are")
+    out["ids_seen_after_discharge"] = int(exits.seen_after_discharge)
+    if exits.seen_after_discharge:
+        warnings.append(f"{exits.seen_after_discharge} particles are still in the dumps after the time of their "
+                        "discharge record (ID reuse, or dumps and discharge files of different runs?)")
+    out["ids_reappeared"] = int(acc.reappeared)
     return out, warnings
 
 
@@ -343,7 +377,11 @@ def postprocess(
     types_a = tuple(types_a if types_a is not None else (deck.ATOM_TYPES["A"],))
     types_b = tuple(types_b if types_b is not None else (deck.ATOM_TYPES["B"],))
     tol = 0.5 * float(config.timestep_s)
+    check_postprocess_resources(config)  # a grid that cannot be held or fitted: refused before reading
+    if massflow_dir is not None:  # given and missing would silently drop the discharge cross-check
+        input_directory(massflow_dir, "massflow directory (the solver's discharge files)", ConfigError)
     acc = accumulate(dump_paths, config, types_a, types_b)
+    check_windows_covered(acc.snapshot_t, config)
     table = velocity_table(acc, config, dict(provenance or {}))
     exits = find_exits(acc, config, massflow_files(massflow_dir))
     table, transitions = measured_rates(acc, exits, table)

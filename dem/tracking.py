@@ -23,6 +23,7 @@ from coupling.tables import VELOCITY_NAMES
 from dem.config import DemConfig
 from dem.dumps import iter_snapshots
 from dem.massflow import latest_records
+from dem.vessel import outside_vessel
 
 REQUIRED_COLUMNS = ("id", "type", "x", "y", "vx", "vy")
 #: Bound on particle IDs (see :func:`id_bound`): the per-particle arrays are indexed by ID.
@@ -57,6 +58,8 @@ class ParticleLog:
             setattr(self, name, np.zeros(0, np.int32))
         self.kind = np.zeros(0, np.int8)  # 0 unseen, 1 A, 2 B, 3 other type
         self.scratch = np.zeros(0, bool)
+        #: particle-snapshots whose centre lies outside the vessel (dem.vessel): a warning
+        self.outside_vessel = 0
 
     def ensure(self, max_id: int) -> None:
         if max_id < self.size:
@@ -164,6 +167,7 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
                     f"to {bound} ({ID_FACTOR} x particles + {ID_HEADROOM}) are accepted (LIGGGHTS numbers "
                     "particles 1, 2, 3, ...)")
             log.ensure(top)
+        log.outside_vessel += int(np.count_nonzero(outside_vessel(x, y, snap["z"] if "z" in snap else None, config)))
         is_a, is_b = np.isin(ptype, types_a), np.isin(ptype, types_b)
         if not (is_a | is_b).all():
             other_types.update(int(v) for v in np.unique(ptype[~(is_a | is_b)]))
@@ -246,6 +250,9 @@ class Exits:
     massflow_discharged_by_last_dump: int | None = None
     massflow_unseen: int = 0
     massflow_duplicates: int = 0
+    #: particles still in a dump after the time of their discharge record (beyond the
+    #: record's 4 significant digits and half a timestep): a warning
+    seen_after_discharge: int = 0
 
     @property
     def exited(self) -> np.ndarray:
@@ -282,10 +289,21 @@ def find_exits(acc: Accumulation, config: DemConfig, massflow_paths: Sequence[Pa
         by_id = np.full(log.size, np.nan)
         by_id[ids[in_range]] = times[in_range]
         exit_t[use] = np.clip(by_id[use], log.last_t[use], log.vanish_t[use])
+        exits.seen_after_discharge = seen_after_discharge(log.last_t, by_id, float(config.timestep_s))
     else:
         exit_t[use] = log.vanish_t[use]
     how[use] = EXIT_MASSFLOW
     return exits
+
+
+def seen_after_discharge(last_seen_t: np.ndarray, discharge_t: np.ndarray, timestep_s: float) -> int:
+    """How many particles were seen in a dump later than their discharge record: the record
+    is written with 4 significant digits (half a unit of the 4th digit of slack) and the
+    dump's time is exact to half a timestep."""
+    known = np.isfinite(discharge_t) & np.isfinite(last_seen_t)
+    t = np.abs(discharge_t[known])
+    digits = 0.5 * 10.0 ** (np.floor(np.log10(np.maximum(t, 1e-300))) - 3)
+    return int(np.count_nonzero(last_seen_t[known] > discharge_t[known] + digits + 0.5 * timestep_s))
 
 
 def transition_counts(acc: Accumulation, exits: Exits, n_windows: int, n_cells: int) -> np.ndarray:

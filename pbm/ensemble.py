@@ -25,6 +25,7 @@ from coupling.tables import VelocityTable
 from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table
+from pbm.resources import check_ensemble_memory
 from pbm.simulate import check_run, feed_factors
 from pbm.solver import MAX_THREADS, TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
@@ -91,6 +92,8 @@ def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma:
         raise ConfigError(f"members must be an integer >= 1, got {members!r}")
     members = int(members)
     t_end = check_run(table, config)
+    # refused up front with the estimate, not killed by the kernel halfway (pbm.resources)
+    check_ensemble_memory(members, t_end, config.noise_interval_s, config.output_interval_s, table.nx)
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
     props = Propagators(filled, feed, config.rates)

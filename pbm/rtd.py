@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from coupling.errors import ConfigError
+from coupling.metrics import residence_moments
 from coupling.tables import VelocityTable
 from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
@@ -135,11 +136,9 @@ def pooled_rtd(
     # before, so the integrals accumulated from the march's start are those since entry.
     recovered, m1, m2 = recovered_moments(amount, last[:, 0], last[:, 2], last[:, 3], horizon)
     total = recovered.sum()
-    if total > 0:
-        mean = float(m1.sum() / total)
-        variance = float(m2.sum() / total - mean**2)
-    else:
-        mean = variance = float("nan")
+    # never a negative time or variance (coupling.metrics.residence_moments)
+    moments = residence_moments(amount * n_pulses, total, m1.sum(), m2.sum())
+    mean, variance = moments["mean_s"], moments["variance_s2"]
     return PooledRtd(
         bin_edges=edges,
         density_per_s=density,

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from coupling.errors import ConfigError
-from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, rsd
+from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, residence_moments, rsd
 from coupling.tables import VelocityTable
 from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
@@ -317,10 +317,8 @@ def rtd_moments(amount: float, held: float, int1: float, int2: float, elapsed_s:
     DEM's tagged particles that left.
     """
     recovered, m1, m2 = recovered_moments(amount, held, int1, int2, elapsed_s)
-    if recovered <= 0:
-        return {"recovered_fraction": 0.0, "mean_s": float("nan"), "variance_s2": float("nan")}
-    mean = m1 / recovered
-    return {"recovered_fraction": recovered / amount, "mean_s": mean, "variance_s2": m2 / recovered - mean**2}
+    # never a negative time or variance: round-off moments of a tracer that did not leave are NaN
+    return residence_moments(amount, recovered, m1, m2)
 
 
 def tracer_pulse(feed: np.ndarray, rates: np.ndarray, m: int) -> tuple[float, np.ndarray]:

@@ -112,7 +112,8 @@ def test_velocity_table_exact(synthetic):
 
 def test_velocity_means_are_ratios_of_sums(tmp_path):
     """3 particles at +1 m/s in one snapshot, 1 at -1 m/s in the next: vx_pos = 3/4, not 1/2."""
-    cfg = config()
+    # one 2-s window covered by the two dumps (a window longer than the dumps is refused)
+    cfg = DemConfig(tables=TablesConfig(nx=4, ny=2, window_s=2.0, sample_interval_s=1.0, min_samples=1))
     dt = cfg.timestep_s
     rows1 = [(k, 1, 0.01, 0.01, 0, 1.0, 0, 0, 0.003) for k in (1, 2, 3)]
     rows2 = [(4, 1, 0.01, 0.01, 0, -1.0, 0, 0, 0.003)]
@@ -268,7 +269,7 @@ def test_absurd_particle_id_is_refused_not_allocated(tmp_path):
 def test_sparse_ids_within_the_bound_are_accepted(tmp_path):
     """Dumps from late in a long run: few particles, ids near a million."""
     cfg = config()
-    step = int(round(1.0 / cfg.timestep_s))
+    step = int(round(5.0 / cfg.timestep_s))  # the end of the first 5-s window: the window is covered
     rows = [(999_000 + k, 1, 0.01 * k, 0.01, 0, 0.1, 0, 0, 0.003) for k in (1, 2, 3)]
     (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows)))
     res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
