@@ -107,12 +107,12 @@ def output_directory_path(path: str | os.PathLike, what: str, error: type[Except
     while True:
         try:
             mode = os.stat(probe).st_mode
-        except FileNotFoundError:
-            if probe.parent == probe:
-                break
-            probe = probe.parent
-            continue
         except OSError as exc:
+            if exc.errno in (errno.ENOENT, errno.ENOTDIR):  # look further up for what is in the way
+                if probe.parent == probe:
+                    break
+                probe = probe.parent
+                continue
             if exc.errno == errno.ELOOP:
                 raise error(f"{what} {path}: {probe} is a symlink loop; give a real directory") from None
             raise error(f"{what} {path}: {os_reason(exc)}") from None

@@ -225,16 +225,15 @@ def _check_bound(name: str, values: np.ndarray, bound: float, unit: str) -> None
 
 def check_motion(table: VelocityTable, source: str = "") -> None:
     """Refuse a table in which nothing moves: every velocity of every compartment-window
-    with enough samples is 0 (and no measured rate is > 0). A DEM of a turning blender never
-    gives that; it is an emptied or overwritten file, and the PBM would hold the feed forever."""
+    with enough samples is 0. A DEM of a turning blender never
+    gives that; it is an emptied or overwritten file, and the PBM would hold the feed forever
+    (the velocity rule) -- measured rates beside such velocities come from no DEM either."""
     where = f" in {source}" if source else ""
     valid = table.valid
     if not valid.any():
         raise TableError(f"no compartment-window has min_samples = {table.min_samples} samples{where}: "
                          "the table carries no velocity information")
     moving = any(np.any(getattr(table, name)[valid] > 0) for name in VELOCITY_NAMES)
-    if table.has_rates:
-        moving = moving or any(np.nansum(getattr(table, name)) > 0 for name in RATE_NAMES)
     if not moving:
         raise TableError(f"every velocity is 0 in all {int(valid.sum())} compartment-windows with samples{where}: "
                          "a table of a moving blender needs some velocities > 0")
@@ -339,7 +338,7 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     if version is None:
         raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
     if isinstance(version, (bool, np.bool_)) or not isinstance(version, (int, np.integer)):
-        raise TableError(f"attribute 'schema_version' = {version!r} ({type(version).__name__}){where} is not an "
+        raise TableError(f"attribute 'schema_version' = {_attr_python(version)!r} ({type(version).__name__}){where} is not an "
                          f"integer; valid versions: {READABLE_VERSIONS}")
     if int(version) not in READABLE_VERSIONS:
         raise TableError(
@@ -361,7 +360,8 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
     min_samples = group.attrs["min_samples"]
     if isinstance(min_samples, (bool, np.bool_)) or not isinstance(min_samples, (int, np.integer)):
-        raise TableError(f"attribute 'min_samples' = {min_samples!r}{where} is not an integer; an integer >= 1 is needed")
+        raise TableError(f"attribute 'min_samples' = {_attr_python(min_samples)!r}{where} is not an integer; "
+                         "an integer >= 1 is needed")
     try:
         table = VelocityTable(
             **arrays,

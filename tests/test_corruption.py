@@ -221,3 +221,130 @@ if __name__ == "__main__":  # python tests/test_corruption.py: the same damage w
                                    (lambda h5: h5.attrs.get(DIGEST_ATTR, "unchecked")) if check else coupling.cache.file_digest):
                 outcomes, changed, crashed = damaged_loads(sample, Path(tmp))
             print(f"{label:20s} {outcomes}, loaded changed data: {len(changed)}, other exceptions: {len(crashed)}")
+
+
+# ----------------------------------------------------------------------------- issue 22: one verified loader
+def _edit_dataset(path, name, change):
+    with h5py.File(path, "a") as h5:
+        data = h5[name][()]
+        h5[name][...] = change(data)
+
+
+def test_edited_cache_file_is_refused_by_read_table_too(tmp_path, entry):
+    """`pbmdem pbm run --tables` reads a results file through read_table: a dataset edited
+    after writing (mean residence time 18.72 -> 3.05 s in the probe) is refused, naming the file."""
+    path = save_entry(tmp_path / "dem-k1.h5", entry)
+    assert read_table(path).n_windows == entry.table.n_windows  # intact: readable as a table
+    _edit_dataset(path, "velocity_table/vx_pos", lambda v: v * 5)
+    with pytest.raises(TableError, match=r"dem-k1\.h5 is corrupt or was edited: .*sha256 digest"):
+        read_table(path)
+    with pytest.raises(CacheError, match="does not match its sha256 digest"):
+        load_entry(path)
+
+
+def test_table_files_carry_a_digest_and_an_edit_is_refused(tmp_path, entry):
+    path = write_table(tmp_path / "t.h5", entry.table)
+    with h5py.File(path, "r") as h5:
+        assert h5.attrs["format"] == "pbmdem-table" and len(h5.attrs[DIGEST_ATTR]) == 64
+    _edit_dataset(path, "velocity_table/vy_pos", lambda v: v + 0.01)
+    with pytest.raises(TableError, match=r"t\.h5 is corrupt or was edited"):
+        read_table(path)
+    # a file that says it is ours but lost its digest is refused; a foreign table without
+    # one (written by another tool following the schema) is read and validated
+    path = write_table(tmp_path / "u.h5", entry.table)
+    with h5py.File(path, "a") as h5:
+        del h5.attrs[DIGEST_ATTR]
+    with pytest.raises(TableError, match="carries no 'sha256' integrity digest"):
+        read_table(path)
+    with h5py.File(path, "a") as h5:
+        del h5.attrs["format"]
+    assert read_table(path).n_windows == entry.table.n_windows
+
+
+def test_every_shipped_h5_file_reads_through_the_verified_loader():
+    files = sorted(REFERENCE.rglob("*.h5"))
+    assert len(files) >= 7, files
+    for path in files:
+        assert read_table(path).n_windows >= 1, path
+
+
+def _foreign_table(path, entry, **changes):
+    """A signed table file with ``changes`` applied to its datasets or attributes."""
+    from coupling.files import sign_h5
+
+    write_table(path, entry.table)
+    with h5py.File(path, "a") as h5:
+        group = h5["velocity_table"]
+        for name, value in changes.items():
+            if name in group.attrs:
+                group.attrs[name] = value
+            else:
+                group[name][...] = value(group[name][()])
+    sign_h5(path)
+    return path
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"vx_pos": lambda v: v * 1e300}, r"dataset 'vx_pos' holds .*e\+29\d m/s .*values up to 100 m/s are physical"),
+    ({"vy_neg": lambda v: v + 150.0}, "dataset 'vy_neg' holds 15"),
+    ({name: (lambda v: v * 0) for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg")},
+     "every velocity is 0 in all .* compartment-windows with samples"),
+    ({"schema_version": 2.5}, r"'schema_version' = .*2\.5.* is not an integer; valid versions: \(1, 2\)"),
+    ({"schema_version": "2"}, "'schema_version' = '2' .*is not an integer"),
+    ({"schema_version": True}, "is not an integer"),
+    ({"min_samples": 2.5}, "'min_samples' = 2.5 .*is not an integer"),
+    ({"count_A": lambda v: v + 1e17}, "dataset 'count_A' holds 1e\\+17"),
+    ({"x_edges": lambda v: v * 1e6}, "compartment edges within 1000 m"),
+    ({"t": lambda v: v + 1e12}, "window times within 1e\\+09 s"),
+])
+def test_absurd_table_values_are_refused_by_name(tmp_path, entry, changes, message):
+    path = _foreign_table(tmp_path / "t.h5", entry, **changes)
+    with pytest.raises(TableError, match=message) as info:
+        read_table(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_fifo_and_symlink_loop_as_input_files_are_refused_in_one_line(tmp_path):
+    import os
+
+    fifo = tmp_path / "tables.h5"
+    os.mkfifo(fifo)
+    with pytest.raises(TableError, match=r"tables\.h5 is a FIFO \(named pipe\), not a regular file"):
+        read_table(fifo)  # would block forever in open()
+    with pytest.raises(CacheError, match="is a FIFO"):
+        load_entry(fifo)
+    loop = tmp_path / "loop.h5"
+    os.symlink(tmp_path / "other.h5", loop)
+    os.symlink(loop, tmp_path / "other.h5")
+    with pytest.raises(TableError, match=r"loop\.h5 is a symlink loop") as info:
+        read_table(loop)
+    assert "\n" not in str(info.value)
+
+
+def test_output_over_an_input_is_refused_before_writing(tmp_path):
+    import os
+
+    from coupling.errors import OutputError
+    from coupling.files import output_directory_path, refuse_output_over_inputs
+
+    dump = tmp_path / "dump.1.txt"
+    dump.write_text("x")
+    config = tmp_path / "c.toml"
+    config.write_text("y")
+    link = tmp_path / "link.txt"
+    os.symlink(dump, link)
+    hard = tmp_path / "hard.txt"
+    os.link(config, hard)
+    for out in (dump, link, hard, tmp_path / "sub" / ".." / "c.toml"):
+        with pytest.raises(OutputError, match="is one of this command's inputs"):
+            refuse_output_over_inputs(out, [dump, config, None], "--out")
+    assert refuse_output_over_inputs(tmp_path / "new.h5", [dump, config], "--out") == (tmp_path / "new.h5").resolve()
+    assert dump.read_text() == "x" and config.read_text() == "y"
+    os.symlink(tmp_path / "b", tmp_path / "a")
+    os.symlink(tmp_path / "a", tmp_path / "b")
+    with pytest.raises(OutputError, match="is a symlink loop") as info:
+        output_directory_path(tmp_path / "a", "--runs-dir")
+    assert "\n" not in str(info.value)
+    with pytest.raises(OutputError, match="is a file, not a directory"):
+        output_directory_path(config / "runs", "--runs-dir")
+    assert output_directory_path(tmp_path / "new" / "runs", "--runs-dir") == tmp_path / "new" / "runs"
