@@ -224,7 +224,7 @@ def test_windows_longer_than_the_dumps_and_a_missing_massflow_dir_are_refused(tm
 
 @pytest.mark.parametrize(("nx", "message"), [
     (100_000, r"needs about .*TiB of memory; this machine has"),
-    (200, r"measured-rate fit of tables\.nx x tables\.ny = 200 x 2 .*would take about"),
+    (200, r"measured-rate fit of tables\.nx x tables\.ny = 200 x 10 .*would take about .*limit 4\.0 h"),
 ])
 def test_grids_that_cannot_be_held_or_fitted_are_refused_before_reading(tmp_path, nx, message):
     from coupling.errors import ResourceLimitError
