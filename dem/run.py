@@ -350,11 +350,13 @@ def _restart_files(run_dir: Path) -> list[Path]:
 
 
 def last_thermo_step(run_dir: str | os.PathLike) -> int:
-    """The newest step of a thermo row in the run's logs (``log.liggghts``, its earlier
-    attempts and solver.out); -1 when none shows one."""
+    """The newest step of a thermo row in the run's logs (``log.liggghts``, a resume's log,
+    the earlier attempts' logs and solver.out); -1 when none shows one."""
     run_dir = Path(run_dir)
     last_step = -1
-    for path in (run_dir / deck.LOG_FILE, *run_dir.glob(deck.LOG_FILE + ".attempt*"), run_dir / SOLVER_OUT):
+    logs = (run_dir / deck.LOG_FILE, run_dir / deck.RESUME_LOG_FILE, *run_dir.glob(deck.LOG_FILE + ".attempt*"),
+            run_dir / SOLVER_OUT)
+    for path in logs:
         parser = ThermoParser()
         try:
             with open(path, errors="replace") as handle:

@@ -327,3 +327,148 @@ def test_timeout_and_interrupt_stop_every_process_of_the_session(tmp_path):
         run_solver(["sh", "-c", "sleep 60 & echo $! > child.pid; echo started; wait"], tmp_path, "out.txt",
                    on_line=interrupt)
     assert not _solver_alive((tmp_path / "child.pid").read_text())
+
+
+# ----------------------------------------------------------------------------- issue 22: killed runs
+def _dead_pid() -> int:
+    import subprocess
+
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid
+
+
+THERMO_HEADER = "Step simtime Atoms insA insB outA outB ts[1] ts[2]\n"
+
+
+def _killed_run(root, inputs, solver_out_rows, log_rows, restart_step=2000):
+    """A run directory as SIGKILL (or a lost node) leaves it: status "running" with a pid
+    that no longer exists, dumps, a restart file; solver.out with ``solver_out_rows`` thermo
+    rows (it lost the rest when its reader died) and log.liggghts with ``log_rows``."""
+    import json
+
+    run_dir = Path(root) / inputs.key
+    (run_dir / "dumps").mkdir(parents=True)
+    (run_dir / "restart").mkdir()
+    (run_dir / "dumps" / "dump.1000.txt").write_text("x")
+    (run_dir / "restart" / f"restart.{restart_step}.bin").write_bytes(b"\0" * 64)
+    row = lambda step: f"{step} 0.1 10 5 5 0 0 0.2 0.01\n"
+    (run_dir / "solver.out").write_text(THERMO_HEADER + "".join(row(s) for s in solver_out_rows))
+    (run_dir / "log.liggghts").write_text(THERMO_HEADER + "".join(row(s) for s in log_rows))
+    status = {"state": "running", "key": inputs.key, "pid": _dead_pid(), "solver_pid": _dead_pid(), "started": "x"}
+    (run_dir / "status.json").write_text(json.dumps(status))
+    return run_dir
+
+
+def test_stale_running_status_is_diagnosed_and_resumable(tmp_path):
+    """kill -9 / SIGHUP of `dem run`: the status stays "running". A plain rerun names what
+    happened and points to --resume (not "already running", not a loop); the restart at
+    step 2000 is complete by log.liggghts (step 2500) although solver.out stopped at 1500."""
+    from dem.run import can_resume, _restart_files
+
+    inputs = prepare_run(load_preset("smoke").dem)
+    run_dir = _killed_run(tmp_path, inputs, solver_out_rows=[500, 1000, 1500], log_rows=[500, 1000, 1500, 2000, 2500])
+    assert [p.name for p in _restart_files(run_dir)] == ["restart.2000.bin"]
+    with pytest.raises(SolverRunError, match=r"stopped \(crashed: killed without a trace \(its processes \(pid \d+, "
+                                             r"solver pid \d+\) no longer exist.*continue it with --resume"):
+        run_dem(inputs, runs_root=tmp_path, progress=False)
+    status = read_status(run_dir)
+    assert status["state"] == "crashed" and "killed without a trace" in status["error"]
+    assert can_resume(inputs, tmp_path)
+    assert (run_dir / "dumps" / "dump.1000.txt").exists()  # nothing discarded
+
+
+def test_restart_newer_than_every_log_is_not_trusted(tmp_path):
+    from dem.run import _restart_files, last_thermo_step
+
+    inputs = prepare_run(load_preset("smoke").dem)
+    run_dir = _killed_run(tmp_path, inputs, solver_out_rows=[500], log_rows=[500, 1000], restart_step=2000)
+    assert last_thermo_step(run_dir) == 1000 and _restart_files(run_dir) == []
+
+
+def test_a_live_or_recycled_pid_is_told_apart(tmp_path):
+    """A pid alive with the recorded start time is the run's; the same pid with another start
+    time (reused after a reboot) is not; a run on another host is not judged from here."""
+    import socket
+
+    from dem.run import _liveness, _process_identity, diagnose_stale_status
+
+    me = _process_identity(os.getppid())
+    assert _liveness({**me, "solver_pid": None})[0] == "alive"
+    assert _liveness({**me, "pid_start_ticks": me["pid_start_ticks"] + 1})[0] == "dead"
+    other = {"state": "running", "pid": 1, "host": socket.gethostname() + "-elsewhere"}
+    assert _liveness(other)[0] == "unknown"
+    assert diagnose_stale_status(tmp_path, other)["state"] == "running"  # not rewritten without --resume
+    assert diagnose_stale_status(tmp_path, other, resume=True)["state"] == "crashed"
+
+
+def test_unusable_tmpdir_is_named_not_taken_for_a_missing_solver(tmp_path, monkeypatch):
+    from dem.liggghts import check_tmpdir, liggghts_version
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for value, message in ((str(afile), "is not a directory"), (str(afile / "sub"), r"is not a directory \(.*afile is a file\)")):
+        monkeypatch.setenv("TMPDIR", value)
+        with pytest.raises(SolverRunError, match=f"TMPDIR={value} {message}.*set TMPDIR to a writable directory"):
+            liggghts_version()
+    check_tmpdir({"TMPDIR": str(tmp_path / "new" / "dir")})  # created by Open MPI: fine
+    check_tmpdir({})
+
+
+@pytest.mark.parametrize(("holdup", "throughput", "message"), [
+    (float("nan"), 1e6, r"hold-up \(--holdup\) must be a finite number"),
+    (float("inf"), 1e6, r"hold-up \(--holdup\) must be a finite number"),
+    (1000.0, float("nan"), r"throughput \(--throughput\) must be a finite number"),
+    (1000.0, float("inf"), r"throughput \(--throughput\) must be a finite number"),
+    (1000.0, -1.0, r"throughput .* in \(0, 1e\+15\], got -1"),
+])
+def test_cluster_estimate_refuses_non_finite_inputs(holdup, throughput, message):
+    from coupling.errors import ConfigError
+    from dem.cluster import estimate_cost
+
+    with pytest.raises(ConfigError, match=message):
+        estimate_cost(load_preset("smoke").dem, holdup, throughput, 8)
+
+
+@liggghts
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGHUP"])
+def test_killed_by_any_signal_then_rerun_and_resume(tmp_path, sig):
+    """`dem run` killed by SIGKILL (nothing can be handled: the status stays "running") or
+    SIGHUP (handled like SIGTERM: interrupted) after a complete restart file: a plain rerun
+    says how it ended and points to --resume, and --resume finishes the run."""
+    import signal
+    import subprocess
+    import sys
+
+    config = variant(load_preset("smoke"), operation={"duration_s": 2.0}, numerics={"restart_interval_s": 0.5},
+                     run={"np": 1})
+    (tmp_path / "config.toml").write_text(__import__("workflows.config", fromlist=["dump_toml"]).dump_toml(config))
+    script = ("import sys; from dem.run import prepare_run, run_dem; from workflows.config import load_config; "
+              "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)")
+    with open(tmp_path / "child.err", "w") as err, subprocess.Popen(
+            [sys.executable, "-c", script, str(tmp_path / "config.toml"), str(tmp_path / "runs")],
+            cwd=Path(__file__).resolve().parents[1], stderr=err) as child:
+        from dem.run import _restart_files
+
+        deadline, run_dir = time.monotonic() + 300, None
+        while time.monotonic() < deadline and child.poll() is None and run_dir is None:
+            time.sleep(0.2)
+            runs = [p for p in (tmp_path / "runs").glob("*") if p.is_dir()]
+            if runs and _restart_files(runs[0]):
+                run_dir = runs[0]
+        assert run_dir is not None, (tmp_path / "child.err").read_text() or "no restart file in time"
+        solver_pid = read_status(run_dir)["solver_pid"]
+        child.send_signal(getattr(signal, sig))
+        child.wait(timeout=60)
+    # the solver ends too: by our handler (SIGHUP) or on its broken output pipe (SIGKILL)
+    sent = time.monotonic()
+    while _solver_alive(solver_pid) and time.monotonic() - sent < 30:
+        time.sleep(0.1)
+    assert not _solver_alive(solver_pid)
+    assert read_status(run_dir)["state"] == ("running" if sig == "SIGKILL" else "interrupted")
+    inputs = prepare_run(config.dem)
+    expected = "crashed: killed without a trace" if sig == "SIGKILL" else "interrupted"
+    with pytest.raises(SolverRunError, match=rf"stopped \({expected}.*--resume"):
+        run_dem(inputs, runs_root=tmp_path / "runs", progress=False)
+    record = run_dem(inputs, runs_root=tmp_path / "runs", resume=True, progress=False)
+    assert record.state == "completed" and record.resumed_from.startswith("restart/")
