@@ -158,3 +158,100 @@ def test_cli_reports_empty_config_without_traceback(capsys, tmp_path):
     assert main(["config", "--config", str(path)]) == 2
     err = capsys.readouterr().err
     assert "--preset reduced" in err and "Traceback" not in err
+
+
+# ----------------------------------------------------------------------------- issue 22: strict types
+@pytest.mark.parametrize(("assignment", "message"), [
+    ('dem.tables.nx="10"', r"'dem\.tables\.nx' = '\"10\"' \(text\): an integer is needed"),
+    ("dem.run.np=true", r"'dem\.run\.np' = true \(a boolean\): an integer is needed"),
+    ("dem.operation.duration_s=true", r"'dem\.operation\.duration_s' = true \(a boolean\): a number is needed"),
+    ("dem.tables.nx=1e9", r"'dem\.tables\.nx' = 1000000000\.0 \(a float\): an integer is needed"),
+    ("pbm.seed=false", r"'pbm\.seed' = false \(a boolean\): an integer is needed"),
+    ("pbm.feed_rate_a_per_s=true", r"'pbm\.feed_rate_a_per_s' = true \(a boolean\)"),
+    ("steady_state.window_s=true", r"steady_state\.window_s = true \(a boolean\): a number is needed"),
+    ("dem.run.launcher=mpirun -np {n}", r"uses the unknown field \{n\}; the only field is \{np\}"),
+    ("dem.run.launcher=mpirun -np {np", r"is not a valid template \(expected '\}' before end of string\)"),
+    ("dem.run.launcher=mpirun -np {np:d}", r"has a conversion or format spec; write it as plain \{np\}"),
+    ('dem.run.launcher=mpirun "-np {np}', r"is not a valid command line \(No closing quotation\)"),
+    ("dem.run.launcher=srun {}", r"uses the unknown field \{\}"),
+    ("dem.run.liggghts=", r"'dem\.run\.liggghts' = '': is empty; the LIGGGHTS command is needed"),
+    ("dem.run.liggghts=   ", r"is empty"),
+])
+def test_loose_types_and_bad_launcher_templates_are_refused_by_key(assignment, message):
+    from workflows.config import override
+
+    with pytest.raises(ConfigError, match=message):
+        override(load_preset("smoke"), assignment)
+
+
+def test_strict_types_in_a_toml_file_and_what_stays_valid(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text('name = "x"\n[dem.tables]\nnx = "10"\n[dem.run]\nnp = true\n')
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert "'dem.tables.nx' = '10' (text)" in str(info.value) and "'dem.run.np' = true (a boolean)" in str(info.value)
+    path.write_text('name = "x"\n[dem.operation]\nduration_s = 10\n[dem.run]\nlauncher = "srun"\n'
+                    'liggghts = "liggghts -echo screen"\n[pbm]\nfeed_rate_a_per_s = 3\n')
+    config = load_config(path)  # an integer where a float belongs is a number
+    assert config.dem.operation.duration_s == 10.0 and config.dem.run.launcher == "srun"
+    from dem.config import check_launcher
+
+    assert check_launcher("mpirun --map-by {{core}} -np {np}") == "mpirun --map-by {{core}} -np {np}"
+    assert check_launcher("") == ""
+
+
+# ----------------------------------------------------------------------------- issue 22: degenerate inputs
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"seed": -1}, r"seed must be an integer >= 0"),
+    ({"seed": 1.5}, r"seed must be an integer >= 0"),
+    ({"n_windows": 10**8}, r"a synthetic table of 100000000 windows .* needs about .* of memory"),
+    ({"n_windows": 0}, r"n_windows \(--windows\) must be an integer >= 1"),
+    ({"window_s": float("nan")}, r"window_s must be a finite number > 0, got nan"),
+    ({"n_windows": 10**6, "window_s": 1e4}, r"must stay within 1e\+09 s"),
+])
+def test_synthetic_table_refuses_bad_seeds_and_window_counts(kwargs, message):
+    from coupling.errors import PbmDemError
+    from pbm.synthetic import synthetic_table
+
+    with pytest.raises(PbmDemError, match=message) as info:
+        synthetic_table(**kwargs)
+    assert "\n" not in str(info.value)
+
+
+def test_memory_estimates_refuse_what_the_machine_cannot_hold():
+    from coupling.errors import ResourceLimitError
+    from pbm.ensemble import noise_ensemble
+    from pbm.config import PbmConfig
+    from pbm.resources import check_ensemble_memory, check_pbm_memory
+    from pbm.synthetic import synthetic_table
+
+    with pytest.raises(ResourceLimitError, match=r"ensemble of 100000000 members .* at most \d+ members fit"):
+        noise_ensemble(synthetic_table(n_windows=4), PbmConfig(noise_sigma=0.1), members=100_000_000)
+    assert check_ensemble_memory(200, 260.0, 1.0, 1.0, 10) < 50e6  # the paper's study: a few MB
+    with pytest.raises(ResourceLimitError, match=r"the PBM on 100000 x 10 compartments .* use a coarser grid"):
+        check_pbm_memory(100_000, 10, 52)
+    assert check_pbm_memory(10, 10, 52) < 100e6
+    with pytest.raises(ResourceLimitError, match=r"needs about 1\.7 KiB of memory; this machine has 100 B available"):
+        check_pbm_memory(1, 1, 1, available_bytes=100)
+
+
+@pytest.mark.parametrize(("recovered", "m1", "m2"), [
+    (2e-16, -7.2e-15, 3e-13),  # the probe's NY = 1 case: round-off "recovered" tracer, mean -36 s
+    (0.0, 0.0, 0.0),
+    (-1e-12, 1e-12, 1e-12),
+    (0.5, -1.0, 1.0),          # a negative first moment
+])
+def test_residence_time_moments_are_never_negative(recovered, m1, m2):
+    import math
+
+    from coupling.metrics import residence_moments
+    from pbm.simulate import rtd_moments
+
+    moments = residence_moments(1.0, recovered, m1, m2)
+    assert math.isnan(moments["mean_s"]) and math.isnan(moments["variance_s2"])
+    assert not moments["recovered_fraction"] < 0
+    # through the PBM's own function: amount 1, nothing held back beyond round-off
+    out = rtd_moments(1.0, 1.0 - 2e-16, 0.5, 0.1, 100.0)
+    assert math.isnan(out["mean_s"]) or out["mean_s"] >= 0
+    good = residence_moments(2.0, 1.0, 10.0, 101.0 - 1e-12)  # variance 1 - 1e-12 round-off
+    assert good["mean_s"] == 10.0 and good["variance_s2"] >= 0
