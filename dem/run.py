@@ -55,7 +55,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from coupling.errors import SolverNotFoundError, SolverRunError
+from coupling.errors import OutputError, SolverNotFoundError, SolverRunError
+from coupling.files import output_directory_path
 from dem import deck
 from dem.config import DemConfig
 from dem.liggghts import liggghts_version, run_solver, solver_command, text_tail
@@ -181,6 +182,8 @@ def run_dem(
     start raises SolverNotFoundError.
     """
     config = inputs.config
+    # a symlink loop or a file in the way of the runs directory: one line, before anything
+    output_directory_path(runs_root, "runs directory (--runs-dir)", OutputError)
     if not fresh:
         done = completed_run(inputs, runs_root)
         if done is not None:
