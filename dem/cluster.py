@@ -53,8 +53,9 @@ def estimate_cost(
     parallel_efficiency: float = 0.85,
 ) -> CostEstimate:
     """Estimate the cost of running ``config`` on ``cores`` cores."""
-    check_positive_finite(particles_held, "the hold-up (--holdup)", "particles")
-    check_positive_finite(particle_steps_per_core_s, "the throughput (--throughput)", "particle-steps per second per core")
+    check_positive_finite(particles_held, "particles_held (the hold-up, --holdup)", "particles")
+    check_positive_finite(particle_steps_per_core_s, "particle_steps_per_core_s (the throughput, --throughput)",
+                          "particle-steps per second per core")
     if isinstance(cores, bool) or int(cores) != cores or cores < 1:
         raise ConfigError(f"the number of cores (--np) must be an integer >= 1, got {cores!r}")
     if not (math.isfinite(parallel_efficiency) and 0 < parallel_efficiency <= 1):
@@ -105,7 +106,7 @@ def slurm_script(
     on a busy node does not kill a short job.
     """
     if isinstance(np, bool) or int(np) != np or np < 1:
-        raise ConfigError(f"np must be an integer >= 1, got {np!r}")
+        raise ConfigError(f"np must be >= 1, got {np!r} (an integer number of MPI tasks)")
     check_positive_finite(wall_hours, "the wall time", "hours")
     minutes = max(10, math.ceil(wall_hours * 1.3 * 60))
     lines = [

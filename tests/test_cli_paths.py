@@ -63,7 +63,7 @@ def test_dem_post_refuses_dumps_of_another_deck(tmp_path, capsys):
 
     run_dir = tmp_path / "run"
     assert main(["dem", "deck", "--preset", "smoke", "--out", str(run_dir)]) == 0
-    step = int(round(1.0 / load_preset("smoke").dem.timestep_s))
+    step = int(round(5.0 / load_preset("smoke").dem.timestep_s))  # covers the first 5-s velocity window
     columns = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
     rows = np.array([[1, 1, 0.01, 0.01, 0, 0.1, 0, 0, 0.003], [2, 2, 0.2, -0.01, 0, 0.1, 0, 0, 0.003]])
     (run_dir / "dumps" / f"dump.{step}.txt").write_bytes(format_snapshot(step, columns, rows))

@@ -416,11 +416,11 @@ def test_unusable_tmpdir_is_named_not_taken_for_a_missing_solver(tmp_path, monke
 
 
 @pytest.mark.parametrize(("holdup", "throughput", "message"), [
-    (float("nan"), 1e6, r"hold-up \(--holdup\) must be a finite number"),
-    (float("inf"), 1e6, r"hold-up \(--holdup\) must be a finite number"),
-    (1000.0, float("nan"), r"throughput \(--throughput\) must be a finite number"),
-    (1000.0, float("inf"), r"throughput \(--throughput\) must be a finite number"),
-    (1000.0, -1.0, r"throughput .* in \(0, 1e\+15\], got -1"),
+    (float("nan"), 1e6, r"particles_held \(the hold-up, --holdup\) must be a finite number"),
+    (float("inf"), 1e6, r"particles_held \(the hold-up, --holdup\) must be a finite number"),
+    (1000.0, float("nan"), r"particle_steps_per_core_s \(the throughput, --throughput\) must be a finite number"),
+    (1000.0, float("inf"), r"particle_steps_per_core_s \(the throughput, --throughput\) must be a finite number"),
+    (1000.0, -1.0, r"throughput\) must be .* in \(0, 1e\+15\], got -1"),
 ])
 def test_cluster_estimate_refuses_non_finite_inputs(holdup, throughput, message):
     from coupling.errors import ConfigError
