@@ -67,6 +67,8 @@ __all__ = ["RunInputs", "RunRecord", "diagnose_stale_status", "last_thermo_step"
 
 STATUS_FILE = "status.json"
 SOLVER_OUT = "solver.out"
+#: The line solver.out gets before a resumed attempt's output.
+RESUME_MARKER = "# --- resumed from"
 
 
 @dataclass(frozen=True)
@@ -200,8 +202,10 @@ def run_dem(
     # a typo must never cost the outputs of an interrupted run.
     command = solver_command(config.run, nprocs, deck.RESUME_DECK if resume else deck.MAIN_DECK)
     if status and status.get("state") == "running":
-        raise SolverRunError(f"run {key} is already running ({_liveness(status)[1]}); wait for it, or stop it first",
-                             run_dir=run_dir)
+        state, why = _liveness(status)
+        hint = ("; if it is no longer running there, continue it with --resume (resume=True)" if state == "unknown"
+                else "; wait for it, or stop it first")
+        raise SolverRunError(f"run {key} is already running ({why}){hint}", run_dir=run_dir)
     if fresh and run_dir.exists():
         shutil.rmtree(run_dir)
         status = None
@@ -226,7 +230,7 @@ def run_dem(
     _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid())})
     if resume:
         with open(run_dir / SOLVER_OUT, "a") as out:
-            out.write(f"\n# --- resumed from {resumed_from} at {started} ---\n")
+            out.write(f"\n{RESUME_MARKER} {resumed_from} at {started} ---\n")
 
     dt, duration = float(config.timestep_s), float(config.operation.duration_s)
     parser = ThermoParser(deck.THERMO_DISCHARGED, deck.THERMO_INSERTED, deck.THERMO_COLUMNS)
@@ -341,34 +345,61 @@ def _restart_files(run_dir: Path) -> list[Path]:
 
     A restart file carries no end marker, and a run killed while writing one leaves it
     truncated. LIGGGHTS writes a step's restart before that step's thermo line, so a restart
-    at step S is complete once the solver's log shows a thermo row at a step >= S; newer
-    ones are ignored (the resume then starts from an older restart: safe, a little slower).
-    The log judged is LIGGGHTS' own ``log.liggghts`` (written by the solver itself, so it
-    survives the death of the Python process that copied its output: after SIGHUP or
-    SIGKILL solver.out lacks the rows the solver printed after its reader died), together
-    with solver.out and the earlier attempts' logs: the newest step any of them shows."""
+    at step S is complete once a log written after it shows a thermo row at a step >= S;
+    newer ones are ignored (the resume then starts from an older restart: safe, a little
+    slower). The logs judged are LIGGGHTS' own (``log.liggghts``, a resume's log and the
+    earlier attempts' logs), written by the solver itself, so they survive the death of the
+    Python process that copied its output (after SIGHUP or SIGKILL solver.out lacks the rows
+    the solver printed after its reader died), and solver.out's current attempt. "Written
+    after": a log last modified before the restart file (an earlier attempt's, when a
+    resumed attempt rewrote that restart and was killed while doing so) does not vouch for it."""
     files = [p for p in run_dir.glob(deck.RESTART_GLOB) if p.is_file() and p.stat().st_size > 0]
-    last_step = last_thermo_step(run_dir)
-    return sorted((p for p in files if _step_of(p) <= last_step), key=_step_of)
+    logs = _thermo_logs(run_dir)
+
+    def complete(path: Path) -> bool:
+        written = path.stat().st_mtime_ns
+        return any(mtime >= written and step >= _step_of(path) for mtime, step in logs)
+
+    return sorted((p for p in files if complete(p)), key=_step_of)
+
+
+def _last_step_of_lines(lines) -> int:
+    parser, last = ThermoParser(), -1
+    for line in lines:
+        if parser.feed(line) and parser.step is not None:
+            last = max(last, parser.step)
+    return last
+
+
+def _thermo_logs(run_dir: Path) -> list[tuple[int, int]]:
+    """(modification time [ns], newest thermo step) of each log of the run that shows one:
+    LIGGGHTS' logs, and solver.out from its last resume marker on (it is appended across
+    attempts, so its earlier rows are an earlier attempt's)."""
+    out = []
+    for path in (run_dir / deck.LOG_FILE, run_dir / deck.RESUME_LOG_FILE, *run_dir.glob(deck.LOG_FILE + ".attempt*")):
+        try:
+            with open(path, errors="replace") as handle:
+                step = _last_step_of_lines(handle)
+            mtime = path.stat().st_mtime_ns
+        except OSError:
+            continue
+        if step >= 0:
+            out.append((mtime, step))
+    try:
+        text = (run_dir / SOLVER_OUT).read_text(errors="replace")
+        mtime = (run_dir / SOLVER_OUT).stat().st_mtime_ns
+    except OSError:
+        return out
+    step = _last_step_of_lines(text[text.rfind(RESUME_MARKER) + 1 if RESUME_MARKER in text else 0:].splitlines())
+    if step >= 0:
+        out.append((mtime, step))
+    return out
 
 
 def last_thermo_step(run_dir: str | os.PathLike) -> int:
     """The newest step of a thermo row in the run's logs (``log.liggghts``, a resume's log,
-    the earlier attempts' logs and solver.out); -1 when none shows one."""
-    run_dir = Path(run_dir)
-    last_step = -1
-    logs = (run_dir / deck.LOG_FILE, run_dir / deck.RESUME_LOG_FILE, *run_dir.glob(deck.LOG_FILE + ".attempt*"),
-            run_dir / SOLVER_OUT)
-    for path in logs:
-        parser = ThermoParser()
-        try:
-            with open(path, errors="replace") as handle:
-                for line in handle:
-                    if parser.feed(line) and parser.step is not None:
-                        last_step = max(last_step, parser.step)
-        except OSError:
-            continue
-    return last_step
+    the earlier attempts' logs and solver.out's current attempt); -1 when none shows one."""
+    return max((step for _, step in _thermo_logs(Path(run_dir))), default=-1)
 
 
 def solver_counters(run_dir: str | os.PathLike) -> dict[str, float]:

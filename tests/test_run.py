@@ -472,3 +472,20 @@ def test_killed_by_any_signal_then_rerun_and_resume(tmp_path, sig):
         run_dem(inputs, runs_root=tmp_path / "runs", progress=False)
     record = run_dem(inputs, runs_root=tmp_path / "runs", resume=True, progress=False)
     assert record.state == "completed" and record.resumed_from.startswith("restart/")
+
+
+def test_restart_rewritten_by_a_killed_resume_is_not_vouched_for_by_an_older_log(tmp_path):
+    """Attempt 1 reached step 5000; the resumed attempt rewrote restart.4500 and was killed
+    while writing it: attempt 1's log (older than the file) does not make it complete."""
+    from dem.run import _restart_files
+
+    inputs = prepare_run(load_preset("smoke").dem)
+    run_dir = _killed_run(tmp_path, inputs, solver_out_rows=[], log_rows=[4000, 4500, 5000], restart_step=4000)
+    os.replace(run_dir / "log.liggghts", run_dir / "log.liggghts.attempt1")
+    old = time.time() - 100
+    os.utime(run_dir / "log.liggghts.attempt1", (old, old))
+    os.utime(run_dir / "restart" / "restart.4000.bin", (old - 10, old - 10))
+    (run_dir / "restart" / "restart.4500.bin").write_bytes(b"\0" * 10)  # the truncated rewrite
+    (run_dir / "solver.out").write_text(THERMO_HEADER + "4000 0.1 10 5 5 0 0 0.2 0.01\n5000 0.1 10 5 5 0 0 0.2 0.01\n"
+                                        "\n# --- resumed from restart/restart.4000.bin at x ---\n")
+    assert [p.name for p in _restart_files(run_dir)] == ["restart.4000.bin"]
