@@ -187,8 +187,9 @@ def test_missing_solver_or_launcher(tmp_path):
 def test_interrupt_then_resume(tmp_path):
     """Ctrl-C after the first restart file: the solver group is terminated, the run marked
     interrupted; --resume continues from the restart and the result is complete and sound."""
+    # 1-s velocity windows: 2 s of dumps cannot cover a 5-s window (refused by the post-processing)
     config = variant(load_preset("smoke"), operation={"duration_s": 2.0}, numerics={"restart_interval_s": 0.5},
-                     run={"np": 1})
+                     run={"np": 1}, tables={"window_s": 1.0})
     seen = {}
 
     def interrupt_after_restart(line):
