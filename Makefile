@@ -38,10 +38,10 @@ validate: setup
 # The paper's particles on this machine: the paper preset's first 15 s on 2 ranks, stopped
 # after 45 min of wall time; rewrites workflows/reference/paper_scale/ (the shipped summary).
 paper-probe: setup
-	$(PYTHON) -m workflows.paper_scale $(if $(FRESH),--fresh)
+	$(PYTHON) -m workflows.cli study paper-scale $(if $(FRESH),--fresh)
 
 bench: setup
-	$(PYTHON) -m workflows.bench
+	$(PYTHON) -m workflows.cli bench all
 
 clean:
 	rm -rf results build *.egg-info .pytest_cache

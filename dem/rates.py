@@ -35,7 +35,7 @@ of iterations. For the PBM a capped rate is as good as infinite: it relaxes in 0
 (at 0.1-s dumps) against a residence time of ~20 s. The fit reports how many rates sit at
 the cap (:attr:`RateFit.capped`).
 
-Numbers (``OPENBLAS_NUM_THREADS=1 python -m workflows.bench_rates``; 10 x 10 grid,
+Numbers (``OPENBLAS_NUM_THREADS=1 python -m workflows.bench.rates``; 10 x 10 grid,
 forward-biased axial rates and faster transverse rates, 4e6 particles followed for 30
 dumps, 0.6-1.1e8 transitions, so sampling noise is ~1 %; worst relative error over every
 rate that is not a wall):

@@ -10,7 +10,7 @@ import pytest
 from pbm.config import PbmConfig
 from dem.post import postprocess
 from tests.test_post import STEADY, config, write_synthetic
-from workflows.agreement import MODES, agreement_rows, run_modes
+from workflows.analysis.agreement import MODES, agreement_rows, run_modes
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,9 @@ from dem.cluster import estimate_cost
 from dem.deck import DRUM_DECK, MAIN_DECK, RESUME_DECK, build_deck, build_drum_deck
 from dem.geometry import simulation_box
 from dem.liggghts_log import loop_details, parse_loop_time, parse_runs
-from workflows import bench_dem_deck
-from workflows.bench_dem_deck import VARIANTS, cost, paper_core_hours
+from workflows.bench import dem_deck as bench_dem_deck
+from workflows.cli.main import main
+from workflows.bench.dem_deck import VARIANTS, cost, paper_core_hours
 from workflows.config import load_preset
 
 
@@ -223,8 +224,8 @@ def test_every_variant_runs_on_one_rank_and_nodump_on_all():
 @pytest.mark.liggghts
 def test_tiny_benchmark_run_writes_every_key(tmp_path):
     out = tmp_path / "dem_deck.json"
-    bench_dem_deck.main(["--steps", "200", "--fill-s", "0.3", "--repeats", "1", "--work", str(tmp_path / "work"),
-                         "--out", str(out)])
+    assert main(["bench", "dem-deck", "--steps", "200", "--fill-s", "0.3", "--repeats", "1", "--work", str(tmp_path / "work"),
+                         "--out", str(out)]) == 0
     record = json.loads(out.read_text())
     for key in ("blender_particle_steps_per_s_serial", "blender_particle_steps_per_s_np2",
                 "blender_nodump_particle_steps_per_s_serial", "drum_particle_steps_per_s_serial",

@@ -6,7 +6,7 @@ import pytest
 
 from coupling.tables import make_table
 from coupling.errors import ConfigError
-from workflows.bench_scatter import next_prime, table_difference
+from workflows.bench.scatter import next_prime, table_difference
 from workflows.config import load_preset, override
 
 

@@ -4,7 +4,7 @@ no traceback, and nothing expensive started first (these run without the solver)
 
 import pytest
 
-from workflows.cli import main
+from workflows.cli.main import main
 
 
 @pytest.fixture

@@ -35,7 +35,7 @@ def test_mpi_command_and_slurm_script():
 
 
 def test_cli_slurm_writes_deck_and_script(tmp_path, capsys):
-    from workflows.cli import main
+    from workflows.cli.main import main
 
     out = tmp_path / "job"
     assert main(["dem", "slurm", "--preset", "paper", "--np", "16", "--holdup", "40000", "--throughput", "4e6",
@@ -120,7 +120,7 @@ def test_the_batch_script_runs_under_slurm(slurm_cluster, tmp_path, capsys):
     import time
 
     from coupling.cache import load_entry
-    from workflows.cli import main
+    from workflows.cli.main import main
     from workflows.config import config_from_dict, dump_toml
 
     data = load_preset("smoke").to_dict()

@@ -11,9 +11,9 @@ import pytest
 from coupling.cache import cache_path, load_entry, save_entry
 from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
-from workflows.cli import main
+from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
-from workflows.pipeline import dem_stage, pbm_config_for, post_hash, results_key
+from workflows.pipeline.stages import dem_stage, pbm_config_for, post_hash, results_key
 
 
 def test_feed_weights_are_the_overlap_in_y():
@@ -168,7 +168,7 @@ def test_without_a_solver_run_nothing_is_started(tmp_path):
 def test_paper_hold_up_is_scaled_from_the_shipped_reduced_run():
     """The reduced preset's inlet margin and blade clearance do not change the vessel: its
     shipped run still sets the paper preset's hold-up for the cost estimate."""
-    from workflows.pipeline import reference_holdup
+    from workflows.shipped import reference_holdup
 
     held, source = reference_holdup(load_preset("paper").dem)
     assert "dem-" in source and 30_000 < held < 45_000

@@ -3,7 +3,7 @@
 import pytest
 
 from coupling.errors import ConfigError
-from workflows.cli import main
+from workflows.cli.main import main
 from workflows.config import config_from_dict, dump_toml, load_config, load_preset, preset_names
 
 

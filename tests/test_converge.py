@@ -7,12 +7,12 @@ import pytest
 from dem.run import STOPPED, completed_run, prepare_run, read_status, run_dem
 from tests.test_run import variant
 from workflows.config import load_preset
-from workflows.converge import ConvergenceWatch, check_run_directory, converged
-from workflows.pipeline import dem_stage
+from workflows.analysis.convergence import ConvergenceWatch, check_run_directory, converged
+from workflows.pipeline.stages import dem_stage
 
 
 def test_criterion_on_the_shipped_validation_baseline():
-    from workflows.validation import campaign_configs, run_campaign
+    from workflows.products.validate import campaign_configs, run_campaign
 
     config = campaign_configs()["baseline"]
     side = run_campaign(solver=False, configs={"baseline": config}, log=lambda message: None)["baseline"]
@@ -89,7 +89,7 @@ def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
     (["--stop-when-converged", "--check-every", "0"], "--check-every must be a number of seconds > 0, got 0"),
 ])
 def test_cli_refuses_bad_convergence_flags(tmp_path, capsys, argv, message):
-    from workflows.cli import main
+    from workflows.cli.main import main
 
     code = main(["dem", "run", "--preset", "smoke", "--runs-dir", str(tmp_path), *argv])
     err = capsys.readouterr().err

@@ -29,7 +29,7 @@ from dem.deck import (
     write_deck,
 )
 from dem.liggghts import run_solver, solver_command, text_tail
-from workflows.cli import main
+from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
 
 PRESETS = ["paper", "reduced", "smoke"]

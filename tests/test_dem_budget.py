@@ -1,4 +1,4 @@
-"""workflows.dem_budget: the truncated table, the judging and the budget rule (no
+"""workflows.analysis.budget: the truncated table, the judging and the budget rule (no
 LIGGGHTS, no PBM runs: a synthetic table and transition counts from a known generator)."""
 
 import math
@@ -10,7 +10,7 @@ import pytest
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, make_table
 from dem.post import DemResults
 from dem.rates import RATE_KEYS, generator, simulate_observations
-from workflows.dem_budget import judge, smallest_budget, table_from_first
+from workflows.analysis.budget import judge, smallest_budget, table_from_first
 
 NX, NY, WINDOW_S, K, INTERVAL_S = 3, 2, 5.0, 8, 0.1
 STEADY_S = 10.0  # windows 2.. are steady

@@ -14,7 +14,7 @@ from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.config import PbmConfig
 from pbm.design import TableLibrary, design, design_spec, evaluate, speed_grid
-from workflows.cli import main
+from workflows.cli.main import main
 
 L = 0.33
 CONFIG = PbmConfig(feed_weights_a=[1.0], feed_weights_b=[1.0])

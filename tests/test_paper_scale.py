@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from coupling.errors import ConfigError
-from workflows.cli import main
+from workflows.cli.main import main
 from workflows.config import dump_toml, load_preset
-from workflows.paper_scale import (SUMMARY_FILE, dump_throughput, measured_throughput, probe_config, summarise,
+from workflows.shipped import measured_throughput
+from workflows.studies.paper_scale import (SUMMARY_FILE, dump_throughput, probe_config, summarise,
                                    thermo_rows)
 
 HEADER = "Step simtime Atoms insA insB outA outB ts[1] ts[2]"

@@ -4,7 +4,7 @@ import numpy as np
 import pyvista as pv
 
 from coupling.tables import make_table
-from workflows.paraview import impeller_at, particle_cloud, write_compartment_series
+from workflows.report.paraview import impeller_at, particle_cloud, write_compartment_series
 
 
 def test_compartment_cells_match_their_ij(tmp_path):

@@ -10,7 +10,7 @@ from coupling.errors import ConfigError, TableError
 from coupling.tables import make_table, write_table
 from pbm import PbmConfig, noise_ensemble, noise_study, simulate, synthetic_table, write_outputs
 from pbm.plots import FIGURES
-from workflows.cli import main
+from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
 
 
@@ -163,10 +163,9 @@ def test_studies_run_and_plot(small_table, tmp_path):
 
 @pytest.mark.slow
 def test_bench_main_writes_json(tmp_path, capsys):
-    from workflows import bench_pbm
 
     out = tmp_path / "pbm.json"
-    assert bench_pbm.main(["--repeats", "1", "--bdf-repeats", "1", "--members", "4", "--out", str(out)]) == 0
+    assert main(["bench", "pbm", "--repeats", "1", "--bdf-repeats", "1", "--members", "4", "--out", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["scenario"]["windows"] == 52 and report["ensemble"]["members"] == 4
     assert max(report["max_rel_diff_expm_vs_bdf"].values()) < 1e-5

@@ -7,7 +7,7 @@ from scipy.optimize import check_grad
 
 from dem.rates import (RATE_KEYS, _Objective, allowed_transitions, fit_rates, fit_windows, generator, log_likelihood,
                        naive_rates, simulate_observations)
-from workflows.bench_rates import blender_rates
+from workflows.bench.rates import blender_rates
 
 DT = 0.1
 

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from workflows.report import SideResults, Study, comparison_metrics, plot_comparison, render_html, rtd_overlap
+from workflows.report.comparison import SideResults, Study, comparison_metrics, plot_comparison, render_html, rtd_overlap
 
 
 def _rtd(mean, t=np.arange(0.5, 200, 1.0)):

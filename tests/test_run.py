@@ -23,7 +23,7 @@ from dem.liggghts import run_solver
 from dem.liggghts_log import ThermoParser
 from dem.post import postprocess
 from dem.run import prepare_run, read_status, run_dem, run_key, solver_command
-from workflows.cli import main
+from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
 
 liggghts = pytest.mark.liggghts

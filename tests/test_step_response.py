@@ -13,7 +13,8 @@ from dem.deck import STEP_FEEDER, build_deck, deck_parameters
 from pbm.config import PbmConfig
 from pbm.simulate import simulate
 from workflows.config import load_preset, override
-from workflows.step_response import binomial_deviance, judge, mean_delay, step_config
+from workflows.analysis.step import binomial_deviance, judge, mean_delay
+from workflows.products.validate import step_config
 
 
 def test_step_config_adds_a_second_feeder_that_starts_on_time():
@@ -112,8 +113,9 @@ def test_deviance_is_zero_at_the_counts_own_fractions():
 
 @pytest.mark.slow
 def test_shipped_step_run_is_found_and_judged(tmp_path):
-    from workflows.step_response import run_step, step_comparison
-    from workflows.validation import campaign_configs, run_campaign
+    from workflows.analysis.step import step_comparison
+    from workflows.products.validate import run_step
+    from workflows.products.validate import campaign_configs, run_campaign
 
     side = run_step(runs_root=tmp_path, solver=False, log=lambda message: None)
     assert side.source == "reference"

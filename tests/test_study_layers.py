@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dem.rates import allowed_transitions, simulate_observations
-from workflows.study_layers import Snapshots, chain_data, chain_rtd, fit_chain, parse_grid, states
+from workflows.studies.layers import Snapshots, chain_data, chain_rtd, fit_chain, parse_grid, states
 
 DT = 0.1
 

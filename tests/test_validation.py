@@ -11,7 +11,8 @@ import pytest
 from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.studies import interpolate_tables, scale_speed
-from workflows.validation import CHANGES, campaign_configs, judge, prediction_tables, verdict_text
+from workflows.analysis.validation import judge, prediction_tables, verdict_text
+from workflows.products.validate import CHANGES, campaign_configs
 
 X, Y = np.linspace(0, 0.33, 6), np.linspace(-0.05, 0.05, 5)
 
@@ -124,7 +125,8 @@ def test_judge_lists_quantities_missing_on_either_side():
 def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path):
     import json
 
-    from workflows.validation import REFERENCE_DIR, validation_report
+    from workflows.products.validate import validation_report
+    from workflows.shipped import VALIDATION_DIR as REFERENCE_DIR
 
     if not any(REFERENCE_DIR.glob("dem-*.h5")):
         pytest.fail(f"no shipped campaign results in {REFERENCE_DIR}")

@@ -1,4 +1,4 @@
-"""The DEM's transfer function from particle records (workflows.vrr) against exact ones:
+"""The DEM's transfer function from particle records (workflows.analysis.vrr) against exact ones:
 a well-mixed tank (exponential RTD) and a 1-D chain of n equal tanks (Erlang RTD), whose
 transfer functions are 1 / (1 + i 2 pi f T) and (k / (k + i 2 pi f))^n exactly."""
 
@@ -11,7 +11,9 @@ import pytest
 from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.config import PbmConfig
-from workflows.vrr import dem_transfer, main, plot_vrr, vrr_comparison, vrr_html
+from workflows.analysis.vrr import dem_transfer, vrr_comparison
+from workflows.cli.main import main
+from workflows.report.vrr import plot_vrr, vrr_html
 
 WINDOW = (40.0, 200.0)
 # Horizon 10 mean residence times: the conditional-on-recovery H differs from the
@@ -171,6 +173,6 @@ def test_bad_inputs_raise_config_error_naming_the_value(rng, kwargs, match):
 
 def test_cli_bad_path_one_line_exit_2(tmp_path, capsys):
     missing = tmp_path / "nope.h5"
-    assert main(["--reference", str(missing), "--out", str(tmp_path / "out")]) == 2
+    assert main(["study", "vrr", "--reference", str(missing), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(missing) in err[0] and "Traceback" not in err[0]
