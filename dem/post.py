@@ -298,15 +298,13 @@ def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tup
         return table, counts
     # the velocities' own threshold: below min_samples observations a compartment-window
     # carries no information, and the PBM fills it by the velocities' rule
-    rates = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
-    capped, unconverged = rates.pop("capped"), rates.pop("unconverged")
-    if all(np.isnan(values).all() for values in rates.values()):
+    fits = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
+    if not fits.any_finite:
         return table, counts
-    attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s), "rates_capped": int(capped),
-             "rates_unconverged_windows": [int(k) for k in unconverged],
-             "rates_finite": int(sum(np.isfinite(values).sum() for values in rates.values())),
+    attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s), "rates_capped": int(fits.capped),
+             "rates_unconverged_windows": [int(k) for k in fits.unconverged], "rates_finite": fits.finite,
              "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)"}
-    return table.replace(**rates, attrs=attrs), counts
+    return table.replace(**fits.rates, attrs=attrs), counts
 
 
 # ----------------------------------------------------------------------------- the whole

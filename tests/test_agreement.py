@@ -28,30 +28,32 @@ def test_both_modes_and_every_row(synthetic_80s):
     assert set(modes) == set(MODES)
     assert all(m.pooled is not None for m in modes.values())
     rows = agreement_rows(results.summary, results.particles, modes)
-    keys = [r["key"] for r in rows]
+    keys = [r.key for r in rows]
     for key in ("mean_residence_time_s", "rtd_variance_s2", "holdup", "outflow_per_s", "C_A", "rsd_outlet",
                 "lacey_outlet", "rtd_overlap", "little_mean_residence_time_s"):
         assert key in keys
     assert [k for k in keys if k.startswith("holdup_slice_")] == [f"holdup_slice_{i}" for i in range(1, 5)]
     for row in rows:
         for mode in MODES:
-            value = row[f"pbm_{mode}"]
-            assert math.isfinite(value), (row["key"], mode)
-            if row["key"] == "rtd_overlap":
-                assert row[f"inside_{mode}"] == (value >= row[f"noise_low_{mode}"])
+            value = row.value(mode)
+            assert math.isfinite(value), (row.key, mode)
+            if row.key == "rtd_overlap":
+                assert row.inside(mode) == (value >= row.pbm[mode].noise_low)
             else:
-                assert row[f"inside_{mode}"] == (row["dem_ci_low"] <= value <= row["dem_ci_high"])
+                assert row.inside(mode) == (row.dem_ci_low <= value <= row.dem_ci_high)
+            # the flat record summary.json holds carries the same numbers
+            assert row.record()[f"pbm_{mode}"] == value and row.record()[f"inside_{mode}"] == row.inside(mode)
 
 
 def test_the_verdict_follows_the_interval(synthetic_80s):
     results, modes = synthetic_80s
     summary = dict(results.summary)
     pbm_outflow = agreement_rows(summary, results.particles, modes)
-    value = next(r for r in pbm_outflow if r["key"] == "outflow_per_s")["pbm_measured"]
+    value = next(r for r in pbm_outflow if r.key == "outflow_per_s").value("measured")
     for low, high, expected in ((value - 1, value + 1, True), (value + 1, value + 2, False)):
         summary["steady"] = {**results.summary["steady"], "outflow_per_s": {"value": value, "low": low, "high": high}}
-        row = next(r for r in agreement_rows(summary, results.particles, modes) if r["key"] == "outflow_per_s")
-        assert row["inside_measured"] is expected
+        row = next(r for r in agreement_rows(summary, results.particles, modes) if r.key == "outflow_per_s")
+        assert row.inside("measured") is expected
 
 
 def test_the_pbm_pooled_rtd_uses_the_dem_window(synthetic_80s):

@@ -7,7 +7,7 @@ import pytest
 from dem.run import STOPPED, completed_run, prepare_run, read_status, run_dem
 from tests.test_run import variant
 from workflows.config import load_preset
-from workflows.analysis.convergence import ConvergenceWatch, check_run_directory, converged
+from workflows.analysis.convergence import Convergence, ConvergenceWatch, check_run_directory, converged
 from workflows.pipeline.stages import dem_stage
 
 
@@ -17,15 +17,15 @@ def test_criterion_on_the_shipped_validation_baseline():
     config = campaign_configs()["baseline"]
     side = run_campaign(solver=False, configs={"baseline": config}, log=lambda message: None)["baseline"]
     early = converged(side.results, config, 60.0)
-    assert not early["converged"] and "steady window" in early["why"]
+    assert not early.converged and "steady window" in early.why
     # no pooled RTD yet (the run is younger than its horizon): nothing of the RTD is judged, so no stop
     import dataclasses
 
     young = dataclasses.replace(side.results, summary={**side.results.summary, "pooled_rtd": None})
-    assert "no pooled RTD" in converged(young, config, 180.0)["why"]
+    assert "no pooled RTD" in converged(young, config, 180.0).why
     late = converged(side.results, config, 180.0)
-    assert late["converged"] and set(late["modes"]) == {"velocity", "measured"}
-    assert all(v["n_inside"] == v["n_rows"] for v in late["modes"].values())
+    assert late.converged and set(late.modes) == {"velocity", "measured"}
+    assert all(v.n_inside == len(v.rows) for v in late.modes.values())
 
 
 def test_watch_checks_on_time_and_stops_after_a_converged_check():
@@ -34,7 +34,7 @@ def test_watch_checks_on_time_and_stops_after_a_converged_check():
 
     def check(t):
         asked.append(t)
-        return {"converged": t >= 6.0, "t_s": t, "why": None}
+        return Convergence(t >= 6.0, t)
 
     watch = ConvergenceWatch(config, "unused", every_s=2.0, check=check)
     dt = config.dem.timestep_s
@@ -63,7 +63,7 @@ def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
 
     def stop_at_3(run_dir):
         return ConvergenceWatch(config, run_dir, every_s=1.5,
-                                check=lambda t: {"converged": t >= 3.0, "t_s": t, "why": None})
+                                check=lambda t: Convergence(t >= 3.0, t))
 
     side = dem_stage(config, runs_root=runs, progress=False, watch=stop_at_3)
     assert side.provenance["run_state"] == STOPPED and "converged" in side.provenance["stop_reason"]
@@ -76,7 +76,7 @@ def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
         dem_stage(config, runs_root=runs, progress=False, solver=False)
     # the real criterion reads the stopped run's dumps: too early to judge, and it says why
     answer = check_run_directory(runs / inputs.key, config, 3.0, 1.5)
-    assert not answer["converged"] and answer["why"]
+    assert not answer.converged and answer.why
     record = run_dem(inputs, runs_root=runs, resume=True, progress=False)
     assert record.state == "completed"
     full = dem_stage(config, runs_root=runs, progress=False, solver=False)

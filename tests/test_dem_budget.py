@@ -10,6 +10,7 @@ import pytest
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, make_table
 from dem.post import DemResults
 from dem.rates import RATE_KEYS, generator, simulate_observations
+from workflows.analysis.agreement import AgreementRow, ModeValue
 from workflows.analysis.budget import judge, smallest_budget, table_from_first
 
 NX, NY, WINDOW_S, K, INTERVAL_S = 3, 2, 5.0, 8, 0.1
@@ -130,22 +131,23 @@ def test_bad_t_raises(results, t_use, steady, match):
         table_from_first(results, t_use, steady)
 
 
-def _row(key, dem_low, dem_high, pbm, **extra):
-    return {"key": key, "quantity": key, "dem_ci_low": dem_low, "dem_ci_high": dem_high, "pbm_velocity": pbm, **extra}
+def _row(key, dem_low, dem_high, pbm, noise_low=None):
+    mode = ModeValue(pbm, None, None, noise_low)
+    return AgreementRow(key, key, "-", math.nan, dem_low, dem_high, {"velocity": mode})
 
 
 def test_judge_uses_half_the_full_runs_interval_and_the_noise_band_for_the_overlap():
     full = [_row("holdup", 90.0, 110.0, 130.0), _row("rtd_recovered_fraction", 0.99, 1.0, 0.5),
-            _row("rtd_overlap", 0.95, 1.0, 0.9, noise_low_velocity=0.96), _row("C_A", 0.5, 0.5, 0.5)]
+            _row("rtd_overlap", 0.95, 1.0, 0.9, noise_low=0.96), _row("C_A", 0.5, 0.5, 0.5)]
     at_t = [_row("holdup", 90.0, 110.0, 139.0), _row("rtd_recovered_fraction", 0.99, 1.0, 0.0),
-            _row("rtd_overlap", 0.95, 1.0, 0.95, noise_low_velocity=0.9), _row("C_A", 0.5, 0.5, 0.5)]
-    rows = {row["key"]: row for row in judge(at_t, full, "velocity")}
+            _row("rtd_overlap", 0.95, 1.0, 0.95, noise_low=0.9), _row("C_A", 0.5, 0.5, 0.5)]
+    rows = {row.key: row for row in judge(at_t, full, "velocity")}
     assert "rtd_recovered_fraction" not in rows  # not judged
-    assert rows["holdup"]["half_width"] == 10.0 and rows["holdup"]["inside"]  # 9 <= 10, though outside the DEM's
-    assert rows["holdup"]["deviation"] == pytest.approx(0.9)
-    assert rows["rtd_overlap"]["half_width"] == pytest.approx(0.04)  # the full run's band, not T's
-    assert not rows["rtd_overlap"]["inside"]  # 0.05 > 0.04
-    assert not rows["C_A"]["inside"] and math.isnan(rows["C_A"]["deviation"])  # a zero-width yardstick judges nothing
+    assert rows["holdup"].tolerance == 10.0 and rows["holdup"].ok  # 9 <= 10, though outside the DEM's
+    assert rows["holdup"].deviation == pytest.approx(0.9)
+    assert rows["rtd_overlap"].tolerance == pytest.approx(0.04)  # the full run's band, not T's
+    assert not rows["rtd_overlap"].ok  # 0.05 > 0.04
+    assert not rows["C_A"].ok and math.isnan(rows["C_A"].deviation)  # a zero-width yardstick judges nothing
 
 
 def test_smallest_budget_needs_every_larger_t_inside():

@@ -124,11 +124,11 @@ def test_fit_windows_warm_start_tracks_changing_rates(rng):
     nx, ny = 4, 3
     truths = [blender_rates(nx, ny, 10.0, rng) for _ in range(3)]
     counts = np.stack([_observe(t, nx, ny, 400_000, 20, rng) for t in truths])
-    out = fit_windows(counts, nx, ny, DT, min_observations=2000)
-    assert set(out) == {f"rate_{k}" for k in RATE_KEYS} | {"capped", "unconverged"} and out["capped"] == 0
+    fits = fit_windows(counts, nx, ny, DT, min_observations=2000)
+    assert set(fits.rates) == {f"rate_{k}" for k in RATE_KEYS} and fits.capped == 0 and not fits.unconverged
     for k, truth in enumerate(truths):
-        assert out["rate_x_pos"][k].shape == (nx, ny)
-        window = {key: out[f"rate_{key}"][k] for key in RATE_KEYS}
+        assert fits.rates["rate_x_pos"][k].shape == (nx, ny)
+        window = {key: fits.rates[f"rate_{key}"][k] for key in RATE_KEYS}
         assert _relative_errors(window, truth, np.isfinite(window["x_pos"])).max() < 0.05
 
 

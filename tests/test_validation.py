@@ -11,6 +11,7 @@ import pytest
 from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.studies import interpolate_tables, scale_speed
+from workflows.analysis.agreement import AgreementRow, ModeValue
 from workflows.analysis.validation import judge, prediction_tables, verdict_text
 from workflows.products.validate import CHANGES, campaign_configs
 
@@ -78,9 +79,9 @@ def test_prediction_tables_from_the_baseline_and_the_library():
 
 def row(key, dem, low, high, velocity, measured):
     """An agreement row; the overlap's interval is its noise band [noise low, 1] per mode."""
-    noise = {f"noise_low_{mode}": low for mode in ("velocity", "measured")} if key == "rtd_overlap" else {}
-    return {"key": key, "quantity": key, "dem": dem, "dem_ci_low": low, "dem_ci_high": high,
-            "pbm_velocity": velocity, "pbm_measured": measured, **noise}
+    noise = low if key == "rtd_overlap" else None
+    return AgreementRow(key, key, "-", dem, low, high, {"velocity": ModeValue(velocity, None, None, noise),
+                                                        "measured": ModeValue(measured, None, None, noise)})
 
 
 def test_judge_compares_the_prediction_with_the_self_built_pbm_plus_the_dem_interval():
@@ -89,13 +90,13 @@ def test_judge_compares_the_prediction_with_the_self_built_pbm_plus_the_dem_inte
     predicted = [row("holdup", 100, 98, 102, 112, 104), row("rtd_overlap", 1, 0.95, 1, 0.78, 0.90),
                  row("rtd_recovered_fraction", 0.99, 0.98, 1, 0.1, 0.1)]
     verdict = judge(predicted, own)
-    velocity = {r["key"]: r for r in verdict["velocity"]["rows"]}
+    velocity = {r.key: r for r in verdict["velocity"].rows}
     # |112 - 100| = 12 <= |110 - 100| + 2; overlap: 0.22 <= 0.20 + 0.05 (one-sided band)
-    assert velocity["holdup"]["tolerance"] == pytest.approx(12) and velocity["holdup"]["ok"]
-    assert velocity["rtd_overlap"]["ok"] and verdict["velocity"]["predicts"]
+    assert velocity["holdup"].judged.tolerance == pytest.approx(12) and velocity["holdup"].ok
+    assert velocity["rtd_overlap"].ok and verdict["velocity"].predicts
     assert "rtd_recovered_fraction" not in velocity  # a diagnostic, not judged
     # measured: |104 - 100| = 4 > 1 + 2 fails; overlap 0.10 > 0.03 + 0.05 fails
-    assert verdict["measured"]["failing"] == ["holdup", "rtd_overlap"] and not verdict["measured"]["predicts"]
+    assert verdict["measured"].failing == ["holdup", "rtd_overlap"] and not verdict["measured"].predicts
     assert verdict_text(verdict) == "the hybrid predicts this (velocity rates)"
     both_fail = judge([row("holdup", 100, 98, 102, 130, 130)], own)
     assert verdict_text(both_fail) == ("this needs a new DEM run (nearest: velocity rates, 1 of 1 quantities "
@@ -109,16 +110,16 @@ def test_judge_is_calibrated_on_the_baseline_not_on_a_poor_self_built_pbm():
     baseline = [row("holdup", 100, 98, 102, 110, 100)]  # the hybrid: 10 % off (velocity), exact (measured)
     own = [row("holdup", 200, 196, 204, 400, 200)]  # on the new run the velocity PBM is 100 % off
     verdict = judge([row("holdup", 200, 196, 204, 230, 203)], own, baseline)
-    velocity, measured = verdict["velocity"]["rows"][0], verdict["measured"]["rows"][0]
-    assert velocity["tolerance"] == pytest.approx(0.10 * 200 + 4) and not velocity["ok"]  # 30 > 24
-    assert measured["tolerance"] == pytest.approx(4) and measured["ok"]  # 3 <= 0 + 4
-    assert velocity["self"] == 400  # reported, not the yardstick
+    velocity, measured = verdict["velocity"].rows[0], verdict["measured"].rows[0]
+    assert velocity.judged.tolerance == pytest.approx(0.10 * 200 + 4) and not velocity.ok  # 30 > 24
+    assert measured.judged.tolerance == pytest.approx(4) and measured.ok  # 3 <= 0 + 4
+    assert velocity.self_value == 400  # reported, not the yardstick
 
 
 def test_judge_lists_quantities_missing_on_either_side():
     verdict = judge([row("C_A", 0.5, 0.49, 0.51, float("nan"), 0.5)], [row("C_A", 0.5, 0.49, 0.51, 0.5, 0.5)])
-    assert verdict["velocity"]["missing"] == ["C_A"] and not verdict["velocity"]["predicts"]
-    assert verdict["measured"]["predicts"]
+    assert verdict["velocity"].missing == ("C_A",) and not verdict["velocity"].predicts
+    assert verdict["measured"].predicts
 
 
 @pytest.mark.slow

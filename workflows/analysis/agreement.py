@@ -1,10 +1,10 @@
 """The agreement table: every DEM quantity with its 95 % interval, each PBM rate mode's
 value, and whether that value lies inside the interval.
 
-One row per quantity (:func:`agreement_rows`): ``quantity``, ``unit``, ``dem``,
-``dem_ci_low``, ``dem_ci_high``, then ``pbm_<mode>`` and ``inside_<mode>`` for each PBM rate
-mode (``velocity``: the paper's eq. 4 rule; ``measured``: rates fitted to the DEM's
-particle moves). The DEM values and intervals come from :mod:`dem.steady`; the PBM's are
+One :class:`AgreementRow` per quantity (:func:`agreement_rows`): the DEM's value and
+interval and, per PBM rate mode (``velocity``: the paper's eq. 4 rule; ``measured``: rates
+fitted to the DEM's particle moves), a :class:`ModeValue`. In ``summary.json`` a row is
+written flat (:meth:`AgreementRow.record`): ``pbm_<mode>`` and ``inside_<mode>`` per mode. The DEM values and intervals come from :mod:`dem.steady`; the PBM's are
 computed here by the same definitions (:mod:`coupling.metrics`) from the PBM's own output,
 each side over the time after its own steady state (one rule, :class:`SteadyStateRule`):
 
@@ -25,7 +25,8 @@ each side over the time after its own steady state (one rule, :class:`SteadyStat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -116,26 +117,68 @@ _SCALARS = (
 )
 
 
-def _row(quantity: str, unit: str, dem: dict[str, Any] | None, pbm: dict[str, float]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class ModeValue:
+    """One PBM rate mode's value of a quantity and whether it lies inside the DEM's
+    interval (None: the mode has no value). For the RTD overlap, the noise band's median
+    and low end for a DEM-sized sample of that mode's RTD."""
+
+    value: float
+    inside: bool | None
+    noise_median: float | None = None
+    noise_low: float | None = None
+
+
+@dataclass(frozen=True)
+class AgreementRow:
+    """One quantity of the agreement table: the DEM's value with its 95 % interval, and
+    each PBM rate mode's value (:class:`ModeValue`)."""
+
+    key: str
+    quantity: str
+    unit: str
+    dem: float
+    dem_ci_low: float
+    dem_ci_high: float
+    pbm: Mapping[str, ModeValue] = field(default_factory=dict)
+
+    def value(self, mode: str) -> float:
+        """The PBM's value in ``mode``; NaN when the mode did not run."""
+        m = self.pbm.get(mode)
+        return math.nan if m is None else m.value
+
+    def inside(self, mode: str) -> bool | None:
+        m = self.pbm.get(mode)
+        return None if m is None else m.inside
+
+    def half_width(self, mode: str) -> float:
+        """The one half-width rule: half the width of the DEM's 95 % interval, the scale
+        below which a PBM value cannot be told from the DEM's; for the RTD overlap, whose
+        interval is the noise band [noise low of the mode, 1], the whole band 1 - noise
+        low. NaN when it is not known."""
+        if self.key == "rtd_overlap":
+            m = self.pbm.get(mode)
+            return math.nan if m is None or m.noise_low is None else 1.0 - m.noise_low
+        return 0.5 * (float(self.dem_ci_high) - float(self.dem_ci_low))
+
+    def record(self) -> dict[str, Any]:
+        """The row as ``summary.json`` holds it: flat, ``pbm_<mode>`` and ``inside_<mode>``
+        for every mode of :data:`MODES` (NaN / None for a mode that did not run)."""
+        out: dict[str, Any] = {"key": self.key, "quantity": self.quantity, "unit": self.unit, "dem": self.dem,
+                               "dem_ci_low": self.dem_ci_low, "dem_ci_high": self.dem_ci_high}
+        for mode in (*MODES, *(m for m in self.pbm if m not in MODES)):
+            m = self.pbm.get(mode)
+            out[f"pbm_{mode}"] = math.nan if m is None else m.value
+            out[f"inside_{mode}"] = None if m is None else m.inside
+            if m is not None and m.noise_low is not None:
+                out[f"noise_median_{mode}"], out[f"noise_low_{mode}"] = m.noise_median, m.noise_low
+        return out
+
+
+def _row(key: str, quantity: str, unit: str, dem: dict[str, Any] | None, pbm: dict[str, float]) -> AgreementRow:
     value, low, high = ((dem or {}).get(k, math.nan) for k in ("value", "low", "high"))
-    row = {"quantity": quantity, "unit": unit, "dem": value, "dem_ci_low": low, "dem_ci_high": high}
-    for mode in MODES:
-        v = pbm.get(mode, math.nan)
-        row[f"pbm_{mode}"] = v
-        row[f"inside_{mode}"] = bool(inside(v, low, high)) if mode in pbm else None
-    return row
-
-
-def half_width(row: dict[str, Any], mode: str) -> float:
-    """Half the width of a row's DEM 95 % interval, the scale below which a PBM value cannot
-    be told from the DEM's; for the RTD overlap, whose interval is the noise band
-    [noise low of the mode, 1], the whole band 1 - noise low. NaN when it is not known."""
-    if row["key"] == "rtd_overlap":
-        return 1.0 - float(row.get(f"noise_low_{mode}", math.nan))
-    low, high = row.get("dem_ci_low"), row.get("dem_ci_high")
-    if low is None or high is None:
-        return math.nan
-    return 0.5 * (float(high) - float(low))
+    modes = {mode: ModeValue(v, bool(inside(v, low, high))) for mode, v in pbm.items()}
+    return AgreementRow(key, quantity, unit, value, low, high, modes)
 
 
 def dem_density(records: pd.DataFrame, pooled_spec: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, int]:
@@ -146,7 +189,8 @@ def dem_density(records: pd.DataFrame, pooled_spec: dict[str, Any]) -> tuple[np.
     return edges, density, int(sample.residence_s.size)
 
 
-def agreement_rows(dem_summary: dict[str, Any], records: pd.DataFrame, modes: dict[str, PbmMode]) -> list[dict]:
+def agreement_rows(dem_summary: dict[str, Any], records: pd.DataFrame,
+                   modes: dict[str, PbmMode]) -> list[AgreementRow]:
     """The agreement table (module docstring)."""
     steady = dem_summary.get("steady") or {}
     pooled_spec = dem_summary.get("pooled_rtd") or {}
@@ -162,33 +206,28 @@ def agreement_rows(dem_summary: dict[str, Any], records: pd.DataFrame, modes: di
         pbm = {mode: v[key] for mode, v in pbm_values.items() if key in v}
         if dem_values.get(key) is None and not pbm:
             continue
-        rows.append({"key": key, **_row(label, unit, dem_values.get(key), pbm)})
+        rows.append(_row(key, label, unit, dem_values.get(key), pbm))
     if pooled_spec.get("n_entered") and len(records):
         edges, density, n = dem_density(records, pooled_spec)
         bin_s = float(pooled_spec["bin_s"])
-        row = {"key": "rtd_overlap", "quantity": "RTD overlap (pooled; interval: noise band of the mode)",
-               "unit": "-", "dem": 1.0, "dem_ci_low": math.nan, "dem_ci_high": 1.0}
-        lows = []
+        overlaps = {}
         for mode in MODES:
             m = modes.get(mode)
             if m is None or m.pooled is None or n == 0:
-                row[f"pbm_{mode}"], row[f"inside_{mode}"] = math.nan, None
                 continue
             e_pbm = m.pooled.recovered_density_per_s
             overlap = rtd_overlap(density, e_pbm[: density.size], bin_s)
             band = overlap_noise_band(e_pbm, bin_s, n)
-            lows.append(band.low)
-            row[f"pbm_{mode}"], row[f"inside_{mode}"] = overlap, bool(overlap >= band.low)
-            row[f"noise_median_{mode}"], row[f"noise_low_{mode}"] = band.median, band.low
-        row["dem_ci_low"] = min(lows) if lows else math.nan
-        rows.append(row)
+            overlaps[mode] = ModeValue(overlap, bool(overlap >= band.low), band.median, band.low)
+        low = min((m.noise_low for m in overlaps.values()), default=math.nan)
+        rows.append(AgreementRow("rtd_overlap", "RTD overlap (pooled; interval: noise band of the mode)", "-",
+                                 1.0, low, 1.0, overlaps))
     slices = steady.get("holdup_by_slice")
     if slices:
         for i, (value, low, high) in enumerate(zip(slices["value"], slices["low"], slices["high"])):
             pbm = {mode: v["holdup_by_slice"][i] for mode, v in pbm_values.items() if "holdup_by_slice" in v}
-            rows.append({"key": f"holdup_slice_{i + 1}",
-                         **_row(f"hold-up of axial slice {i + 1}", "particles",
-                                {"value": value, "low": low, "high": high}, pbm)})
+            rows.append(_row(f"holdup_slice_{i + 1}", f"hold-up of axial slice {i + 1}", "particles",
+                             {"value": value, "low": low, "high": high}, pbm))
     return rows
 
 
@@ -210,3 +249,33 @@ def nx_sensitivity(fine_table: VelocityTable, config: PbmConfig, steady: SteadyS
             "change_variance": b.pooled.variance_s2 / a.pooled.variance_s2 - 1,
         }
     return out
+
+
+@dataclass(frozen=True)
+class Judged:
+    """One quantity judged by the project's one rule: ``value`` agrees with ``reference``
+    when |value - reference| <= ``tolerance``. A quantity that cannot be judged (a NaN,
+    or no positive tolerance) does not agree: what nobody can check has not passed."""
+
+    key: str
+    quantity: str
+    value: float
+    reference: float
+    tolerance: float
+
+    @property
+    def error(self) -> float:
+        return abs(self.value - self.reference)
+
+    @property
+    def judgeable(self) -> bool:
+        return all(math.isfinite(v) for v in (self.value, self.reference, self.tolerance)) and self.tolerance > 0
+
+    @property
+    def deviation(self) -> float:
+        """|value - reference| / tolerance: <= 1 agrees; NaN when not judgeable."""
+        return self.error / self.tolerance if self.judgeable else math.nan
+
+    @property
+    def ok(self) -> bool:
+        return self.judgeable and self.error <= self.tolerance

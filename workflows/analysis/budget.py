@@ -18,6 +18,7 @@ from the whole run by the same rule, to within the DEM's own sampling uncertaint
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -29,7 +30,7 @@ from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from dem.post import DemResults
 from dem.rates import RATE_KEYS, fit_rates
 from pbm.model import fill_missing_velocities
-from workflows.analysis.agreement import MODES, agreement_rows, half_width, run_modes
+from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
 from workflows.config import Config
 from workflows.pipeline.stages import pbm_config_for, rtd_pulse
 
@@ -153,47 +154,122 @@ def refit_rates(results: DemResults, windows: np.ndarray):
 
 
 # ----------------------------------------------------------------------------- judging
-def half_widths(rows: list[dict], mode: str) -> dict[str, float]:
-    """Per judged row key: half the width of the DEM 95 % interval; for the RTD overlap,
-    whose interval is the noise band [noise low of the mode, 1], 1 - noise low."""
-    return {row["key"]: half_width(row, mode) for row in rows if row["key"] not in SKIPPED}
+def judge(rows_t: list[AgreementRow], reference_rows: list[AgreementRow], mode: str) -> list[Judged]:
+    """One judged quantity per row (every agreement row but :data:`SKIPPED`): the T-PBM's
+    value against the reference PBM's (the whole run's), with the half width of the
+    reference rows' DEM interval as the tolerance (:meth:`AgreementRow.half_width`)."""
+    reference = {row.key: row for row in reference_rows if row.key not in SKIPPED}
+    return [Judged(row.key, row.quantity, row.value(mode), reference[row.key].value(mode),
+                   reference[row.key].half_width(mode)) for row in rows_t if row.key in reference]
 
 
-def judge(rows_t: list[dict], reference_rows: list[dict], mode: str) -> list[dict]:
-    """One judged row per quantity: the T-PBM's value, the reference PBM's (the whole
-    run's), the yardstick (:func:`half_widths` of the reference rows), ``deviation`` =
-    |pbm_T - pbm_whole| / half_width and ``inside`` (deviation <= 1; False when any of
-    them is not finite: a quantity that cannot be judged has not converged)."""
-    widths = half_widths(reference_rows, mode)
-    full = {row["key"]: float(row[f"pbm_{mode}"]) for row in reference_rows}
-    out = []
-    for row in rows_t:
-        key = row["key"]
-        if key not in widths:
-            continue
-        value, reference, width = float(row[f"pbm_{mode}"]), full.get(key, math.nan), widths[key]
-        finite = math.isfinite(value) and math.isfinite(reference) and math.isfinite(width) and width > 0
-        deviation = abs(value - reference) / width if finite else math.nan
-        out.append({"key": key, "quantity": row["quantity"], "pbm_T": value, "pbm_whole": reference,
-                    "half_width": width, "deviation": deviation, "inside": bool(finite and deviation <= 1.0)})
-    return out
+@dataclass(frozen=True)
+class Verdict:
+    """One rate mode's verdict on :func:`judge`'s rows. ``all_inside_without_slices``
+    leaves the per-slice hold-ups out: their DEM half widths are ~0.5 % of a slice's
+    hold-up, tighter than anything else judged."""
+
+    rows: tuple[Judged, ...]
+
+    @property
+    def all_inside(self) -> bool:
+        return all(row.ok for row in self.rows)
+
+    @property
+    def all_inside_without_slices(self) -> bool:
+        return all(row.ok for row in self.rows if not row.key.startswith("holdup_slice_"))
+
+    @property
+    def n_inside(self) -> int:
+        return sum(row.ok for row in self.rows)
+
+    @property
+    def worst(self) -> Judged | None:
+        return max(self.rows, key=lambda r: r.deviation if math.isfinite(r.deviation) else math.inf, default=None)
+
+    def record(self) -> dict[str, Any]:
+        worst = self.worst
+        return {"all_inside": self.all_inside, "all_inside_without_slices": self.all_inside_without_slices,
+                "n_inside": self.n_inside, "n_rows": len(self.rows), "worst": None if worst is None else worst.key,
+                "worst_deviation": None if worst is None else worst.deviation,
+                "rows": [{"key": r.key, "quantity": r.quantity, "pbm_T": r.value, "pbm_whole": r.reference,
+                          "half_width": r.tolerance, "deviation": r.deviation, "inside": r.ok} for r in self.rows]}
 
 
-def verdict(judged: list[dict]) -> dict[str, Any]:
-    """One mode's verdict on :func:`judge`'s rows: ``all_inside``,
-    ``all_inside_without_slices`` (the per-slice hold-ups left out: their DEM half widths
-    are ~0.5 % of a slice's hold-up, tighter than anything else judged), ``n_inside``,
-    ``n_rows``, ``worst`` (key) and ``worst_deviation``, and the ``rows``."""
-    deviations = [row["deviation"] if math.isfinite(row["deviation"]) else math.inf for row in judged]
-    worst = int(np.argmax(deviations)) if judged else None
-    return {
-        "all_inside": all(row["inside"] for row in judged),
-        "all_inside_without_slices": all(row["inside"] for row in judged if not row["key"].startswith("holdup_slice_")),
-        "n_inside": sum(row["inside"] for row in judged), "n_rows": len(judged),
-        "worst": None if worst is None else judged[worst]["key"],
-        "worst_deviation": None if worst is None else judged[worst]["deviation"],
-        "rows": judged,
-    }
+def verdict(judged: list[Judged]) -> Verdict:
+    return Verdict(tuple(judged))
+
+
+@dataclass(frozen=True)
+class WholeRow:
+    """The whole-run PBM's value of one quantity in one mode, with the DEM's interval (for
+    the RTD overlap: the mode's noise band) and the half width every T is judged by."""
+
+    key: str
+    quantity: str
+    pbm_whole: float
+    dem: float
+    dem_ci_low: float
+    dem_ci_high: float
+    half_width: float
+
+    def record(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Budget:
+    """One DEM budget T: its steady-state time, what its table was built from, the error
+    that kept it from being judged (None when judged) and per mode its :class:`Verdict`."""
+
+    t_s: float
+    fraction: float
+    steady_time_s: float | None = None
+    error: str | None = None
+    table: dict[str, Any] | None = None
+    modes: dict[str, Verdict] = field(default_factory=dict)
+
+    def record(self) -> dict[str, Any]:
+        out = {"t_s": self.t_s, "fraction": self.fraction, "steady_time_s": self.steady_time_s, "error": self.error,
+               "modes": {mode: v.record() for mode, v in self.modes.items()}}
+        if self.table is not None:
+            out["table"] = self.table
+        return out
+
+
+@dataclass(frozen=True)
+class BudgetStudy:
+    """:func:`budget_study`'s answer (see there); ``smallest_T`` and
+    ``smallest_T_without_slices``: per mode (T [s], fraction of the run), None when no T
+    qualifies."""
+
+    t_end_s: float
+    steady_state_time_s: float
+    whole: dict[str, list[WholeRow]]
+    holding: dict[str, Verdict]
+    budgets: list[Budget]
+    smallest_T: dict[str, tuple[float | None, float | None]]
+    smallest_T_without_slices: dict[str, tuple[float | None, float | None]]
+    reference: str | None = None
+    elapsed_s: float | None = None
+
+    def record(self) -> dict[str, Any]:
+        def smallest(values: dict[str, tuple[float | None, float | None]]) -> dict[str, Any]:
+            return {mode: {"t_s": t, "fraction": f} for mode, (t, f) in values.items()}
+
+        out = {"t_end_s": self.t_end_s, "steady_state_time_s": self.steady_state_time_s, "skipped": list(SKIPPED),
+               "yardstick": YARDSTICK,
+               "whole": {mode: [r.record() for r in rows] for mode, rows in self.whole.items()},
+               "holding": {mode: v.record() for mode, v in self.holding.items()},
+               "budgets": [b.record() for b in self.budgets], "smallest_T": smallest(self.smallest_T),
+               "smallest_T_without_slices": smallest(self.smallest_T_without_slices)}
+        if self.reference is not None:
+            out["reference"], out["elapsed_s"] = self.reference, self.elapsed_s
+        return out
+
+
+YARDSTICK = ("|pbm_T - pbm_whole| <= half width of the whole run's DEM 95 % interval "
+             "(RTD overlap: 1 - noise low of the mode)")
 
 
 def smallest_budget(all_inside: dict[float, bool]) -> float | None:
@@ -209,7 +285,7 @@ def smallest_budget(all_inside: dict[float, bool]) -> float | None:
 
 # ----------------------------------------------------------------------------- the study
 def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
-                 log: Log = lambda message: None) -> dict[str, Any]:
+                 log: Log = lambda message: None) -> BudgetStudy:
     """For each T in ``t_values``: both PBM rate modes on :func:`table_from_first`, judged
     quantity by quantity (every agreement row but :data:`SKIPPED`) against the same mode
     on the whole run's table built by the same rule (T = the run's end).
@@ -249,58 +325,52 @@ def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
     if steady_full is None or not math.isfinite(steady_full):
         raise ConfigError("the DEM run never reaches the steady state: there is no steady flow to budget")
 
-    def rows_of(t: VelocityTable) -> list[dict]:
+    def rows_of(t: VelocityTable) -> list[AgreementRow]:
         return agreement_rows(summary, results.particles, run_modes(t, pbm_config, config.steady_state, summary))
 
     log("PBM on the whole run's steady table")
     whole_rows = rows_of(table_from_first(results, t_end, steady_full))
     log("PBM on the per-window table")
     window_rows = rows_of(table)
-    modes = [mode for mode in MODES if math.isfinite(whole_rows[0].get(f"pbm_{mode}", math.nan))]
+    modes = [mode for mode in MODES if math.isfinite(whole_rows[0].value(mode))]
     whole = {}
     for mode in modes:
-        widths = half_widths(whole_rows, mode)
-        whole[mode] = [{"key": row["key"], "quantity": row["quantity"], "pbm_whole": row[f"pbm_{mode}"],
-                        "dem": row["dem"], "dem_ci_low": row.get(f"noise_low_{mode}", row["dem_ci_low"]),
-                        "dem_ci_high": row["dem_ci_high"], "half_width": widths[row["key"]]}
-                       for row in whole_rows if row["key"] in widths]
+        whole[mode] = [WholeRow(row.key, row.quantity, row.value(mode), row.dem,
+                                row.pbm[mode].noise_low if row.pbm[mode].noise_low is not None else row.dem_ci_low,
+                                row.dem_ci_high, row.half_width(mode))
+                       for row in whole_rows if row.key not in SKIPPED]
     holding = {mode: verdict(judge(whole_rows, window_rows, mode)) for mode in modes}
 
     times = results.timeseries["t_s"].to_numpy(float)
     holdup = (results.timeseries["holdup_A"] + results.timeseries["holdup_B"]).to_numpy(float)
     budgets = []
     for t_use in sorted(float(t) for t in t_values):
-        entry: dict[str, Any] = {"t_s": t_use, "fraction": min(t_use / t_end, 1.0), "steady_time_s": None,
-                                 "error": None, "modes": {}}
+        entry = Budget(t_use, min(t_use / t_end, 1.0))
         budgets.append(entry)
         seen = times <= t_use + 1e-9
         steady_time = config.steady_state.time(times[seen], holdup[seen])
         if steady_time is None:
-            entry["error"] = f"T = {t_use:g} s: the DEM's first {t_use:g} s never reach the steady state"
-            log(entry["error"])
+            entry.error = f"T = {t_use:g} s: the DEM's first {t_use:g} s never reach the steady state"
+            log(entry.error)
             continue
-        entry["steady_time_s"] = steady_time
+        entry.steady_time_s = steady_time
         try:
             table_t = table_from_first(results, t_use, steady_time)
         except ValueError as exc:
-            entry["error"] = str(exc)
-            log(entry["error"])
+            entry.error = str(exc)
+            log(entry.error)
             continue
-        entry["table"] = {key.removeprefix("budget_"): value for key, value in table_t.attrs.items()
+        entry.table = {key.removeprefix("budget_"): value for key, value in table_t.attrs.items()
                           if key.startswith("budget_") and key != "budget_rule"}
         if t_use >= t_end - 1e-9 * table.window_s:  # the whole run: its PBM is the reference itself
             rows_t = whole_rows
         else:
             log(f"PBM on the first {t_use:g} s")
             rows_t = rows_of(table_t)
-        entry["modes"] = {mode: verdict(judge(rows_t, whole_rows, mode)) for mode in modes}
+        entry.modes = {mode: verdict(judge(rows_t, whole_rows, mode)) for mode in modes}
     smallest, without_slices = {}, {}
     for mode in modes:
         for out, flag in ((smallest, "all_inside"), (without_slices, "all_inside_without_slices")):
-            t_best = smallest_budget({b["t_s"]: bool(b["modes"].get(mode, {}).get(flag)) for b in budgets})
-            out[mode] = {"t_s": t_best, "fraction": None if t_best is None else min(t_best / t_end, 1.0)}
-    return {"t_end_s": t_end, "steady_state_time_s": steady_full, "skipped": list(SKIPPED),
-            "yardstick": "|pbm_T - pbm_whole| <= half width of the whole run's DEM 95 % interval "
-                         "(RTD overlap: 1 - noise low of the mode)",
-            "whole": whole, "holding": holding, "budgets": budgets, "smallest_T": smallest,
-            "smallest_T_without_slices": without_slices}
+            t_best = smallest_budget({b.t_s: mode in b.modes and getattr(b.modes[mode], flag) for b in budgets})
+            out[mode] = (t_best, None if t_best is None else min(t_best / t_end, 1.0))
+    return BudgetStudy(t_end, steady_full, whole, holding, budgets, smallest, without_slices)

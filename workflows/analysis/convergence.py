@@ -20,62 +20,69 @@ marked ``stopped`` (never taken for a complete run), and ``--resume`` continues 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from dem import deck
 from dem.dumps import dump_paths
 from dem.liggghts_log import ThermoParser
 from dem.post import DemResults, postprocess
 from dem.run import StopRun
-from workflows.analysis.agreement import MODES, agreement_rows, run_modes
+from workflows.analysis.agreement import MODES, AgreementRow, agreement_rows, run_modes
 from workflows.config import Config
-from workflows.analysis.budget import judge, table_from_first, verdict
+from workflows.analysis.budget import Verdict, judge, table_from_first, verdict
 from workflows.pipeline.stages import pbm_config_for, rtd_pulse
 
 #: Simulated seconds between checks (and the dT of the comparison).
 CHECK_EVERY_S = 20.0
 
 
-def converged(results: DemResults, config: Config, t_s: float, step_s: float = CHECK_EVERY_S) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Convergence:
+    """One convergence check at T: ``converged``, ``why`` not (None when it did) and per
+    rate mode the :class:`~workflows.analysis.budget.Verdict` of the PBM from the first
+    T - dT seconds against the PBM from the first T."""
+
+    converged: bool
+    t_s: float
+    why: str | None = None
+    modes: dict[str, Verdict] = field(default_factory=dict)
+
+
+def converged(results: DemResults, config: Config, t_s: float, step_s: float = CHECK_EVERY_S) -> Convergence:
     """Whether the PBMs from the first ``t_s`` and ``t_s - step_s`` seconds of ``results``
     agree on every judged quantity to within half the DEM's 95 % interval at ``t_s``, in
-    every rate mode. Returns ``converged``, ``t_s``, ``why`` (when not judged) and per
-    mode :func:`workflows.analysis.budget.verdict`."""
+    every rate mode."""
     summary = results.summary
     steady = summary.get("steady_state_time_s")
-    out: dict[str, Any] = {"converged": False, "t_s": t_s, "why": None, "modes": {}}
     if steady is None or not math.isfinite(steady):
-        out["why"] = f"no steady state in the first {t_s:g} s"
-        return out
+        return Convergence(False, t_s, f"no steady state in the first {t_s:g} s")
     if not (summary.get("pooled_rtd") or {}).get("n_entered"):
         # without it the agreement table has no RTD rows: judging the rest would pass a
         # PBM whose residence times nobody has checked
-        out["why"] = f"no pooled RTD in the first {t_s:g} s yet (its entry window ends a horizon before T)"
-        return out
+        return Convergence(False, t_s, f"no pooled RTD in the first {t_s:g} s yet (its entry window ends a horizon "
+                                       "before T)")
     if t_s - step_s < steady + results.table.window_s:
-        out["why"] = f"no complete steady window before {t_s - step_s:g} s (steady from {steady:g} s)"
-        return out
+        return Convergence(False, t_s, f"no complete steady window before {t_s - step_s:g} s (steady from {steady:g} s)")
     pbm_config = pbm_config_for(config, results.table, rtd_pulse(summary))
 
-    def rows(t: float) -> list[dict]:
+    def rows(t: float) -> list[AgreementRow]:
         table = table_from_first(results, t, steady)
         return agreement_rows(summary, results.particles, run_modes(table, pbm_config, config.steady_state, summary))
 
     now, before = rows(t_s), rows(t_s - step_s)
-    modes = [m for m in MODES if math.isfinite(now[0].get(f"pbm_{m}", math.nan))]
     # the yardstick is the DEM at T: the reference rows of judge() carry the half widths
-    out["modes"] = {m: verdict(judge(before, now, m)) for m in modes}
-    out["converged"] = bool(modes) and all(v["all_inside"] for v in out["modes"].values())
-    if not out["converged"]:
-        worst = {m: v["worst"] for m, v in out["modes"].items() if not v["all_inside"]}
-        out["why"] = "moved by more than the DEM resolves: " + ", ".join(f"{m}: {k}" for m, k in worst.items())
-    return out
+    modes = {m: verdict(judge(before, now, m)) for m in MODES if math.isfinite(now[0].value(m))}
+    if modes and all(v.all_inside for v in modes.values()):
+        return Convergence(True, t_s, None, modes)
+    worst = {m: v.worst.key for m, v in modes.items() if not v.all_inside and v.worst is not None}
+    return Convergence(False, t_s, "moved by more than the DEM resolves: "
+                       + ", ".join(f"{m}: {k}" for m, k in worst.items()), modes)
 
 
-def check_run_directory(run_dir: Path, config: Config, t_s: float, step_s: float = CHECK_EVERY_S) -> dict[str, Any]:
+def check_run_directory(run_dir: Path, config: Config, t_s: float, step_s: float = CHECK_EVERY_S) -> Convergence:
     """:func:`converged` on the dumps of ``run_dir`` up to ``t_s`` (and its discharge files)."""
     last = round(t_s / config.dem.timestep_s)
     files = [p for p in dump_paths(str(run_dir / deck.DUMP_GLOB)) if int(p.name.split(".")[1]) <= last]
@@ -89,7 +96,7 @@ class ConvergenceWatch:
     every check's answer; ``log`` is told each one."""
 
     def __init__(self, config: Config, run_dir: Path, every_s: float = CHECK_EVERY_S,
-                 check: Callable[[float], dict[str, Any]] | None = None,
+                 check: Callable[[float], Convergence] | None = None,
                  log: Callable[[str], None] = lambda message: None) -> None:
         if not (math.isfinite(every_s) and every_s > 0):
             raise ValueError(f"the check interval must be > 0 s, got {every_s}")
@@ -99,24 +106,24 @@ class ConvergenceWatch:
         self.log = log
         self.parser = ThermoParser(deck.THERMO_DISCHARGED, deck.THERMO_INSERTED, deck.THERMO_COLUMNS)
         self.next_s = 2 * self.every_s  # the first comparison needs T - dT > 0
-        self.history: list[dict[str, Any]] = []
+        self.history: list[Convergence] = []
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
 
     @property
     def converged_at(self) -> float | None:
         with self._lock:
-            return next((h["t_s"] for h in self.history if h.get("converged")), None)
+            return next((h.t_s for h in self.history if h.converged), None)
 
     def _run(self, t_s: float) -> None:
         try:
             answer = self.check(t_s)
         except Exception as exc:  # a failed check is a check that did not converge, said so
-            answer = {"converged": False, "t_s": t_s, "why": f"check failed: {exc}"}
+            answer = Convergence(False, t_s, f"check failed: {exc}")
         with self._lock:
             self.history.append(answer)
         self.log(f"convergence check at {t_s:g} s: "
-                 + ("converged" if answer.get("converged") else f"not yet ({answer.get('why')})"))
+                 + ("converged" if answer.converged else f"not yet ({answer.why})"))
 
     def __call__(self, line: str) -> None:
         t_stop = self.converged_at

@@ -8,12 +8,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
-from workflows.analysis.agreement import MODES, agreement_rows, half_width, run_modes
+from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
 from workflows.config import Config, config_without
 from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse, stderr_log
 
@@ -62,7 +61,7 @@ class Prediction:
 
     run: str
     source: str
-    rows: list[dict[str, Any]] = field(default_factory=list)
+    rows: list[AgreementRow] = field(default_factory=list)
     note: str = ""
 
 
@@ -82,45 +81,106 @@ def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log 
     return out
 
 
-def judge(predicted: list[dict[str, Any]], own: list[dict[str, Any]],
-          calibration: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+@dataclass(frozen=True)
+class PredictedQuantity:
+    """One quantity of one prediction judged by the campaign's rule: ``judged.value`` the
+    prediction, ``judged.reference`` the DEM, ``judged.tolerance`` = ``model_error`` + the
+    half width of the DEM's interval; ``self_value`` the run's own self-built PBM, reported
+    beside it."""
+
+    judged: Judged
+    dem_ci_low: float
+    dem_ci_high: float
+    self_value: float
+    model_error: float
+
+    @property
+    def key(self) -> str:
+        return self.judged.key
+
+    @property
+    def ok(self) -> bool:
+        return self.judged.ok
+
+    def record(self) -> dict[str, Any]:
+        j = self.judged
+        return {"key": j.key, "quantity": j.quantity, "dem": j.reference, "dem_ci_low": self.dem_ci_low,
+                "dem_ci_high": self.dem_ci_high, "predicted": j.value, "self": self.self_value, "error": j.error,
+                "model_error": self.model_error, "tolerance": j.tolerance, "ok": j.ok}
+
+
+@dataclass(frozen=True)
+class ModePrediction:
+    """One rate mode's verdict on a prediction: it predicts the change when every judged
+    quantity is ok; ``missing``: quantities that could not be judged (left out)."""
+
+    rows: tuple[PredictedQuantity, ...]
+    missing: tuple[str, ...] = ()
+
+    @property
+    def failing(self) -> list[str]:
+        return [r.key for r in self.rows if not r.ok]
+
+    @property
+    def predicts(self) -> bool:
+        return bool(self.rows) and not self.failing
+
+    def record(self) -> dict[str, Any]:
+        return {"rows": [r.record() for r in self.rows], "missing": list(self.missing), "failing": self.failing,
+                "predicts": self.predicts}
+
+
+def judge(predicted: list[AgreementRow], own: list[AgreementRow],
+          calibration: list[AgreementRow] | None = None) -> dict[str, ModePrediction]:
     """The verdict on one prediction (module docstring, 3.): per rate mode and quantity,
-    ``error`` = |prediction - DEM| and ``tolerance`` = the hybrid's own error on the
+    the error |prediction - DEM| against the tolerance = the hybrid's own error on the
     ``calibration`` run (its self-built PBM against its DEM, default ``own``), relative to
     that DEM value and scaled to this one (absolute for the RTD overlap, whose ideal is 1),
-    plus the half width of this DEM's interval; ``ok`` = error <= tolerance. The run's own
-    self-built PBM (``own``) is reported beside it as ``self``. The mode predicts the change
-    when every judged quantity is ok. Quantities missing anywhere are left out and listed."""
-    own_rows = {row["key"]: row for row in own}
-    cal_rows = {row["key"]: row for row in (calibration if calibration is not None else own)}
-    verdict: dict[str, Any] = {}
+    plus the half width of this DEM's interval (:class:`~workflows.analysis.agreement.Judged`).
+    The run's own self-built PBM (``own``) is reported beside it. Quantities missing
+    anywhere are left out and listed."""
+    own_rows = {row.key: row for row in own}
+    cal_rows = {row.key: row for row in (calibration if calibration is not None else own)}
+    verdict: dict[str, ModePrediction] = {}
     for mode in MODES:
         rows, missing = [], []
         for row in predicted:
-            key = row["key"]
+            key = row.key
             if key in NOT_JUDGED:
                 continue
-            cal = cal_rows.get(key, {})
-            dem, pred, self_value = row.get("dem"), row.get(f"pbm_{mode}"), own_rows.get(key, {}).get(f"pbm_{mode}")
-            cal_dem, cal_pbm = cal.get("dem"), cal.get(f"pbm_{mode}")
-            half = half_width(row, mode)
+            cal, mine = cal_rows.get(key), own_rows.get(key)
+            dem, pred = row.dem, row.value(mode)
+            self_value = math.nan if mine is None else mine.value(mode)
+            cal_dem, cal_pbm = (math.nan, math.nan) if cal is None else (cal.dem, cal.value(mode))
+            half = row.half_width(mode)
             values = (dem, pred, self_value, cal_dem, cal_pbm, half)
-            if any(v is None or not np.isfinite(v) for v in values) or (key != "rtd_overlap" and cal_dem == 0):
+            if not all(math.isfinite(v) for v in values) or (key != "rtd_overlap" and cal_dem == 0):
                 missing.append(key)
                 continue
             model_error = (abs(cal_pbm - cal_dem) if key == "rtd_overlap"
                            else abs(cal_pbm - cal_dem) / abs(cal_dem) * abs(dem))
-            error, tolerance = abs(pred - dem), model_error + half
-            rows.append({"key": key, "quantity": row["quantity"], "dem": dem, "dem_ci_low": row["dem_ci_low"],
-                         "dem_ci_high": row["dem_ci_high"], "predicted": pred, "self": self_value, "error": error,
-                         "model_error": model_error, "tolerance": tolerance, "ok": error <= tolerance})
-        failing = [r["key"] for r in rows if not r["ok"]]
-        verdict[mode] = {"rows": rows, "missing": missing, "failing": failing,
-                         "predicts": bool(rows) and not failing}
+            judged = Judged(key, row.quantity, pred, dem, model_error + half)
+            rows.append(PredictedQuantity(judged, row.dem_ci_low, row.dem_ci_high, self_value, model_error))
+        verdict[mode] = ModePrediction(tuple(rows), tuple(missing))
     return verdict
 
 
-def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[dict[str, Any]]:
+@dataclass(frozen=True)
+class PredictionVerdict:
+    """The campaign's verdict on one prediction (one run, one source): its text and, when it
+    could be judged, each rate mode's :class:`ModePrediction`."""
+
+    run: str
+    source: str
+    verdict: str
+    judged: dict[str, ModePrediction] | None
+
+    def record(self) -> dict[str, Any]:
+        return {"run": self.run, "source": self.source, "verdict": self.verdict,
+                "judged": None if self.judged is None else {m: v.record() for m, v in self.judged.items()}}
+
+
+def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[PredictionVerdict]:
     """:func:`judge` for every prediction that is not a run's own PBM, calibrated on the
     baseline's self-built PBM (the accuracy the hybrid shows on the run it is built from)."""
     own = {p.run: p.rows for p in preds if p.source == "self"}
@@ -130,10 +190,10 @@ def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[dict[s
         if p.source == "self":
             continue
         if not p.rows:
-            out.append({"run": p.run, "source": p.source, "verdict": f"not predicted: {p.note}", "judged": None})
+            out.append(PredictionVerdict(p.run, p.source, f"not predicted: {p.note}", None))
             continue
         judged = judge(p.rows, own[p.run], calibration)
-        out.append({"run": p.run, "source": p.source, "verdict": verdict_text(judged), "judged": judged})
+        out.append(PredictionVerdict(p.run, p.source, verdict_text(judged), judged))
     return out
 
 
@@ -152,19 +212,19 @@ def campaign_span_s(sides: dict[str, DemSide]) -> float | None:
     return max(ends) - min(starts) if ends else None
 
 
-def verdict_text(verdict: dict[str, Any]) -> str:
+def verdict_text(verdict: dict[str, ModePrediction]) -> str:
     """The plain verdict of a change from :func:`judge`'s numbers; when no rate mode
     predicts it, the failures of the mode that came nearest."""
-    good = [mode for mode in MODES if verdict.get(mode, {}).get("predicts")]
+    good = [mode for mode in MODES if mode in verdict and verdict[mode].predicts]
     if good:
         return f"the hybrid predicts this ({' and '.join(good)} rates)"
-    judged = [mode for mode in MODES if verdict.get(mode, {}).get("rows")]
+    judged = [mode for mode in MODES if mode in verdict and verdict[mode].rows]
     if not judged:
         return "this needs a new DEM run (no quantity could be judged)"
-    best = min(judged, key=lambda mode: len(verdict[mode]["failing"]))
-    failing = verdict[best]["failing"]
+    best = min(judged, key=lambda mode: len(verdict[mode].failing))
+    failing = verdict[best].failing
     slices = [key for key in failing if key.startswith("holdup_slice_")]
     named = [key for key in failing if key not in slices]
     named += [f"hold-up of {len(slices)} axial slice{'s' if len(slices) > 1 else ''}"] if slices else []
-    return (f"this needs a new DEM run (nearest: {best} rates, {len(failing)} of {len(verdict[best]['rows'])} "
+    return (f"this needs a new DEM run (nearest: {best} rates, {len(failing)} of {len(verdict[best].rows)} "
             f"quantities outside tolerance: {', '.join(named)})")

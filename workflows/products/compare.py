@@ -162,7 +162,7 @@ def full_comparison(
         (out_dir / "report.html").write_text(page)
         summary = {
             "metrics": metrics,
-            "agreement": rows,
+            "agreement": [r.record() for r in rows],
             "nx_sensitivity": sensitivity,
             "vrr": vrr,
             "pbm_modes": {mode: m.result.summary for mode, m in modes.items()},

@@ -147,9 +147,9 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
         else:
             figures.pop("budget")
         write_json(out_dir / "summary.json", json_ready({
-            "campaign": campaign, "campaign_elapsed_s": span_s, "verdicts": judged, "dem_budget": budget,
+            "campaign": campaign, "campaign_elapsed_s": span_s, "verdicts": [v.record() for v in judged], "dem_budget": None if budget is None else budget.record(),
             "step_response": None if step is None else summary_rows(step),
-            "predictions": [{"run": p.run, "source": p.source, "note": p.note, "agreement": p.rows} for p in preds]}))
+            "predictions": [{"run": p.run, "source": p.source, "note": p.note, "agreement": [r.record() for r in p.rows]} for p in preds]}))
         page = out_dir / "report.html"
         page.write_text(render_report(campaign, judged, figures, budget, span_s,
                                       None if step is None else step_html(step, figures.get("step"))))

@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 
 from coupling.metrics import TIMESERIES_COLUMNS
 from coupling.metrics import rtd_overlap as shared_rtd_overlap
+from workflows.analysis.agreement import AgreementRow
 
 DEM_COLOUR, PBM_COLOUR = "#b2182b", "#2166ac"
 
@@ -199,7 +200,7 @@ def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[s
 MODE_STYLES = {"velocity": ("--", "PBM, velocity rates (paper eq. 4)"), "measured": ("-", "PBM, measured rates")}
 
 
-def plot_agreement(rows: list[dict[str, Any]], dem_rtd: tuple[np.ndarray, np.ndarray] | None,
+def plot_agreement(rows: list[AgreementRow], dem_rtd: tuple[np.ndarray, np.ndarray] | None,
                    pbm_rtd: dict[str, tuple[np.ndarray, np.ndarray]], out_dir: Path) -> dict[str, str]:
     """The pooled RTD (DEM histogram, each PBM mode's density on the same bins, all
     conditional on recovery within the horizon) and the steady axial hold-up profile (DEM
@@ -218,16 +219,16 @@ def plot_agreement(rows: list[dict[str, Any]], dem_rtd: tuple[np.ndarray, np.nda
         ax.legend(fontsize=8)
         fig.savefig(out_dir / "rtd_pooled.png", dpi=110)
         files["rtd_pooled"] = "rtd_pooled.png"
-    slices = [r for r in rows if r["key"].startswith("holdup_slice_")]
+    slices = [r for r in rows if r.key.startswith("holdup_slice_")]
     if slices:
         fig = Figure(figsize=(6.4, 4.0), layout="constrained")
         ax = fig.add_subplot()
         i = np.arange(1, len(slices) + 1)
-        dem = np.array([r["dem"] for r in slices], dtype=float)
-        err = np.abs(np.array([[r["dem_ci_low"], r["dem_ci_high"]] for r in slices], dtype=float).T - dem)
+        dem = np.array([r.dem for r in slices], dtype=float)
+        err = np.abs(np.array([[r.dem_ci_low, r.dem_ci_high] for r in slices], dtype=float).T - dem)
         ax.errorbar(i, dem, yerr=err, fmt="o", color=DEM_COLOUR, capsize=3, label="DEM (95 % interval)")
         for mode, (style, label) in MODE_STYLES.items():
-            values = np.array([r.get(f"pbm_{mode}", np.nan) for r in slices], dtype=float)
+            values = np.array([r.value(mode) for r in slices], dtype=float)
             if np.isfinite(values).any():
                 ax.plot(i, values, style, marker=".", color=PBM_COLOUR, label=label)
         ax.set(title="Steady hold-up per axial slice", xlabel="axial compartment (inlet = 1)", ylabel="particles")
@@ -238,7 +239,7 @@ def plot_agreement(rows: list[dict[str, Any]], dem_rtd: tuple[np.ndarray, np.nda
     return files
 
 
-def agreement_html(rows: list[dict[str, Any]], nx_sensitivity: dict[str, Any] | None) -> str:
+def agreement_html(rows: list[AgreementRow], nx_sensitivity: dict[str, Any] | None) -> str:
     """The agreement table (:mod:`workflows.analysis.agreement`) and the NX sensitivity as HTML."""
     if not rows:
         return "<p>No agreement table: the DEM run has no steady state to average over.</p>"
@@ -247,9 +248,9 @@ def agreement_html(rows: list[dict[str, Any]], nx_sensitivity: dict[str, Any] | 
         return "–" if flag is None else ("inside" if flag else "<b>outside</b>")
 
     body = "".join(
-        f"<tr><td>{html.escape(r['quantity'])}</td><td>{html.escape(r['unit'])}</td><td>{fmt(r['dem'])}</td>"
-        f"<td>{fmt(r['dem_ci_low'])} – {fmt(r['dem_ci_high'])}</td>"
-        + "".join(f"<td>{fmt(r.get(f'pbm_{m}'))}</td><td>{verdict(r.get(f'inside_{m}'))}</td>" for m in MODE_STYLES)
+        f"<tr><td>{html.escape(r.quantity)}</td><td>{html.escape(r.unit)}</td><td>{fmt(r.dem)}</td>"
+        f"<td>{fmt(r.dem_ci_low)} – {fmt(r.dem_ci_high)}</td>"
+        + "".join(f"<td>{fmt(r.value(m))}</td><td>{verdict(r.inside(m))}</td>" for m in MODE_STYLES)
         + "</tr>" for r in rows)
     head = ("<tr><th>quantity</th><th>unit</th><th>DEM</th><th>DEM 95 % interval</th>"
             + "".join(f"<th>{html.escape(label)}</th><th>verdict</th>" for _, label in MODE_STYLES.values()) + "</tr>")

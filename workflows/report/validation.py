@@ -11,7 +11,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from workflows.analysis.agreement import MODES
-from workflows.analysis.validation import Prediction
+from workflows.analysis.budget import BudgetStudy
+from workflows.analysis.validation import Prediction, PredictionVerdict
 from workflows.report.comparison import fmt
 
 
@@ -34,18 +35,18 @@ def plot_parity(preds: list[Prediction], path: Path) -> None:
     for ax, (key, label) in zip(axes, PARITY):
         lo_all, hi_all = [], []
         for p in preds:
-            row = next((r for r in p.rows if r["key"] == key), None)
-            if row is None or row.get("dem") is None or not np.isfinite(row["dem"]):
+            row = next((r for r in p.rows if r.key == key), None)
+            if row is None or not np.isfinite(row.dem):
                 continue
             for mode in MODES:
-                value = row.get(f"pbm_{mode}")
+                value = row.value(mode)
                 if value is None or not np.isfinite(value):
                     continue
-                err = [[max(row["dem"] - row["dem_ci_low"], 0)], [max(row["dem_ci_high"] - row["dem"], 0)]]
-                ax.errorbar([row["dem"]], [value], xerr=err, fmt=MODE_MARKERS[mode], ms=5,
+                err = [[max(row.dem - row.dem_ci_low, 0)], [max(row.dem_ci_high - row.dem, 0)]]
+                ax.errorbar([row.dem], [value], xerr=err, fmt=MODE_MARKERS[mode], ms=5,
                             color=SOURCE_COLOURS[p.source], mfc="none" if mode == "velocity" else None, lw=0.8)
-                lo_all += [row["dem_ci_low"], value]
-                hi_all += [row["dem_ci_high"], value]
+                lo_all += [row.dem_ci_low, value]
+                hi_all += [row.dem_ci_high, value]
         if lo_all:  # one range for both axes: the diagonal is the 45-degree line of a perfect prediction
             lo, hi = min(lo_all), max(hi_all)
             pad = 0.05 * (hi - lo or abs(hi) or 1)
@@ -70,18 +71,18 @@ def plot_profiles(preds: list[Prediction], runs: list[str], path: Path) -> None:
     for ax, run in zip(axes, runs):
         mine = [p for p in preds if p.run == run and p.rows]
         if mine:
-            rows = sorted((r for r in mine[0].rows if r["key"].startswith("holdup_slice_")),
-                          key=lambda r: int(r["key"].rsplit("_", 1)[1]))
+            rows = sorted((r for r in mine[0].rows if r.key.startswith("holdup_slice_")),
+                          key=lambda r: int(r.key.rsplit("_", 1)[1]))
             if rows:
                 slices = np.arange(1, len(rows) + 1)
-                ax.fill_between(slices, [r["dem_ci_low"] for r in rows], [r["dem_ci_high"] for r in rows],
+                ax.fill_between(slices, [r.dem_ci_low for r in rows], [r.dem_ci_high for r in rows],
                                 color="#b2182b", alpha=0.25)
-                ax.plot(slices, [r["dem"] for r in rows], color="#b2182b", lw=2)
+                ax.plot(slices, [r.dem for r in rows], color="#b2182b", lw=2)
             for p in mine:
-                prow = sorted((r for r in p.rows if r["key"].startswith("holdup_slice_")),
-                              key=lambda r: int(r["key"].rsplit("_", 1)[1]))
+                prow = sorted((r for r in p.rows if r.key.startswith("holdup_slice_")),
+                              key=lambda r: int(r.key.rsplit("_", 1)[1]))
                 for mode in MODES:
-                    ax.plot(np.arange(1, len(prow) + 1), [r[f"pbm_{mode}"] for r in prow],
+                    ax.plot(np.arange(1, len(prow) + 1), [r.value(mode) for r in prow],
                             color=SOURCE_COLOURS[p.source], ls="--" if mode == "velocity" else "-", lw=1)
         ax.set_title(run, fontsize=9)
         ax.set_xlabel("axial slice (inlet → outlet)", fontsize=8)
@@ -95,8 +96,8 @@ def plot_profiles(preds: list[Prediction], runs: list[str], path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], figures: dict[str, str],
-                  budget: dict[str, Any] | None = None, span_s: float | None = None,
+def render_report(campaign: list[dict[str, Any]], judged: list[PredictionVerdict], figures: dict[str, str],
+                  budget: BudgetStudy | None = None, span_s: float | None = None,
                   step_section: str | None = None) -> str:
     """The validation page: the campaign, a verdict per change, the numbers behind each."""
     total = sum(r["dem_wall_time_s"] or 0 for r in campaign)
@@ -127,12 +128,12 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
     for v in judged:
         cells = []
         for mode in MODES:
-            j = (v["judged"] or {}).get(mode)
+            j = (v.judged or {}).get(mode)
             cells.append("<td>–</td>" if j is None else
-                         f"<td class='{'yes' if j['predicts'] else 'no'}'>{len(j['rows']) - len(j['failing'])}"
-                         f"/{len(j['rows'])} ok</td>")
-        parts.append(f"<tr><td>{html.escape(v['run'])}</td><td>{html.escape(v['source'])}</td>{''.join(cells)}"
-                     f"<td>{html.escape(v['verdict'])}</td></tr>")
+                         f"<td class='{'yes' if j.predicts else 'no'}'>{len(j.rows) - len(j.failing)}"
+                         f"/{len(j.rows)} ok</td>")
+        parts.append(f"<tr><td>{html.escape(v.run)}</td><td>{html.escape(v.source)}</td>{''.join(cells)}"
+                     f"<td>{html.escape(v.verdict)}</td></tr>")
     parts.append("</table>")
     for name in ("parity", "profiles"):
         if name in figures:
@@ -143,10 +144,10 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
                      "quantity against the same PBM built from the whole run, judged by the half width of the "
                      "DEM's 95 % interval.</p><table><tr><th>rate mode</th><th>smallest T [s]</th>"
                      "<th>fraction of the run</th><th>without the slice hold-ups [s]</th></tr>")
-        for mode, best in budget["smallest_T"].items():
-            other = budget["smallest_T_without_slices"].get(mode, {})
-            parts.append(f"<tr><td>{mode}</td><td>{fmt(best['t_s'])}</td><td>{fmt(best['fraction'], 2)}</td>"
-                         f"<td>{fmt(other.get('t_s'))}</td></tr>")
+        for mode, (t_s, fraction) in budget.smallest_T.items():
+            other = budget.smallest_T_without_slices.get(mode, (None, None))[0]
+            parts.append(f"<tr><td>{mode}</td><td>{fmt(t_s)}</td><td>{fmt(fraction, 2)}</td>"
+                         f"<td>{fmt(other)}</td></tr>")
         parts.append("</table>")
         if "budget" in figures:
             parts.append(f"<p><img src='{figures['budget']}' style='max-width:100%'></p>")
@@ -154,13 +155,13 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
         parts.append(step_section)
     parts.append("<h2>The numbers behind each verdict</h2>")
     for v in judged:
-        if not v["judged"]:
+        if not v.judged:
             continue
-        parts.append(f"<h3>{html.escape(v['run'])}, predicted from {html.escape(v['source'])}</h3>"
+        parts.append(f"<h3>{html.escape(v.run)}, predicted from {html.escape(v.source)}</h3>"
                      "<table><tr><th>quantity</th><th>DEM</th><th>95 % interval</th>"
                      + "".join(f"<th>{m}: predicted</th><th>{m}: self-built</th><th>{m}: ok</th>" for m in MODES)
                      + "</tr>")
-        by_mode = {m: {r["key"]: r for r in v["judged"][m]["rows"]} for m in MODES}
+        by_mode = {m: {r.key: r for r in v.judged[m].rows} for m in MODES}
         keys = list(dict.fromkeys(k for m in MODES for k in by_mode[m]))
         for key in keys:
             first = next(by_mode[m][key] for m in MODES if key in by_mode[m])
@@ -168,10 +169,10 @@ def render_report(campaign: list[dict[str, Any]], judged: list[dict[str, Any]], 
             for m in MODES:
                 r = by_mode[m].get(key)
                 cells += ("<td>–</td><td>–</td><td>–</td>" if r is None else
-                          f"<td>{fmt(r['predicted'])}</td><td>{fmt(r['self'])}</td>"
-                          f"<td class='{'yes' if r['ok'] else 'no'}'>{fmt(r['ok'])}</td>")
-            parts.append(f"<tr><td>{html.escape(first['quantity'])}</td><td>{fmt(first['dem'])}</td>"
-                         f"<td>{fmt(first['dem_ci_low'])} – {fmt(first['dem_ci_high'])}</td>{cells}</tr>")
+                          f"<td>{fmt(r.judged.value)}</td><td>{fmt(r.self_value)}</td>"
+                          f"<td class='{'yes' if r.ok else 'no'}'>{fmt(r.ok)}</td>")
+            parts.append(f"<tr><td>{html.escape(first.judged.quantity)}</td><td>{fmt(first.judged.reference)}</td>"
+                         f"<td>{fmt(first.dem_ci_low)} – {fmt(first.dem_ci_high)}</td>{cells}</tr>")
         parts.append("</table>")
     parts.append("</body></html>")
     return "\n".join(parts)

@@ -5,6 +5,7 @@ reduced run). Writes ``dem_budget.json`` and ``dem_budget.png`` and prints a tab
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -29,11 +30,10 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     results, config = load_results(args.reference)
     study = budget_study(results, config, args.t, log=lambda message: print(message, flush=True))
-    study["reference"] = str(args.reference)
-    study["elapsed_s"] = time.perf_counter() - started
+    study = dataclasses.replace(study, reference=str(args.reference), elapsed_s=time.perf_counter() - started)
     out = Path(args.out)
-    write_json(out / "dem_budget.json", study)
+    write_json(out / "dem_budget.json", study.record())
     plot_budget(study, out / "dem_budget.png")
     print_table(study)
-    print(f"wrote {out / 'dem_budget.json'} and {out / 'dem_budget.png'} in {study['elapsed_s']:.0f} s")
+    print(f"wrote {out / 'dem_budget.json'} and {out / 'dem_budget.png'} in {study.elapsed_s:.0f} s")
     return 0

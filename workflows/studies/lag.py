@@ -108,23 +108,17 @@ def run(args: argparse.Namespace) -> int:
     out = {"dem_mean_s": spec["mean_residence_time_s"], "dem_variance_s2": spec["rtd_variance_s2"], "lags": {}}
     print(f"DEM pooled RTD: mean {spec['mean_residence_time_s']['value']:.2f} s, variance "
           f"{spec['rtd_variance_s2']['value']:.1f} s^2")
-    default_cap = rates_module.MAX_RATE_X_INTERVAL
-    try:
-        for lag in (int(v) for v in args.lags.split(",")):
-            counts = lag_counts(times, states, exit_t, lag, dem_config.tables.window_s, dem.table.n_windows, n_cells)
-            rates_module.MAX_RATE_X_INTERVAL = cap_per_s * lag * interval  # the same absolute cap
-            fitted = rates_module.fit_windows(counts, dem_config.tables.nx, dem_config.tables.ny, lag * interval,
-                                              min_observations=dem.table.min_samples)
-            capped = fitted.pop("capped")
-            fitted.pop("unconverged")
-            table = dem.table.replace(**fitted)
-            pooled = pooled_rtd(table, pbm_config, entry_window=tuple(spec["entry_window_s"]),
-                                horizon_s=spec["horizon_s"])
-            out["lags"][lag] = {"interval_s": lag * interval, "mean_s": pooled.mean_s, "variance_s2": pooled.variance_s2,
-                                "capped": capped}
-            print(f"  lag {lag:>3} ({lag * interval:.1f} s): PBM mean {pooled.mean_s:.2f} s, variance "
-                  f"{pooled.variance_s2:.1f} s^2 ({capped} rates at the cap)", flush=True)
-    finally:
-        rates_module.MAX_RATE_X_INTERVAL = default_cap
+    for lag in (int(v) for v in args.lags.split(",")):
+        counts = lag_counts(times, states, exit_t, lag, dem_config.tables.window_s, dem.table.n_windows, n_cells)
+        fits = rates_module.fit_windows(counts, dem_config.tables.nx, dem_config.tables.ny, lag * interval,
+                                        min_observations=dem.table.min_samples,
+                                        max_rate_x_interval=cap_per_s * lag * interval)  # the same absolute cap
+        table = dem.table.replace(**fits.rates)
+        pooled = pooled_rtd(table, pbm_config, entry_window=tuple(spec["entry_window_s"]),
+                            horizon_s=spec["horizon_s"])
+        out["lags"][lag] = {"interval_s": lag * interval, "mean_s": pooled.mean_s, "variance_s2": pooled.variance_s2,
+                            "capped": fits.capped}
+        print(f"  lag {lag:>3} ({lag * interval:.1f} s): PBM mean {pooled.mean_s:.2f} s, variance "
+              f"{pooled.variance_s2:.1f} s^2 ({fits.capped} rates at the cap)", flush=True)
     write_json(args.out, out)
     return 0
