@@ -7,7 +7,7 @@ NP ?= 2
 FRESH ?=
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup setup-system setup-python test full-comparison validate paper-probe bench clean
+.PHONY: setup setup-system setup-python test lint full-comparison validate paper-probe bench clean
 
 setup: setup-system setup-python
 
@@ -26,6 +26,11 @@ setup-python:
 
 test: setup
 	$(PYTHON) -m pytest
+
+# ruff: the rules, the import order and the layout (pyproject.toml's [tool.ruff]).
+lint: setup-python
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m ruff format --check .
 
 full-comparison: setup
 	$(PYTHON) -m workflows.cli compare --preset $(PRESET) --np $(NP) $(if $(FRESH),--fresh)

@@ -19,7 +19,7 @@ Method: maximum likelihood of the discretely observed chain,
 The gradient is exact: with ``G_ab = counts_ab / P_ab``,
 ``dL/dQ = interval * L_expm(Q^T interval, G)`` (the adjoint of the Frechet derivative of
 expm, ``scipy.linalg.expm_frechet``; the transpose convention is checked against finite
-differences in ``tests/test_rates.py``), then the chain rule onto each allowed entry Q_ab
+differences in ``tests/dem/test_rates.py``), then the chain rule onto each allowed entry Q_ab
 and the diagonal ``-sum``. L-BFGS-B with bounds ``0 <= rate <= 2 / interval`` starts from
 the naive estimate (or a previous window's fit). A compartment never observed as a start
 state has no information of its own: its rates are held fixed (they still shape P for

@@ -426,31 +426,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=3600.0, help="per LIGGGHTS run [s]")
 
 
-def run(args: argparse.Namespace) -> int:
-
-    config = load_preset(args.preset)
-    for assignment in args.set:
-        config = override(config, assignment)
+def measure_all(config, args: argparse.Namespace, nps: list[int], variants: list[str], fill_np: int):
+    """Fill the blender on every rank count, then every run of :func:`_plan`, interleaved
+    and repeated. Returns the measurements per run key, the fills per rank count, the
+    drum's particle count, and the restart step and hold-up the measured runs start from."""
     run_config = config.dem.run
-    nps = [int(n) for n in args.nps.split(",") if n.strip()]
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    unknown = [v for v in variants if v not in VARIANTS]
-    if unknown:
-        raise ConfigError(f"--variants: unknown {unknown}; known: {', '.join(VARIANTS)}")
-    if args.repeats < 1 or args.steps < 1 or not nps or min(nps) < 1:
-        raise ConfigError(f"--repeats {args.repeats}, --steps {args.steps}, --nps {args.nps}: all must be >= 1")
-    fill_np = args.fill_np or run_config.np
-    version = liggghts_version(run_config.liggghts)
-    load_before = os.getloadavg()
-    others = _liggghts_running()
-    if load_before[0] > LOAD_WARN:
-        msg = (f"machine load {load_before[0]:.2f} > {LOAD_WARN} before starting: the timings will be slowed down "
-               f"by other jobs" + (f" ({len(others)} LIGGGHTS processes running)" if others else ""))
-        print(f"WARNING: {msg}", file=sys.stderr, flush=True)
-    print(f"DEM deck benchmark: preset {args.preset}, {args.steps} steps, ranks {nps}, {args.repeats} repeats, "
-          f"variants {variants}, LIGGGHTS {version}", flush=True)
-
-    t_start = time.monotonic()
     results: dict[str, list[Measurement]] = {}
     fills: dict[int, Measurement] = {}
     with tempfile.TemporaryDirectory(prefix="bench_dem_deck_") as tmp:
@@ -484,6 +464,57 @@ def run(args: argparse.Namespace) -> int:
                         raise SolverRunError(f"the drum holds {m.atoms_end} particles, not {particles}: insertion fell "
                                              "short or particles escaped", run_dir=dirs[key])
                 results.setdefault(key, []).append(m)
+    return results, fills, particles, restart_step, held_fill
+
+
+def variant_costs(results: dict[str, list[Measurement]], summary: dict, nps: list[int],
+                  variants: list[str]) -> dict:
+    """Per variant run: what switching the fix off saves against the blender, ± the spread."""
+    def rate(key: str) -> float | None:
+        return summary[key]["particle_steps_per_s"] if key in summary else None
+
+    costs: dict = {}
+    for kind, np, variant in _plan(nps, variants):
+        if variant is None:
+            continue
+        base, var = results[_key("blender", np, None)], results[_key(kind, np, variant)]
+        entry = {"np": np, "loop": cost([m.loop_s for m in base], [m.loop_s for m in var]),
+                 "cpu": cost([m.cpu_s for m in base], [m.cpu_s for m in var]),
+                 "atoms_mean": summary[_key(kind, np, variant)]["atoms_mean"],
+                 "atoms_mean_blender": summary[_key("blender", np, None)]["atoms_mean"],
+                 "load_min": min(summary[_key(k, np, v)]["load_min"] for k, v in ((kind, None), (kind, variant))),
+                 "load_max": max(summary[_key(k, np, v)]["load_max"] for k, v in ((kind, None), (kind, variant)))}
+        if variant in COUNT_CHANGING:
+            entry["cost_per_particle_step"] = 1 - rate(_key("blender", np, None)) / rate(_key(kind, np, variant))
+        costs[_key(kind, np, variant)] = entry
+    return costs
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_preset(args.preset)
+    for assignment in args.set:
+        config = override(config, assignment)
+    run_config = config.dem.run
+    nps = [int(n) for n in args.nps.split(",") if n.strip()]
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise ConfigError(f"--variants: unknown {unknown}; known: {', '.join(VARIANTS)}")
+    if args.repeats < 1 or args.steps < 1 or not nps or min(nps) < 1:
+        raise ConfigError(f"--repeats {args.repeats}, --steps {args.steps}, --nps {args.nps}: all must be >= 1")
+    fill_np = args.fill_np or run_config.np
+    version = liggghts_version(run_config.liggghts)
+    load_before = os.getloadavg()
+    others = _liggghts_running()
+    if load_before[0] > LOAD_WARN:
+        msg = (f"machine load {load_before[0]:.2f} > {LOAD_WARN} before starting: the timings will be slowed down "
+               f"by other jobs" + (f" ({len(others)} LIGGGHTS processes running)" if others else ""))
+        print(f"WARNING: {msg}", file=sys.stderr, flush=True)
+    print(f"DEM deck benchmark: preset {args.preset}, {args.steps} steps, ranks {nps}, {args.repeats} repeats, "
+          f"variants {variants}, LIGGGHTS {version}", flush=True)
+
+    t_start = time.monotonic()
+    results, fills, particles, restart_step, held_fill = measure_all(config, args, nps, variants, fill_np)
     load_after = os.getloadavg()
 
     summary = {key: summarise(runs) for key, runs in results.items()}
@@ -524,20 +555,7 @@ def run(args: argparse.Namespace) -> int:
             if 1 in fills and np in fills:
                 record[f"speedup_np{np}_whole_run"] = fills[1].loop_s / fills[np].loop_s
                 record[f"speedup_np{np}_whole_run_wall"] = fills[1].wall_s / fills[np].wall_s
-    costs: dict = {}
-    for kind, np, variant in _plan(nps, variants):
-        if variant is None:
-            continue
-        base, var = results[_key("blender", np, None)], results[_key(kind, np, variant)]
-        entry = {"np": np, "loop": cost([m.loop_s for m in base], [m.loop_s for m in var]),
-                 "cpu": cost([m.cpu_s for m in base], [m.cpu_s for m in var]),
-                 "atoms_mean": summary[_key(kind, np, variant)]["atoms_mean"],
-                 "atoms_mean_blender": summary[_key("blender", np, None)]["atoms_mean"],
-                 "load_min": min(summary[_key(k, np, v)]["load_min"] for k, v in ((kind, None), (kind, variant))),
-                 "load_max": max(summary[_key(k, np, v)]["load_max"] for k, v in ((kind, None), (kind, variant)))}
-        if variant in COUNT_CHANGING:
-            entry["cost_per_particle_step"] = 1 - rate(_key("blender", np, None)) / rate(_key(kind, np, variant))
-        costs[_key(kind, np, variant)] = entry
+    costs = variant_costs(results, summary, nps, variants)
     record["variant_costs"] = costs
     for np in nps:
         nodump = costs.get(_key("blender", np, "nodump"))

@@ -22,21 +22,30 @@ import datetime as _dt
 import subprocess
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from coupling.errors import OutputError, os_reason
 from coupling.jsonable import write_json
+from pbm.config import PbmConfig
 from pbm.simulate import PbmResult
-from workflows.analysis.agreement import agreement_rows, dem_density, nx_sensitivity, run_modes
+from workflows.analysis.agreement import AgreementRow, PbmMode, agreement_rows, dem_density, nx_sensitivity, run_modes
 from workflows.analysis.vrr import vrr_comparison
-from workflows.report.vrr import plot_vrr, vrr_html
 from workflows.config import Config, config_from_dict, dump_toml
 from workflows.pipeline.stages import DemSide, dem_stage, pbm_config_for, rtd_pulse, writable_directory
-from workflows.report.comparison import (SideResults, agreement_html, comparison_metrics, plot_agreement, plot_comparison,
-                              render_html)
 from workflows.products.paper_studies import run_studies
+from workflows.report.comparison import (
+    SideResults,
+    agreement_html,
+    comparison_metrics,
+    plot_agreement,
+    plot_comparison,
+    render_html,
+)
+from workflows.report.vrr import plot_vrr, vrr_html
 
 NOISE_MEMBERS = 200
 
@@ -76,6 +85,29 @@ def _notes(dem: DemSide) -> list[str]:
     return notes
 
 
+@dataclass(frozen=True)
+class Comparison:
+    """The numbers of one comparison: the DEM's side, each PBM rate mode on its tables, the
+    configured mode's curves beside the DEM's, the agreement table, the grid sensitivity and
+    the feeder-noise filtering."""
+
+    config: Config
+    dem: DemSide
+    pbm_config: PbmConfig
+    modes: dict[str, PbmMode]
+    dem_view: SideResults
+    pbm_view: SideResults
+    metrics: dict[str, Any]
+    rows: list[AgreementRow]
+    sensitivity: dict[str, Any] | None
+    vrr: dict[str, Any] | None
+
+    @property
+    def pbm_result(self) -> PbmResult:
+        """The configured rate mode's run: the report's metrics and curves."""
+        return self.modes[self.pbm_config.rates].result
+
+
 def full_comparison(
     config: Config,
     results_root: Path = Path("results"),
@@ -93,93 +125,109 @@ def full_comparison(
     writable_directory(results_root, "results directory")  # before the DEM, which may take an hour
     dem = dem_stage(config, runs_root, np=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
     out_dir = writable_directory(Path(results_root) / f"{config.name}-{dem.key}", "results directory")
+    comparison = compare(config, dem, runs_root, log)
+    try:  # every file of the report: a full disk or a vanished directory is one line naming it
+        write_report(comparison, out_dir, noise_members, paraview, log)
+    except OSError as exc:
+        raise OutputError(f"cannot write the report in {out_dir}: {os_reason(exc)}") from exc
+    return out_dir / "report.html"
 
-    tag_time = rtd_pulse(dem.results.summary)
-    pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=tag_time)
+
+def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda message: None) -> Comparison:
+    """The comparison's numbers for the DEM's results ``dem``; writes nothing (the grid
+    sensitivity reads or post-processes the same run at 2 NX through ``runs_root``)."""
+    pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=rtd_pulse(dem.results.summary))
     log("running the PBM on the DEM's tables, in each rate mode the table supports")
     modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
-    pbm_result = modes[pbm_config.rates].result  # the configured mode: the report's metrics and curves
-
+    pbm_result = modes[pbm_config.rates].result
     dem_view = SideResults("DEM", dem.results.timeseries, dem.results.rtd[["t_s", "E_per_s"]],
                            dem.results.rsd_by_slice, dict(dem.results.summary),
                            rsd_by_slice_floor=dem.results.rsd_by_slice_floor)
     pbm_view = SideResults("PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final,
                            dict(pbm_result.summary))
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
-
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     vrr = feeder_filtering(dem, pbm_config, log)
-    try:  # every file of the report: a full disk or a vanished directory is one line naming it
-        figures = plot_comparison(dem_view, pbm_view, out_dir)
-        pooled_spec = dem.results.summary.get("pooled_rtd") or {}
-        dem_rtd = dem_density(dem.results.particles, pooled_spec)[:2] if pooled_spec.get("n_entered") else None
-        pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.recovered_density_per_s)
-                   for mode, m in modes.items() if m.pooled is not None}
-        figures.update(plot_agreement(rows, dem_rtd, pbm_rtd, out_dir))
-        vrr_section = ""
-        if vrr is not None:
-            figures["vrr"] = plot_vrr(vrr, out_dir / "vrr.png").name
-            vrr_section = vrr_html(vrr, figures["vrr"])
-        try:
-            from dem.render import render_geometry
+    return Comparison(config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, sensitivity, vrr)
 
-            render_geometry(config.dem, out_dir / "geometry.png")
-            figures["geometry"] = "geometry.png"
-        except Exception as exc:  # a picture must not cost the report; say why it is missing
-            log(f"geometry picture skipped: {exc}")
 
-        log("running the PBM studies (length, diameter, feed noise)")
-        t0 = time.monotonic()
-        studies = run_studies(dem.table, pbm_config, config.steady_state, out_dir, noise_members)
-        studies_time = time.monotonic() - t0
+def write_figures(c: Comparison, out_dir: Path, log: Log) -> dict[str, str]:
+    """The report's figures, as file names in ``out_dir`` by their role."""
+    figures = plot_comparison(c.dem_view, c.pbm_view, out_dir)
+    pooled_spec = c.dem.results.summary.get("pooled_rtd") or {}
+    dem_rtd = dem_density(c.dem.results.particles, pooled_spec)[:2] if pooled_spec.get("n_entered") else None
+    pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.recovered_density_per_s)
+               for mode, m in c.modes.items() if m.pooled is not None}
+    figures.update(plot_agreement(c.rows, dem_rtd, pbm_rtd, out_dir))
+    if c.vrr is not None:
+        figures["vrr"] = plot_vrr(c.vrr, out_dir / "vrr.png").name
+    try:
+        from dem.render import render_geometry
 
-        notes = _notes(dem)
-        provenance = {
-            "preset": config.name,
-            "input_hash": dem.key,
-            "liggghts_version": dem.provenance.get("liggghts_version"),
-            "commit": _git_commit(),
-            "dem_source": {"run": "LIGGGHTS ran now", "cache": "cache",
-                           "reference": "shipped reference data"}[dem.source],
-            "dem_results_made": dem.provenance.get("created"),
-            "dem_ranks": dem.provenance.get("np"),
-            "dem_wall_time_s": dem.provenance.get("wall_time_s"),
-            "dem_postprocess_time_s": dem.provenance.get("postprocess_time_s"),
-            "dem_cache_file": str(dem.cache_file),
-            "rtd_tag_time_s": tag_time,
-            "steady_state_rule": (f"window {config.steady_state.window_s:g} s, "
-                                  f"relative tolerance {config.steady_state.rel_tol:g}"),
-            "pbm_conservation_max_rel_error": pbm_conservation_error(pbm_result),
-            "pbm_feed_weights_a": pbm_config.feed_weights_a,
-            "pbm_feed_weights_b": pbm_config.feed_weights_b,
-            "studies_wall_time_s": round(studies_time, 2),
-            "report_made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "config_toml": dump_toml(config),
-        }
-        page = render_html(f"DEM vs PBM — preset {config.name} ({dem.key})", metrics, figures, provenance, studies,
-                           notes, agreement_html(rows, sensitivity) + vrr_section)
-        (out_dir / "report.html").write_text(page)
-        summary = {
-            "metrics": metrics,
-            "agreement": [r.record() for r in rows],
-            "nx_sensitivity": sensitivity,
-            "vrr": vrr,
-            "pbm_modes": {mode: m.result.summary for mode, m in modes.items()},
-            "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
-            "dem_summary": dem.results.summary,
-            "pbm_summary": pbm_result.summary,
-            "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
-            "notes": notes,
-        }
-        write_json(out_dir / "summary.json", summary)
-        dem_view.timeseries.to_csv(out_dir / "dem_timeseries.csv", index=False)
-        pbm_view.timeseries.to_csv(out_dir / "pbm_timeseries.csv", index=False)
-        if paraview:
-            write_paraview(config, dem, out_dir / "paraview", log)
-    except OSError as exc:
-        raise OutputError(f"cannot write the report in {out_dir}: {os_reason(exc)}") from exc
-    return out_dir / "report.html"
+        render_geometry(c.config.dem, out_dir / "geometry.png")
+        figures["geometry"] = "geometry.png"
+    except Exception as exc:  # a picture must not cost the report; say why it is missing
+        log(f"geometry picture skipped: {exc}")
+    return figures
+
+
+def provenance_of(c: Comparison, studies_time_s: float) -> dict[str, Any]:
+    """Where every number of the report came from."""
+    config, dem = c.config, c.dem
+    return {
+        "preset": config.name,
+        "input_hash": dem.key,
+        "liggghts_version": dem.provenance.get("liggghts_version"),
+        "commit": _git_commit(),
+        "dem_source": {"run": "LIGGGHTS ran now", "cache": "cache", "reference": "shipped reference data"}[dem.source],
+        "dem_results_made": dem.provenance.get("created"),
+        "dem_ranks": dem.provenance.get("np"),
+        "dem_wall_time_s": dem.provenance.get("wall_time_s"),
+        "dem_postprocess_time_s": dem.provenance.get("postprocess_time_s"),
+        "dem_cache_file": str(dem.cache_file),
+        "rtd_tag_time_s": rtd_pulse(dem.results.summary),
+        "steady_state_rule": (f"window {config.steady_state.window_s:g} s, "
+                              f"relative tolerance {config.steady_state.rel_tol:g}"),
+        "pbm_conservation_max_rel_error": pbm_conservation_error(c.pbm_result),
+        "pbm_feed_weights_a": c.pbm_config.feed_weights_a,
+        "pbm_feed_weights_b": c.pbm_config.feed_weights_b,
+        "studies_wall_time_s": round(studies_time_s, 2),
+        "report_made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "config_toml": dump_toml(config),
+    }
+
+
+def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: bool, log: Log) -> None:
+    """``report.html`` with its figures, the paper's studies, ``summary.json``, both sides'
+    time series as CSV and (``paraview``) the VTK files, all in ``out_dir``."""
+    figures = write_figures(c, out_dir, log)
+    vrr_section = "" if c.vrr is None else vrr_html(c.vrr, figures["vrr"])
+    log("running the PBM studies (length, diameter, feed noise)")
+    t0 = time.monotonic()
+    studies = run_studies(c.dem.table, c.pbm_config, c.config.steady_state, out_dir, noise_members)
+    provenance = provenance_of(c, time.monotonic() - t0)
+    notes = _notes(c.dem)
+    page = render_html(f"DEM vs PBM — preset {c.config.name} ({c.dem.key})", c.metrics, figures, provenance, studies,
+                       notes, agreement_html(c.rows, c.sensitivity) + vrr_section)
+    (out_dir / "report.html").write_text(page)
+    summary = {
+        "metrics": c.metrics,
+        "agreement": [r.record() for r in c.rows],
+        "nx_sensitivity": c.sensitivity,
+        "vrr": c.vrr,
+        "pbm_modes": {mode: m.result.summary for mode, m in c.modes.items()},
+        "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
+        "dem_summary": c.dem.results.summary,
+        "pbm_summary": c.pbm_result.summary,
+        "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
+        "notes": notes,
+    }
+    write_json(out_dir / "summary.json", summary)
+    c.dem_view.timeseries.to_csv(out_dir / "dem_timeseries.csv", index=False)
+    c.pbm_view.timeseries.to_csv(out_dir / "pbm_timeseries.csv", index=False)
+    if paraview:
+        write_paraview(c.config, c.dem, out_dir / "paraview", log)
 
 
 def feeder_filtering(dem: DemSide, pbm_config, log: Log) -> dict | None:

@@ -9,7 +9,7 @@ import pytest
 
 from pbm.config import PbmConfig
 from dem.post import postprocess
-from tests.test_post import STEADY, config, write_synthetic
+from tests.known_dumps import STEADY, config, write_synthetic
 from workflows.analysis.agreement import MODES, agreement_rows, run_modes
 
 

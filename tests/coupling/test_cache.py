@@ -8,7 +8,7 @@ import pytest
 from coupling.cache import CacheEntry, cache_path, load_entry, save_entry, stable_hash, try_load_entry
 from coupling.errors import CacheError
 from dem.post import DemResults, postprocess
-from test_post import config, write_synthetic  # tests/ is on sys.path (rootdir-less test modules)
+from tests.known_dumps import config, write_synthetic
 
 
 @pytest.fixture(scope="module")

@@ -88,7 +88,7 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def some_results(tmp_path_factory):
     from dem.post import postprocess
-    from test_post import STEADY, config, write_synthetic  # tests/ is on sys.path
+    from tests.known_dumps import STEADY, config, write_synthetic
 
     directory = tmp_path_factory.mktemp("dumps")
     write_synthetic(directory, config())

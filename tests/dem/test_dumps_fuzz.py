@@ -1,6 +1,6 @@
 """Fuzzing the dump reader and the post-processing with corrupted real LIGGGHTS dumps.
 
-Every variant of ``tests/static/smoke_dumps`` (bit flips, byte substitutions, truncations,
+Every variant of ``tests/dem/static/smoke_dumps`` (bit flips, byte substitutions, truncations,
 duplicated or deleted lines, header edits) must either post-process to finite results or
 raise :class:`~coupling.errors.DumpFormatError`; any other exception, and any warning but
 the documented :class:`~dem.dumps.TruncatedDumpWarning`, is a failure. The generator is

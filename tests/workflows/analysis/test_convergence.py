@@ -5,7 +5,7 @@ complete run, cached under a key of its own and continued to the end by --resume
 import pytest
 
 from dem.run import STOPPED, completed_run, prepare_run, read_status, run_dem
-from tests.test_run import variant
+from tests.known_dumps import variant
 from workflows.config import load_preset
 from workflows.analysis.convergence import Convergence, ConvergenceWatch, check_run_directory, converged
 from workflows.pipeline.stages import dem_stage

@@ -2,7 +2,7 @@
 before writing, the CLI, and acceptance by the real solver (marked ``liggghts``).
 
 Regenerate the golden files deliberately with ``PBMDEM_REGEN_GOLDEN=1 python -m pytest
-tests/test_deck.py`` and review the diff.
+tests/dem/test_deck.py`` and review the diff.
 """
 
 import json

@@ -150,7 +150,7 @@ STATIC = __import__("pathlib").Path(__file__).parent / "static" / "smoke_dumps"
 
 
 def test_real_liggghts_dumps():
-    """Dumps written by LIGGGHTS itself (tests/static/smoke_dumps/README.md)."""
+    """Dumps written by LIGGGHTS itself (tests/dem/static/smoke_dumps/README.md)."""
     snaps = list(iter_snapshots(str(STATIC / "dump.*.txt")))
     assert [s.step for s in snaps] == [21200, 23320, 25440]
     for snap in snaps:

@@ -13,13 +13,14 @@ import h5py
 import numpy as np
 import pytest
 
+from workflows.shipped import REFERENCE_DIR
 from coupling.cache import DIGEST_ATTR, cache_path, load_entry, save_entry, try_load_entry
 from coupling.errors import CacheError, TableError
 from coupling.tables import read_table, write_table
 from dem.post import postprocess
-from test_post import config, write_synthetic  # tests/ is on sys.path (rootdir-less test modules)
+from tests.known_dumps import config, write_synthetic
 
-REFERENCE = Path(__file__).resolve().parent.parent / "workflows" / "reference"
+REFERENCE = REFERENCE_DIR
 TABLE_FIELDS = ("t", "x_edges", "y_edges", "vx_pos", "vx_neg", "vy_pos", "vy_neg", "count_A", "count_B", "n_samples")
 
 
@@ -205,7 +206,7 @@ def test_randomly_damaged_table_files_raise_table_error_only(tmp_path, entry):
         read_table(directory)
 
 
-if __name__ == "__main__":  # python tests/test_corruption.py: the same damage with and without the digest
+if __name__ == "__main__":  # python tests/coupling/test_cache_corruption.py: the same damage with and without the digest
     import tempfile
     from unittest import mock
 

@@ -24,17 +24,10 @@ from dem.liggghts_log import ThermoParser
 from dem.post import postprocess
 from dem.run import prepare_run, read_status, run_dem, run_key, solver_command
 from workflows.cli.main import main
-from workflows.config import config_from_dict, load_preset
+from workflows.config import load_preset
+from tests.known_dumps import variant
 
 liggghts = pytest.mark.liggghts
-
-
-def variant(config, **sections):
-    """A copy of ``config`` with some ``dem.<section>`` values changed."""
-    data = config.to_dict()
-    for section, values in sections.items():
-        data["dem"][section].update(values)
-    return config_from_dict(data)
 
 
 @pytest.fixture(scope="module")
@@ -247,7 +240,7 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
     log = tmp_path / "child.err"
     with open(log, "w") as err, subprocess.Popen(
             [sys.executable, "-c", script, str(tmp_path / "config.toml"), str(tmp_path / "runs")],
-            cwd=Path(__file__).resolve().parents[1], stderr=err) as child:
+            cwd=Path(__file__).resolve().parents[2], stderr=err) as child:
         deadline = time.monotonic() + 300
         run_dir = None
         while time.monotonic() < deadline and child.poll() is None:

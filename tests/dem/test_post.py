@@ -14,65 +14,10 @@ import numpy as np
 import pytest
 
 from coupling.errors import DumpFormatError
-from dem.config import DemConfig, TablesConfig
 from dem.dumps import TruncatedDumpWarning, format_snapshot
-from coupling.metrics import SteadyStateRule
 from dem.post import postprocess
+from tests.known_dumps import COLUMNS, DUMP_S, END_S, STEADY, D, L, R, config, write_synthetic
 
-COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
-# Windows of 3 s: the synthetic run is 30 s long. Means over (3, 6] and (6, 9] are 18 and
-# 20 (10 % apart), over (7, 10] and (4, 7]: 20 and 19.33 (3.3 %): steady at 10 s.
-STEADY = SteadyStateRule(window_s=3.0, rel_tol=0.05)
-L, D = 0.330, 0.100
-R = {1: 4.0, 2: 6.0}
-DUMP_S, END_S = 0.5, 30.0
-
-
-def config():
-    return DemConfig(tables=TablesConfig(nx=4, ny=2, window_s=5.0, sample_interval_s=1.0, min_samples=1))
-
-
-def write_synthetic(directory, cfg, vanish_unseen=False, lose_id=None, end_s=END_S):
-    """Write the synthetic dumps; returns {id: (type, entry_s, exit_s)}.
-
-    ``vanish_unseen``: particles are deleted before any dump sees them past the weir (as by
-    an outlet face between two dumps): last seen in the last slice, then gone.
-    ``lose_id``: this particle vanishes at t = 10 s in the middle of the blender (lost)."""
-    dt = cfg.timestep_s
-    directory.mkdir(parents=True, exist_ok=True)
-    particles = {}
-    n_dumps = int(round(end_s / DUMP_S))
-    for k in range(1, n_dumps + 1):
-        for ptype in (1, 2):
-            particles[2 * k - 2 + ptype] = (ptype, k * DUMP_S)
-    truth = {}
-    for k in range(n_dumps + 1):
-        t = k * DUMP_S
-        rows = []
-        for pid, (ptype, entry) in particles.items():
-            age = t - entry
-            if age < -1e-9:
-                continue
-            if lose_id == pid and t >= 10.0 - 1e-9:
-                continue
-            res = R[ptype]
-            if age > res + 1e-9:
-                continue
-            if abs(age - res) < 1e-9:
-                if vanish_unseen:
-                    continue
-                x = L + 0.01
-            else:
-                x = L * (age + 0.25) / res
-            i = min(int(x / (L / 4)), 3)
-            rows.append((pid, ptype, x, 0.02 if ptype == 1 else -0.02, 0.0,
-                         0.1 * (i + 1), 0.02 if ptype == 1 else -0.03, 0.0, 0.003))
-        step = int(round(t / dt))
-        (directory / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows).reshape(-1, 9)))
-    for pid, (ptype, entry) in particles.items():
-        exit_s = entry + R[ptype]
-        truth[pid] = (ptype, entry, exit_s if exit_s <= end_s + 1e-9 else math.nan)
-    return truth
 
 
 @pytest.fixture(scope="module")
