@@ -14,7 +14,8 @@ outlet C_A per sampling interval. Two PBMs are judged, each in both rate modes:
   hybrid predicts from a steady DEM run alone -- the use of a PBM for control).
 
 The DEM's outlet C_A per interval is a binomial sample of n particles. Two numbers judge
-each PBM (:func:`judge`):
+each PBM (:func:`judge_step`, a statistical test with its own rule, not the project's
+value-against-reference judge):
 
 * the share of the intervals after the step whose DEM count of A lies in the PBM's central
   95 % binomial range (Binomial(n, C_PBM)); about 0.95 if the PBM were the DEM's truth;
@@ -29,6 +30,7 @@ each PBM (:func:`judge`):
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -36,7 +38,7 @@ import pandas as pd
 from scipy.stats import chi2
 
 from coupling.errors import ConfigError
-from coupling.intervals import N_BOOT, SEED
+from coupling.intervals import N_BOOT, SEED, Interval
 from pbm.model import RATE_MODES
 from pbm.simulate import simulate
 from workflows.config import Config
@@ -75,7 +77,8 @@ def feed_levels(config: Config) -> tuple[float, float]:
     return a / (a + b), op.step_factor_a * a / (op.step_factor_a * a + b)
 
 
-def mean_delay(t_s: np.ndarray, c_a: np.ndarray, step_s: float, interval_s: float, levels: tuple[float, float]) -> float:
+def mean_delay(t_s: np.ndarray, c_a: np.ndarray, step_s: float, interval_s: float,
+               levels: tuple[float, float]) -> float:
     """sum over the intervals after the step of (C_after - C(t)) dt / (C_after - C_before),
     with the levels the feed's (:func:`feed_levels`): measuring them from the outlet would
     add their sampling noise to every interval of the sum."""
@@ -97,8 +100,28 @@ def binomial_deviance(k: np.ndarray, n: np.ndarray, p: np.ndarray) -> float:
     return float(2 * np.sum(a + b))
 
 
+@dataclass(frozen=True)
+class TimeScale:
+    """The factor by which the DEM's response runs faster than the PBM's (:func:`time_scale`),
+    with its 95 % profile-likelihood interval [low, high]; ``at_bound``: the interval reaches
+    the searched range's end (:data:`ALPHA_RANGE`), so the true bound may lie beyond."""
+
+    value: float
+    low: float
+    high: float
+    at_bound: bool
+
+    @property
+    def holds_one(self) -> bool:
+        """The interval holds 1: the DEM's response runs at the PBM's speed."""
+        return self.low <= 1.0 <= self.high
+
+    def record(self) -> dict[str, Any]:
+        return {"value": self.value, "low": self.low, "high": self.high, "at_bound": self.at_bound}
+
+
 def time_scale(t_s: np.ndarray, k: np.ndarray, n: np.ndarray, pbm_t: np.ndarray, pbm_c: np.ndarray,
-               step_s: float) -> dict[str, float | bool]:
+               step_s: float) -> TimeScale:
     """The factor alpha by which the DEM's response runs faster than the PBM's (the DEM at
     step + dt matches the PBM at step + alpha dt), by binomial maximum likelihood over a
     log-spaced grid, with its 95 % profile-likelihood interval (deviance within 3.84 of
@@ -109,14 +132,57 @@ def time_scale(t_s: np.ndarray, k: np.ndarray, n: np.ndarray, pbm_t: np.ndarray,
                           for a in alphas])
     best = int(np.argmin(deviances))
     inside = alphas[deviances <= deviances[best] + CHI2_95_ONE_DOF]
-    return {"value": float(alphas[best]), "low": float(inside.min()), "high": float(inside.max()),
-            "at_bound": bool(inside.min() <= alphas[0] or inside.max() >= alphas[-1])}
+    return TimeScale(value=float(alphas[best]), low=float(inside.min()), high=float(inside.max()),
+                     at_bound=bool(inside.min() <= alphas[0] or inside.max() >= alphas[-1]))
 
 
-def judge(dem: pd.DataFrame, pbm: pd.DataFrame, step_s: float, interval_s: float, levels: tuple[float, float],
-          n_boot: int = N_BOOT, seed: int = SEED) -> dict[str, Any]:
+@dataclass(frozen=True)
+class StepJudgement:
+    """One PBM's step response against the DEM's (:func:`judge_step`).
+
+    ``intervals_after_step``: the sampling intervals judged; ``deviance`` and ``deviance_p``:
+    the DEM's counts of A against the PBM's C_A (chi-square, one dof per interval);
+    ``time_scale``: how much faster the DEM responds; ``dem_delay_s``: the DEM's mean delay
+    [s] with its 95 % bootstrap interval; ``pbm_delay_s``: the PBM's [s], by the same rule.
+    The verdicts (:attr:`time_scale_inside`, :attr:`delay_inside`, :attr:`predicted`)
+    follow from these numbers."""
+
+    intervals_after_step: int
+    deviance: float
+    deviance_p: float
+    time_scale: TimeScale
+    dem_delay_s: Interval
+    pbm_delay_s: float
+
+    @property
+    def time_scale_inside(self) -> bool:
+        return self.time_scale.holds_one
+
+    @property
+    def delay_inside(self) -> bool:
+        return bool(self.dem_delay_s.low <= self.pbm_delay_s <= self.dem_delay_s.high)
+
+    @property
+    def predicted(self) -> bool:
+        """The PBM predicts the step: the DEM runs at its speed and its counts are
+        consistent with it (p >= :data:`P_MIN`). The mean delay is reported, not judged."""
+        return bool(self.time_scale_inside and self.deviance_p >= P_MIN)
+
+    def record(self) -> dict[str, Any]:
+        delay = self.dem_delay_s
+        return {"intervals_after_step": self.intervals_after_step, "deviance": self.deviance,
+                "deviance_p": self.deviance_p, "time_scale": self.time_scale.record(),
+                "time_scale_inside": self.time_scale_inside,
+                "dem_delay_s": {"value": delay.estimate, "low": delay.low, "high": delay.high},
+                "pbm_delay_s": self.pbm_delay_s, "delay_inside": self.delay_inside, "predicted": self.predicted}
+
+
+def judge_step(dem: pd.DataFrame, pbm: pd.DataFrame, step_s: float, interval_s: float, levels: tuple[float, float],
+               n_boot: int = N_BOOT, seed: int = SEED) -> StepJudgement:
     """One PBM's step response against the DEM's (module docstring): the response's time
     scale and the counts' deviance decide; the mean delay is reported with its interval.
+    ``dem``: counts per interval (:func:`dem_counts`); ``pbm``: t_s and C_A
+    (:func:`pbm_response`); ``step_s``, ``interval_s`` [s]; ``levels``: :func:`feed_levels`.
     Only intervals after the step where the DEM discharged something and the PBM is defined."""
     merged = dem.merge(pbm, on="t_s", how="inner")
     n = (merged["n_A"] + merged["n_B"]).to_numpy()
@@ -135,15 +201,45 @@ def judge(dem: pd.DataFrame, pbm: pd.DataFrame, step_s: float, interval_s: float
     boot = [mean_delay(t, d / n, step_s, interval_s, levels) for d in draws]
     low, high = (float(q) for q in np.percentile(boot, [2.5, 97.5]))
     pbm_delay = mean_delay(t, c_pbm, step_s, interval_s, levels)
-    scale_ok = scale["low"] <= 1.0 <= scale["high"]
-    return {"intervals_after_step": int(t.size), "deviance": deviance, "deviance_p": p_value,
-            "time_scale": scale, "time_scale_inside": bool(scale_ok),
-            "dem_delay_s": {"value": dem_delay, "low": low, "high": high}, "pbm_delay_s": pbm_delay,
-            "delay_inside": bool(low <= pbm_delay <= high),
-            "predicted": bool(scale_ok and p_value >= P_MIN)}
+    return StepJudgement(intervals_after_step=int(t.size), deviance=deviance, deviance_p=p_value, time_scale=scale,
+                         dem_delay_s=Interval(dem_delay, low, high), pbm_delay_s=pbm_delay)
 
 
-def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> dict[str, Any]:
+@dataclass(frozen=True)
+class StepRow:
+    """One PBM of the comparison: its tables (``source``: "self" or "baseline"), its rate
+    ``mode`` and its :class:`StepJudgement`."""
+
+    source: str
+    mode: str
+    judgement: StepJudgement
+
+    def record(self) -> dict[str, Any]:
+        return {"source": self.source, "mode": self.mode, **self.judgement.record()}
+
+
+# eq=False: the series are DataFrames, whose == is elementwise and has no truth value
+@dataclass(frozen=True, eq=False)
+class StepComparison:
+    """:func:`step_comparison`'s answer: the PBM's step time ``step_s`` [s] (on its feed
+    grid), feeder A's factor, the sampling interval [s], one :class:`StepRow` per PBM, and
+    the series for a figure: ``dem`` (t_s, n_A, n_B per interval, :func:`dem_counts`) and
+    ``series`` (per (source, mode), the PBM's t_s and C_A, in the rows' order)."""
+
+    step_s: float
+    factor_a: float
+    interval_s: float
+    rows: tuple[StepRow, ...]
+    dem: pd.DataFrame
+    series: dict[tuple[str, str], pd.DataFrame]
+
+    def record(self) -> dict[str, Any]:
+        """The JSON-ready part (no series): ``summary.json``'s ``step_response``."""
+        return {"step_s": self.step_s, "factor_a": self.factor_a, "interval_s": self.interval_s,
+                "rows": [row.record() for row in self.rows]}
+
+
+def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> StepComparison:
     """Every PBM (own tables / the baseline's, each rate mode the table carries) judged
     against the step run's DEM; with the series for the figure."""
     op = config.dem.operation
@@ -161,12 +257,7 @@ def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> 
             if mode == "measured" and not table.has_rates:
                 continue
             pbm = pbm_response(table, config, mode, step_s, t_end)
-            series[f"{source}/{mode}"] = pbm
-            rows.append({"source": source, "mode": mode, **judge(dem, pbm, step_s, interval, feed_levels(config))})
-    return {"step_s": step_s, "factor_a": op.step_factor_a, "interval_s": interval, "rows": rows,
-            "dem": dem, "series": series}
-
-
-def summary_rows(comparison: dict[str, Any]) -> dict[str, Any]:
-    """The JSON-ready part of a comparison (no series)."""
-    return {k: v for k, v in comparison.items() if k not in ("dem", "series")}
+            series[(source, mode)] = pbm
+            rows.append(StepRow(source, mode, judge_step(dem, pbm, step_s, interval, feed_levels(config))))
+    return StepComparison(step_s=step_s, factor_a=op.step_factor_a, interval_s=interval, rows=tuple(rows), dem=dem,
+                          series=series)

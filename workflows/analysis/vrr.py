@@ -22,16 +22,20 @@ derivation). Here:
   and not judged. At that threshold the floor still inflates |H|^2 by ~1/9 (VRR low by
   ~10 %), which the percentile interval does not remove: the judged points nearest the
   floor lean towards the PBM looking too filtering.
-* :func:`vrr_comparison` -- each PBM rate mode's stationary system over the steady windows
+* :func:`vrr_comparison` -- a :class:`VrrComparison`: each PBM rate mode's stationary system over the steady windows
   (:func:`pbm.frequency.stationary_system`) against the DEM, per feeder and frequency, and
   for band-limited feeder noise (white and first order, :data:`NOISE_TAUS_S`), the DEM's
   noise VRR by the same quadrature of S(f) |H_DEM(f)|^2 (:func:`pbm.frequency.vrr_spectrum`),
   with |H_DEM|^2 corrected for the floor's expected (1 - |H|^2)/N: the band reaches the
   floor, and uncorrected the DEM's noise VRR reads low by ~f_max / (N int S|H|^2) (0.3 %
   for white noise on the reduced run; the plain value is kept as ``uncorrected``).
-* :func:`plot_vrr` -- VRR(f), DEM with its band, PBM modes as lines, unresolved region shaded.
-* :func:`main` -- the CLI on a DEM results file (default: the shipped reduced run); writes
-  ``vrr.json`` and ``vrr.png`` and prints a short table.
+  The result is typed (:class:`PbmVrr` per rate mode, :class:`FeederVrr` per feeder,
+  :class:`NoiseVrr` per noise, :class:`RatioPoint` per judged point, :class:`EnsembleCheck`
+  per noise level); ``record()`` gives the nested dict that ``vrr.json`` and the
+  comparison's ``summary.json`` hold, and only the file writers call it.
+
+:func:`workflows.report.vrr.plot_vrr`, ``vrr_html`` and ``print_table`` render the result;
+``pbmdem study vrr`` (:mod:`workflows.studies.vrr`) runs it on a DEM results file.
 
 Time resolution: entry times are first sightings in the dumps (0.1 s apart on the reduced
 run), which delays each entry by up to one dump interval: a phase shift and a magnitude
@@ -42,8 +46,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -113,6 +117,203 @@ class DemTransfer:
     noise_f_max_hz: float = math.nan
     noise: tuple[Interval, ...] = ()
     noise_uncorrected: tuple[float, ...] = field(default=())
+
+    @property
+    def recovered_fraction(self) -> float:
+        """Recovered within the horizon / entered in the window (NaN when none entered)."""
+        return self.n_recovered / self.n_entered if self.n_entered else math.nan
+
+    def record(self) -> dict[str, Any]:
+        """The feeder's entry of ``vrr.json``'s ``dem``: counts, floor, resolved mask,
+        |H| and VRR as value/low/high, and the noise VRRs with their uncorrected values."""
+        return {
+            "n_entered": self.n_entered, "n_recovered": self.n_recovered, "n_blocks": self.n_blocks,
+            "recovered_fraction": self.recovered_fraction,
+            "mean_residence_time_s": self.mean_residence_time_s, "floor_abs_H": self.floor,
+            "resolved": self.resolved, "abs_H": _interval_dict(self.abs_H), "vrr": _interval_dict(self.vrr),
+            "noise": [{"tau_s": t, **_interval_dict(iv), "uncorrected": c}
+                      for t, iv, c in zip(self.noise_taus_s, self.noise, self.noise_uncorrected)],
+        }
+
+
+@dataclass(frozen=True)
+class NoiseVrr:
+    """One PBM rate mode's VRR of band-limited first-order noise of correlation time
+    ``tau_s`` (0 = white) for one feeder, against the DEM's interval ``dem``."""
+
+    tau_s: float
+    vrr: float
+    dem: Interval
+
+    @property
+    def inside(self) -> bool:
+        """Whether the PBM's noise VRR lies in the DEM's interval."""
+        return bool(inside(self.vrr, self.dem.low, self.dem.high))
+
+    @property
+    def ratio_to_dem(self) -> float:
+        """PBM / DEM estimate."""
+        return self.vrr / self.dem.estimate
+
+    def record(self) -> dict[str, Any]:
+        return {"tau_s": self.tau_s, "vrr": self.vrr, "dem": _interval_dict(self.dem), "inside": self.inside,
+                "ratio_to_dem": self.ratio_to_dem}
+
+
+@dataclass(frozen=True)
+class FeederVrr:
+    """One PBM rate mode's filtering of one feeder: |H| and the sinusoid VRR at the
+    comparison's frequencies, whether each VRR lies in the DEM's interval (None where the
+    DEM is unresolved: not judged), the noise VRRs, and the steady mean residence time [s]."""
+
+    feeder: str
+    mean_residence_time_s: float
+    abs_H: np.ndarray
+    vrr: np.ndarray
+    inside: tuple[bool | None, ...]
+    noise: tuple[NoiseVrr, ...] = ()
+
+    def record(self) -> dict[str, Any]:
+        return {"mean_residence_time_s": self.mean_residence_time_s, "abs_H": self.abs_H, "vrr": self.vrr,
+                "inside": list(self.inside), "noise": [n.record() for n in self.noise]}
+
+
+@dataclass(frozen=True)
+class RatioPoint:
+    """One judged (DEM-resolved) point: PBM / DEM VRR at ``frequency_hz`` [Hz] for
+    ``feeder``, and whether the PBM's VRR lies in the DEM's interval."""
+
+    ratio_pbm_to_dem: float
+    feeder: str
+    frequency_hz: float
+    inside: bool
+
+    def record(self) -> dict[str, Any]:
+        return {"ratio_pbm_to_dem": self.ratio_pbm_to_dem, "feeder": self.feeder, "frequency_hz": self.frequency_hz}
+
+
+def _worst(points: Sequence[RatioPoint]) -> RatioPoint | None:
+    """The point farthest from 1 on a log scale: a factor 2 too high is as bad as a factor 2
+    too low (the first of equals; None for no points)."""
+    return max(points, key=lambda p: abs(math.log(p.ratio_pbm_to_dem)), default=None)
+
+
+@dataclass(frozen=True)
+class EnsembleCheck:
+    """The time-domain noise ensemble against the frequency domain at one noise level
+    (:func:`ensemble_check`): SDs of the outlet C_A, ``from_s`` the start of the averaged
+    outputs [s], ``ensemble_s`` the ensemble's wall time [s]."""
+
+    sigma: float
+    members: int
+    from_s: float
+    sd_time_domain: float
+    sd_frequency_domain: float
+    ensemble_s: float
+
+    @property
+    def relative_difference(self) -> float:
+        """time domain / frequency domain - 1."""
+        return self.sd_time_domain / self.sd_frequency_domain - 1
+
+    def record(self) -> dict[str, Any]:
+        return {"sigma": self.sigma, "members": self.members, "from_s": self.from_s,
+                "sd_time_domain": self.sd_time_domain, "sd_frequency_domain": self.sd_frequency_domain,
+                "relative_difference": self.relative_difference, "ensemble_s": self.ensemble_s}
+
+
+@dataclass(frozen=True)
+class PbmVrr:
+    """One PBM rate mode against the DEM (:func:`vrr_comparison`): per feeder
+    (:class:`FeederVrr`), the first and last table window averaged, every judged point
+    (:class:`RatioPoint`, feeders in :data:`pbm.frequency.FEEDERS` order, frequencies
+    ascending) and the time-domain cross-check."""
+
+    mode: str
+    feeders: Mapping[str, FeederVrr]
+    windows_averaged: tuple[int, int]
+    points: tuple[RatioPoint, ...] = ()
+    ensemble_check: tuple[EnsembleCheck, ...] = ()
+
+    @property
+    def n_judged(self) -> int:
+        """Points where the DEM is resolved."""
+        return len(self.points)
+
+    @property
+    def n_inside(self) -> int:
+        """Judged points whose PBM VRR lies in the DEM's interval."""
+        return sum(p.inside for p in self.points)
+
+    @property
+    def inside_fraction(self) -> float:
+        return self.n_inside / self.n_judged if self.n_judged else math.nan
+
+    @property
+    def worst(self) -> RatioPoint | None:
+        """The judged point farthest from the DEM (log scale). Near the floor the DEM's
+        interval spans a factor of ~5, so this is often an inside point."""
+        return _worst(self.points)
+
+    @property
+    def worst_outside(self) -> RatioPoint | None:
+        """The worst point outside the DEM's interval: how far a miss is."""
+        return _worst([p for p in self.points if not p.inside])
+
+    def record(self) -> dict[str, Any]:
+        worst, worst_outside = self.worst, self.worst_outside
+        return {
+            "feeders": {f: fv.record() for f, fv in self.feeders.items()},
+            "windows_averaged": list(self.windows_averaged),
+            "n_judged": self.n_judged, "n_inside": self.n_inside, "inside_fraction": self.inside_fraction,
+            "worst": None if worst is None else worst.record(),
+            "worst_outside": None if worst_outside is None else worst_outside.record(),
+            "ensemble_check": [row.record() for row in self.ensemble_check],
+        }
+
+
+@dataclass(frozen=True)
+class VrrComparison:
+    """PBM against DEM feeder-noise filtering (:func:`vrr_comparison`): the frequencies
+    [Hz], the steady time [s] from which the PBM's windows are averaged, the noise band and
+    the DEM's bootstrap settings, the DEM per feeder (:class:`DemTransfer`) and each PBM
+    rate mode (:class:`PbmVrr`). :meth:`record` is the JSON edge."""
+
+    frequency_hz: np.ndarray
+    steady_time_s: float
+    dem: Mapping[str, DemTransfer]
+    pbm: Mapping[str, PbmVrr]
+    noise_taus_s: tuple[float, ...] = ()
+    noise_f_max_hz: float = math.nan
+    quadrature_points: int = QUADRATURE_POINTS
+    block_s: float = BLOCK_S
+    n_boot: int = N_BOOT
+    level: float = LEVEL
+    seed: int = SEED
+    resolved_factor: float = RESOLVED_FACTOR
+
+    @property
+    def note(self) -> str:
+        return ("DEM H(f) is the mean of exp(-i 2 pi f tau) over the pooled RTD's recovered particles of each "
+                "feeder (conditional on recovery within the horizon); frequencies where the DEM's |H| is below "
+                f"{self.resolved_factor:g} x 1/sqrt(N) are unresolved (sampling floor) and not judged.")
+
+    def record(self) -> dict[str, Any]:
+        """The comparison as ``vrr.json`` and ``summary.json``'s ``vrr`` hold it (numpy
+        arrays left for the JSON writer)."""
+        return {
+            "frequency_hz": self.frequency_hz,
+            "steady_time_s": self.steady_time_s,
+            "noise": {"taus_s": list(self.noise_taus_s), "f_max_hz": self.noise_f_max_hz,
+                      "quadrature_points": self.quadrature_points,
+                      "spectrum": "1 / (1 + (2 pi f tau)^2) on [0, f_max]; white for tau = 0"},
+            "interval": {"block_s": self.block_s, "n_boot": self.n_boot, "level": self.level, "seed": self.seed,
+                         "method": "block bootstrap over entry time (coupling.intervals.block_bootstrap)"},
+            "resolved_factor": self.resolved_factor,
+            "dem": {f: d.record() for f, d in self.dem.items()},
+            "pbm": {mode: m.record() for mode, m in self.pbm.items()},
+            "note": self.note,
+        }
 
 
 def _feeder(component) -> str:
@@ -267,48 +468,30 @@ def _interval_dict(iv: Interval) -> dict[str, Any]:
 
 def _pbm_mode(table: VelocityTable, pbm_config: PbmConfig, mode: str, steady_time_s: float, freqs: np.ndarray,
               grid: np.ndarray, taus: tuple[float, ...], spectra: list[np.ndarray],
-              dem: dict[str, DemTransfer]) -> dict[str, Any]:
+              dem: Mapping[str, DemTransfer]) -> PbmVrr:
     """One PBM rate mode of :func:`vrr_comparison`, judged against ``dem`` per feeder."""
     system = stationary_system(table, pbm_config.model_copy(update={"rates": mode}), t_start_s=steady_time_s)
-    per_feeder, ratios, judged, hits = {}, [], 0, 0
+    feeders: dict[str, FeederVrr] = {}
+    points: list[RatioPoint] = []
     for f in FEEDERS:
         d = dem[f]
         h = system_response(system, freqs, f)
         vrr = vrr_sinusoid(h)
         ok = np.atleast_1d(inside(vrr, d.vrr.low, d.vrr.high))
         grid_h = system_response(system, grid, f)
-        noise = []
-        for tau, s, iv in zip(taus, spectra, d.noise):
-            value = vrr_spectrum(grid, grid_h, s)
-            noise.append({"tau_s": tau, "vrr": value, "dem": _interval_dict(iv),
-                          "inside": bool(inside(value, iv.low, iv.high)), "ratio_to_dem": value / iv.estimate})
-        per_feeder[f] = {
+        feeders[f] = FeederVrr(
+            feeder=f,
             # Little's law at one particle/s: the steady hold-up is the mean residence time
-            "mean_residence_time_s": float(np.linalg.solve(system.generator, -system.feed_column(f)).sum()),
-            "abs_H": np.abs(h), "vrr": vrr,
+            mean_residence_time_s=float(np.linalg.solve(system.generator, -system.feed_column(f)).sum()),
+            abs_H=np.abs(h), vrr=vrr,
             # unresolved DEM points are not judged: None rather than a verdict
-            "inside": [bool(v) if r else None for v, r in zip(ok, d.resolved)],
-            "noise": noise,
-        }
-        judged += int(d.resolved.sum())
-        hits += int(np.sum(ok & d.resolved))
-        ratios += [(float(vrr[i] / d.vrr.estimate[i]), f, float(freqs[i]), bool(ok[i]))
+            inside=tuple(bool(v) if r else None for v, r in zip(ok, d.resolved)),
+            noise=tuple(NoiseVrr(tau, vrr_spectrum(grid, grid_h, s), iv) for tau, s, iv in zip(taus, spectra, d.noise)),
+        )
+        points += [RatioPoint(float(vrr[i] / d.vrr.estimate[i]), f, float(freqs[i]), bool(ok[i]))
                    for i in np.flatnonzero(d.resolved)]
-
-    def worst(candidates):
-        # farthest from 1 on a log scale: a factor 2 too high is as bad as a factor 2 too low
-        w = max(candidates, key=lambda r: abs(math.log(r[0])), default=None)
-        return None if w is None else {"ratio_pbm_to_dem": w[0], "feeder": w[1], "frequency_hz": w[2]}
-
-    return {
-        "feeders": per_feeder,
-        "windows_averaged": [int(system.windows[0]), int(system.windows[-1])],
-        "n_judged": judged, "n_inside": hits, "inside_fraction": hits / judged if judged else math.nan,
-        # near the floor the DEM's interval spans a factor of ~5, so the worst ratio over all
-        # resolved points is often an inside one; the worst outside says how far a miss is
-        "worst": worst(ratios),
-        "worst_outside": worst([r for r in ratios if not r[3]]),
-    }
+    return PbmVrr(mode=mode, feeders=feeders, windows_averaged=(int(system.windows[0]), int(system.windows[-1])),
+                  points=tuple(points))
 
 
 def steady_table(table: VelocityTable, rates: str, t_start_s: float) -> VelocityTable:
@@ -323,12 +506,12 @@ def steady_table(table: VelocityTable, rates: str, t_start_s: float) -> Velocity
 
 
 def ensemble_check(table: VelocityTable, config: PbmConfig, t_start_s: float, members: int = ENSEMBLE_MEMBERS,
-                   sigmas: Sequence[float] = ENSEMBLE_SIGMAS) -> list[dict[str, Any]]:
+                   sigmas: Sequence[float] = ENSEMBLE_SIGMAS) -> list[EnsembleCheck]:
     """The time-domain noise ensemble against the frequency domain, per sigma: the SD of
     the outlet C_A across ``members`` (both feeders redrawn every noise interval; the root
     of the variance over members, averaged over the outputs once the blender has filled)
     and :func:`pbm.frequency.sampled_ca_sd`, both on :func:`steady_table`, so that the
-    ensemble's blender is the transfer function's."""
+    ensemble's blender is the transfer function's. One :class:`EnsembleCheck` per sigma."""
     steady = steady_table(table, config.rates, t_start_s)
     system = stationary_system(steady, config)
     rates = [config.feed_rate_a_per_s, config.feed_rate_b_per_s]
@@ -344,18 +527,18 @@ def ensemble_check(table: VelocityTable, config: PbmConfig, t_start_s: float, me
         elapsed = time.perf_counter() - t0
         after = ens.times >= t_from
         measured = float(np.sqrt(np.mean(np.nanvar(ens.C_A_members[:, after], axis=0, ddof=1))))
-        rows.append({"sigma": sigma, "members": members, "from_s": t_from, "sd_time_domain": measured,
-                     "sd_frequency_domain": predicted, "relative_difference": measured / predicted - 1,
-                     "ensemble_s": elapsed})
+        rows.append(EnsembleCheck(sigma=sigma, members=members, from_s=t_from, sd_time_domain=measured,
+                                  sd_frequency_domain=predicted, ensemble_s=elapsed))
     return rows
 
 
 def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: float, dem_summary: dict[str, Any],
                    particles: pd.DataFrame, frequencies=None, *, noise_taus_s: Sequence[float] = NOISE_TAUS_S,
-                   n_boot: int = N_BOOT, seed: int = SEED) -> dict[str, Any]:
+                   n_boot: int = N_BOOT, seed: int = SEED) -> VrrComparison:
     """PBM (each rate mode the table supports) against DEM: |H|, VRR per feeder and
     frequency, whether each PBM VRR lies in the DEM's interval (None where the DEM is
-    unresolved), the worst PBM / DEM ratio, and the VRR of band-limited noise.
+    unresolved), the worst PBM / DEM ratio, and the VRR of band-limited noise, as a
+    :class:`VrrComparison` (its ``record()`` is the JSON).
 
     The PBM's system is the mean generator of the windows from ``steady_time_s``; the
     noise band is [0, 1 / (2 pbm_config.noise_interval_s)] for both sides. ``frequencies``
@@ -384,26 +567,9 @@ def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: f
                                n_boot=n_boot, seed=seed) for f in FEEDERS}
         pbm = {mode: _pbm_mode(table, pbm_config, mode, steady_time_s, freqs, grid, taus, spectra, dem)
                for mode in ["velocity"] + (["measured"] if table.has_rates else [])}
-        for mode, m in pbm.items():
-            m["ensemble_check"] = ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)
-    return {
-        "frequency_hz": freqs,
-        "steady_time_s": float(steady_time_s),
-        "noise": {"taus_s": list(taus), "f_max_hz": f_max, "quadrature_points": QUADRATURE_POINTS,
-                  "spectrum": "1 / (1 + (2 pi f tau)^2) on [0, f_max]; white for tau = 0"},
-        "interval": {"block_s": BLOCK_S, "n_boot": n_boot, "level": LEVEL, "seed": seed,
-                     "method": "block bootstrap over entry time (coupling.intervals.block_bootstrap)"},
-        "resolved_factor": RESOLVED_FACTOR,
-        "dem": {f: {
-            "n_entered": d.n_entered, "n_recovered": d.n_recovered, "n_blocks": d.n_blocks,
-            "recovered_fraction": d.n_recovered / d.n_entered if d.n_entered else math.nan,
-            "mean_residence_time_s": d.mean_residence_time_s, "floor_abs_H": d.floor,
-            "resolved": d.resolved, "abs_H": _interval_dict(d.abs_H), "vrr": _interval_dict(d.vrr),
-            "noise": [{"tau_s": t, **_interval_dict(iv), "uncorrected": c}
-                      for t, iv, c in zip(d.noise_taus_s, d.noise, d.noise_uncorrected)],
-        } for f, d in dem.items()},
-        "pbm": pbm,
-        "note": "DEM H(f) is the mean of exp(-i 2 pi f tau) over the pooled RTD's recovered particles of each "
-                "feeder (conditional on recovery within the horizon); frequencies where the DEM's |H| is below "
-                f"{RESOLVED_FACTOR:g} x 1/sqrt(N) are unresolved (sampling floor) and not judged.",
-    }
+        pbm = {mode: replace(m, ensemble_check=tuple(
+                   ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)))
+               for mode, m in pbm.items()}
+    return VrrComparison(frequency_hz=freqs, steady_time_s=float(steady_time_s), dem=dem, pbm=pbm, noise_taus_s=taus,
+                         noise_f_max_hz=f_max, quadrature_points=QUADRATURE_POINTS, block_s=BLOCK_S, n_boot=n_boot,
+                         level=LEVEL, seed=seed, resolved_factor=RESOLVED_FACTOR)

@@ -111,7 +111,7 @@ def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.
         "rtd_route": {"frequency_hz": rtd_freqs, "abs_H_rtd": np.abs(h_rtd), "abs_H_generator_mixed": np.abs(h_mixed),
                       "abs_difference": np.abs(h_rtd - h_mixed), "rtd_mean_s": rtd.mean_s,
                       "recovered_fraction": rtd.recovered_fraction, "horizon_s": horizon},
-        "ensemble_check": ensemble,
+        "ensemble_check": [row.record() for row in ensemble],
         "timing": {"system_build_s": build_s, "seconds_per_frequency_point": per_point,
                    "points_timed": timing_points},
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),

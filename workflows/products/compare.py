@@ -33,7 +33,7 @@ from coupling.jsonable import write_json
 from pbm.config import PbmConfig
 from pbm.simulate import PbmResult
 from workflows.analysis.agreement import AgreementRow, PbmMode, agreement_rows, dem_density, nx_sensitivity, run_modes
-from workflows.analysis.vrr import vrr_comparison
+from workflows.analysis.vrr import VrrComparison, vrr_comparison
 from workflows.config import Config, config_from_dict, dump_toml
 from workflows.pipeline.stages import DemSide, dem_stage, pbm_config_for, rtd_pulse, writable_directory
 from workflows.products.paper_studies import run_studies
@@ -100,7 +100,7 @@ class Comparison:
     metrics: dict[str, Any]
     rows: list[AgreementRow]
     sensitivity: dict[str, Any] | None
-    vrr: dict[str, Any] | None
+    vrr: VrrComparison | None
 
     @property
     def pbm_result(self) -> PbmResult:
@@ -215,7 +215,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         "metrics": c.metrics,
         "agreement": [r.record() for r in c.rows],
         "nx_sensitivity": c.sensitivity,
-        "vrr": c.vrr,
+        "vrr": None if c.vrr is None else c.vrr.record(),
         "pbm_modes": {mode: m.result.summary for mode, m in c.modes.items()},
         "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
         "dem_summary": c.dem.results.summary,
@@ -230,7 +230,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         write_paraview(c.config, c.dem, out_dir / "paraview", log)
 
 
-def feeder_filtering(dem: DemSide, pbm_config, log: Log) -> dict | None:
+def feeder_filtering(dem: DemSide, pbm_config, log: Log) -> VrrComparison | None:
     """:func:`workflows.analysis.vrr.vrr_comparison` of the DEM's pooled RTD and the PBM's modes, when
     the DEM has a pooled RTD; None (and a line in the log) otherwise."""
     summary = dem.results.summary

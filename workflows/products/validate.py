@@ -41,7 +41,7 @@ from workflows.config import Config, load_preset, override
 from workflows.analysis.budget import budget_study
 from workflows.report.budget import plot_budget
 from workflows.pipeline.stages import DemSide, Log, dem_stage, stderr_log, writable_directory
-from workflows.analysis.step import step_comparison, summary_rows
+from workflows.analysis.step import step_comparison
 from workflows.analysis.validation import campaign_span_s, predictions, verdicts
 from workflows.report.step import plot_step, step_html
 from workflows.report.validation import plot_parity, plot_profiles, render_report
@@ -148,7 +148,7 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
             figures.pop("budget")
         write_json(out_dir / "summary.json", json_ready({
             "campaign": campaign, "campaign_elapsed_s": span_s, "verdicts": [v.record() for v in judged], "dem_budget": None if budget is None else budget.record(),
-            "step_response": None if step is None else summary_rows(step),
+            "step_response": None if step is None else step.record(),
             "predictions": [{"run": p.run, "source": p.source, "note": p.note, "agreement": [r.record() for r in p.rows]} for p in preds]}))
         page = out_dir / "report.html"
         page.write_text(render_report(campaign, judged, figures, budget, span_s,

@@ -34,11 +34,11 @@ def run(args: argparse.Namespace) -> int:
                           f"{steady!r}); there is no stationary blender to compare")
     pbm_config = pbm_config_for(config, results.table, rtd_pulse_s=None)
     comparison = vrr_comparison(results.table, pbm_config, float(steady), results.summary, results.particles)
-    comparison["reference"] = str(args.reference)
-    comparison["elapsed_s"] = time.perf_counter() - started
+    elapsed_s = time.perf_counter() - started
     out = Path(args.out)
-    write_json(out / "vrr.json", comparison)
+    # the study's own provenance beside the comparison's record, at the file edge
+    write_json(out / "vrr.json", {**comparison.record(), "reference": str(args.reference), "elapsed_s": elapsed_s})
     plot_vrr(comparison, out / "vrr.png")
     print_table(comparison)
-    print(f"wrote {out / 'vrr.json'} and {out / 'vrr.png'} in {comparison['elapsed_s']:.0f} s")
+    print(f"wrote {out / 'vrr.json'} and {out / 'vrr.png'} in {elapsed_s:.0f} s")
     return 0

@@ -1,5 +1,5 @@
 """The feed step: the deck's second feeder, the PBM's step against a single tank's closed
-form, and the step judge on synthetic DEM counts with known answers."""
+form, and the step judge (:func:`judge_step`) on synthetic DEM counts with known answers."""
 
 import math
 
@@ -12,8 +12,8 @@ from coupling.tables import make_table
 from dem.deck import STEP_FEEDER, build_deck, deck_parameters
 from pbm.config import PbmConfig
 from pbm.simulate import simulate
+from workflows.analysis.step import StepComparison, StepRow, binomial_deviance, judge_step, mean_delay
 from workflows.config import load_preset, override
-from workflows.analysis.step import binomial_deviance, judge, mean_delay
 from workflows.products.validate import step_config
 
 
@@ -85,24 +85,65 @@ def test_mean_delay_of_a_first_order_response():
         mean_delay(t, c, 80.0, 1.0, (0.5, 0.5))
 
 
-def test_judge_accepts_its_own_curve_and_rejects_a_slower_one():
+def synthetic_dem(t, c, n, seed=7):
+    n_a = np.random.default_rng(seed).binomial(n, c)
+    return pd.DataFrame({"t_s": t, "n_A": n_a, "n_B": n - n_a})
+
+
+def test_judge_step_accepts_its_own_curve_and_rejects_a_slower_one():
     t, c, n = synthetic(tau=15.0, n=100)
-    rng = np.random.default_rng(7)
-    n_a = rng.binomial(n, c)
-    dem = pd.DataFrame({"t_s": t, "n_A": n_a, "n_B": n - n_a})
+    dem = synthetic_dem(t, c, n)
     levels = (0.5, 2 / 3)
-    same = judge(dem, pd.DataFrame({"t_s": t, "C_A": c}), 80.0, 1.0, levels)
-    assert same["predicted"] and same["delay_inside"] and same["time_scale_inside"] and same["deviance_p"] > 0.05
-    scale = same["time_scale"]
-    assert scale["low"] < 1 < scale["high"] and scale["high"] - scale["low"] < 0.6 and not scale["at_bound"]
-    lo, hi = same["dem_delay_s"]["low"], same["dem_delay_s"]["high"]
-    assert lo < same["pbm_delay_s"] < hi and hi - lo < 12  # 90 intervals of ~100 particles: +-5 s
+    same = judge_step(dem, pd.DataFrame({"t_s": t, "C_A": c}), 80.0, 1.0, levels)
+    assert same.predicted and same.delay_inside and same.time_scale_inside and same.deviance_p > 0.05
+    scale = same.time_scale
+    assert scale.low < 1 < scale.high and scale.high - scale.low < 0.6 and not scale.at_bound
+    lo, hi = same.dem_delay_s.low, same.dem_delay_s.high
+    assert lo < same.pbm_delay_s < hi and hi - lo < 12  # 90 intervals of ~100 particles: +-5 s
     # a PBM twice as slow: the DEM runs faster by about 2, and 1 is far outside
     _, slow, _ = synthetic(tau=30.0)
-    other = judge(dem, pd.DataFrame({"t_s": t, "C_A": slow}), 80.0, 1.0, levels)
-    assert not other["predicted"] and not other["time_scale_inside"]
-    assert other["time_scale"]["low"] < 2.0 < other["time_scale"]["high"]
-    assert math.isclose(other["dem_delay_s"]["value"], same["dem_delay_s"]["value"])
+    other = judge_step(dem, pd.DataFrame({"t_s": t, "C_A": slow}), 80.0, 1.0, levels)
+    assert not other.predicted and not other.time_scale_inside
+    assert other.time_scale.low < 2.0 < other.time_scale.high
+    assert math.isclose(other.dem_delay_s.estimate, same.dem_delay_s.estimate)
+
+
+def test_step_records_keep_the_summary_json_layout():
+    """``summary.json``'s ``step_response`` (and report.html) read these records: their keys,
+    nesting and plain-Python types are the file's format."""
+    t, c, n = synthetic(tau=15.0, n=100)
+    pbm = pd.DataFrame({"t_s": t, "C_A": c})
+    dem = synthetic_dem(t, c, n)
+    judged = judge_step(dem, pbm, 80.0, 1.0, (0.5, 2 / 3), n_boot=200)
+    row = StepRow("self", "velocity", judged)
+    comparison = StepComparison(step_s=80.0, factor_a=2.0, interval_s=1.0, rows=(row,), dem=dem,
+                                series={("self", "velocity"): pbm})
+    record = comparison.record()
+    assert list(record) == ["step_s", "factor_a", "interval_s", "rows"]
+    assert (record["step_s"], record["factor_a"], record["interval_s"]) == (80.0, 2.0, 1.0)
+    (r,) = record["rows"]
+    assert list(r) == ["source", "mode", "intervals_after_step", "deviance", "deviance_p", "time_scale",
+                       "time_scale_inside", "dem_delay_s", "pbm_delay_s", "delay_inside", "predicted"]
+    assert (r["source"], r["mode"], r["intervals_after_step"]) == ("self", "velocity", 90)
+    assert list(r["time_scale"]) == ["value", "low", "high", "at_bound"]
+    assert list(r["dem_delay_s"]) == ["value", "low", "high"]
+    scale, delay = judged.time_scale, judged.dem_delay_s
+    assert r["time_scale"] == {"value": scale.value, "low": scale.low, "high": scale.high, "at_bound": scale.at_bound}
+    assert r["dem_delay_s"] == {"value": delay.estimate, "low": delay.low, "high": delay.high}
+    assert (r["deviance"], r["deviance_p"], r["pbm_delay_s"]) == (judged.deviance, judged.deviance_p,
+                                                                   judged.pbm_delay_s)
+    assert r["time_scale_inside"] == (scale.low <= 1 <= scale.high)
+    assert r["delay_inside"] == (delay.low <= judged.pbm_delay_s <= delay.high)
+    assert r["predicted"] == (r["time_scale_inside"] and r["deviance_p"] >= 0.05)
+
+    def plain(value):  # what the JSON writer is given: no numpy scalars, no tuples
+        if isinstance(value, dict):
+            return all(isinstance(k, str) and plain(v) for k, v in value.items())
+        if isinstance(value, list):
+            return all(plain(v) for v in value)
+        return type(value) in (str, int, float, bool)
+
+    assert plain(record) and type(r["intervals_after_step"]) is int and type(r["predicted"]) is bool
 
 
 def test_deviance_is_zero_at_the_counts_own_fractions():
@@ -114,16 +155,17 @@ def test_deviance_is_zero_at_the_counts_own_fractions():
 @pytest.mark.slow
 def test_shipped_step_run_is_found_and_judged(tmp_path):
     from workflows.analysis.step import step_comparison
-    from workflows.products.validate import run_step
-    from workflows.products.validate import campaign_configs, run_campaign
+    from workflows.products.validate import campaign_configs, run_campaign, run_step
 
     side = run_step(runs_root=tmp_path, solver=False, log=lambda message: None)
     assert side.source == "reference"
     base = run_campaign(tmp_path, solver=False, log=lambda message: None,
                         configs={"baseline": campaign_configs()["baseline"]})["baseline"]
-    rows = {(r["source"], r["mode"]): r for r in step_comparison(side, base, step_config())["rows"]}
+    comparison = step_comparison(side, base, step_config())
+    rows = {(r.source, r.mode): r.judgement for r in comparison.rows}
     assert set(rows) == {(s, m) for s in ("self", "baseline") for m in ("velocity", "measured")}
+    assert list(comparison.series) == [(r.source, r.mode) for r in comparison.rows]
     own = rows[("self", "velocity")]
-    assert own["predicted"] and abs(own["pbm_delay_s"] - own["dem_delay_s"]["value"]) < 1.0
+    assert own.predicted and abs(own.pbm_delay_s - own.dem_delay_s.estimate) < 1.0
     # the steady tables alone respond too slowly: the DEM runs faster than that PBM
-    assert rows[("baseline", "measured")]["time_scale"]["value"] > 1.1
+    assert rows[("baseline", "measured")].time_scale.value > 1.1

@@ -9,9 +9,11 @@ import pandas as pd
 import pytest
 
 from coupling.errors import ConfigError
+from coupling.intervals import Interval
+from coupling.jsonable import json_ready
 from coupling.tables import make_table
 from pbm.config import PbmConfig
-from workflows.analysis.vrr import dem_transfer, vrr_comparison
+from workflows.analysis.vrr import EnsembleCheck, VrrComparison, dem_transfer, vrr_comparison
 from workflows.cli.main import main
 from workflows.report.vrr import plot_vrr, vrr_html
 
@@ -87,9 +89,9 @@ def chain_table(n_tanks, k_per_s, length_m=0.3):
                       rate_x_pos=zero + k_per_s, rate_x_neg=zero, rate_y_pos=zero, rate_y_neg=zero)
 
 
-def half_widths(value, interval):
+def half_widths(value, interval: Interval):
     """Distance of ``value`` from the interval's estimate, in half widths on its side."""
-    est, low, high = (np.asarray(interval[k], dtype=float) for k in ("value", "low", "high"))
+    est, low, high = (np.asarray(v, dtype=float) for v in interval)
     value = np.asarray(value, dtype=float)
     return np.abs(value - est) / np.where(value > est, high - est, est - low)
 
@@ -101,51 +103,93 @@ def test_pbm_and_dem_agree_on_the_pbm_own_erlang_rtd(rng, tmp_path):
     assert table.has_rates
     particles = records(rng.gamma(n_tanks, 1 / k, n), rng.gamma(n_tanks, 1 / k, n), rng)
     c = vrr_comparison(table, PbmConfig(), 10.0, {"pooled_rtd": spec(n_entered=2 * n)}, particles)
-    freqs = np.asarray(c["frequency_hz"])
+    assert isinstance(c, VrrComparison)
+    freqs = np.asarray(c.frequency_hz)
     assert freqs.size == 25 and freqs[0] == pytest.approx(0.1 / MEAN_S) and freqs[-1] == pytest.approx(1.0)
     exact = np.abs((k / (k + 2j * np.pi * freqs)) ** n_tanks)
-    assert set(c["pbm"]) == {"velocity", "measured"}
-    for mode, m in c["pbm"].items():
+    assert set(c.pbm) == {"velocity", "measured"}
+    for mode, m in c.pbm.items():
         for f in ("A", "B"):
-            pbm, dem = m["feeders"][f], c["dem"][f]
-            np.testing.assert_allclose(pbm["abs_H"], exact, rtol=1e-9)
-            assert pbm["mean_residence_time_s"] == pytest.approx(MEAN_S)
+            pbm, dem = m.feeders[f], c.dem[f]
+            np.testing.assert_allclose(pbm.abs_H, exact, rtol=1e-9)
+            assert pbm.mean_residence_time_s == pytest.approx(MEAN_S)
             # A 95 % interval misses the truth now and then, and here one sample per feeder
             # decides every point at once (this seed's B sample sits ~1 half width low
             # throughout), so judge the distance in half widths, not the verdicts.
-            resolved = np.asarray(dem["resolved"])
-            vrr = {key: np.asarray(dem["vrr"][key])[resolved] for key in ("value", "low", "high")}
-            assert np.all(half_widths(np.asarray(pbm["vrr"])[resolved], vrr) < 1.5), (mode, f)
-            for row in pbm["noise"]:
-                assert half_widths(row["vrr"], row["dem"]) < 1.5, (mode, f, row)
-                assert abs(row["ratio_to_dem"] - 1) < 0.03
-            inside = [v for v in pbm["inside"] if v is not None]
+            resolved = np.asarray(dem.resolved)
+            vrr = Interval(*(np.asarray(v)[resolved] for v in dem.vrr))
+            assert np.all(half_widths(np.asarray(pbm.vrr)[resolved], vrr) < 1.5), (mode, f)
+            for row in pbm.noise:
+                assert half_widths(row.vrr, row.dem) < 1.5, (mode, f, row)
+                assert abs(row.ratio_to_dem - 1) < 0.03
+            inside = [v for v in pbm.inside if v is not None]
             assert len(inside) == resolved.sum() >= 10
-        assert m["inside_fraction"] >= 0.5
+        assert m.inside_fraction >= 0.5
         # the worst ratio comes from near the floor, where the interval spans a factor ~2;
         # a miss (outside the interval) is a few %, where the interval is narrow
-        assert 0.5 < m["worst"]["ratio_pbm_to_dem"] < 2.0
-        outside = m["worst_outside"]
-        assert outside is None or abs(outside["ratio_pbm_to_dem"] - 1) < 0.1
+        assert 0.5 < m.worst.ratio_pbm_to_dem < 2.0
+        outside = m.worst_outside
+        assert outside is None or abs(outside.ratio_pbm_to_dem - 1) < 0.1
     for f in ("A", "B"):
-        d = c["dem"][f]
-        resolved = np.asarray(d["resolved"])
+        d = c.dem[f]
+        resolved = np.asarray(d.resolved)
         # the Erlang |H| falls as f^-5: the floor is reached inside the sweep, and then stays
         assert resolved[0] and not resolved[-1] and not np.any(np.diff(resolved.astype(int)) > 0)
-        assert d["floor_abs_H"] == pytest.approx(1 / math.sqrt(n))
-        for row in d["noise"]:  # the floor's bias of the noise VRR is below its interval's width
-            assert abs(row["uncorrected"] - row["value"]) < row["high"] - row["low"]
+        assert d.floor == pytest.approx(1 / math.sqrt(n))
+        for iv, uncorrected in zip(d.noise, d.noise_uncorrected):
+            # the floor's bias of the noise VRR is below its interval's width
+            assert abs(uncorrected - iv.estimate) < iv.high - iv.low
     out = plot_vrr(c, tmp_path / "vrr.png")
     assert out.stat().st_size > 10_000
     # the comparison report's section: every mode's count of resolved points, every noise row
     section = vrr_html(c, out.name)
-    for mode, m in c["pbm"].items():
-        assert f"<td>{mode}</td><td>{m['n_inside']}/{m['n_judged']} resolved points</td>" in section
-    assert section.count("<tr><td>A, ") == len(c["noise"]["taus_s"]) and "vrr.png" in section
+    for mode, m in c.pbm.items():
+        assert f"<td>{mode}</td><td>{m.n_inside}/{m.n_judged} resolved points</td>" in section
+    assert section.count("<tr><td>A, ") == len(c.noise_taus_s) and "vrr.png" in section
     # the time-domain ensemble agrees with the transfer functions it is reported beside
-    for mode, m in c["pbm"].items():
-        (row,) = m["ensemble_check"]
-        assert abs(row["relative_difference"]) < 0.05 and f"<tr><td>{mode}</td><td>{row['sigma']:g}</td>" in section
+    for mode, m in c.pbm.items():
+        (row,) = m.ensemble_check
+        assert isinstance(row, EnsembleCheck)
+        assert abs(row.relative_difference) < 0.05 and f"<tr><td>{mode}</td><td>{row.sigma:g}</td>" in section
+    assert_record_matches(c)
+
+
+def assert_record_matches(c: VrrComparison) -> None:
+    """``record()`` is the nested dict vrr.json and summary.json hold: every key, and the
+    typed result's numbers under them."""
+    r = c.record()
+    assert list(r) == ["frequency_hz", "steady_time_s", "noise", "interval", "resolved_factor", "dem", "pbm", "note"]
+    assert r["frequency_hz"] is c.frequency_hz and r["note"] == c.note
+    assert r["noise"]["taus_s"] == list(c.noise_taus_s) and r["noise"]["f_max_hz"] == c.noise_f_max_hz
+    assert set(r["interval"]) == {"block_s", "n_boot", "level", "seed", "method"}
+    for f, d in c.dem.items():
+        rd = r["dem"][f]
+        assert list(rd) == ["n_entered", "n_recovered", "n_blocks", "recovered_fraction", "mean_residence_time_s",
+                            "floor_abs_H", "resolved", "abs_H", "vrr", "noise"]
+        assert rd["floor_abs_H"] == d.floor and rd["recovered_fraction"] == d.n_recovered / d.n_entered
+        assert rd["vrr"]["value"] is d.vrr.estimate and rd["abs_H"]["high"] is d.abs_H.high
+        assert [list(row) for row in rd["noise"]] == [["tau_s", "value", "low", "high", "uncorrected"]] * len(d.noise)
+    for mode, m in c.pbm.items():
+        rm = r["pbm"][mode]
+        assert list(rm) == ["feeders", "windows_averaged", "n_judged", "n_inside", "inside_fraction", "worst",
+                            "worst_outside", "ensemble_check"]
+        assert rm["n_judged"] == sum(int(np.sum(c.dem[f].resolved)) for f in c.dem)
+        assert rm["n_inside"] == sum(v is True for fv in m.feeders.values() for v in fv.inside)
+        assert rm["worst"] == {"ratio_pbm_to_dem": m.worst.ratio_pbm_to_dem, "feeder": m.worst.feeder,
+                               "frequency_hz": m.worst.frequency_hz}
+        assert isinstance(rm["windows_averaged"], list) and len(rm["windows_averaged"]) == 2
+        for f, fv in m.feeders.items():
+            rf = rm["feeders"][f]
+            assert list(rf) == ["mean_residence_time_s", "abs_H", "vrr", "inside", "noise"]
+            assert rf["vrr"] is fv.vrr and rf["inside"] == list(fv.inside)
+            for row, n in zip(rf["noise"], fv.noise):
+                assert row == {"tau_s": n.tau_s, "vrr": n.vrr, "dem": {"value": n.dem.estimate, "low": n.dem.low,
+                                                                      "high": n.dem.high},
+                               "inside": n.inside, "ratio_to_dem": n.ratio_to_dem}
+        (row,) = rm["ensemble_check"]
+        assert list(row) == ["sigma", "members", "from_s", "sd_time_domain", "sd_frequency_domain",
+                             "relative_difference", "ensemble_s"]
+    json_ready(r)  # nothing but JSON-able values (numpy arrays, floats, None) below the keys
 
 
 def test_velocity_only_table_gives_one_mode(rng):
@@ -154,7 +198,7 @@ def test_velocity_only_table_gives_one_mode(rng):
     particles = records(rng.gamma(2, 5.0, 1000), rng.gamma(2, 5.0, 1000), rng)
     c = vrr_comparison(table, PbmConfig(), 0.0, {"pooled_rtd": spec(n_entered=2000, mean=10.0)}, particles,
                        frequencies=[0.01, 0.05], noise_taus_s=(0.0,), n_boot=100)
-    assert list(c["pbm"]) == ["velocity"]
+    assert list(c.pbm) == ["velocity"] and list(c.record()["pbm"]) == ["velocity"]
 
 
 @pytest.mark.parametrize("kwargs, match", [
