@@ -9,6 +9,7 @@ checks that need geometry (blade clearance, feed zones clear of the blades) live
 from __future__ import annotations
 
 import math
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 

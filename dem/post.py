@@ -66,8 +66,18 @@ from dem.config import DemConfig
 from dem.massflow import massflow_files
 from dem.rates import fit_windows
 from dem.steady import pooled_rtd, steady_quantities
-from dem.tracking import (EXIT_MASSFLOW, EXIT_PAST_WEIR, EXIT_VANISHED, SUM_ROWS, Accumulation, Exits, accumulate,
-                          find_exits, transition_counts)
+from dem.summary import DemSummary
+from dem.tracking import (
+    EXIT_MASSFLOW,
+    EXIT_PAST_WEIR,
+    EXIT_VANISHED,
+    SUM_ROWS,
+    Accumulation,
+    Exits,
+    accumulate,
+    find_exits,
+    transition_counts,
+)
 
 __all__ = ["DemResults", "postprocess"]
 
@@ -88,7 +98,7 @@ class DemResults:
     * ``particles``: :func:`particle_records`.
     * ``transitions``: (K, S+1, S+1) particle moves between consecutive dumps
       (:func:`dem.tracking.transition_counts`), what the measured rates were fitted to.
-    * ``summary``: scalars (see :func:`postprocess`).
+    * ``summary``: the scalars (:class:`dem.summary.DemSummary`).
     """
 
     table: VelocityTable
@@ -100,17 +110,17 @@ class DemResults:
     residence_times_s: np.ndarray
     particles: pd.DataFrame
     transitions: np.ndarray
-    summary: dict[str, Any] = field(default_factory=dict)
+    summary: DemSummary = field(default_factory=DemSummary)
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
         arrays = {"rsd_by_slice": self.rsd_by_slice, "rsd_by_slice_floor": self.rsd_by_slice_floor,
                   "residence_times_s": self.residence_times_s, "transitions": self.transitions}
-        return CacheEntry(self.table, self.summary, frames, arrays, provenance)
+        return CacheEntry(self.table, self.summary.record(), frames, arrays, provenance)
 
     @classmethod
     def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
-        return cls(table=entry.table, summary=entry.summary, **entry.frames,
+        return cls(table=entry.table, summary=DemSummary.from_record(entry.summary), **entry.frames,
                    **{name: np.asarray(values) for name, values in entry.arrays.items()})
 
 
@@ -408,4 +418,4 @@ def postprocess(
     return DemResults(table=table, timeseries=timeseries, holdup=holdup,
                       rsd_by_slice=rsd(last_a, last_b, axis=1), rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
                       rtd=rtd, residence_times_s=residence, particles=records, transitions=transitions,
-                      summary=summary)
+                      summary=DemSummary.from_record(summary))

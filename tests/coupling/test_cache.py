@@ -46,11 +46,11 @@ def test_round_trip(tmp_path, results):
         np.testing.assert_array_equal(a.to_numpy(), b.to_numpy())
     np.testing.assert_array_equal(loaded.rsd_by_slice, results.rsd_by_slice)
     np.testing.assert_array_equal(loaded.residence_times_s, results.residence_times_s)
-    for key, value in results.summary.items():
+    for key, value in results.summary.record().items():
         if isinstance(value, float) and np.isnan(value):
-            assert np.isnan(loaded.summary[key])
+            assert np.isnan(loaded.summary.record()[key])
         else:
-            assert loaded.summary[key] == value, key
+            assert loaded.summary.record()[key] == value, key
 
 
 def test_other_key_is_refused(tmp_path, results):

@@ -13,12 +13,12 @@ import h5py
 import numpy as np
 import pytest
 
-from workflows.shipped import REFERENCE_DIR
 from coupling.cache import DIGEST_ATTR, cache_path, load_entry, save_entry, try_load_entry
 from coupling.errors import CacheError, TableError
 from coupling.tables import read_table, write_table
 from dem.post import postprocess
 from tests.known_dumps import config, write_synthetic
+from workflows.shipped import REFERENCE_DIR
 
 REFERENCE = REFERENCE_DIR
 TABLE_FIELDS = ("t", "x_edges", "y_edges", "vx_pos", "vx_neg", "vy_pos", "vy_neg", "count_A", "count_B", "n_samples")

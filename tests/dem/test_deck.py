@@ -58,7 +58,7 @@ def test_deck_is_deterministic_and_hash_tracks_content():
 
 
 def _fix_values(deck: str, name: str) -> list[float]:
-    line = next(l for l in deck.splitlines() if f" {name} " in l and l.startswith("fix"))
+    line = next(ln for ln in deck.splitlines() if f" {name} " in ln and ln.startswith("fix"))
     return [float(v) for v in line.split()[-9 if "peratomtypepair" in line else -3:]]
 
 
@@ -121,7 +121,7 @@ def test_deck_text_size_distribution_matches_target(name):
     dem = load_preset(name).dem
     deck = build_deck(dem)[MAIN_DECK]
     radii = {m[0]: float(m[1]) for m in re.findall(r"fix (ptA\d+) all particletemplate/sphere .* radius constant (\S+)", deck)}
-    line = next(l for l in deck.splitlines() if "pddA all particledistribution" in l).split()
+    line = next(ln for ln in deck.splitlines() if "pddA all particledistribution" in ln).split()
     pairs = line[6:]
     d = np.array([2 * radii[pairs[i]] for i in range(0, len(pairs), 2)])
     w = np.array([float(pairs[i + 1]) for i in range(0, len(pairs), 2)])
@@ -148,7 +148,7 @@ def test_resume_deck_reads_restart_and_keeps_steps_continuous():
 
 def test_thermo_header_is_the_documented_one():
     deck = build_deck(load_preset("smoke").dem)[MAIN_DECK]
-    line = next(l for l in deck.splitlines() if l.startswith("thermo_style"))
+    line = next(ln for ln in deck.splitlines() if ln.startswith("thermo_style"))
     assert [c.capitalize() if c in ("step", "atoms") else c[2:] for c in line.split()[2:]] == list(
         THERMO_COLUMNS
     )
@@ -235,7 +235,7 @@ def test_liggghts_accepts_every_preset_deck(tmp_path, name):
     files = _short(build_deck(dem), 200)
     write_deck(files, tmp_path)
     out = _run_liggghts(tmp_path, MAIN_DECK)
-    header = next(l for l in out.splitlines() if l.split()[:1] == ["Step"])
+    header = next(ln for ln in out.splitlines() if ln.split()[:1] == ["Step"])
     assert header.split() == list(THERMO_COLUMNS)
     assert "whitelist" not in out  # the contact model runs the optimised code path
     assert (tmp_path / "dumps" / "dump.0.txt").exists()
@@ -257,17 +257,17 @@ def test_liggghts_smoke_inserts_and_restart_resumes(tmp_path):
     files = build_deck(dem, resume_from=f"restart/restart.{restart_step}.bin")
     write_deck(files, tmp_path)
     out = _run_liggghts(tmp_path, MAIN_DECK)
-    rows = [l.split() for l in out.splitlines() if re.match(r"^\s+\d+\s", l) and len(l.split()) == len(THERMO_COLUMNS)]
+    rows = [ln.split() for ln in out.splitlines() if re.match(r"^\s+\d+\s", ln) and len(ln.split()) == len(THERMO_COLUMNS)]
     last = dict(zip(THERMO_COLUMNS, map(float, rows[-1])))
     expected = dem.operation.feed_rate_total_per_s * 1.0
     inserted = last["insA"] + last["insB"]
     assert abs(inserted - expected) <= 0.15 * expected + 4
     assert (tmp_path / f"restart/restart.{restart_step}.bin").exists()
     out2 = _run_liggghts(tmp_path, RESUME_DECK, log="log.resume.liggghts")
-    rows2 = [l.split() for l in out2.splitlines() if re.match(r"^\s+\d+\s", l) and len(l.split()) == len(THERMO_COLUMNS)]
+    rows2 = [ln.split() for ln in out2.splitlines() if re.match(r"^\s+\d+\s", ln) and len(ln.split()) == len(THERMO_COLUMNS)]
     assert int(rows2[0][0]) == restart_step and int(rows2[-1][0]) == info["end_step"]
     assert float(rows2[-1][1]) == pytest.approx(1.0, abs=2 * info["timestep_s"])
-    for comp, fname in MASSFLOW_FILES.items():
+    for fname in MASSFLOW_FILES.values():
         assert list(tmp_path.glob(fname + "*")), fname
     assert (tmp_path / "log.liggghts").read_text().count("Loop time") == 1
     assert (tmp_path / "log.resume.liggghts").is_file()

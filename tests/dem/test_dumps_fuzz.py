@@ -114,8 +114,8 @@ def run_variant(index: int, directory: Path, cfg: DemConfig) -> str:
             return f"non-finite {name} ({kind}, variant {index})"
     if not np.isfinite(res.holdup[["holdup_A", "holdup_B"]].to_numpy()).all():
         return f"non-finite hold-up ({kind}, variant {index})"
-    if res.summary["inserted"] > 200:  # the three dumps hold 87 distinct particles
-        return f"{res.summary['inserted']} particles inserted ({kind}, variant {index})"
+    if res.summary.accounting["inserted"] > 200:  # the three dumps hold 87 distinct particles
+        return f"{res.summary.accounting['inserted']} particles inserted ({kind}, variant {index})"
     return "ok"
 
 

@@ -19,7 +19,6 @@ from dem.post import postprocess
 from tests.known_dumps import COLUMNS, DUMP_S, END_S, STEADY, D, L, R, config, write_synthetic
 
 
-
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
     cfg = config()
@@ -93,9 +92,9 @@ def test_holdup_and_steady_state(synthetic):
     np.testing.assert_allclose(ts["holdup_B"][ts["t_s"] >= 7], 12)
     assert len(res.holdup) == 61
     s = res.summary
-    assert s["steady_state_time_s"] == pytest.approx(10.0)
-    assert s["steady_outflow_per_s"] == pytest.approx(4.0)
-    assert s["steady_C_A"] == pytest.approx(0.5)
+    assert s.steady_state_time_s == pytest.approx(10.0)
+    assert s.steady_outflow_per_s == pytest.approx(4.0)
+    assert s.steady_C_A == pytest.approx(0.5)
 
 
 def test_rsd_and_floor(synthetic):
@@ -105,18 +104,18 @@ def test_rsd_and_floor(synthetic):
     np.testing.assert_allclose(res.timeseries["rsd_outlet_floor"][res.timeseries["t_s"] >= 7], floor)
     np.testing.assert_allclose(res.rsd_by_slice, math.sqrt(2))
     np.testing.assert_allclose(res.rsd_by_slice_floor, floor)
-    assert res.summary["final_rsd_blender"] == pytest.approx(math.sqrt(8 * 0.25 / 7) / 0.5)
-    assert res.summary["final_rsd_blender_floor"] == pytest.approx(floor)
+    assert res.summary.final_rsd_blender == pytest.approx(math.sqrt(8 * 0.25 / 7) / 0.5)
+    assert res.summary.final_rsd_blender_floor == pytest.approx(floor)
 
 
 def test_rtd(synthetic):
     _, res = synthetic
     s = res.summary
-    assert s["rtd_tag_time_s"] == pytest.approx(10.0)
-    assert s["rtd_tagged"] == 4  # entries at 10.5 and 11.0 s, one A and one B each
-    assert s["rtd_recovered_fraction"] == 1.0 and s["rtd_recovered_ok"]
-    assert s["mean_residence_time_s"] == pytest.approx(5.0)
-    assert s["rtd_variance_s2"] == pytest.approx(1.0, rel=1e-4)  # dump times are whole timesteps
+    assert s.rtd_tag_time_s == pytest.approx(10.0)
+    assert s.rtd_tagged == 4  # entries at 10.5 and 11.0 s, one A and one B each
+    assert s.rtd_recovered_fraction == 1.0 and s.rtd_recovered_ok
+    assert s.mean_residence_time_s == pytest.approx(5.0)
+    assert s.rtd_variance_s2 == pytest.approx(1.0, rel=1e-4)  # dump times are whole timesteps
     e = dict(zip(res.rtd["t_s"], res.rtd["E_per_s"]))
     assert e[4.5] == pytest.approx(0.5) and e[6.5] == pytest.approx(0.5)
     assert np.sum(res.rtd["E_per_s"]) * 1.0 == pytest.approx(1.0)
@@ -124,12 +123,12 @@ def test_rtd(synthetic):
 
 def test_accounting_closes(synthetic):
     s = synthetic[1].summary
-    assert s["inserted"] == 120
-    assert s["held"] == 20  # A entered after 26 s, B after 24 s
-    assert s["discharged"] == 100
-    assert s["lost"] == 0 and s["accounting_mismatch"] == 0
-    assert s["exits_seen_past_weir"] == 100
-    assert s["warnings"] == []
+    assert s.accounting["inserted"] == 120
+    assert s.accounting["held"] == 20  # A entered after 26 s, B after 24 s
+    assert s.accounting["discharged"] == 100
+    assert s.accounting["lost"] == 0 and s.accounting["accounting_mismatch"] == 0
+    assert s.accounting["exits_seen_past_weir"] == 100
+    assert s.warnings == ()
 
 
 def test_exits_never_seen_past_weir_use_disappearance(tmp_path):
@@ -138,10 +137,10 @@ def test_exits_never_seen_past_weir_use_disappearance(tmp_path):
     write_synthetic(tmp_path, cfg, vanish_unseen=True)
     res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
     s = res.summary
-    assert s["exits_seen_past_weir"] == 0
-    assert s["exits_from_vanishing"] == s["discharged"] == 100
-    assert s["lost"] == 0 and s["accounting_mismatch"] == 0
-    assert s["mean_residence_time_s"] == pytest.approx(5.0)
+    assert s.accounting["exits_seen_past_weir"] == 0
+    assert s.accounting["exits_from_vanishing"] == s.accounting["discharged"] == 100
+    assert s.accounting["lost"] == 0 and s.accounting["accounting_mismatch"] == 0
+    assert s.mean_residence_time_s == pytest.approx(5.0)
 
 
 def test_massflow_file_gives_exit_times_and_crosscheck(tmp_path):
@@ -157,13 +156,13 @@ def test_massflow_file_gives_exit_times_and_crosscheck(tmp_path):
     (tmp_path / "discharge_A.txt.1").write_text("\n".join(lines[:1] + lines[half:]) + "\n")
     res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1})
     s = res.summary
-    assert s["massflow_discharged"] == len(lines) - 1
-    assert s["exits_from_massflow"] == len(lines) - 1
-    assert s["discharge_crosscheck_diff"] == 0 and s["solver_discharge_diff"] == 0
-    assert s["lost"] == 1 and s["accounting_mismatch"] == 1  # particle 33 left through a wall at 10 s
-    assert any("accounting" in w for w in s["warnings"])
+    assert s.accounting["massflow_discharged"] == len(lines) - 1
+    assert s.accounting["exits_from_massflow"] == len(lines) - 1
+    assert s.accounting["discharge_crosscheck_diff"] == 0 and s.accounting["solver_discharge_diff"] == 0
+    assert s.accounting["lost"] == 1 and s.accounting["accounting_mismatch"] == 1  # particle 33 left through a wall at 10 s
+    assert any("accounting" in w for w in s.warnings)
     # exit times come from the file (0.2 s before the dump that misses them): 3.8 and 5.8 s
-    assert s["mean_residence_time_s"] == pytest.approx(4.8, rel=1e-4)
+    assert s.mean_residence_time_s == pytest.approx(4.8, rel=1e-4)
 
 
 def test_rtd_recovery_flag(tmp_path):
@@ -171,9 +170,9 @@ def test_rtd_recovery_flag(tmp_path):
     write_synthetic(tmp_path, cfg, end_s=16.0)  # B tagged at 11.5-12 s leave at 17.5-18 s
     res = postprocess(str(tmp_path / "dump.*.txt"), cfg, rtd_tag_time_s=11.0)
     s = res.summary
-    assert s["rtd_recovered_fraction"] == pytest.approx(0.5)
-    assert not s["rtd_recovered_ok"]
-    assert any("95" in w for w in s["warnings"])
+    assert s.rtd_recovered_fraction == pytest.approx(0.5)
+    assert not s.rtd_recovered_ok
+    assert any("95" in w for w in s.warnings)
 
 
 def test_no_snapshot_is_an_error(tmp_path):
@@ -195,9 +194,9 @@ def test_massflow_parts_of_a_resumed_run(tmp_path):
     (tmp_path / "discharge_A.txt.upto300000").write_text("\n".join([header, *early]) + "\n")
     (tmp_path / "discharge_A.txt").write_text("\n".join([header, *late]) + "\n")
     s = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY, massflow_dir=tmp_path).summary
-    assert s["massflow_duplicate_ids"] == len(early) + len(late) - len(rows) > 0
-    assert s["massflow_discharged"] == len(rows)
-    assert s["discharge_crosscheck_diff"] == 0 and s["lost"] == 0
+    assert s.accounting["massflow_duplicate_ids"] == len(early) + len(late) - len(rows) > 0
+    assert s.accounting["massflow_discharged"] == len(rows)
+    assert s.accounting["discharge_crosscheck_diff"] == 0 and s.accounting["lost"] == 0
 
 
 def test_absurd_particle_id_is_refused_not_allocated(tmp_path):
@@ -217,7 +216,7 @@ def test_sparse_ids_within_the_bound_are_accepted(tmp_path):
     rows = [(999_000 + k, 1, 0.01 * k, 0.01, 0, 0.1, 0, 0, 0.003) for k in (1, 2, 3)]
     (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows)))
     res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
-    assert res.summary["inserted"] == 3
+    assert res.summary.accounting["inserted"] == 3
 
 
 def test_snapshot_time_beyond_any_run_is_refused(tmp_path):
@@ -293,23 +292,23 @@ def test_pooled_rtd_and_steady_intervals(tmp_path):
     cfg = config()
     write_synthetic(tmp_path, cfg, end_s=80.0)
     s = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY).summary
-    steady = s["steady"]
+    steady = s.steady
     assert steady["holdup"]["value"] == pytest.approx(20.0)
     assert steady["holdup"]["low"] <= 20.0 <= steady["holdup"]["high"]
     assert steady["outflow_per_s"]["value"] == pytest.approx(4.0, rel=0.02)
     assert steady["little_mean_residence_time_s"]["value"] == pytest.approx(5.0, rel=0.02)
     assert steady["C_A"]["low"] < 0.5 < steady["C_A"]["high"]
     assert sum(steady["holdup_by_slice"]["value"]) == pytest.approx(20.0)
-    pooled = s["pooled_rtd"]
-    assert pooled["horizon_s"] == 25.0
-    assert pooled["entry_window_s"] == pytest.approx([s["steady_state_time_s"], 55.0])
-    assert pooled["recovered_fraction"]["value"] == 1.0
-    assert pooled["mean_residence_time_s"]["value"] == pytest.approx(5.0)
-    assert pooled["rtd_variance_s2"]["value"] == pytest.approx(1.0)
-    assert abs(pooled["n_entered"] - 2 * (55.0 - s["steady_state_time_s"]) / DUMP_S) <= 2  # dumps on the edges
+    pooled = s.pooled_rtd
+    assert pooled.horizon_s == 25.0
+    assert pooled.entry_window_s == pytest.approx([s.steady_state_time_s, 55.0])
+    assert pooled.recovered_fraction.value == 1.0
+    assert pooled.mean_residence_time_s.value == pytest.approx(5.0)
+    assert pooled.rtd_variance_s2.value == pytest.approx(1.0)
+    assert abs(pooled.n_entered - 2 * (55.0 - s.steady_state_time_s) / DUMP_S) <= 2  # dumps on the edges
 
 
 def test_a_run_too_short_for_the_horizon_says_so(synthetic):
     _, res = synthetic
-    assert res.summary["pooled_rtd"]["n_entered"] == 0
-    assert "no pooled RTD" in res.summary["pooled_rtd"]["note"]
+    assert res.summary.pooled_rtd.n_entered == 0
+    assert "no pooled RTD" in res.summary.pooled_rtd.note

@@ -5,8 +5,17 @@ import pytest
 from scipy.linalg import expm, expm_frechet
 from scipy.optimize import check_grad
 
-from dem.rates import (RATE_KEYS, _Objective, allowed_transitions, fit_rates, fit_windows, generator, log_likelihood,
-                       naive_rates, simulate_observations)
+from dem.rates import (
+    RATE_KEYS,
+    _Objective,
+    allowed_transitions,
+    fit_rates,
+    fit_windows,
+    generator,
+    log_likelihood,
+    naive_rates,
+    simulate_observations,
+)
 from workflows.bench.rates import blender_rates
 
 DT = 0.1

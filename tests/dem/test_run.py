@@ -9,8 +9,8 @@ cores); the resume test uses a 2 s variant on one rank.
 """
 
 import os
-from pathlib import Path
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,9 +23,9 @@ from dem.liggghts import run_solver
 from dem.liggghts_log import ThermoParser
 from dem.post import postprocess
 from dem.run import prepare_run, read_status, run_dem, run_key, solver_command
+from tests.known_dumps import variant
 from workflows.cli.main import main
 from workflows.config import load_preset
-from tests.known_dumps import variant
 
 liggghts = pytest.mark.liggghts
 
@@ -59,23 +59,23 @@ def test_smoke_run_completes_under_mpi(smoke):
 def test_smoke_accounting_and_crosscheck(smoke):
     _, _, record, results = smoke
     s = results.summary
-    assert s["inserted"] > 0 and s["discharged"] > 0, "smoke preset: particles must reach the outlet"
-    assert s["lost"] == 0, s["warnings"]
-    assert s["accounting_mismatch"] == 0  # inserted = held + discharged
-    assert s["massflow_unseen_in_dumps"] == 0
-    assert s["discharge_crosscheck_diff"] == 0  # our exits vs the massflow files, same instant
+    assert s.accounting["inserted"] > 0 and s.accounting["discharged"] > 0, "smoke preset: particles must reach the outlet"
+    assert s.accounting["lost"] == 0, s.warnings
+    assert s.accounting["accounting_mismatch"] == 0  # inserted = held + discharged
+    assert s.accounting["massflow_unseen_in_dumps"] == 0
+    assert s.accounting["discharge_crosscheck_diff"] == 0  # our exits vs the massflow files, same instant
     assert_thermo_counters_agree(s)
 
 
 def assert_thermo_counters_agree(s):
     """Thermo counters (f_ins*[1], f_out*[2], atoms) against the dumps, when they were taken at
     the last dump's step; otherwise the results must say why they were not compared."""
-    if s["solver_step"] != s["last_dump_step"]:
-        assert any("not compared" in w for w in s["warnings"])
+    if s.accounting["solver_step"] != s.last_dump_step:
+        assert any("not compared" in w for w in s.warnings)
         return
-    assert s["solver_discharge_diff"] == 0  # vs the thermo counters f_outA[2] + f_outB[2]
-    assert s["solver_inserted_diff"] == 0  # vs f_insA[1] + f_insB[1]
-    assert s["solver_atoms"] == s["held"] + s["discharged_pending_deletion"]
+    assert s.accounting["solver_discharge_diff"] == 0  # vs the thermo counters f_outA[2] + f_outB[2]
+    assert s.accounting["solver_inserted_diff"] == 0  # vs f_insA[1] + f_insB[1]
+    assert s.accounting["solver_atoms"] == s.accounting["held"] + s.accounting["discharged_pending_deletion"]
 
 
 @liggghts
@@ -217,10 +217,10 @@ def test_interrupt_then_resume(tmp_path):
     results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
                           solver_counters=record.solver_counters)
     s = results.summary
-    assert s["t_end_s"] == pytest.approx(2.0, abs=1e-3)
-    assert s["lost"] == 0 and s["accounting_mismatch"] == 0
+    assert s.t_end_s == pytest.approx(2.0, abs=1e-3)
+    assert s.accounting["lost"] == 0 and s.accounting["accounting_mismatch"] == 0
     assert_thermo_counters_agree(s)
-    assert s["discharge_crosscheck_diff"] == 0
+    assert s.accounting["discharge_crosscheck_diff"] == 0
     steps = sorted(int(p.name.split(".")[1]) for p in run_dir.glob("dumps/dump.*.txt"))
     assert len(set(np.diff(steps))) == 1  # no gap, no duplicate across the restart
 

@@ -8,13 +8,13 @@ import math
 
 import numpy as np
 import pytest
+from scipy.linalg import expm
 from scipy.stats import gamma
 
 from coupling.tables import make_table
 from pbm import PbmConfig, simulate, synthetic_table
 from pbm.model import generator_matrix, transfer_rates
 from pbm.solver import expm_taylor18
-from scipy.linalg import expm
 
 
 def tanks_in_series(nx=5, ny=1, v=0.02, length=0.33, windows=1):

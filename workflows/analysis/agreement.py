@@ -35,6 +35,7 @@ import pandas as pd
 from coupling.intervals import inside, overlap_noise_band
 from coupling.metrics import SteadyStateRule, rtd_density, rtd_overlap, rtd_pooled, sampled_lacey, sampled_rsd
 from coupling.tables import VelocityTable
+from dem.summary import DemSummary, PooledRtdSummary
 from pbm.config import PbmConfig
 from pbm.rtd import PooledRtd, pooled_rtd
 from pbm.simulate import PbmResult, simulate
@@ -54,11 +55,11 @@ class PbmMode:
 
 
 def run_modes(table: VelocityTable, config: PbmConfig, steady: SteadyStateRule,
-              dem_summary: dict[str, Any]) -> dict[str, PbmMode]:
+              dem_summary: DemSummary) -> dict[str, PbmMode]:
     """The PBM in each rate mode the table supports (``measured`` needs its rates; asked
     for by ``config`` on a table without them, it raises ConfigError), with the pooled RTD
     over the DEM's entry window and horizon when the DEM has one."""
-    pooled_spec = dem_summary.get("pooled_rtd") or {}
+    pooled_spec = dem_summary.pooled_rtd
     modes = {}
     for mode in MODES:
         if mode == "measured" and not table.has_rates and config.rates != "measured":
@@ -66,9 +67,8 @@ def run_modes(table: VelocityTable, config: PbmConfig, steady: SteadyStateRule,
         cfg = config.model_copy(update={"rates": mode})
         result = simulate(table, cfg, steady=steady)
         pooled = None
-        if pooled_spec.get("n_entered"):
-            pooled = pooled_rtd(table, cfg, entry_window=tuple(pooled_spec["entry_window_s"]),
-                                horizon_s=pooled_spec["horizon_s"])
+        if dem_summary.has_pooled_rtd:
+            pooled = pooled_rtd(table, cfg, entry_window=pooled_spec.entry_window_s, horizon_s=pooled_spec.horizon_s)
         modes[mode] = PbmMode(mode, result, pooled)
     return modes
 
@@ -181,35 +181,38 @@ def _row(key: str, quantity: str, unit: str, dem: dict[str, Any] | None, pbm: di
     return AgreementRow(key, quantity, unit, value, low, high, modes)
 
 
-def dem_density(records: pd.DataFrame, pooled_spec: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, int]:
+def dem_density(records: pd.DataFrame, pooled_spec: PooledRtdSummary) -> tuple[np.ndarray, np.ndarray, int]:
     """(bin edges, density, recovered particles) of the DEM's pooled RTD."""
     sample = rtd_pooled(records["entry_t_s"].to_numpy(float), records["exit_t_s"].to_numpy(float),
-                        tuple(pooled_spec["entry_window_s"]), pooled_spec["horizon_s"])
-    edges, density = rtd_density(sample.residence_s, pooled_spec["bin_s"], pooled_spec["horizon_s"])
+                        pooled_spec.entry_window_s, pooled_spec.horizon_s)
+    edges, density = rtd_density(sample.residence_s, pooled_spec.bin_s, pooled_spec.horizon_s)
     return edges, density, int(sample.residence_s.size)
 
 
-def agreement_rows(dem_summary: dict[str, Any], records: pd.DataFrame,
+def agreement_rows(dem_summary: DemSummary, records: pd.DataFrame,
                    modes: dict[str, PbmMode]) -> list[AgreementRow]:
     """The agreement table (module docstring)."""
-    steady = dem_summary.get("steady") or {}
-    pooled_spec = dem_summary.get("pooled_rtd") or {}
+    steady = dem_summary.steady
+    pooled_spec = dem_summary.pooled_rtd if dem_summary.has_pooled_rtd else None
     pbm_values = {mode: pbm_steady(m.result, steady) for mode, m in modes.items()}
     for mode, m in modes.items():
         if m.pooled is not None:
             pbm_values[mode].update({"mean_residence_time_s": m.pooled.mean_s, "rtd_variance_s2": m.pooled.variance_s2,
                                      "rtd_recovered_fraction": m.pooled.recovered_fraction})
-    dem_values = {**steady, **{k: pooled_spec.get(k) for k in ("mean_residence_time_s", "rtd_variance_s2")},
-                  "rtd_recovered_fraction": pooled_spec.get("recovered_fraction")}
+    dem_values = dict(steady)
+    if pooled_spec is not None:
+        dem_values.update({"mean_residence_time_s": pooled_spec.mean_residence_time_s.record(),
+                           "rtd_variance_s2": pooled_spec.rtd_variance_s2.record(),
+                           "rtd_recovered_fraction": pooled_spec.recovered_fraction.record()})
     rows = []
     for key, label, unit in _SCALARS:
         pbm = {mode: v[key] for mode, v in pbm_values.items() if key in v}
         if dem_values.get(key) is None and not pbm:
             continue
         rows.append(_row(key, label, unit, dem_values.get(key), pbm))
-    if pooled_spec.get("n_entered") and len(records):
+    if pooled_spec is not None and len(records):
         edges, density, n = dem_density(records, pooled_spec)
-        bin_s = float(pooled_spec["bin_s"])
+        bin_s = float(pooled_spec.bin_s)
         overlaps = {}
         for mode in MODES:
             m = modes.get(mode)
@@ -232,7 +235,7 @@ def agreement_rows(dem_summary: dict[str, Any], records: pd.DataFrame,
 
 
 def nx_sensitivity(fine_table: VelocityTable, config: PbmConfig, steady: SteadyStateRule,
-                   dem_summary: dict[str, Any], coarse: dict[str, PbmMode]) -> dict[str, Any]:
+                   dem_summary: DemSummary, coarse: dict[str, PbmMode]) -> dict[str, Any]:
     """Pooled-RTD mean and variance of each mode on a table binned at a finer NX (the
     measured rates re-fitted to the DEM's moves between the finer compartments, not
     regridded), against the same on the coarse table: the relative changes."""

@@ -18,8 +18,8 @@ from the whole run by the same rule, to within the DEM's own sampling uncertaint
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -321,8 +321,8 @@ def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
     table, summary = results.table, results.summary
     pbm_config = pbm_config_for(config, table, rtd_pulse(summary))
     t_end = table.t_end
-    steady_full = summary.get("steady_state_time_s")
-    if steady_full is None or not math.isfinite(steady_full):
+    steady_full = summary.steady_time
+    if steady_full is None:
         raise ConfigError("the DEM run never reaches the steady state: there is no steady flow to budget")
 
     def rows_of(t: VelocityTable) -> list[AgreementRow]:

@@ -20,9 +20,9 @@ marked ``stopped`` (never taken for a complete run), and ``--resume`` continues 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from dem import deck
@@ -31,8 +31,8 @@ from dem.liggghts_log import ThermoParser
 from dem.post import DemResults, postprocess
 from dem.run import StopRun
 from workflows.analysis.agreement import MODES, AgreementRow, agreement_rows, run_modes
-from workflows.config import Config
 from workflows.analysis.budget import Verdict, judge, table_from_first, verdict
+from workflows.config import Config
 from workflows.pipeline.stages import pbm_config_for, rtd_pulse
 
 #: Simulated seconds between checks (and the dT of the comparison).
@@ -56,10 +56,10 @@ def converged(results: DemResults, config: Config, t_s: float, step_s: float = C
     agree on every judged quantity to within half the DEM's 95 % interval at ``t_s``, in
     every rate mode."""
     summary = results.summary
-    steady = summary.get("steady_state_time_s")
-    if steady is None or not math.isfinite(steady):
+    steady = summary.steady_time
+    if steady is None:
         return Convergence(False, t_s, f"no steady state in the first {t_s:g} s")
-    if not (summary.get("pooled_rtd") or {}).get("n_entered"):
+    if not summary.has_pooled_rtd:
         # without it the agreement table has no RTD rows: judging the rest would pass a
         # PBM whose residence times nobody has checked
         return Convergence(False, t_s, f"no pooled RTD in the first {t_s:g} s yet (its entry window ends a horizon "

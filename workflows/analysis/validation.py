@@ -8,14 +8,12 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
 from workflows.config import Config, config_without
 from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse, stderr_log
-
 
 # --------------------------------------------------------------------------- predictions
 #: Agreement rows that are diagnostics of the RTD's definition, not predictions to judge.

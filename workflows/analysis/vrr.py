@@ -58,6 +58,7 @@ from coupling.errors import ConfigError
 from coupling.intervals import LEVEL, N_BOOT, SEED, Interval, block_bootstrap, inside, time_blocks
 from coupling.metrics import rtd_pooled
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
+from dem.summary import DemSummary, PooledRtdSummary
 from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
 from pbm.frequency import (
@@ -325,21 +326,20 @@ def _feeder(component) -> str:
                       f"{list(COMPONENT_CODES.values())} in particle_records' 'component' column, got {component!r}")
 
 
-def _pooled_window(pooled_spec: dict[str, Any]) -> tuple[tuple[float, float], float]:
+def _pooled_window(pooled_spec: PooledRtdSummary) -> tuple[tuple[float, float], float]:
     try:
-        t0, t1 = (float(v) for v in pooled_spec["entry_window_s"])
-        horizon = float(pooled_spec["horizon_s"])
-    except (KeyError, TypeError, ValueError):
-        raise ConfigError("pooled_spec must be the DEM summary's 'pooled_rtd' with 'entry_window_s' [t0, t1] and "
-                          f"'horizon_s'; got keys {sorted(pooled_spec) if isinstance(pooled_spec, dict) else pooled_spec!r}"
-                          ) from None
+        t0, t1 = (float(v) for v in pooled_spec.entry_window_s)
+        horizon = float(pooled_spec.horizon_s)
+    except (AttributeError, TypeError, ValueError):
+        raise ConfigError("pooled_spec must be the DEM summary's pooled RTD (dem.summary.PooledRtdSummary) with an "
+                          f"entry window (t0, t1] and a horizon; got {pooled_spec!r}") from None
     if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1 and math.isfinite(horizon) and horizon > 0):
         raise ConfigError(f"pooled_spec needs a finite entry window t0 < t1 and horizon > 0 s, got ({t0}, {t1}] and "
                           f"{horizon}")
     return (t0, t1), horizon
 
 
-def dem_transfer(particles: pd.DataFrame, pooled_spec: dict[str, Any], frequencies, component, *,
+def dem_transfer(particles: pd.DataFrame, pooled_spec: PooledRtdSummary, frequencies, component, *,
                  noise_taus_s: Sequence[float] = (), noise_f_max_hz: float = 0.5,
                  quadrature_points: int = QUADRATURE_POINTS, block_s: float = BLOCK_S, n_boot: int = N_BOOT,
                  level: float = LEVEL, seed: int = SEED) -> DemTransfer:
@@ -532,7 +532,7 @@ def ensemble_check(table: VelocityTable, config: PbmConfig, t_start_s: float, me
     return rows
 
 
-def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: float, dem_summary: dict[str, Any],
+def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: float, dem_summary: DemSummary,
                    particles: pd.DataFrame, frequencies=None, *, noise_taus_s: Sequence[float] = NOISE_TAUS_S,
                    n_boot: int = N_BOOT, seed: int = SEED) -> VrrComparison:
     """PBM (each rate mode the table supports) against DEM: |H|, VRR per feeder and
@@ -546,15 +546,14 @@ def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: f
     Raises ConfigError when the DEM summary has no pooled RTD, or (from pbm.frequency) for
     a steady time after the table's last window.
     """
-    pooled_spec = dem_summary.get("pooled_rtd") or {}
-    if not pooled_spec.get("n_entered"):
+    pooled_spec = dem_summary.pooled_rtd
+    if not dem_summary.has_pooled_rtd:
         raise ConfigError("the DEM summary has no pooled RTD ('pooled_rtd' with particles entered): the run has no "
                           "entry window after its steady state, so the DEM predicts no H(f)")
     if not (isinstance(steady_time_s, (int, float)) and math.isfinite(steady_time_s)):
         raise ConfigError(f"steady_time_s must be a finite time [s], got {steady_time_s!r}")
     if frequencies is None:
-        mean = pooled_spec.get("mean_residence_time_s")
-        frequencies = default_frequencies(float(mean["value"] if isinstance(mean, dict) else mean))
+        frequencies = default_frequencies(float(pooled_spec.mean_residence_time_s.value))
     freqs = np.asarray(frequencies, dtype=float)
     f_max = 0.5 / pbm_config.noise_interval_s
     grid = noise_frequencies(f_max, QUADRATURE_POINTS)

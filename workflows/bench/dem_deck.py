@@ -97,11 +97,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from coupling.errors import ConfigError, DeckError, SolverRunError
+from coupling.jsonable import write_json
 from dem import deck
 from dem.cluster import estimate_cost
 from dem.liggghts import SolverResult, liggghts_version, run_solver, solver_command, text_tail
 from dem.liggghts_log import loop_details, parse_runs
-from coupling.jsonable import write_json
 from workflows.config import config_from_dict, load_preset, override
 
 OUT = Path("results/bench/dem_deck.json")

@@ -21,8 +21,6 @@ both start from the page cache.
 
 from __future__ import annotations
 
-from coupling.jsonable import write_json
-
 import argparse
 import json
 import os
@@ -33,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from coupling.jsonable import write_json
 
 OUT = Path("results/bench/dem_post.json")
 COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
@@ -246,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
         "pandas_all_s": baseline,
         "postprocess_s": post_s,
         "postprocess_MB_per_s": nbytes / post_s / 1e6,
-        "postprocess_snapshots": int(results.summary["n_snapshots"]),
+        "postprocess_snapshots": int(results.summary.n_snapshots),
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "pandas": pd.__version__,
                     "numpy": np.__version__, "platform": platform.platform()},
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

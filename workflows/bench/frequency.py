@@ -31,7 +31,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from coupling.blas import single_threaded_blas
-from coupling.jsonable import json_ready
+from coupling.jsonable import json_ready, write_json
 from pbm.config import PbmConfig
 from pbm.frequency import (
     FEEDERS,
@@ -48,8 +48,6 @@ from pbm.frequency import (
 from pbm.rtd import pooled_rtd
 from pbm.synthetic import synthetic_table
 from workflows.analysis.vrr import ensemble_check
-from coupling.jsonable import write_json
-
 
 
 def run_benchmark(points: int = 13, check_hz: Sequence[float] = (0.003, 0.01, 0.03, 0.1), t_start_s: float = 100.0,

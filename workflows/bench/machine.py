@@ -19,8 +19,6 @@ Writes ``results/bench/machine.json``.
 
 from __future__ import annotations
 
-from coupling.errors import ConfigError
-
 import argparse
 import os
 import shlex
@@ -29,11 +27,11 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from coupling.errors import SolverRunError
+from coupling.errors import ConfigError, SolverRunError
+from coupling.jsonable import write_json
 from dem import deck
 from dem.liggghts import solver_command
 from dem.liggghts_log import parse_runs
-from coupling.jsonable import write_json
 from workflows.config import load_preset
 
 OUT = Path("results/bench/machine.json")
@@ -111,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         sizes = [int(v) for v in args.particles.split(",")]
     except ValueError:
-        raise ConfigError(f"--particles {args.particles!r}: expected comma-separated whole numbers, e.g. 1546,6000")
+        raise ConfigError(f"--particles {args.particles!r}: expected comma-separated whole numbers, e.g. 1546,6000") from None
     if any(n < 1 for n in sizes):
         raise ConfigError(f"--particles {args.particles!r}: every bed size must be >= 1")
     for name in ("steps", "repeats"):

@@ -24,19 +24,19 @@ from __future__ import annotations
 import argparse
 import cProfile
 import os
-import pstats
 import platform
+import pstats
 import statistics
 import time
 import tracemalloc
 
 import numpy as np
 
+from coupling.jsonable import write_json
 from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
 from pbm.simulate import simulate
 from pbm.synthetic import synthetic_table
-from coupling.jsonable import write_json
 
 COMPARED = ("holdup_A", "holdup_B", "discharged_A", "discharged_B", "outflow_A", "outflow_B", "rtd_E")
 DERIVED = ("C_A", "rsd_outlet", "rsd_blender")

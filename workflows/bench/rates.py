@@ -29,8 +29,8 @@ import time
 import numpy as np
 from scipy.linalg import logm
 
-from dem.rates import RATE_KEYS, fit_rates, fit_windows, generator, naive_rates, simulate_observations
 from coupling.jsonable import write_json
+from dem.rates import RATE_KEYS, fit_rates, fit_windows, generator, naive_rates, simulate_observations
 
 INTERVAL_S = 0.1
 RATE_X_INTERVAL = (0.1, 0.3, 0.5, 1.0)

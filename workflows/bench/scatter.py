@@ -23,8 +23,6 @@ exactly as a new seed is: the test is whether its difference is of the seeds' si
 
 from __future__ import annotations
 
-from coupling.errors import ConfigError
-
 import argparse
 import itertools
 import math
@@ -33,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from coupling.tables import VelocityTable
+from coupling.errors import ConfigError
 from coupling.jsonable import write_json
+from coupling.tables import VelocityTable
 from workflows.config import load_preset, override
 from workflows.pipeline.stages import DemSide, dem_stage
 
@@ -73,7 +72,7 @@ def quantities(dem: DemSide) -> dict[str, float]:
     s = dem.results.summary
     ts = dem.results.timeseries
     out_a, out_b = ts["outflow_A_per_s"].sum(), ts["outflow_B_per_s"].sum()
-    return {"holdup_final": float(s["holdup_final"]), "discharged": float(s["discharged"]),
+    return {"holdup_final": float(s.holdup_final), "discharged": float(s.accounting["discharged"]),
             "C_A_discharged": float(out_a / (out_a + out_b)) if out_a + out_b > 0 else float("nan")}
 
 

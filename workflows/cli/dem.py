@@ -19,9 +19,9 @@ import argparse
 import functools
 import math
 import sys
-from typing import Any
 
 from coupling.errors import ConfigError
+from dem.summary import DemSummary
 from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline.stages import stderr_log
 
@@ -124,7 +124,7 @@ def post_command(args: argparse.Namespace) -> int:
 
     results = postprocess_dumps(resolve_config(args.preset, args.config), args.dumps, args.out, args.massflow_dir)
     print_summary(results.summary)
-    print(f"velocity table and DEM results: {args.out} ({results.summary['n_snapshots']} snapshots)")
+    print(f"velocity table and DEM results: {args.out} ({results.summary.n_snapshots} snapshots)")
     return 0
 
 
@@ -143,13 +143,14 @@ def slurm_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def print_summary(summary: dict[str, Any]) -> None:
+def print_summary(summary: DemSummary) -> None:
+    record = summary.record()
     for key in SUMMARY_KEYS:
-        value = summary.get(key)
+        value = record.get(key)
         if value is None:
             continue
         if isinstance(value, float):
             value = "nan" if math.isnan(value) else f"{value:.4g}"
         print(f"  {key:28s} {value}")
-    for message in summary.get("warnings", []):
+    for message in summary.warnings:
         print(f"pbmdem: warning: {message}", file=sys.stderr)

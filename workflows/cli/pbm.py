@@ -12,7 +12,6 @@ import json
 
 from workflows.config import add_config_arguments
 
-
 HELP = "PBM stage: simulate CQAs from DEM velocity tables"
 
 

@@ -25,16 +25,16 @@ from typing import Any
 from coupling.cache import cache_path, load_entry, save_entry, stable_hash, try_load_entry
 from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
-from coupling.tables import VelocityTable
+from coupling.tables import VelocityTable, read_table
 from dem.deck import DECK_INFO, MESH_DIR, build_deck, deck_hash, write_deck
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
 from dem.post import DemResults, postprocess
 from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem
-from coupling.tables import read_table
+from dem.summary import DemSummary
 from pbm.config import PbmConfig
-from pbm.outputs import write_outputs
 from pbm.model import require_rates
+from pbm.outputs import write_outputs
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, config_from_dict, dump_toml, load_preset
 from workflows.shipped import REFERENCE_DIR
@@ -184,7 +184,8 @@ def dem_stage(
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
     results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
                           solver_counters=record.solver_counters, provenance=table_attrs)
-    results.summary["wall_time_s"] = record.wall_time_s
+    results = dataclasses.replace(results, summary=dataclasses.replace(
+        results.summary, extra={**results.summary.extra, "wall_time_s": record.wall_time_s}))
     provenance["postprocess_time_s"] = time.monotonic() - t0
     path = save_entry(cache_path(cache_root, key), results.to_cache_entry(provenance))
     return DemSide(results.table, results, provenance, path, "run")
@@ -286,9 +287,9 @@ def config_of(entry) -> Config:
     return config_from_dict(tomllib.loads(text), "the configuration stored with the DEM results")
 
 
-def rtd_pulse(dem_summary: dict[str, Any]) -> float | None:
+def rtd_pulse(dem_summary: DemSummary) -> float | None:
     """The PBM's tracer pulse time: the DEM's RTD tagging time, None when it tagged none."""
-    tag_time = dem_summary.get("rtd_tag_time_s")
+    tag_time = dem_summary.rtd_tag_time_s
     return float(tag_time) if tag_time is not None and math.isfinite(tag_time) else None
 
 

@@ -81,7 +81,7 @@ def _notes(dem: DemSide) -> list[str]:
                      "LIGGGHTS was not run. Use FRESH=1 (pbmdem compare --fresh) to rerun it.")
     elif dem.source == "cache":
         notes.append(f"DEM results come from the cache made {made}; LIGGGHTS was not run now.")
-    notes += [f"DEM: {warning}" for warning in dem.results.summary.get("warnings") or []]
+    notes += [f"DEM: {warning}" for warning in dem.results.summary.warnings]
     return notes
 
 
@@ -141,7 +141,7 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
     pbm_result = modes[pbm_config.rates].result
     dem_view = SideResults("DEM", dem.results.timeseries, dem.results.rtd[["t_s", "E_per_s"]],
-                           dem.results.rsd_by_slice, dict(dem.results.summary),
+                           dem.results.rsd_by_slice, dem.results.summary.record(),
                            rsd_by_slice_floor=dem.results.rsd_by_slice_floor)
     pbm_view = SideResults("PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final,
                            dict(pbm_result.summary))
@@ -155,8 +155,8 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
 def write_figures(c: Comparison, out_dir: Path, log: Log) -> dict[str, str]:
     """The report's figures, as file names in ``out_dir`` by their role."""
     figures = plot_comparison(c.dem_view, c.pbm_view, out_dir)
-    pooled_spec = c.dem.results.summary.get("pooled_rtd") or {}
-    dem_rtd = dem_density(c.dem.results.particles, pooled_spec)[:2] if pooled_spec.get("n_entered") else None
+    summary = c.dem.results.summary
+    dem_rtd = dem_density(c.dem.results.particles, summary.pooled_rtd)[:2] if summary.has_pooled_rtd else None
     pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.recovered_density_per_s)
                for mode, m in c.modes.items() if m.pooled is not None}
     figures.update(plot_agreement(c.rows, dem_rtd, pbm_rtd, out_dir))
@@ -218,7 +218,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         "vrr": None if c.vrr is None else c.vrr.record(),
         "pbm_modes": {mode: m.result.summary for mode, m in c.modes.items()},
         "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
-        "dem_summary": c.dem.results.summary,
+        "dem_summary": c.dem.results.summary.record(),
         "pbm_summary": c.pbm_result.summary,
         "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
         "notes": notes,
@@ -234,8 +234,8 @@ def feeder_filtering(dem: DemSide, pbm_config, log: Log) -> VrrComparison | None
     """:func:`workflows.analysis.vrr.vrr_comparison` of the DEM's pooled RTD and the PBM's modes, when
     the DEM has a pooled RTD; None (and a line in the log) otherwise."""
     summary = dem.results.summary
-    steady = summary.get("steady_state_time_s")
-    if not (summary.get("pooled_rtd") or {}).get("n_entered") or steady is None or not np.isfinite(steady):
+    steady = summary.steady_time
+    if not summary.has_pooled_rtd or steady is None:
         log("feeder-noise filtering skipped: the DEM has no pooled RTD")
         return None
     log("feeder-noise filtering: VRR(f) of the PBM against the DEM's pooled RTD")

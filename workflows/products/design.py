@@ -8,15 +8,12 @@ configurations differ in the impeller speed alone. Writes ``design.json`` and
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
-
 from coupling.errors import ConfigError, OutputError, os_reason
-from coupling.jsonable import json_ready
+from coupling.jsonable import json_ready, write_json
 from pbm.design import DesignResult, DesignSpec, TableLibrary, design
-from coupling.jsonable import write_json
 from workflows.config import config_without
 from workflows.pipeline.stages import Log, load_results, pbm_config_for, writable_directory
 from workflows.report.design import plot_feasible
@@ -45,12 +42,12 @@ def load_library(directory: str | Path = VALIDATION_DIR, rates: str = "velocity"
         raise ConfigError(f"table library {directory}: two runs at the same speed ({sorted(speeds)} rpm)")
     (log or (lambda _: None))(f"table library: {', '.join(f'{m[0]:g} rpm ({m[3].name})' for m in sorted(members, key=lambda m: m[0]))}")
     _, results, config, _ = members[0]
-    steady = [m[1].summary.get("steady_state_time_s") for m in members]
-    if any(s is None or not math.isfinite(s) for s in steady):
+    if any(m[1].summary.steady_time is None for m in members):
         raise ConfigError(f"table library {directory}: a run never reached the steady state; its tables describe no "
                           "stationary blender")
     pbm_config = pbm_config_for(config, results.table, None).model_copy(update={"rates": rates})
-    return TableLibrary(tuple((m[0], m[1].table) for m in members), pbm_config, float(max(steady)),
+    steady = max(m[1].summary.steady_time for m in members)
+    return TableLibrary(tuple((m[0], m[1].table) for m in members), pbm_config, float(steady),
                         float(config.dem.geometry.length_m))
 
 

@@ -31,21 +31,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-
 from coupling.errors import OutputError, os_reason
-from coupling.jsonable import json_ready
+from coupling.jsonable import json_ready, write_json
 from dem.run import can_resume, prepare_run
-from coupling.jsonable import write_json
-from workflows.shipped import VALIDATION_DIR
-from workflows.config import Config, load_preset, override
 from workflows.analysis.budget import budget_study
-from workflows.report.budget import plot_budget
-from workflows.pipeline.stages import DemSide, Log, dem_stage, stderr_log, writable_directory
 from workflows.analysis.step import step_comparison
 from workflows.analysis.validation import campaign_span_s, predictions, verdicts
+from workflows.config import Config, load_preset, override
+from workflows.pipeline.stages import DemSide, Log, dem_stage, stderr_log, writable_directory
+from workflows.report.budget import plot_budget
 from workflows.report.step import plot_step, step_html
 from workflows.report.validation import plot_parity, plot_profiles, render_report
-from workflows.shipped import STEP_DIR
+from workflows.shipped import STEP_DIR, VALIDATION_DIR
 
 PRESET = "validation"
 
@@ -182,11 +179,11 @@ def _campaign_rows(sides: dict[str, DemSide]) -> list[dict[str, Any]]:
     labels = {c.name: c.label for c in CHANGES}
     for name, side in sides.items():
         summary = side.results.summary
-        pooled, steady = summary.get("pooled_rtd") or {}, summary.get("steady") or {}
+        pooled, steady = summary.pooled_rtd, summary.steady
         rows.append({"run": name, "change": labels.get(name, name), "source": side.source, "key": side.key,
                      "dem_wall_time_s": side.provenance.get("wall_time_s"),
                      "holdup": (steady.get("holdup") or {}).get("value"),
-                     "mean_residence_time_s": (pooled.get("mean_residence_time_s") or {}).get("value"),
-                     "tracers": pooled.get("n_entered"),
-                     "recovered": (pooled.get("recovered_fraction") or {}).get("value")})
+                     "mean_residence_time_s": pooled.mean_residence_time_s.value if summary.has_pooled_rtd else None,
+                     "tracers": None if pooled is None else pooled.n_entered,
+                     "recovered": pooled.recovered_fraction.value if summary.has_pooled_rtd else None})
     return rows

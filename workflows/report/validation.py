@@ -15,7 +15,6 @@ from workflows.analysis.budget import BudgetStudy
 from workflows.analysis.validation import Prediction, PredictionVerdict
 from workflows.report.comparison import fmt
 
-
 SOURCE_COLOURS = {"self": "#636363", "baseline": "#e6550d", "library": "#31a354"}
 
 

@@ -25,10 +25,10 @@ import numpy as np
 import dem.rates as rates_module
 from coupling.cache import try_load_entry
 from coupling.compartments import bin_particles
+from coupling.jsonable import write_json
 from dem.dumps import iter_snapshots
 from dem.post import DemResults
 from pbm.rtd import pooled_rtd
-from coupling.jsonable import write_json
 from workflows.config import load_preset
 from workflows.pipeline.stages import pbm_config_for
 from workflows.shipped import REFERENCE_DIR
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if entry is None:
         raise SystemExit(f"{results_path}: {reason}")
     dem = DemResults.from_cache_entry(entry)
-    spec = dem.summary["pooled_rtd"]
+    spec = dem.summary.pooled_rtd
     records = dem.particles
     times, states = snapshot_states(str(Path(args.run_dir) / "dumps" / "dump.*.txt"), dem_config)
     exit_t = np.full(states.shape[1], np.inf)

@@ -26,8 +26,6 @@ Needs the run's dumps and its discharge files (a completed run directory).
 
 from __future__ import annotations
 
-from coupling.errors import ConfigError
-
 import argparse
 import glob
 import json
@@ -38,12 +36,12 @@ from scipy.linalg import expm
 
 from coupling.blas import single_threaded_blas
 from coupling.cache import try_load_entry
-from coupling.errors import DumpFormatError
+from coupling.errors import ConfigError, DumpFormatError
+from coupling.jsonable import write_json
 from dem import rates as rates_module
 from dem.dumps import iter_snapshots
 from dem.massflow import latest_records
 from dem.post import DemResults
-from coupling.jsonable import write_json
 from workflows.config import load_preset
 
 OUT = Path("results/bench/layers.json")
@@ -222,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         grids = [parse_grid(g) for g in args.grids.split(",")]
     except ValueError as error:
-        raise ConfigError(str(error))
+        raise ConfigError(str(error)) from None
     run_dir = Path(args.run_dir)
     deck_file = run_dir / "deck.json"
     if not deck_file.is_file():
@@ -232,13 +230,13 @@ def run(args: argparse.Namespace) -> int:
     if entry is None:
         raise ConfigError(f"--results {args.results}: {reason}")
     dem = DemResults.from_cache_entry(entry)
-    spec = dem.summary.get("pooled_rtd")
+    spec = dem.summary.pooled_rtd
     if not spec:
         raise ConfigError(f"--results {args.results}: no pooled RTD in this run's results (too short a run)")
     try:
         config = load_preset(args.preset).dem
     except (KeyError, ValueError, OSError) as error:
-        raise ConfigError(f"--preset {args.preset}: {error}")
+        raise ConfigError(f"--preset {args.preset}: {error}") from None
     length, diameter = float(deck["length_m"]), float(config.geometry.diameter_m)
     timestep = float(deck["timestep_s"])
     interval = float(deck["dump_every_steps"]) * timestep
@@ -250,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         snaps = Snapshots(str(run_dir / deck["dump_glob"]), timestep)
     except DumpFormatError as error:
-        raise ConfigError(f"--run-dir {run_dir}: {error}")
+        raise ConfigError(f"--run-dir {run_dir}: {error}") from None
 
     records = dem.particles
     entry_t = records["entry_t_s"].to_numpy()

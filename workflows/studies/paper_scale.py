@@ -23,8 +23,6 @@ The summary (and the thermo rows) ship in ``workflows/reference/paper_scale/`` a
 
 from __future__ import annotations
 
-from coupling.jsonable import write_json
-
 import argparse
 import json
 import os
@@ -38,12 +36,13 @@ from typing import Any
 import numpy as np
 
 from coupling.errors import ConfigError, error_line
+from coupling.jsonable import write_json
 from dem import deck
 from dem.config import MAX_STABLE_RAYLEIGH_FRACTION
 from dem.liggghts_log import loop_details, parse_runs
 from dem.run import prepare_run, read_status, run_dem
-from workflows.shipped import PAPER_SCALE_DIR, PAPER_SCALE_SUMMARY, PAPER_SCALE_THERMO
 from workflows.config import dump_toml, load_preset, override
+from workflows.shipped import PAPER_SCALE_DIR, PAPER_SCALE_SUMMARY, PAPER_SCALE_THERMO
 
 PROBE_DURATION_S = 15.0
 PROBE_NP = 2

@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     results, config = load_results(args.reference)
-    steady = results.summary.get("steady_state_time_s")
+    steady = results.summary.steady_state_time_s
     if steady is None or not math.isfinite(steady):
         raise ConfigError(f"{args.reference}: the DEM run reached no steady state (steady_state_time_s = "
                           f"{steady!r}); there is no stationary blender to compare")

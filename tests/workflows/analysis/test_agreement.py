@@ -2,13 +2,14 @@
 DEM interval, both PBM rate modes run on the DEM's own table, and every verdict is the
 interval test of the numbers in its row."""
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from pbm.config import PbmConfig
 from dem.post import postprocess
+from pbm.config import PbmConfig
 from tests.known_dumps import STEADY, config, write_synthetic
 from workflows.analysis.agreement import MODES, agreement_rows, run_modes
 
@@ -47,19 +48,19 @@ def test_both_modes_and_every_row(synthetic_80s):
 
 def test_the_verdict_follows_the_interval(synthetic_80s):
     results, modes = synthetic_80s
-    summary = dict(results.summary)
-    pbm_outflow = agreement_rows(summary, results.particles, modes)
+    pbm_outflow = agreement_rows(results.summary, results.particles, modes)
     value = next(r for r in pbm_outflow if r.key == "outflow_per_s").value("measured")
     for low, high, expected in ((value - 1, value + 1, True), (value + 1, value + 2, False)):
-        summary["steady"] = {**results.summary["steady"], "outflow_per_s": {"value": value, "low": low, "high": high}}
+        steady = {**results.summary.steady, "outflow_per_s": {"value": value, "low": low, "high": high}}
+        summary = dataclasses.replace(results.summary, steady=steady)
         row = next(r for r in agreement_rows(summary, results.particles, modes) if r.key == "outflow_per_s")
         assert row.inside("measured") is expected
 
 
 def test_the_pbm_pooled_rtd_uses_the_dem_window(synthetic_80s):
     results, modes = synthetic_80s
-    spec = results.summary["pooled_rtd"]
+    spec = results.summary.pooled_rtd
     for m in modes.values():
-        assert m.pooled.bin_edges[-1] == pytest.approx(spec["horizon_s"])
-        assert np.all(m.pooled.entry_times_s > spec["entry_window_s"][0])
-        assert np.all(m.pooled.entry_times_s <= spec["entry_window_s"][1])
+        assert m.pooled.bin_edges[-1] == pytest.approx(spec.horizon_s)
+        assert np.all(m.pooled.entry_times_s > spec.entry_window_s[0])
+        assert np.all(m.pooled.entry_times_s <= spec.entry_window_s[1])

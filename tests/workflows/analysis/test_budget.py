@@ -10,6 +10,7 @@ import pytest
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, make_table
 from dem.post import DemResults
 from dem.rates import RATE_KEYS, generator, simulate_observations
+from dem.summary import DemSummary
 from workflows.analysis.agreement import AgreementRow, ModeValue
 from workflows.analysis.budget import judge, smallest_budget, table_from_first
 
@@ -53,7 +54,7 @@ def results():
     empty = pd.DataFrame()
     return DemResults(table=table, timeseries=empty, holdup=empty, rsd_by_slice=np.zeros(NX),
                       rsd_by_slice_floor=np.zeros(NX), rtd=empty, residence_times_s=np.zeros(0), particles=empty,
-                      transitions=transitions, summary={"steady_state_time_s": STEADY_S})
+                      transitions=transitions, summary=DemSummary(steady_state_time_s=STEADY_S))
 
 
 def test_transient_kept_steady_period_holds_the_mean_seen_by_t_and_refit_recovers_the_generator(results):

@@ -6,8 +6,8 @@ import pytest
 
 from dem.run import STOPPED, completed_run, prepare_run, read_status, run_dem
 from tests.known_dumps import variant
-from workflows.config import load_preset
 from workflows.analysis.convergence import Convergence, ConvergenceWatch, check_run_directory, converged
+from workflows.config import load_preset
 from workflows.pipeline.stages import dem_stage
 
 
@@ -21,7 +21,7 @@ def test_criterion_on_the_shipped_validation_baseline():
     # no pooled RTD yet (the run is younger than its horizon): nothing of the RTD is judged, so no stop
     import dataclasses
 
-    young = dataclasses.replace(side.results, summary={**side.results.summary, "pooled_rtd": None})
+    young = dataclasses.replace(side.results, summary=dataclasses.replace(side.results.summary, pooled_rtd=None))
     assert "no pooled RTD" in converged(young, config, 180.0).why
     late = converged(side.results, config, 180.0)
     assert late.converged and set(late.modes) == {"velocity", "measured"}
@@ -69,7 +69,7 @@ def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
     assert side.provenance["run_state"] == STOPPED and "converged" in side.provenance["stop_reason"]
     status = read_status(side.provenance["run_dir"])
     assert status["state"] == STOPPED and 3.0 < status["stopped_at_s"] < 6.0
-    assert side.results.summary["t_end_s"] < 6.0
+    assert side.results.summary.t_end_s < 6.0
     inputs = prepare_run(config.dem)
     assert completed_run(inputs, runs) is None  # never taken for the complete run
     with pytest.raises(LookupError):  # nor its cached results
@@ -80,7 +80,7 @@ def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
     record = run_dem(inputs, runs_root=runs, resume=True, progress=False)
     assert record.state == "completed"
     full = dem_stage(config, runs_root=runs, progress=False, solver=False)
-    assert full.results.summary["t_end_s"] == pytest.approx(6.0, abs=0.01)  # the last dump
+    assert full.results.summary.t_end_s == pytest.approx(6.0, abs=0.01)  # the last dump
     assert full.cache_file != side.cache_file
 
 

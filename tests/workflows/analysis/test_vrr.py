@@ -12,6 +12,7 @@ from coupling.errors import ConfigError
 from coupling.intervals import Interval
 from coupling.jsonable import json_ready
 from coupling.tables import make_table
+from dem.summary import DemSummary, Estimate, PooledRtdSummary
 from pbm.config import PbmConfig
 from workflows.analysis.vrr import EnsembleCheck, VrrComparison, dem_transfer, vrr_comparison
 from workflows.cli.main import main
@@ -35,8 +36,8 @@ def records(residence_a, residence_b, rng, window=WINDOW):
 
 
 def spec(window=WINDOW, horizon=HORIZON, n_entered=1, mean=MEAN_S):
-    return {"entry_window_s": list(window), "horizon_s": horizon, "n_entered": n_entered,
-            "mean_residence_time_s": {"value": mean}, "bin_s": 1.0}
+    return PooledRtdSummary(horizon, tuple(window), n_entered, mean_residence_time_s=Estimate(mean, mean, mean),
+                            bin_s=1.0)
 
 
 def test_single_tank_exponential_rtd_recovered_within_interval(rng):
@@ -102,7 +103,7 @@ def test_pbm_and_dem_agree_on_the_pbm_own_erlang_rtd(rng, tmp_path):
     table = chain_table(n_tanks, k)
     assert table.has_rates
     particles = records(rng.gamma(n_tanks, 1 / k, n), rng.gamma(n_tanks, 1 / k, n), rng)
-    c = vrr_comparison(table, PbmConfig(), 10.0, {"pooled_rtd": spec(n_entered=2 * n)}, particles)
+    c = vrr_comparison(table, PbmConfig(), 10.0, DemSummary(pooled_rtd=spec(n_entered=2 * n)), particles)
     assert isinstance(c, VrrComparison)
     freqs = np.asarray(c.frequency_hz)
     assert freqs.size == 25 and freqs[0] == pytest.approx(0.1 / MEAN_S) and freqs[-1] == pytest.approx(1.0)
@@ -196,7 +197,7 @@ def test_velocity_only_table_gives_one_mode(rng):
     table = make_table(t=[0.0, 5.0], x_edges=np.linspace(0, 0.3, 3), y_edges=np.array([-0.05, 0.05]),
                        vx_pos=0.3 / 2 * 0.2, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0)
     particles = records(rng.gamma(2, 5.0, 1000), rng.gamma(2, 5.0, 1000), rng)
-    c = vrr_comparison(table, PbmConfig(), 0.0, {"pooled_rtd": spec(n_entered=2000, mean=10.0)}, particles,
+    c = vrr_comparison(table, PbmConfig(), 0.0, DemSummary(pooled_rtd=spec(n_entered=2000, mean=10.0)), particles,
                        frequencies=[0.01, 0.05], noise_taus_s=(0.0,), n_boot=100)
     assert list(c.pbm) == ["velocity"] and list(c.record()["pbm"]) == ["velocity"]
 
@@ -204,7 +205,7 @@ def test_velocity_only_table_gives_one_mode(rng):
 @pytest.mark.parametrize("kwargs, match", [
     ({"component": "C"}, "component must be one of"),
     ({"component": 3}, "component must be one of"),
-    ({"pooled_spec": {"horizon_s": 10.0}}, "entry_window_s"),
+    ({"pooled_spec": None}, "pooled RTD"),
     ({"pooled_spec": spec(window=(190.0, 194.0))}, "at least two blocks"),
     ({"frequencies": [-1.0]}, "frequencies must be"),
 ])

@@ -17,8 +17,8 @@ from dem.deck import DRUM_DECK, MAIN_DECK, RESUME_DECK, build_deck, build_drum_d
 from dem.geometry import simulation_box
 from dem.liggghts_log import loop_details, parse_loop_time, parse_runs
 from workflows.bench import dem_deck as bench_dem_deck
-from workflows.cli.main import main
 from workflows.bench.dem_deck import VARIANTS, cost, paper_core_hours
+from workflows.cli.main import main
 from workflows.config import load_preset
 
 

@@ -4,8 +4,8 @@ judges a deck change (zero for identical tables, the relative RMS otherwise)."""
 import numpy as np
 import pytest
 
-from coupling.tables import make_table
 from coupling.errors import ConfigError
+from coupling.tables import make_table
 from workflows.bench.scatter import next_prime, table_difference
 from workflows.config import load_preset, override
 

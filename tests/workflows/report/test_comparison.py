@@ -4,10 +4,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from workflows.report.comparison import SideResults, Study, comparison_metrics, plot_comparison, render_html, rtd_overlap
+from workflows.report.comparison import (
+    SideResults,
+    Study,
+    comparison_metrics,
+    plot_comparison,
+    render_html,
+    rtd_overlap,
+)
 
 
-def _rtd(mean, t=np.arange(0.5, 200, 1.0)):
+def _rtd(mean, t=None):
+    t = np.arange(0.5, 200, 1.0) if t is None else t
     e = np.exp(-((t - mean) ** 2) / (2 * 5.0**2))
     return pd.DataFrame({"t_s": t, "E_per_s": e / e.sum()})
 

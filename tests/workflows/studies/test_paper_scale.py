@@ -11,8 +11,7 @@ from coupling.errors import ConfigError
 from workflows.cli.main import main
 from workflows.config import dump_toml, load_preset
 from workflows.shipped import measured_throughput
-from workflows.studies.paper_scale import (SUMMARY_FILE, dump_throughput, probe_config, summarise,
-                                   thermo_rows)
+from workflows.studies.paper_scale import SUMMARY_FILE, dump_throughput, probe_config, summarise, thermo_rows
 
 HEADER = "Step simtime Atoms insA insB outA outB ts[1] ts[2]"
 
