@@ -7,7 +7,7 @@ NP ?= 2
 FRESH ?=
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup setup-system setup-python test full-comparison validate paper-probe bench clean
+.PHONY: setup setup-system setup-python test lint full-comparison validate paper-probe bench clean
 
 setup: setup-system setup-python
 
@@ -27,6 +27,11 @@ setup-python:
 test: setup
 	$(PYTHON) -m pytest
 
+# ruff: the rules, the import order and the layout (pyproject.toml's [tool.ruff]).
+lint: setup-python
+	$(PYTHON) -m ruff check .
+	$(PYTHON) -m ruff format --check .
+
 full-comparison: setup
 	$(PYTHON) -m workflows.cli compare --preset $(PRESET) --np $(NP) $(if $(FRESH),--fresh)
 
@@ -38,10 +43,10 @@ validate: setup
 # The paper's particles on this machine: the paper preset's first 15 s on 2 ranks, stopped
 # after 45 min of wall time; rewrites workflows/reference/paper_scale/ (the shipped summary).
 paper-probe: setup
-	$(PYTHON) -m workflows.paper_scale $(if $(FRESH),--fresh)
+	$(PYTHON) -m workflows.cli study paper-scale $(if $(FRESH),--fresh)
 
 bench: setup
-	$(PYTHON) -m workflows.bench
+	$(PYTHON) -m workflows.cli bench all
 
 clean:
 	rm -rf results build *.egg-info .pytest_cache

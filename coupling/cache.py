@@ -35,7 +35,7 @@ reference file (100 each of 1-8 bit flips, truncations, 1-512-byte garbage block
 check 30 loaded with changed data; with ``fletcher32`` on every dataset 0 did, but only
 because random offsets rarely land in the attributes (a few hundred bytes of 350 kB): a
 digit changed inside the summary JSON loads silently with it and is refused by the digest
-(tests/test_corruption.py); with the digest 0 did, and every other file raised CacheError.
+(tests/coupling/test_cache_corruption.py); with the digest 0 did, and every other file raised CacheError.
 """
 
 from __future__ import annotations

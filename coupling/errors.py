@@ -1,6 +1,6 @@
 """The project's exceptions, shared by every stage.
 
-Library code raises these; only the CLI (``workflows.cli``) turns them into a message and
+Library code raises these; only the CLI (``workflows.cli.main``) turns them into a message and
 an exit code. Each message names the offending value and what would have been valid.
 """
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,3 +48,12 @@ def json_ready(value: Any) -> Any:
 def dumps_exact(value: Any) -> str:
     """JSON text that :func:`json.loads` turns back into the same values, NaN included."""
     return json.dumps(to_builtin(value), sort_keys=True)
+
+
+def write_json(path: str | Path, value: Any) -> Path:
+    """The one JSON writer for files people read (``summary.json``, study and benchmark
+    records): :func:`json_ready` values, sorted keys, the folder created; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(json_ready(value), indent=2, sort_keys=True, allow_nan=False) + "\n")
+    return path

@@ -17,7 +17,7 @@ by position, so a deck that dumps more or other columns still reads correctly.
 
 Speed: a file is read (or memory-mapped) as bytes, the header lines are located with
 ``bytes.find`` and the numeric block of each snapshot goes to pandas' C parser in one call,
-so the cost per snapshot is one C-level parse (see ``python -m workflows.bench_dem_post``).
+so the cost per snapshot is one C-level parse (see ``python -m workflows.bench.dem_post``).
 Memory holds one snapshot at a time: flat in the number of snapshots.
 
 Errors: a snapshot cut short at the very end of the *last* file (a killed run) is dropped

@@ -463,7 +463,7 @@ def validate_geometry(config: DemConfig) -> None:
                 f"geometry.feed_x_min_m = {g.feed_x_min_m} m: must be >= half the largest particle "
                 f"({p.max_diameter_m / 2:.4g} m) so inserted particles do not overlap the inlet wall"
             )
-        for k, (x0, x1, r0, r1) in enumerate(swept_volumes(g)):
+        for k, (x0, x1, _r0, r1) in enumerate(swept_volumes(g)):
             if _overlap(zone.xmin, zone.xmax, x0, x1) and r_near < r1:
                 raise GeometryError(
                     f"feed zone {comp} (x [{zone.xmin}, {zone.xmax}] m) intersects the volume swept by blade station "

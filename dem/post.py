@@ -69,8 +69,18 @@ from dem.massflow import massflow_files
 from dem.rates import fit_windows
 from dem.resources import check_postprocess_resources
 from dem.steady import pooled_rtd, steady_quantities
-from dem.tracking import (EXIT_MASSFLOW, EXIT_PAST_WEIR, EXIT_VANISHED, SUM_ROWS, Accumulation, Exits, accumulate,
-                          find_exits, transition_counts)
+from dem.summary import DemSummary
+from dem.tracking import (
+    EXIT_MASSFLOW,
+    EXIT_PAST_WEIR,
+    EXIT_VANISHED,
+    SUM_ROWS,
+    Accumulation,
+    Exits,
+    accumulate,
+    find_exits,
+    transition_counts,
+)
 
 __all__ = ["DemResults", "postprocess"]
 
@@ -91,7 +101,7 @@ class DemResults:
     * ``particles``: :func:`particle_records`.
     * ``transitions``: (K, S+1, S+1) particle moves between consecutive dumps
       (:func:`dem.tracking.transition_counts`), what the measured rates were fitted to.
-    * ``summary``: scalars (see :func:`postprocess`).
+    * ``summary``: the scalars (:class:`dem.summary.DemSummary`).
     """
 
     table: VelocityTable
@@ -103,17 +113,17 @@ class DemResults:
     residence_times_s: np.ndarray
     particles: pd.DataFrame
     transitions: np.ndarray
-    summary: dict[str, Any] = field(default_factory=dict)
+    summary: DemSummary = field(default_factory=DemSummary)
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
         arrays = {"rsd_by_slice": self.rsd_by_slice, "rsd_by_slice_floor": self.rsd_by_slice_floor,
                   "residence_times_s": self.residence_times_s, "transitions": self.transitions}
-        return CacheEntry(self.table, self.summary, frames, arrays, provenance)
+        return CacheEntry(self.table, self.summary.record(), frames, arrays, provenance)
 
     @classmethod
     def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
-        return cls(table=entry.table, summary=entry.summary, **entry.frames,
+        return cls(table=entry.table, summary=DemSummary.from_record(entry.summary), **entry.frames,
                    **{name: np.asarray(values) for name, values in entry.arrays.items()})
 
 
@@ -332,15 +342,13 @@ def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tup
         return table, counts
     # the velocities' own threshold: below min_samples observations a compartment-window
     # carries no information, and the PBM fills it by the velocities' rule
-    rates = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
-    capped, unconverged = rates.pop("capped"), rates.pop("unconverged")
-    if all(np.isnan(values).all() for values in rates.values()):
+    fits = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
+    if not fits.any_finite:
         return table, counts
-    attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s), "rates_capped": int(capped),
-             "rates_unconverged_windows": [int(k) for k in unconverged],
-             "rates_finite": int(sum(np.isfinite(values).sum() for values in rates.values())),
+    attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s), "rates_capped": int(fits.capped),
+             "rates_unconverged_windows": [int(k) for k in fits.unconverged], "rates_finite": fits.finite,
              "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)"}
-    return table.replace(**rates, attrs=attrs), counts
+    return table.replace(**fits.rates, attrs=attrs), counts
 
 
 # ----------------------------------------------------------------------------- the whole
@@ -448,4 +456,4 @@ def postprocess(
     return DemResults(table=table, timeseries=timeseries, holdup=holdup,
                       rsd_by_slice=rsd(last_a, last_b, axis=1), rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
                       rtd=rtd, residence_times_s=residence, particles=records, transitions=transitions,
-                      summary=summary)
+                      summary=DemSummary.from_record(summary))

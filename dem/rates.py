@@ -19,7 +19,7 @@ Method: maximum likelihood of the discretely observed chain,
 The gradient is exact: with ``G_ab = counts_ab / P_ab``,
 ``dL/dQ = interval * L_expm(Q^T interval, G)`` (the adjoint of the Frechet derivative of
 expm, ``scipy.linalg.expm_frechet``; the transpose convention is checked against finite
-differences in ``tests/test_rates.py``), then the chain rule onto each allowed entry Q_ab
+differences in ``tests/dem/test_rates.py``), then the chain rule onto each allowed entry Q_ab
 and the diagonal ``-sum``. L-BFGS-B with bounds ``0 <= rate <= 2 / interval`` starts from
 the naive estimate (or a previous window's fit). A compartment never observed as a start
 state has no information of its own: its rates are held fixed (they still shape P for
@@ -35,7 +35,7 @@ of iterations. For the PBM a capped rate is as good as infinite: it relaxes in 0
 (at 0.1-s dumps) against a residence time of ~20 s. The fit reports how many rates sit at
 the cap (:attr:`RateFit.capped`).
 
-Numbers (``OPENBLAS_NUM_THREADS=1 python -m workflows.bench_rates``; 10 x 10 grid,
+Numbers (``OPENBLAS_NUM_THREADS=1 python -m workflows.bench.rates``; 10 x 10 grid,
 forward-biased axial rates and faster transverse rates, 4e6 particles followed for 30
 dumps, 0.6-1.1e8 transitions, so sampling noise is ~1 %; worst relative error over every
 rate that is not a wall):
@@ -259,8 +259,8 @@ class PatternFit:
 
 
 def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
-                start: dict[str, np.ndarray], interval_s: float, max_iterations: int = 500
-                ) -> tuple[np.ndarray, PatternFit]:
+                start: dict[str, np.ndarray], interval_s: float, max_iterations: int = 500,
+                max_rate_x_interval: float = MAX_RATE_X_INTERVAL) -> tuple[np.ndarray, PatternFit]:
     """The maximum-likelihood core of :func:`fit_rates` for any pattern of allowed moves.
 
     ``counts``: (S+1, S+1) checked counts with row S zeroed; ``transitions``: direction ->
@@ -268,8 +268,8 @@ def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.
     a starting rate per move (NaN: unknown). Returns every move's rate, in the order of
     ``transitions`` (directions, then moves), and how the fit ended. Rates of compartments
     never observed as a source stay at their (filled) start; with no observation at all
-    nothing is fitted."""
-    lo, hi = MIN_RATE, MAX_RATE_X_INTERVAL / interval_s
+    nothing is fitted. Rates are bounded by ``max_rate_x_interval`` / ``interval_s``."""
+    lo, hi = MIN_RATE, max_rate_x_interval / interval_s
     n_obs = counts[:-1].sum(axis=1)
     src = np.concatenate([t[0] for t in transitions.values()])
     dst = np.concatenate([t[1] for t in transitions.values()])
@@ -297,13 +297,15 @@ def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.
 
 
 def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
-              initial: dict[str, np.ndarray] | None = None, max_iterations: int = 500) -> RateFit:
+              initial: dict[str, np.ndarray] | None = None, max_iterations: int = 500,
+              max_rate_x_interval: float = MAX_RATE_X_INTERVAL) -> RateFit:
     """Maximum-likelihood nearest-neighbour rates of one window's transition counts.
 
     ``counts``: (S+1, S+1) numbers of observed dump-to-dump transitions (row S ignored).
     ``initial``: rates to start from (e.g. the previous window's fit; NaN entries fall back
     to the naive estimate). Rates of compartments with fewer than ``min_observations``
-    observations (row sums) are NaN in the result.
+    observations (row sums) are NaN in the result. ``max_rate_x_interval``: the cap of
+    every rate times the interval (:data:`MAX_RATE_X_INTERVAL`).
     """
     _check_grid(nx, ny)
     _check_interval(interval_s)
@@ -325,7 +327,7 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
     transitions = allowed_transitions(nx, ny)
     start = {key: start_dict[key].ravel()[comp] for key, (_, _, comp) in transitions.items()}
     report = {key: np.full((nx, ny), np.nan) for key in RATE_KEYS}
-    rates, result = fit_pattern(counts, transitions, start, interval_s, max_iterations)
+    rates, result = fit_pattern(counts, transitions, start, interval_s, max_iterations, max_rate_x_interval)
 
     reported = n_obs >= min_observations
     offset = 0
@@ -337,34 +339,53 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
         report[key] = r.reshape(nx, ny)
     return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=result.log_likelihood,
                    iterations=result.iterations, converged=result.converged,
-                   cap_per_s=MAX_RATE_X_INTERVAL / interval_s)
+                   cap_per_s=max_rate_x_interval / interval_s)
+
+
+@dataclass(frozen=True)
+class WindowFits:
+    """:func:`fit_windows`' answer: every window's rates, and how the fits ended."""
+
+    #: "rate_x_pos", "rate_x_neg", "rate_y_pos", "rate_y_neg" -> (K, NX, NY) [1/s], NaN
+    #: where a compartment-window has too few observations (the table's field names)
+    rates: dict[str, np.ndarray]
+    #: how many rates sit at the cap, over every window
+    capped: int
+    #: windows whose fit stopped at ``max_iterations`` (its last iterate is kept: on the
+    #: DEM's windows it is within 1 % of the converged rates in the median)
+    unconverged: tuple[int, ...]
+
+    @property
+    def any_finite(self) -> bool:
+        return any(np.isfinite(values).any() for values in self.rates.values())
+
+    @property
+    def finite(self) -> int:
+        return int(sum(np.isfinite(values).sum() for values in self.rates.values()))
 
 
 @single_threaded_blas()
 def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
-                max_iterations: int = 500) -> dict[str, np.ndarray]:
+                max_iterations: int = 500, max_rate_x_interval: float = MAX_RATE_X_INTERVAL) -> WindowFits:
     """:func:`fit_rates` for each window of ``counts`` (K, S+1, S+1), each warm-started from
-    the previous window's fit. Returns "rate_x_pos", "rate_x_neg", "rate_y_pos",
-    "rate_y_neg", each (K, NX, NY) [1/s], "capped": how many of them sit at the cap, and
-    "unconverged": the windows whose fit stopped at ``max_iterations`` (its last iterate is
-    kept: on the DEM's windows it is within 1 % of the converged rates in the median)."""
+    the previous window's fit."""
     _check_grid(nx, ny)
     counts = _check_counts(counts, nx, ny, windows=True)
-    out = {f"rate_{key}": np.full((counts.shape[0], nx, ny), np.nan) for key in RATE_KEYS}
-    out["capped"], out["unconverged"] = 0, []
+    rates = {f"rate_{key}": np.full((counts.shape[0], nx, ny), np.nan) for key in RATE_KEYS}
+    capped, unconverged = 0, []
     previous = None
     for k, window in enumerate(counts):
         fit = fit_rates(window, nx, ny, interval_s, min_observations=min_observations, initial=previous,
-                        max_iterations=max_iterations)
+                        max_iterations=max_iterations, max_rate_x_interval=max_rate_x_interval)
         if not fit.converged:
-            out["unconverged"].append(k)
+            unconverged.append(k)
         for key in RATE_KEYS:
-            out[f"rate_{key}"][k] = getattr(fit, key)
-        out["capped"] += fit.capped
+            rates[f"rate_{key}"][k] = getattr(fit, key)
+        capped += fit.capped
         # Only the reported rates carry over: a start from a poorly observed fit is worse
         # than this window's own naive estimate.
         previous = fit.rates()
-    return out
+    return WindowFits(rates, capped, tuple(unconverged))
 
 
 def simulate_observations(q: np.ndarray, start_counts, n_steps: int, interval_s: float,

@@ -37,14 +37,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from coupling.intervals import block_bootstrap
+from coupling.intervals import LEVEL, N_BOOT, block_bootstrap
 from coupling.metrics import binomial_interval, lacey_index, rsd, rtd_pooled
 
 #: The pooled RTD's horizon, in Little's-law mean residence times.
 HORIZON_RESIDENCE_TIMES = 5.0
-#: Bootstrap replicates of every interval (the percentile ends move by < 1 % beyond this).
-N_BOOT = 2000
-LEVEL = 0.95
 RTD_BIN_S = 1.0
 RECOVERY_REQUIRED = 0.95
 

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from coupling.errors import OutputError, os_reason
-from coupling.jsonable import json_ready
+from coupling.jsonable import write_json
 from pbm.plots import save_figures
 from pbm.simulate import PbmResult
 
@@ -25,7 +24,7 @@ def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) 
         out.mkdir(parents=True, exist_ok=True)
         result.timeseries().to_csv(paths["timeseries"], index=False, float_format="%.10g", na_rep="nan")
         result.rtd().to_csv(paths["rtd"], index=False, float_format="%.10g", na_rep="nan")
-        paths["summary"].write_text(json.dumps(json_ready(result.summary), indent=2, allow_nan=False) + "\n")
+        write_json(paths["summary"], result.summary)
         if figures:
             paths.update(save_figures(result, out))
     except OSError as exc:

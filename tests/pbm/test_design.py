@@ -1,0 +1,119 @@
+"""Design inversion against answers known in closed form: a chain of N equal tanks in series
+(one transverse compartment, forward transfer only) has mean residence time L / v and,
+for N = 1, |H(f)|^2 = 1 / (1 + (2 pi f / k)^2) with k = v / L; with velocities proportional
+to the speed the library's interpolation is exact, so the feasible region is known too."""
+
+import math
+import re
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from coupling.errors import ConfigError
+from coupling.tables import make_table
+from pbm.config import PbmConfig
+from pbm.design import TableLibrary, design, design_spec, evaluate, speed_grid
+from workflows.cli.main import main
+
+L = 0.33
+CONFIG = PbmConfig(feed_weights_a=[1.0], feed_weights_b=[1.0])
+
+
+def tanks(n: int, v: float, windows: int = 3):
+    return make_table(t=5.0 * np.arange(windows), x_edges=np.linspace(0, L, n + 1), y_edges=[-0.05, 0.05],
+                      vx_pos=v, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0, window_s=5.0)
+
+
+def library(points) -> TableLibrary:
+    return TableLibrary(tuple(points), CONFIG, 0.0, L)
+
+
+def test_residence_time_bound_gives_the_length_of_l_over_v():
+    v, target = 0.02, 20.0
+    result = design(library([(250.0, tanks(5, v))]), design_spec(mrt_min_s=target))
+    assert result.best.length_factor == pytest.approx(target * v / L, rel=1e-4)
+    assert result.best.mean_residence_time_s == pytest.approx(target, rel=1e-4)
+    assert result.best.margins["mrt_min_s"] >= 0  # the answer lies on the feasible side of the edge
+    # 330 mm gives 16.5 s < 20 s: the library's own blender fails at its only speed
+    assert result.rpm_ranges == []
+
+
+def test_composition_bound_matches_the_single_tank_closed_form():
+    v, band, sigma, tolerance, coverage = 0.02, 0.5, 0.1, 0.01, 3.0
+    c = 0.5
+
+    def excess(factor):  # outlet SD minus what fits in the tolerance, white noise on [0, band]
+        k = v / (factor * L)
+        vrr = band / (k / (2 * math.pi) * math.atan(2 * math.pi * band / k))
+        return c * (1 - c) * sigma / math.sqrt(vrr) - tolerance / coverage
+
+    expected = brentq(excess, 0.5, 2.0, xtol=1e-12)
+    spec = design_spec(ca_tolerance=tolerance, coverage_sigmas=coverage, noise_sigma=sigma, noise_band_hz=band)
+    result = design(library([(250.0, tanks(1, v))]), spec)
+    # the VRR's quadrature (201 log-spaced frequencies) is good to ~1e-3
+    assert result.best.length_factor == pytest.approx(expected, rel=2e-3)
+    assert coverage * result.best.ca_sd == pytest.approx(tolerance, rel=1e-4)
+    assert result.best.ca_rsd == pytest.approx(result.best.ca_sd / c)
+
+
+def test_speed_library_gives_the_analytic_feasible_region():
+    # v = c * rpm, linear in rpm: interpolating between 100 and 300 rpm is exact
+    c = 0.02 / 200
+    lib = library([(100.0, tanks(4, 100 * c)), (300.0, tanks(4, 300 * c))])
+    result = design(lib, design_spec(mrt_min_s=20.0, mrt_max_s=30.0))
+    for row in result.rows:
+        assert row.length_factor_lo == pytest.approx(20.0 * c * row.rpm / L, rel=1e-4)
+        assert row.length_factor_hi == pytest.approx(min(2.0, 30.0 * c * row.rpm / L), rel=1e-4)
+    assert result.best.rpm == 100.0
+    assert result.best.length_factor == pytest.approx(20.0 * c * 100 / L, rel=1e-4)
+    # the library's own blender: L / (c rpm) in [20, 30] s <=> rpm in [L / (30 c), L / (20 c)]
+    (lo, hi), = result.rpm_ranges
+    assert lo == pytest.approx(L / (30 * c), rel=1e-4)
+    assert hi == pytest.approx(L / (20 * c), rel=1e-4)
+    assert all(min(evaluate(lib, result.spec, rpm, 1.0).margins.values()) >= 0 for rpm in (lo, hi))
+
+
+def test_unreachable_spec_says_so():
+    result = design(library([(250.0, tanks(3, 0.02))]), design_spec(mrt_min_s=500.0))
+    assert result.best is None and result.rpm_ranges == []
+    assert any("meets the spec" in note for note in result.notes)
+
+
+def test_specs_outside_the_library_are_refused():
+    lib = library([(100.0, tanks(2, 0.01)), (300.0, tanks(2, 0.03))])
+    with pytest.raises(ConfigError, match=r"400 rpm leave the table library, which covers 100\.\.300 rpm"):
+        speed_grid(lib, design_spec(mrt_min_s=10.0, rpm_max=400.0))
+    with pytest.raises(ConfigError, match="rescaling is not trusted"):
+        design_spec(mrt_min_s=10.0, length_factor_max=3.0)
+    with pytest.raises(ConfigError, match="at least one criterion"):
+        design_spec(noise_sigma=0.1)
+    with pytest.raises(ConfigError, match="noise_sigma > 0"):
+        design_spec(ca_tolerance=0.01)
+    with pytest.raises(ConfigError, match="mrt_min_s"):
+        design_spec(mrt_min_s=30.0, mrt_max_s=20.0)
+
+
+def test_speed_grid_holds_every_run_and_points_between():
+    lib = library([(150.0, tanks(2, 0.01)), (250.0, tanks(2, 0.02)), (350.0, tanks(2, 0.03))])
+    grid = speed_grid(lib, design_spec(mrt_min_s=10.0, rpm_min=200.0))
+    assert grid[0] == 200.0 and grid[-1] == 350.0
+    assert {250.0, 350.0} <= set(grid.tolist())
+    assert np.all(np.diff(grid) > 0)
+
+
+def test_cli_on_the_shipped_library(tmp_path, capsys):
+    # a residence-time spec needs no frequency response: quick on the campaign's three speeds
+    code = main(["design", "--mrt-min", "22", "--mrt-max", "40", "--out", str(tmp_path)])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "150 rpm" in out.err and "350 rpm" in out.err  # the library found: the campaign's speed runs
+    assert re.search(r"smallest blender: \d+\.\d mm", out.out)
+    assert (tmp_path / "design.json").is_file() and (tmp_path / "feasible.png").stat().st_size > 10_000
+
+
+def test_cli_bad_library_is_one_line(tmp_path, capsys):
+    code = main(["design", "--mrt-min", "20", "--library", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and "nowhere" in err

@@ -1,0 +1,66 @@
+"""The agreement table on the synthetic DEM flow of ``test_post``: every quantity has its
+DEM interval, both PBM rate modes run on the DEM's own table, and every verdict is the
+interval test of the numbers in its row."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from dem.post import postprocess
+from pbm.config import PbmConfig
+from tests.known_dumps import STEADY, config, write_synthetic
+from workflows.analysis.agreement import MODES, agreement_rows, run_modes
+
+
+@pytest.fixture(scope="module")
+def synthetic_80s(tmp_path_factory):
+    cfg = config()
+    directory = tmp_path_factory.mktemp("synthetic80")
+    write_synthetic(directory, cfg, end_s=80.0)
+    results = postprocess(str(directory / "dump.*.txt"), cfg, STEADY)
+    pbm = PbmConfig(feed_rate_a_per_s=2.0, feed_rate_b_per_s=2.0)
+    return results, run_modes(results.table, pbm, STEADY, results.summary)
+
+
+def test_both_modes_and_every_row(synthetic_80s):
+    results, modes = synthetic_80s
+    assert set(modes) == set(MODES)
+    assert all(m.pooled is not None for m in modes.values())
+    rows = agreement_rows(results.summary, results.particles, modes)
+    keys = [r.key for r in rows]
+    for key in ("mean_residence_time_s", "rtd_variance_s2", "holdup", "outflow_per_s", "C_A", "rsd_outlet",
+                "lacey_outlet", "rtd_overlap", "little_mean_residence_time_s"):
+        assert key in keys
+    assert [k for k in keys if k.startswith("holdup_slice_")] == [f"holdup_slice_{i}" for i in range(1, 5)]
+    for row in rows:
+        for mode in MODES:
+            value = row.value(mode)
+            assert math.isfinite(value), (row.key, mode)
+            if row.key == "rtd_overlap":
+                assert row.inside(mode) == (value >= row.pbm[mode].noise_low)
+            else:
+                assert row.inside(mode) == (row.dem_ci_low <= value <= row.dem_ci_high)
+            # the flat record summary.json holds carries the same numbers
+            assert row.record()[f"pbm_{mode}"] == value and row.record()[f"inside_{mode}"] == row.inside(mode)
+
+
+def test_the_verdict_follows_the_interval(synthetic_80s):
+    results, modes = synthetic_80s
+    pbm_outflow = agreement_rows(results.summary, results.particles, modes)
+    value = next(r for r in pbm_outflow if r.key == "outflow_per_s").value("measured")
+    for low, high, expected in ((value - 1, value + 1, True), (value + 1, value + 2, False)):
+        steady = {**results.summary.steady, "outflow_per_s": {"value": value, "low": low, "high": high}}
+        summary = dataclasses.replace(results.summary, steady=steady)
+        row = next(r for r in agreement_rows(summary, results.particles, modes) if r.key == "outflow_per_s")
+        assert row.inside("measured") is expected
+
+
+def test_the_pbm_pooled_rtd_uses_the_dem_window(synthetic_80s):
+    results, modes = synthetic_80s
+    spec = results.summary.pooled_rtd
+    for m in modes.values():
+        assert m.pooled.bin_edges[-1] == pytest.approx(spec.horizon_s)
+        assert np.all(m.pooled.entry_times_s > spec.entry_window_s[0])
+        assert np.all(m.pooled.entry_times_s <= spec.entry_window_s[1])

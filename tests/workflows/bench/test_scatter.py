@@ -1,0 +1,40 @@
+"""The seed-scatter benchmark's pieces: config overrides, and the table difference that
+judges a deck change (zero for identical tables, the relative RMS otherwise)."""
+
+import numpy as np
+import pytest
+
+from coupling.errors import ConfigError
+from coupling.tables import make_table
+from workflows.bench.scatter import next_prime, table_difference
+from workflows.config import load_preset, override
+
+
+def _table(scale=1.0, windows=5):
+    return make_table(np.arange(windows) * 5.0, np.linspace(0, 0.33, 5), np.linspace(-0.05, 0.05, 3),
+                      0.1 * scale, 0.05 * scale, 0.02 * scale, 0.03 * scale, count_A=2.0, count_B=3.0,
+                      n_samples=10, window_s=5.0)
+
+
+def test_identical_tables_differ_by_nothing_and_a_scaled_one_by_its_scale():
+    a = _table()
+    assert all(v == 0 for v in table_difference(a, a).values())
+    diff = table_difference(a, _table(scale=1.1))
+    # rms(0.1 v) / sqrt(mean((v^2 + 1.21 v^2) / 2)) = 0.1 / sqrt(1.105)
+    assert diff["vx_pos"] == pytest.approx(0.1 / np.sqrt(1.105))
+    assert diff["particles"] == 0
+
+
+def test_a_change_and_a_seed_are_config_overrides():
+    base = load_preset("smoke")
+    changed = override(base, "dem.geometry.inlet_margin_m=0.005")
+    assert changed.dem.geometry.inlet_margin_m == 0.005 and base.dem.geometry.inlet_margin_m == 0.12
+    seed = next_prime(15486863)
+    assert seed > 15486863 and override(base, f"dem.numerics.seed={seed}").dem.numerics.seed == seed
+    assert override(base, "dem.geometry.inlet_margin_m=none").dem.geometry.inlet_margin_m is None
+    with pytest.raises(ConfigError, match="no section 'nonsense'"):
+        override(base, "dem.nonsense.x=1")
+    with pytest.raises(ConfigError, match="expected PATH=VALUE"):
+        override(base, "dem.geometry.inlet_margin_m")
+    with pytest.raises(ConfigError, match="not prime"):
+        override(base, "dem.numerics.seed=15486863")

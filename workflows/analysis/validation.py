@@ -1,0 +1,228 @@
+"""The validation campaign's numbers: PBMs built without a change predict the DEM run that
+has it, and the campaign's rule judges each prediction (see :mod:`workflows.products.validate`)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable
+from pbm.studies import interpolate_tables, scale_blender, scale_speed
+from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
+from workflows.config import Config, config_without
+from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse, stderr_log
+
+# --------------------------------------------------------------------------- predictions
+#: Agreement rows that are diagnostics of the RTD's definition, not predictions to judge.
+NOT_JUDGED = ("rtd_recovered_fraction",)
+
+
+def prediction_tables(sides: dict[str, DemSide], configs: dict[str, Config],
+                      baseline: str = "baseline") -> dict[str, dict[str, VelocityTable | str]]:
+    """For every run: its own table ("self"), the prediction from the baseline alone
+    ("baseline": compartments rescaled to a new length, velocities and rates scaled by the
+    rpm ratio, a new feed rate with the velocities unchanged), and from the table library
+    ("library": interpolated in rpm between the other runs that differ only in rpm). A
+    prediction that cannot be made is a string saying why."""
+    base_cfg, base_table = configs[baseline], sides[baseline].table
+    rpm_key = "dem.operation.impeller_rpm"
+    out: dict[str, dict[str, VelocityTable | str]] = {}
+    for name, config in configs.items():
+        tables: dict[str, VelocityTable | str] = {"self": sides[name].table}
+        if name != baseline:
+            table = base_table
+            length_factor = config.dem.geometry.length_m / base_cfg.dem.geometry.length_m
+            if not math.isclose(length_factor, 1.0):
+                table = scale_blender(table, length_factor=length_factor)
+            speed = config.dem.operation.impeller_rpm / base_cfg.dem.operation.impeller_rpm
+            if not math.isclose(speed, 1.0):
+                table = scale_speed(table, speed)
+            tables["baseline"] = table
+        same_but_rpm = config_without(config, rpm_key)
+        library = [(other.dem.operation.impeller_rpm, sides[o].table) for o, other in configs.items()
+                   if o != name and config_without(other, rpm_key) == same_but_rpm]
+        if len(library) >= 2:
+            try:
+                tables["library"] = interpolate_tables(library, config.dem.operation.impeller_rpm)
+            except ConfigError as exc:
+                tables["library"] = str(exc)
+        out[name] = tables
+    return out
+
+
+@dataclass
+class Prediction:
+    """One PBM source's agreement rows against one run's DEM."""
+
+    run: str
+    source: str
+    rows: list[AgreementRow] = field(default_factory=list)
+    note: str = ""
+
+
+def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log = stderr_log) -> list[Prediction]:
+    """Every source of :func:`prediction_tables` for every run, in both rate modes, as the
+    agreement table against that run's DEM (same entry window, horizon and steady rule)."""
+    out = []
+    for name, tables in prediction_tables(sides, configs).items():
+        config, dem = configs[name], sides[name].results
+        for source, table in tables.items():
+            if isinstance(table, str):
+                out.append(Prediction(name, source, note=table))
+                continue
+            log(f"PBM of {name} from {source}")
+            modes = run_modes(table, pbm_config_for(config, table, rtd_pulse(dem.summary)), config.steady_state, dem.summary)
+            out.append(Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes)))
+    return out
+
+
+@dataclass(frozen=True)
+class PredictedQuantity:
+    """One quantity of one prediction judged by the campaign's rule: ``judged.value`` the
+    prediction, ``judged.reference`` the DEM, ``judged.tolerance`` = ``model_error`` + the
+    half width of the DEM's interval; ``self_value`` the run's own self-built PBM, reported
+    beside it."""
+
+    judged: Judged
+    dem_ci_low: float
+    dem_ci_high: float
+    self_value: float
+    model_error: float
+
+    @property
+    def key(self) -> str:
+        return self.judged.key
+
+    @property
+    def ok(self) -> bool:
+        return self.judged.ok
+
+    def record(self) -> dict[str, Any]:
+        j = self.judged
+        return {"key": j.key, "quantity": j.quantity, "dem": j.reference, "dem_ci_low": self.dem_ci_low,
+                "dem_ci_high": self.dem_ci_high, "predicted": j.value, "self": self.self_value, "error": j.error,
+                "model_error": self.model_error, "tolerance": j.tolerance, "ok": j.ok}
+
+
+@dataclass(frozen=True)
+class ModePrediction:
+    """One rate mode's verdict on a prediction: it predicts the change when every judged
+    quantity is ok; ``missing``: quantities that could not be judged (left out)."""
+
+    rows: tuple[PredictedQuantity, ...]
+    missing: tuple[str, ...] = ()
+
+    @property
+    def failing(self) -> list[str]:
+        return [r.key for r in self.rows if not r.ok]
+
+    @property
+    def predicts(self) -> bool:
+        return bool(self.rows) and not self.failing
+
+    def record(self) -> dict[str, Any]:
+        return {"rows": [r.record() for r in self.rows], "missing": list(self.missing), "failing": self.failing,
+                "predicts": self.predicts}
+
+
+def judge(predicted: list[AgreementRow], own: list[AgreementRow],
+          calibration: list[AgreementRow] | None = None) -> dict[str, ModePrediction]:
+    """The verdict on one prediction (module docstring, 3.): per rate mode and quantity,
+    the error |prediction - DEM| against the tolerance = the hybrid's own error on the
+    ``calibration`` run (its self-built PBM against its DEM, default ``own``), relative to
+    that DEM value and scaled to this one (absolute for the RTD overlap, whose ideal is 1),
+    plus the half width of this DEM's interval (:class:`~workflows.analysis.agreement.Judged`).
+    The run's own self-built PBM (``own``) is reported beside it. Quantities missing
+    anywhere are left out and listed."""
+    own_rows = {row.key: row for row in own}
+    cal_rows = {row.key: row for row in (calibration if calibration is not None else own)}
+    verdict: dict[str, ModePrediction] = {}
+    for mode in MODES:
+        rows, missing = [], []
+        for row in predicted:
+            key = row.key
+            if key in NOT_JUDGED:
+                continue
+            cal, mine = cal_rows.get(key), own_rows.get(key)
+            dem, pred = row.dem, row.value(mode)
+            self_value = math.nan if mine is None else mine.value(mode)
+            cal_dem, cal_pbm = (math.nan, math.nan) if cal is None else (cal.dem, cal.value(mode))
+            half = row.half_width(mode)
+            values = (dem, pred, self_value, cal_dem, cal_pbm, half)
+            if not all(math.isfinite(v) for v in values) or (key != "rtd_overlap" and cal_dem == 0):
+                missing.append(key)
+                continue
+            model_error = (abs(cal_pbm - cal_dem) if key == "rtd_overlap"
+                           else abs(cal_pbm - cal_dem) / abs(cal_dem) * abs(dem))
+            judged = Judged(key, row.quantity, pred, dem, model_error + half)
+            rows.append(PredictedQuantity(judged, row.dem_ci_low, row.dem_ci_high, self_value, model_error))
+        verdict[mode] = ModePrediction(tuple(rows), tuple(missing))
+    return verdict
+
+
+@dataclass(frozen=True)
+class PredictionVerdict:
+    """The campaign's verdict on one prediction (one run, one source): its text and, when it
+    could be judged, each rate mode's :class:`ModePrediction`."""
+
+    run: str
+    source: str
+    verdict: str
+    judged: dict[str, ModePrediction] | None
+
+    def record(self) -> dict[str, Any]:
+        return {"run": self.run, "source": self.source, "verdict": self.verdict,
+                "judged": None if self.judged is None else {m: v.record() for m, v in self.judged.items()}}
+
+
+def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[PredictionVerdict]:
+    """:func:`judge` for every prediction that is not a run's own PBM, calibrated on the
+    baseline's self-built PBM (the accuracy the hybrid shows on the run it is built from)."""
+    own = {p.run: p.rows for p in preds if p.source == "self"}
+    calibration = own.get(baseline)
+    out = []
+    for p in preds:
+        if p.source == "self":
+            continue
+        if not p.rows:
+            out.append(PredictionVerdict(p.run, p.source, f"not predicted: {p.note}", None))
+            continue
+        judged = judge(p.rows, own[p.run], calibration)
+        out.append(PredictionVerdict(p.run, p.source, verdict_text(judged), judged))
+    return out
+
+
+def campaign_span_s(sides: dict[str, DemSide]) -> float | None:
+    """Elapsed time of the campaign's solver runs [s]: from the first run's start to the
+    last one's end, each start taken as its end minus its recorded wall time (so a resumed
+    run counts from its first attempt). None when a run lacks the timestamps."""
+    starts, ends = [], []
+    for side in sides.values():
+        finished, wall = side.provenance.get("run_finished"), side.provenance.get("wall_time_s")
+        if not finished or wall is None:
+            return None
+        end = _dt.datetime.fromisoformat(str(finished)).timestamp()
+        starts.append(end - float(wall))
+        ends.append(end)
+    return max(ends) - min(starts) if ends else None
+
+
+def verdict_text(verdict: dict[str, ModePrediction]) -> str:
+    """The plain verdict of a change from :func:`judge`'s numbers; when no rate mode
+    predicts it, the failures of the mode that came nearest."""
+    good = [mode for mode in MODES if mode in verdict and verdict[mode].predicts]
+    if good:
+        return f"the hybrid predicts this ({' and '.join(good)} rates)"
+    judged = [mode for mode in MODES if mode in verdict and verdict[mode].rows]
+    if not judged:
+        return "this needs a new DEM run (no quantity could be judged)"
+    best = min(judged, key=lambda mode: len(verdict[mode].failing))
+    failing = verdict[best].failing
+    slices = [key for key in failing if key.startswith("holdup_slice_")]
+    named = [key for key in failing if key not in slices]
+    named += [f"hold-up of {len(slices)} axial slice{'s' if len(slices) > 1 else ''}"] if slices else []
+    return (f"this needs a new DEM run (nearest: {best} rates, {len(failing)} of {len(verdict[best].rows)} "
+            f"quantities outside tolerance: {', '.join(named)})")

@@ -1,0 +1,2 @@
+"""The benchmarks (``pbmdem bench ...``): speed, accuracy and cost of every stage. They
+import the product; the product never imports them."""

@@ -1,0 +1,38 @@
+"""``pbmdem compare``: DEM (or its cached or shipped results) -> velocity tables -> PBM ->
+the side-by-side report."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from coupling.errors import ConfigError
+from workflows.config import add_config_arguments, resolve_config
+from workflows.pipeline.stages import stderr_log
+
+HELP = "DEM (or its cached / shipped results) -> velocity tables -> PBM -> side-by-side report"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser)
+    parser.add_argument("--np", type=int, default=None, help="MPI ranks for LIGGGHTS (default: the config's)")
+    parser.add_argument("--fresh", action="store_true", help="ignore cached and shipped DEM results: run LIGGGHTS again")
+    parser.add_argument("--resume", action="store_true", help="resume an interrupted DEM run from its restart file")
+    parser.add_argument("--results-dir", default="results", help="where <preset>-<hash>/report.html goes")
+    parser.add_argument("--runs-dir", default="runs", help="root of the DEM run directories and cache")
+    parser.add_argument("--noise-members", type=int, default=200, help="realisations per noise level")
+    parser.add_argument("--no-paraview", action="store_true", help="skip the ParaView (VTK) files")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from workflows.products.compare import full_comparison
+
+    if args.noise_members < 1:
+        raise ConfigError(f"--noise-members must be >= 1, got {args.noise_members}")
+    report = full_comparison(
+        resolve_config(args.preset, args.config), results_root=Path(args.results_dir), runs_root=Path(args.runs_dir),
+        np_ranks=args.np, fresh=args.fresh, resume=args.resume, noise_members=args.noise_members,
+        paraview=not args.no_paraview, progress=not args.no_progress, log=stderr_log)
+    print(f"report: {report}")
+    return 0

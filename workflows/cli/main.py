@@ -1,0 +1,58 @@
+"""The ``pbmdem`` command line: one entry, one list of commands, one error path.
+
+Every command is a module of this package with ``HELP``, ``add_arguments(parser)`` and a
+``run(args) -> int`` (or, for a command with subcommands, a ``func`` per subcommand). A
+command parses its arguments and calls the library; library code raises, and only
+:func:`main` turns a project error into one line on stderr and exit code 2
+(``--traceback`` shows the whole trace instead).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from coupling.errors import PbmDemError, error_line
+
+#: (command, module): the order ``pbmdem --help`` lists them in.
+COMMANDS = (
+    ("config", "workflows.cli.config"),
+    ("compare", "workflows.cli.compare"),
+    ("validate", "workflows.cli.validate"),
+    ("design", "workflows.cli.design"),
+    ("dem", "workflows.cli.dem"),
+    ("pbm", "workflows.cli.pbm"),
+    ("targets", "workflows.cli.targets"),
+    ("study", "workflows.cli.study"),
+    ("bench", "workflows.cli.bench"),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pbmdem", description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013).")
+    parser.add_argument("--traceback", action="store_true", help="on an error, show the whole traceback")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, module_name in COMMANDS:
+        module = importlib.import_module(module_name)
+        command = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        if hasattr(module, "run"):
+            command.set_defaults(func=module.run)
+        module.add_arguments(command)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (PbmDemError, OSError) as exc:  # OSError: the file system said no (a path, the disk, a permission)
+        if args.traceback:
+            raise
+        print(f"pbmdem: error: {error_line(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("pbmdem: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,307 @@
+"""The stages as the pipeline sees them: the DEM stage (cache, shipped reference, or a
+LIGGGHTS run post-processed), the PBM configuration that describes the same process, and
+the cluster plan. The CLI commands and :mod:`workflows.products.compare` call these.
+
+Keys. A LIGGGHTS run is keyed by its deck and the solver version (:func:`dem.run.run_key`);
+its post-processed results by that run key *and* the post-processing settings (bins,
+windows, the steady-state rule, :data:`POST_VERSION`), so that changing NX never serves a
+table binned for another NX, and new post-processing reuses the run without rerunning it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import math
+import sys
+import tempfile
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from coupling.cache import cache_path, load_entry, save_entry, stable_hash, try_load_entry
+from coupling.compartments import inlet_weights
+from coupling.errors import ConfigError
+from coupling.tables import VelocityTable, read_table
+from dem.deck import DECK_INFO, MESH_DIR, build_deck, deck_hash, write_deck
+from dem.dumps import dump_paths
+from dem.geometry import build_geometry, feed_zones, write_stl
+from dem.post import DemResults, postprocess
+from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem
+from dem.summary import DemSummary
+from pbm.config import PbmConfig
+from pbm.model import require_rates
+from pbm.outputs import write_outputs
+from pbm.simulate import PbmResult, simulate
+from workflows.config import Config, config_from_dict, dump_toml, load_preset
+from workflows.shipped import REFERENCE_DIR
+
+#: Bump when the post-processing computes anything differently: cached results are redone.
+POST_VERSION = 3
+
+Log = Callable[[str], None]
+
+
+def _quiet(message: str) -> None:
+    pass
+
+
+def stderr_log(message: str) -> None:
+    """The command line's log: one line per message on stderr."""
+    print(f"pbmdem: {message}", file=sys.stderr, flush=True)
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def writable_directory(path: str | Path, what: str) -> Path:
+    """``path`` as a directory this process can write in, created if missing. Checked
+    before any expensive work, so that a bad output path fails in a second, not after the
+    solver; raises ConfigError naming the path and the problem."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {path} is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path} is not a writable directory: {exc.strerror or exc}") from None
+    return path
+
+
+@dataclass
+class DemSide:
+    """The DEM's results for one configuration and where they came from: ``source`` is
+    "run" (post-processed now), "cache" or "reference" (shipped with the repository)."""
+
+    table: VelocityTable
+    results: DemResults
+    provenance: dict[str, Any]
+    cache_file: Path
+    source: str
+
+    @property
+    def key(self) -> str:
+        return str(self.provenance.get("key", "unknown"))
+
+
+def post_hash(config: Config) -> str:
+    """Hash of everything the post-processing does with a run's dumps."""
+    return stable_hash({"tables": config.dem.tables.model_dump(mode="json"),
+                        "steady_state": dataclasses.asdict(config.steady_state), "version": POST_VERSION})
+
+
+def results_key(run_key: str, post: str) -> str:
+    return stable_hash({"run": run_key, "post": post})
+
+
+def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], log: Log) -> DemSide | None:
+    """A valid cached entry for these inputs: by key when the solver's version is known,
+    else (no solver here) the newest entry made from the same deck and post-processing."""
+    for root, source in roots:
+        if inputs.key is not None:
+            key = results_key(inputs.key, post)
+            candidates = [cache_path(root, key)]
+        else:
+            key = None
+            candidates = sorted(Path(root).glob("dem-*.h5"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for path in candidates:
+            entry, reason = try_load_entry(path, key)
+            if entry is None:
+                if key is not None and path.exists():
+                    log(f"cache file not usable, rebuilding: {reason}")
+                continue
+            if key is None and (entry.provenance.get("deck_hash"), entry.provenance.get("post_hash")) != (
+                    inputs.deck_hash, post):
+                continue
+            return DemSide(entry.table, DemResults.from_cache_entry(entry), entry.provenance, path, source)
+    return None
+
+
+def dem_stage(
+    config: Config,
+    runs_root: str | Path = "runs",
+    cache_root: str | Path | None = None,
+    np: int | None = None,
+    resume: bool = False,
+    fresh: bool = False,
+    progress: bool = True,
+    log: Log = _quiet,
+    reference_dir: Path = REFERENCE_DIR,
+    solver: bool = True,
+    watch: Callable[[Path], Callable[[str], None]] | None = None,
+) -> DemSide:
+    """The DEM's velocity table and CQAs for ``config``.
+
+    In order: the cache (``cache_root``, default ``<runs_root>/cache``), the reference
+    data shipped in ``reference_dir``, else LIGGGHTS (reusing a completed run of the same
+    inputs; ``resume`` continues an interrupted one) followed by the post-processing,
+    whose result is cached. ``fresh`` skips both caches and reruns the solver. The deck is
+    built and the input hash computed once, here. Without LIGGGHTS installed, cached or
+    shipped results made from the same deck are still found. ``solver=False`` never starts
+    LIGGGHTS: only cached or shipped results, or the dumps of a completed run, serve, else
+    LookupError. ``watch``: called with the run directory, returns the solver's line
+    callback, which may stop the run early (:class:`workflows.analysis.convergence.ConvergenceWatch`);
+    a stopped run's results are cached under a key of their own, never served as the
+    complete run's."""
+    runs_root = writable_directory(Path(runs_root).resolve(), "runs directory")  # absolute: recorded in the cache
+    cache_root = writable_directory(cache_root if cache_root is not None else runs_root / "cache", "cache directory")
+    inputs = prepare_run(config.dem)
+    post = post_hash(config)
+    if not fresh:
+        found = _find_cached(inputs, post, [(cache_root, "cache"), (Path(reference_dir), "reference")], log)
+        if found is not None:
+            if found.source == "reference":
+                log(f"DEM results for inputs {found.key} taken from the shipped reference data")
+            return found
+    if solver:
+        on_line = None if watch is None else watch(runs_root / str(inputs.key))
+        record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress,
+                         on_line=on_line)
+    else:
+        record = completed_run(inputs, runs_root)
+        if record is None:
+            raise LookupError(f"no cached or shipped DEM results, nor a completed run under {runs_root}, for the "
+                              f"deck {inputs.deck_hash} binned as configured")
+    stopped = record.state == STOPPED
+    stop_step = record.solver_counters.get("step")
+    key = results_key(f"{record.key}-stopped-{stop_step}" if stopped else record.key, post)
+    log(f"run {'reused' if record.reused else 'stopped early' if stopped else 'finished'}: {record.run_dir}; "
+        "post-processing the dumps")
+    t0 = time.monotonic()
+    provenance = {
+        "key": key, "input_hash": key, "run_key": record.key, "deck_hash": inputs.deck_hash, "post_hash": post,
+        "liggghts_version": record.liggghts_version, "preset": config.name, "config_toml": dump_toml(config),
+        "run_dir": str(record.run_dir), "run_started": record.started, "run_finished": record.finished,
+        "wall_time_s": record.wall_time_s, "np": record.np, "resumed_from": record.resumed_from, "created": _now(),
+        "run_state": record.state, "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
+    }
+    table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
+    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
+                          solver_counters=record.solver_counters, provenance=table_attrs)
+    results = dataclasses.replace(results, summary=dataclasses.replace(
+        results.summary, extra={**results.summary.extra, "wall_time_s": record.wall_time_s}))
+    provenance["postprocess_time_s"] = time.monotonic() - t0
+    path = save_entry(cache_path(cache_root, key), results.to_cache_entry(provenance))
+    return DemSide(results.table, results, provenance, path, "run")
+
+
+def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir: str | Path | None = None) -> DemResults:
+    """Post-process existing dumps (glob ``dumps``) into a results file ``out`` (velocity
+    table + DEM results, readable as a velocity table). The solver's discharge files are
+    looked for beside the dumps (one level up when they sit in the deck's ``dumps/``)."""
+    out = Path(out)
+    if out.is_dir():
+        raise ConfigError(f"--out {out} is a directory; give a file name such as tables.h5")
+    writable_directory(out.parent, "the directory of --out")
+    paths = dump_paths(dumps)
+    run_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
+    _check_same_deck(config, run_dir)
+    if massflow_dir is None:
+        massflow_dir = run_dir
+    t0 = time.monotonic()
+    key = stable_hash({"dumps": [str(p.resolve()) for p in paths], "config": config.to_dict()})
+    attrs = {"input_hash": key, "preset": config.name, "config_toml": dump_toml(config), "created": _now(),
+             "liggghts_version": "unknown (post-processed from existing dumps)"}
+    results = postprocess(paths, config.dem, config.steady_state, massflow_dir=massflow_dir, provenance=attrs)
+    provenance = {**attrs, "key": key, "dumps": str(dumps), "postprocess_time_s": time.monotonic() - t0}
+    save_entry(out, results.to_cache_entry(provenance))
+    return results
+
+
+def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: float | None = None,
+            method: str | None = None, figures: bool = True,
+            rates: str | None = None) -> dict[str, tuple[PbmResult, dict[str, Path]]]:
+    """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
+    rule) on the velocity table in ``tables``, in the rate mode ``rates`` ("velocity",
+    "measured", or "both": one subdirectory of ``out`` per mode; default the config's).
+    Returns mode -> (result, files written)."""
+    updates = {"method": method} if method is not None else {}
+    modes = ("velocity", "measured") if rates == "both" else (rates or config.pbm.rates,)
+    table = read_table(tables)
+    for mode in modes:  # refused before anything is written
+        require_rates(table, mode)
+    writable_directory(out, "output directory")
+    runs = {}
+    for mode in modes:
+        pbm = config.pbm.model_copy(update={**updates, "rates": mode})
+        result = simulate(table, pbm, rtd_pulse_s=rtd_pulse_s, steady=config.steady_state)
+        runs[mode] = (result, write_outputs(result, Path(out) / mode if len(modes) > 1 else out, figures=figures))
+    return runs
+
+
+def write_run_directory(config: Config, out: str | Path, resume_from: str | None = None, view_stl: bool = False,
+                        png: bool = False) -> tuple[Path, str]:
+    """``pbmdem dem deck``: the deck, meshes, ``deck.json`` and the resolved ``config.toml``
+    (its first line records the deck hash) in ``out``; optionally STL files of the barrel
+    and inlet wall (the deck uses primitives for them) and a picture. Returns (directory,
+    deck hash). Everything is validated before anything is written."""
+    files = build_deck(config.dem, resume_from=resume_from)
+    digest = deck_hash(files)
+    files["config.toml"] = f"# deck_hash = {digest}\n" + dump_toml(config)
+    run_dir = write_deck(files, writable_directory(out, "run directory"))
+    if view_stl:
+        for name, mesh in build_geometry(config.dem).view_meshes.items():
+            write_stl(mesh, run_dir / MESH_DIR / f"view_{name}.stl")
+    if png:
+        from dem.render import render_geometry
+
+        render_geometry(config.dem, run_dir / "geometry.png")
+    return run_dir, digest
+
+
+def _check_same_deck(config: Config, run_dir: Path) -> None:
+    """Dumps in a run directory written by this project carry the deck they came from
+    (``status.json``'s deck hash, else ``deck.json``): refuse a configuration that makes
+    another deck, whose timestep would turn steps into wrong times."""
+    files = build_deck(config.dem)
+    status = read_status(run_dir) or {}
+    if status.get("deck_hash"):
+        ours = deck_hash(files)
+        if status["deck_hash"] != ours:
+            raise ConfigError(f"the dumps in {run_dir} come from deck {status['deck_hash']}, but the configuration given "
+                              f"makes deck {ours}: pass the configuration of that run")
+    elif (run_dir / DECK_INFO).is_file() and (run_dir / DECK_INFO).read_text() != files[DECK_INFO]:
+        raise ConfigError(f"the dumps in {run_dir} come from a deck whose {DECK_INFO} differs from the one the "
+                          "configuration given makes (timestep, intervals or geometry): pass the configuration of that run")
+
+
+def load_results(path: str | Path) -> tuple[DemResults, Config]:
+    """The DEM results in a cache or shipped results file, with the configuration they were
+    made with (:func:`config_of`). A missing or corrupt file raises CacheError naming it."""
+    entry = load_entry(path)
+    return DemResults.from_cache_entry(entry), config_of(entry)
+
+
+def config_of(entry) -> Config:
+    """The configuration a cached or shipped DEM results entry was made with (stored with
+    it), else the reduced preset, from which the shipped reference was made."""
+    text = entry.provenance.get("config_toml")
+    if not text:
+        return load_preset("reduced")
+    return config_from_dict(tomllib.loads(text), "the configuration stored with the DEM results")
+
+
+def rtd_pulse(dem_summary: DemSummary) -> float | None:
+    """The PBM's tracer pulse time: the DEM's RTD tagging time, None when it tagged none."""
+    tag_time = dem_summary.rtd_tag_time_s
+    return float(tag_time) if tag_time is not None and math.isfinite(tag_time) else None
+
+
+def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:
+    """The PBM configuration that describes the same process as the DEM run: the DEM's
+    feed rates, each feeder's zone mapped onto the inlet compartments by overlap in y."""
+    zones = feed_zones(config.dem.geometry)
+    operation = config.dem.operation
+    return config.pbm.model_copy(update={
+        "feed_rate_a_per_s": operation.feed_rate_a_per_s,
+        "feed_rate_b_per_s": operation.feed_rate_b_per_s,
+        "feed_weights_a": inlet_weights(table.y_edges, zones["A"].ymin, zones["A"].ymax),
+        "feed_weights_b": inlet_weights(table.y_edges, zones["B"].ymin, zones["B"].ymax),
+        "rtd_pulse_s": rtd_pulse_s,
+    })

@@ -1,0 +1,124 @@
+"""Is the DEM's compartment motion Markovian? Rates fitted at longer lags, and what the PBM
+makes of them (``python -m workflows.studies.lag --run-dir runs/<key> [--preset reduced]``).
+
+A Markov chain fitted to moves one dump apart predicts the moves L dumps apart; a process
+with memory (a fast stream over the bed, particles that stay in a slow pocket) does not
+obey it, and rates fitted at a longer lag absorb more of the long-time behaviour (the
+"lag time" of Markov state models). For each lag L this counts every particle's
+compartment at dump n and at dump n + L (discharged in between: the outside state), fits
+the rates per window with :func:`dem.rates.fit_windows` at the interval L x dump interval
+(the cap kept at the same absolute rate as at lag 1, so that lags are comparable), and
+runs the PBM in measured-rate mode for the DEM's pooled-RTD window and horizon. Prints the
+pooled mean and variance against the DEM's and writes ``results/bench/lag.json``.
+
+Needs the run's dumps (a completed run directory): the shipped reference keeps only
+lag-1 counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+import dem.rates as rates_module
+from coupling.cache import try_load_entry
+from coupling.compartments import bin_particles
+from coupling.jsonable import write_json
+from dem.dumps import iter_snapshots
+from dem.post import DemResults
+from pbm.rtd import pooled_rtd
+from workflows.config import load_preset
+from workflows.pipeline.stages import pbm_config_for
+from workflows.shipped import REFERENCE_DIR
+
+OUT = Path("results/bench/lag.json")
+
+
+def snapshot_states(dump_glob: str, config) -> tuple[np.ndarray, np.ndarray]:
+    """(times (n,), states (n, max id + 1)): each particle's flat compartment per dump,
+    S = NX*NY past the weir, -1 absent."""
+    g, t = config.geometry, config.tables
+    n_cells = t.nx * t.ny
+    times, rows = [], []
+    for snap in iter_snapshots(dump_glob, columns=("id", "x", "y")):
+        ids = snap["id"].astype(np.int64)
+        x, y = snap["x"], snap["y"]
+        inside, cell = bin_particles(x, y, g.length_m, g.diameter_m, t.nx, t.ny)
+        state = np.full(ids.size, -1, np.int32)
+        state[inside] = cell
+        state[x > g.length_m] = n_cells
+        times.append(snap.time_s(config.timestep_s))
+        rows.append((ids, state))
+    top = max(int(ids.max()) for ids, _ in rows if ids.size) + 1
+    states = np.full((len(rows), top), -1, np.int16)
+    for n, (ids, state) in enumerate(rows):
+        states[n, ids] = state
+    return np.asarray(times), states
+
+
+def lag_counts(times, states, exit_t, lag: int, window_s: float, n_windows: int, n_cells: int) -> np.ndarray:
+    n_states = n_cells + 1
+    counts = np.zeros((n_windows, n_states * n_states), np.int64)
+    for n in range(len(times) - lag):
+        a, b = states[n], states[n + lag].astype(np.int64)
+        start = (a >= 0) & (a < n_cells)
+        gone = start & (b < 0) & (exit_t[: a.size] <= times[n + lag])
+        b = np.where(gone, n_cells, b)
+        use = start & (b >= 0)
+        k = min(int(times[n] // window_s), n_windows - 1)
+        counts[k] += np.bincount(a[use].astype(np.int64) * n_states + b[use], minlength=n_states * n_states)
+    return counts.reshape(n_windows, n_states, n_states)
+
+
+HELP = "the measured chain fitted at longer dump lags: is the missing dispersion the dump interval? (needs a run's dumps)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The command line's options of this study."""
+    parser.add_argument("--run-dir", required=True, help="completed run directory with its dumps/")
+    parser.add_argument("--preset", default="reduced")
+    parser.add_argument("--lags", default="1,2,5,10", help="lags in dump intervals")
+    parser.add_argument("--results", default=None, help="the run's DEM results file (default: the shipped one)")
+    parser.add_argument("--out", default=str(OUT))
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_preset(args.preset)
+    dem_config = config.dem
+    results_path = Path(args.results) if args.results else next(
+        p for p in sorted(REFERENCE_DIR.glob("dem-*.h5")) if (try_load_entry(p)[0] or None) is not None
+        and try_load_entry(p)[0].table.nx == dem_config.tables.nx)
+    entry, reason = try_load_entry(results_path)
+    if entry is None:
+        raise SystemExit(f"{results_path}: {reason}")
+    dem = DemResults.from_cache_entry(entry)
+    spec = dem.summary.pooled_rtd
+    records = dem.particles
+    times, states = snapshot_states(str(Path(args.run_dir) / "dumps" / "dump.*.txt"), dem_config)
+    exit_t = np.full(states.shape[1], np.inf)
+    exited = np.isfinite(records["exit_t_s"].to_numpy())
+    ids = records["id"].to_numpy()[exited]
+    exit_t[ids[ids < exit_t.size]] = records["exit_t_s"].to_numpy()[exited][ids < exit_t.size]
+    interval = float(np.median(np.diff(times)))
+    n_cells = dem_config.tables.nx * dem_config.tables.ny
+    cap_per_s = rates_module.MAX_RATE_X_INTERVAL / interval
+    pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=None).model_copy(update={"rates": "measured"})
+    out = {"dem_mean_s": spec["mean_residence_time_s"], "dem_variance_s2": spec["rtd_variance_s2"], "lags": {}}
+    print(f"DEM pooled RTD: mean {spec['mean_residence_time_s']['value']:.2f} s, variance "
+          f"{spec['rtd_variance_s2']['value']:.1f} s^2")
+    for lag in (int(v) for v in args.lags.split(",")):
+        counts = lag_counts(times, states, exit_t, lag, dem_config.tables.window_s, dem.table.n_windows, n_cells)
+        fits = rates_module.fit_windows(counts, dem_config.tables.nx, dem_config.tables.ny, lag * interval,
+                                        min_observations=dem.table.min_samples,
+                                        max_rate_x_interval=cap_per_s * lag * interval)  # the same absolute cap
+        table = dem.table.replace(**fits.rates)
+        pooled = pooled_rtd(table, pbm_config, entry_window=tuple(spec["entry_window_s"]),
+                            horizon_s=spec["horizon_s"])
+        out["lags"][lag] = {"interval_s": lag * interval, "mean_s": pooled.mean_s, "variance_s2": pooled.variance_s2,
+                            "capped": fits.capped}
+        print(f"  lag {lag:>3} ({lag * interval:.1f} s): PBM mean {pooled.mean_s:.2f} s, variance "
+              f"{pooled.variance_s2:.1f} s^2 ({fits.capped} rates at the cap)", flush=True)
+    write_json(args.out, out)
+    return 0
