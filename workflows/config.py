@@ -217,6 +217,8 @@ def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
         else:
             msg = err["msg"].removeprefix("Value error, ")
             problems.append(f"'{key}' = {err.get('input')!r}: {msg}")
+    if len(problems) == 1:  # one problem, one line (the CLI prints it as it is)
+        return f"invalid {source}: {problems[0]}"
     return f"invalid {source}:\n  " + "\n  ".join(problems)
 
 
