@@ -295,7 +295,7 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
     if counters.get("atoms") is not None and comparable:
         # the dumps' own particle number against the solver's: a dump that lists particles
         # twice or loses some disagrees here, whatever the bookkeeping by ID says
-        out["dump_particles_last"] = int(acc.last_ids.size)
+        out["dumps_particles_last"] = int(acc.last_ids.size)
         out["solver_atoms_diff"] = int(acc.last_ids.size) - int(counters["atoms"])
         if out["solver_atoms_diff"]:
             warnings.append(f"the last dump lists {acc.last_ids.size} particles, the solver's thermo {int(counters['atoms'])} "

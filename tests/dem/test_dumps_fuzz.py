@@ -199,10 +199,10 @@ def test_positions_outside_the_vessel_and_ids_after_discharge_are_counted(tmp_pa
     (tmp_path / "discharge_A.txt").write_text("# id time\n2 2.0\n")  # id 2 is in every dump, to 5 s
     res = postprocess(str(tmp_path / "dump.*.txt"), config(), massflow_dir=tmp_path,
                       solver_counters={"atoms": 3, "step": int(round(5.0 / config().timestep_s))})
-    s = res.summary
+    s = res.summary.record()  # the stored record: accounting keys and the new counts, by name
     assert s["positions_outside_vessel"] == 2  # id 3 at t = 0 and 0.5 s
     assert s["ids_seen_after_discharge"] == 1
-    assert s["solver_atoms_diff"] == -1 and s["dump_particles_last"] == 2
+    assert s["solver_atoms_diff"] == -1 and s["dumps_particles_last"] == 2
     text = " | ".join(s["warnings"])
     assert "2 particle-snapshots lie outside the vessel" in text
     assert "1 particles are still in the dumps after the time of their discharge record" in text

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from coupling.errors import DumpFormatError
+from dem.config import DemConfig, TablesConfig
 from dem.dumps import TruncatedDumpWarning, format_snapshot
 from dem.post import postprocess
 from tests.known_dumps import COLUMNS, DUMP_S, END_S, STEADY, D, L, R, config, write_synthetic
