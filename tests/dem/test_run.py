@@ -441,7 +441,7 @@ def test_killed_by_any_signal_then_rerun_and_resume(tmp_path, sig):
               "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)")
     with open(tmp_path / "child.err", "w") as err, subprocess.Popen(
             [sys.executable, "-c", script, str(tmp_path / "config.toml"), str(tmp_path / "runs")],
-            cwd=Path(__file__).resolve().parents[1], stderr=err) as child:
+            cwd=Path(__file__).resolve().parents[2], stderr=err) as child:
         from dem.run import _restart_files
 
         deadline, run_dir = time.monotonic() + 300, None
