@@ -274,7 +274,7 @@ def check_launcher(launcher: str) -> str:
     only the field ``{np}`` (no conversion or format spec), balanced braces (``{{``/``}}`` for
     literal ones), and a command line that shlex can split once filled in. Raises
     ValueError saying what is wrong and what is valid."""
-    valid = f"the only field is {{np}} (the number of MPI ranks), e.g. \"mpirun -np {{np}}\" or \"srun\""
+    valid = "the only field is {np} (the number of MPI ranks), e.g. \"mpirun -np {np}\" or \"srun\""
     try:
         parts = list(string.Formatter().parse(launcher))
     except ValueError as exc:

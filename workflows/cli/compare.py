@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from coupling.errors import ConfigError
+from pbm.resources import check_ensemble_memory
 from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline.stages import stderr_log
 
@@ -28,10 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from workflows.products.compare import full_comparison
 
-    if args.noise_members < 1:
-        raise ConfigError(f"--noise-members must be >= 1, got {args.noise_members}")
+    config = resolve_config(args.preset, args.config)
+    # the studies' ensembles: refused now, not after the DEM and the PBM
+    check_ensemble_memory(args.noise_members, config.dem.operation.duration_s, config.pbm.noise_interval_s,
+                          config.pbm.output_interval_s, config.dem.tables.nx)
     report = full_comparison(
-        resolve_config(args.preset, args.config), results_root=Path(args.results_dir), runs_root=Path(args.runs_dir),
+        config, results_root=Path(args.results_dir), runs_root=Path(args.runs_dir),
         np_ranks=args.np, fresh=args.fresh, resume=args.resume, noise_members=args.noise_members,
         paraview=not args.no_paraview, progress=not args.no_progress, log=stderr_log)
     print(f"report: {report}")

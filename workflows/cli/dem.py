@@ -19,8 +19,10 @@ import argparse
 import functools
 import math
 import sys
+from pathlib import Path
 
 from coupling.errors import ConfigError
+from coupling.files import refuse_output_over_inputs
 from dem.summary import DemSummary
 from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline.stages import stderr_log
@@ -83,9 +85,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     slurm.set_defaults(func=slurm_command)
 
 
+def refuse_config_overwrite(out: str, config_file: str | None, written: tuple[str, ...]) -> None:
+    """A run directory's files must not replace the configuration file they are made from
+    (``--out`` holding ``--config`` as ``config.toml``, say): refused before writing."""
+    for name in written:
+        refuse_output_over_inputs(Path(out) / name, [config_file], "--out", ConfigError)
+
+
+RUN_DIRECTORY_FILES = ("config.toml", "deck.json", "in.blender")
+
+
 def deck_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.stages import write_run_directory
 
+    refuse_config_overwrite(args.out, args.config, RUN_DIRECTORY_FILES)
     out, digest = write_run_directory(resolve_config(args.preset, args.config), args.out, args.resume_from,
                                       view_stl=args.view_stl, png=args.png)
     print(f"wrote {out / 'in.blender'} (deck hash {digest}); run: cd {out} && liggghts -in in.blender")
@@ -122,7 +135,8 @@ def run_command(args: argparse.Namespace) -> int:
 def post_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.stages import postprocess_dumps
 
-    results = postprocess_dumps(resolve_config(args.preset, args.config), args.dumps, args.out, args.massflow_dir)
+    results = postprocess_dumps(resolve_config(args.preset, args.config), args.dumps, args.out, args.massflow_dir,
+                                inputs=(args.config,))
     print_summary(results.summary)
     print(f"velocity table and DEM results: {args.out} ({results.summary.n_snapshots} snapshots)")
     return 0
@@ -131,6 +145,7 @@ def post_command(args: argparse.Namespace) -> int:
 def slurm_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.cluster import plan_cluster_run
 
+    refuse_config_overwrite(args.out, args.config, (*RUN_DIRECTORY_FILES, "job.slurm"))
     plan = plan_cluster_run(resolve_config(args.preset, args.config), args.out, args.np, args.partition,
                             holdup=args.holdup, throughput=args.throughput)
     est = plan.estimate

@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from coupling.errors import ConfigError
+from coupling.files import refuse_output_over_inputs
 from workflows.config import add_config_arguments
 
 HELP = "PBM stage: simulate CQAs from DEM velocity tables"
@@ -47,6 +49,7 @@ def run_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.stages import run_pbm
 
     config = Config() if args.preset is None and args.config is None else resolve_config(args.preset, args.config)
+    refuse_output_over_inputs(args.out, [args.config], "--out", ConfigError)
     runs = run_pbm(args.tables, config, args.out, rtd_pulse_s=args.rtd_pulse, method=args.method,
                    figures=not args.no_figures, rates=args.rates)
     for mode, (result, paths) in runs.items():

@@ -25,16 +25,20 @@ from typing import Any
 from coupling.cache import cache_path, load_entry, save_entry, stable_hash, try_load_entry
 from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
+from coupling.files import output_directory_path, refuse_output_over_inputs
 from coupling.tables import VelocityTable, read_table
 from dem.deck import DECK_INFO, MESH_DIR, build_deck, deck_hash, write_deck
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
+from dem.massflow import massflow_files
 from dem.post import DemResults, postprocess
-from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem
+from dem.resources import check_postprocess_resources
+from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem, solver_counters
 from dem.summary import DemSummary
 from pbm.config import PbmConfig
 from pbm.model import require_rates
 from pbm.outputs import write_outputs
+from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, config_from_dict, dump_toml, load_preset
 from workflows.shipped import REFERENCE_DIR
@@ -62,9 +66,7 @@ def writable_directory(path: str | Path, what: str) -> Path:
     """``path`` as a directory this process can write in, created if missing. Checked
     before any expensive work, so that a bad output path fails in a second, not after the
     solver; raises ConfigError naming the path and the problem."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise ConfigError(f"{what} {path} is a file, not a directory")
+    path = output_directory_path(path, what, ConfigError)  # loops and files in the way: one line
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=path):
@@ -149,7 +151,7 @@ def dem_stage(
     callback, which may stop the run early (:class:`workflows.analysis.convergence.ConvergenceWatch`);
     a stopped run's results are cached under a key of their own, never served as the
     complete run's."""
-    runs_root = writable_directory(Path(runs_root).resolve(), "runs directory")  # absolute: recorded in the cache
+    runs_root = writable_directory(runs_root, "runs directory").resolve()  # absolute: recorded in the cache
     cache_root = writable_directory(cache_root if cache_root is not None else runs_root / "cache", "cache directory")
     inputs = prepare_run(config.dem)
     post = post_hash(config)
@@ -160,6 +162,7 @@ def dem_stage(
                 log(f"DEM results for inputs {found.key} taken from the shipped reference data")
             return found
     if solver:
+        check_postprocess_resources(config.dem)  # before an hour of LIGGGHTS, not after
         on_line = None if watch is None else watch(runs_root / str(inputs.key))
         record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress,
                          on_line=on_line)
@@ -191,24 +194,30 @@ def dem_stage(
     return DemSide(results.table, results, provenance, path, "run")
 
 
-def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir: str | Path | None = None) -> DemResults:
+def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir: str | Path | None = None,
+                      inputs: tuple[str | Path | None, ...] = ()) -> DemResults:
     """Post-process existing dumps (glob ``dumps``) into a results file ``out`` (velocity
     table + DEM results, readable as a velocity table). The solver's discharge files are
-    looked for beside the dumps (one level up when they sit in the deck's ``dumps/``)."""
+    looked for beside the dumps (one level up when they sit in the deck's ``dumps/``), and
+    its own counters in the run directory, for the particle accounting. ``out`` naming a
+    dump, a discharge file or one of the other ``inputs`` (the configuration file) is
+    refused before anything is written."""
     out = Path(out)
     if out.is_dir():
         raise ConfigError(f"--out {out} is a directory; give a file name such as tables.h5")
-    writable_directory(out.parent, "the directory of --out")
     paths = dump_paths(dumps)
     run_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
-    _check_same_deck(config, run_dir)
     if massflow_dir is None:
         massflow_dir = run_dir
+    refuse_output_over_inputs(out, [*paths, *massflow_files(massflow_dir), *inputs], "--out", ConfigError)
+    writable_directory(out.parent, "the directory of --out")
+    _check_same_deck(config, run_dir)
     t0 = time.monotonic()
     key = stable_hash({"dumps": [str(p.resolve()) for p in paths], "config": config.to_dict()})
     attrs = {"input_hash": key, "preset": config.name, "config_toml": dump_toml(config), "created": _now(),
              "liggghts_version": "unknown (post-processed from existing dumps)"}
-    results = postprocess(paths, config.dem, config.steady_state, massflow_dir=massflow_dir, provenance=attrs)
+    results = postprocess(paths, config.dem, config.steady_state, massflow_dir=massflow_dir,
+                          solver_counters=solver_counters(run_dir) or None, provenance=attrs)
     provenance = {**attrs, "key": key, "dumps": str(dumps), "postprocess_time_s": time.monotonic() - t0}
     save_entry(out, results.to_cache_entry(provenance))
     return results
@@ -223,7 +232,9 @@ def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: fl
     Returns mode -> (result, files written)."""
     updates = {"method": method} if method is not None else {}
     modes = ("velocity", "measured") if rates == "both" else (rates or config.pbm.rates,)
+    refuse_output_over_inputs(out, [tables], "output directory", ConfigError)
     table = read_table(tables)
+    check_pbm_memory(table.nx, table.ny, table.n_windows)
     for mode in modes:  # refused before anything is written
         require_rates(table, mode)
     writable_directory(out, "output directory")

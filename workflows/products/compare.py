@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from coupling.errors import OutputError, os_reason
+from coupling.errors import OutputError, ResourceLimitError, os_reason
 from coupling.jsonable import write_json
 from pbm.config import PbmConfig
 from pbm.simulate import PbmResult
@@ -250,7 +250,7 @@ def grid_sensitivity(config: Config, dem: DemSide, pbm_config, modes, runs_root:
     fine = config_from_dict(data, source="the grid-sensitivity configuration")
     try:
         fine_dem = dem_stage(fine, runs_root, solver=False, progress=False, log=log)
-    except LookupError as exc:
+    except (LookupError, ResourceLimitError) as exc:  # a finer grid this machine cannot afford is no failure
         log(f"grid sensitivity skipped: {exc}")
         return None
     return nx_sensitivity(fine_dem.table, pbm_config, config.steady_state, dem.results.summary, modes)

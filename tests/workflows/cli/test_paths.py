@@ -110,3 +110,72 @@ def test_full_disk_and_read_only_directory_give_one_line(where, paths, small_mou
         lines = err.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("pbmdem: error:") and "Traceback" not in err, err
         assert str(target) in lines[0] and ("No space" in lines[0] or "Read-only" in lines[0]), lines[0]
+
+
+def _smoke_run_with_one_dump(tmp_path):
+    """A `dem deck` run directory of the smoke preset holding one dump past its first window,
+    and the preset's configuration as a file beside it."""
+    import numpy as np
+
+    from dem.dumps import format_snapshot
+    from workflows.config import dump_toml, load_preset
+
+    run_dir = tmp_path / "run"
+    assert main(["dem", "deck", "--preset", "smoke", "--out", str(run_dir)]) == 0
+    config = load_preset("smoke")
+    step = int(round(5.0 / config.dem.timestep_s))
+    columns = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+    rows = np.array([[1, 1, 0.01, 0.01, 0, 0.1, 0, 0, 0.003], [2, 2, 0.2, -0.01, 0, 0.1, 0, 0, 0.003]])
+    dump = run_dir / "dumps" / f"dump.{step}.txt"
+    dump.write_bytes(format_snapshot(step, columns, rows))
+    config_file = tmp_path / "smoke.toml"
+    config_file.write_text(dump_toml(config))
+    return run_dir, dump, config_file
+
+
+@pytest.mark.parametrize("target", ["config", "dump", "dump via a symlink"])
+def test_no_output_over_an_input(tmp_path, capsys, target):
+    run_dir, dump, config_file = _smoke_run_with_one_dump(tmp_path)
+    victim = {"config": config_file, "dump": dump, "dump via a symlink": tmp_path / "link.h5"}[target]
+    if target == "dump via a symlink":
+        victim.symlink_to(dump)
+    before = (dump if target != "config" else config_file).read_bytes()
+    capsys.readouterr()
+    code = main(["dem", "post", "--config", str(config_file), "--dumps", str(run_dir / "dumps" / "dump.*.txt"),
+                 "--out", str(victim)])
+    err = capsys.readouterr().err
+    assert code == 2 and "one of this command's inputs" in err and len(err.strip().splitlines()) == 1, err
+    assert (dump if target != "config" else config_file).read_bytes() == before
+
+
+def test_a_run_directory_never_replaces_its_configuration(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    config_file = out / "config.toml"
+    config_file.write_text('name = "mine"\n[dem.run]\nnp = 1\n')
+    before = config_file.read_text()
+    for argv in (["dem", "deck", "--config", str(config_file), "--out", str(out)],
+                 ["dem", "slurm", "--config", str(config_file), "--out", str(out), "--holdup", "1000",
+                  "--throughput", "1e6"]):
+        capsys.readouterr()
+        assert main(argv) == 2
+        assert "one of this command's inputs" in capsys.readouterr().err
+        assert config_file.read_text() == before
+
+
+def test_a_runs_directory_that_is_a_symlink_loop_is_one_line(tmp_path, capsys):
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    capsys.readouterr()
+    assert main(["dem", "run", "--preset", "smoke", "--runs-dir", str(loop), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "symlink loop" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_too_many_noise_members_are_refused_before_the_dem(tmp_path, capsys):
+    capsys.readouterr()
+    assert main(["compare", "--preset", "smoke", "--noise-members", "100000000", "--runs-dir", str(tmp_path / "runs"),
+                 "--results-dir", str(tmp_path / "results"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "members" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "runs").exists()  # nothing started
