@@ -33,6 +33,8 @@ ID_HEADROOM, ID_FACTOR = 1_000_000, 10
 MAX_SAMPLING_INTERVALS = 100_000
 #: Rows of a window's sums: the four velocity parts, particle-snapshots, A and B counts.
 SUM_ROWS = (*VELOCITY_NAMES, "n_samples", "count_A", "count_B")
+#: the rows of the component counts in a snapshot's sums
+COMPONENT_ROWS = slice(SUM_ROWS.index("count_A"), SUM_ROWS.index("count_B") + 1)
 #: How a particle's exit was found (:func:`find_exits`).
 EXIT_NONE, EXIT_PAST_WEIR, EXIT_MASSFLOW, EXIT_VANISHED = 0, 1, 2, 3
 
@@ -123,6 +125,23 @@ class Accumulation:
     last_step: int
     reappeared: int
     other_types: set[int]
+
+
+def snapshot_sums(cell: np.ndarray, vx: np.ndarray, vy: np.ndarray, is_a: np.ndarray, is_b: np.ndarray,
+                  ncell: int) -> np.ndarray:
+    """One snapshot's sums per compartment, rows in :data:`SUM_ROWS` order: the velocity
+    parts max(+-v, 0) [m/s] of every particle inside (``cell``: its compartment), the
+    number of particles, and of A and of B. Their window means are the velocity table."""
+    rows = {
+        "vx_pos": np.bincount(cell, np.maximum(vx, 0), ncell),
+        "vx_neg": np.bincount(cell, np.maximum(-vx, 0), ncell),
+        "vy_pos": np.bincount(cell, np.maximum(vy, 0), ncell),
+        "vy_neg": np.bincount(cell, np.maximum(-vy, 0), ncell),
+        "n_samples": np.bincount(cell, minlength=ncell),
+        "count_A": np.bincount(cell[is_a], minlength=ncell),
+        "count_B": np.bincount(cell[is_b], minlength=ncell),
+    }
+    return np.stack([rows[name].astype(float) for name in SUM_ROWS])
 
 
 def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int]) -> Accumulation:
@@ -216,23 +235,14 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
         log.last_snapshot[ids] = len(times)
         log.last_cell[ids[inside]] = cell
         prev_t, prev_k = t, k
-        vxi, vyi = vx[inside], vy[inside]
-        a_in, b_in = is_a[inside], is_b[inside]
-        sums = np.empty((len(SUM_ROWS), ncell))
-        sums[0] = np.bincount(cell, np.maximum(vxi, 0), ncell)
-        sums[1] = np.bincount(cell, np.maximum(-vxi, 0), ncell)
-        sums[2] = np.bincount(cell, np.maximum(vyi, 0), ncell)
-        sums[3] = np.bincount(cell, np.maximum(-vyi, 0), ncell)
-        sums[4] = np.bincount(cell, minlength=ncell)
-        sums[5] = np.bincount(cell[a_in], minlength=ncell)
-        sums[6] = np.bincount(cell[b_in], minlength=ncell)
+        sums = snapshot_sums(cell, vx[inside], vy[inside], is_a[inside], is_b[inside], ncell)
         if k in window_sums:
             window_sums[k] += sums
             window_snapshots[k] += 1
         else:
             window_sums[k], window_snapshots[k] = sums, 1
         times.append(t)
-        counts.append(sums[5:7].reshape(2, nx, ny).copy())  # the window sums grow in place
+        counts.append(sums[COMPONENT_ROWS].reshape(2, nx, ny).copy())  # the window sums grow in place
     if not times:
         raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
     return Accumulation(log, window_sums, transitions, interval, irregular, window_snapshots, np.asarray(times),
