@@ -66,10 +66,14 @@ from dem.config import DemConfig
 from dem.massflow import massflow_files
 from dem.rates import fit_windows
 from dem.steady import pooled_rtd, steady_quantities
-from dem.tracking import (EXIT_MASSFLOW, EXIT_PAST_WEIR, EXIT_VANISHED, SUM_ROWS, Accumulation, Exits, accumulate,
-                          find_exits, transition_counts)
+from dem.tracking import (EXIT_MASSFLOW, EXIT_PAST_WEIR, EXIT_VANISHED, SUM_ROWS, Accumulation,
+                          CompartmentSequences, Exits, accumulate, compartment_sequences, find_exits,
+                          transition_counts)
 
 __all__ = ["DemResults", "postprocess"]
+
+#: names of the compartment sequences' arrays in a results file start with this
+SEQUENCE_PREFIX = "sequences_"
 
 
 
@@ -89,6 +93,9 @@ class DemResults:
     * ``transitions``: (K, S+1, S+1) particle moves between consecutive dumps
       (:func:`dem.tracking.transition_counts`), what the measured rates were fitted to.
     * ``summary``: scalars (see :func:`postprocess`).
+    * ``sequences``: every particle's compartment at every dump, run-length encoded
+      (:class:`dem.tracking.CompartmentSequences`), what the hidden-phase model is fitted
+      to (:mod:`dem.phases`); None in results made before they were recorded.
     """
 
     table: VelocityTable
@@ -101,17 +108,22 @@ class DemResults:
     particles: pd.DataFrame
     transitions: np.ndarray
     summary: dict[str, Any] = field(default_factory=dict)
+    sequences: CompartmentSequences | None = None
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
         arrays = {"rsd_by_slice": self.rsd_by_slice, "rsd_by_slice_floor": self.rsd_by_slice_floor,
                   "residence_times_s": self.residence_times_s, "transitions": self.transitions}
+        if self.sequences is not None:
+            arrays.update(self.sequences.to_arrays(SEQUENCE_PREFIX))
         return CacheEntry(self.table, self.summary, frames, arrays, provenance)
 
     @classmethod
     def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
-        return cls(table=entry.table, summary=entry.summary, **entry.frames,
-                   **{name: np.asarray(values) for name, values in entry.arrays.items()})
+        arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
+        sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
+        plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
+        return cls(table=entry.table, summary=entry.summary, **entry.frames, **plain, sequences=sequences)
 
 
 # ----------------------------------------------------------------------------- 2. table
@@ -343,10 +355,12 @@ def postprocess(
     types_a = tuple(types_a if types_a is not None else (deck.ATOM_TYPES["A"],))
     types_b = tuple(types_b if types_b is not None else (deck.ATOM_TYPES["B"],))
     tol = 0.5 * float(config.timestep_s)
-    acc = accumulate(dump_paths, config, types_a, types_b)
+    acc = accumulate(dump_paths, config, types_a, types_b, record_sequences=True)
     table = velocity_table(acc, config, dict(provenance or {}))
     exits = find_exits(acc, config, massflow_files(massflow_dir))
     table, transitions = measured_rates(acc, exits, table)
+    sequences = compartment_sequences(acc, exits, table.nx, table.ny)
+    acc.visits.clear()  # the per-dump states now live, encoded, in ``sequences``
     records = particle_records(acc, exits)
     timeseries = cqa_timeseries(acc, exits, config)
     steady_time = steady.time(timeseries["t_s"], timeseries["holdup_A"] + timeseries["holdup_B"])
@@ -410,4 +424,4 @@ def postprocess(
     return DemResults(table=table, timeseries=timeseries, holdup=holdup,
                       rsd_by_slice=rsd(last_a, last_b, axis=1), rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
                       rtd=rtd, residence_times_s=residence, particles=records, transitions=transitions,
-                      summary=summary)
+                      summary=summary, sequences=sequences)
