@@ -94,7 +94,7 @@ def validate(model: PhaseTransport) -> None:
     for name, values in (("phase rates", rates), ("phase switching", switching), ("entry-phase distribution", entry)):
         bad = ~np.isfinite(values) | (values < 0)
         if bad.any():
-            raise TableError(f"{name} hold {values[bad][0]!r} at index {tuple(int(v) for v in np.argwhere(bad)[0])}; "
+            raise TableError(f"{name} hold {float(values[bad][0])!r} at index {tuple(int(v) for v in np.argwhere(bad)[0])}; "
                              "expected finite values >= 0")
     sums = entry.sum(axis=1)
     if np.any(np.abs(sums - 1.0) > 1e-6):

@@ -348,8 +348,10 @@ class CkTest:
     slice j then (j = NX: discharged), ``predicted[n, i, j]`` the model's probability,
     starting from the data's compartments in slice i with the model's steady phase
     distribution in each; ``standard_error`` of the observed fractions (particles as
-    clusters: a particle's start points are not independent); ``z`` = |predicted -
-    observed| / standard error (the standard error floored at one start point's weight).
+    clusters: a particle's start points are not independent); ``particles``: how many
+    particles the start points of (lag, slice) come from; ``z`` = |predicted - observed| /
+    the standard error, floored at the binomial one of the predicted probability over those
+    particles (a cluster estimate is 0 for an outcome never observed, however unlikely).
     ``passed``: max z <= ``z_limit`` over the entries with at least ``min_starts`` starts.
     """
 
@@ -358,11 +360,14 @@ class CkTest:
     predicted: np.ndarray
     standard_error: np.ndarray
     starts: np.ndarray
+    particles: np.ndarray
     z_limit: float
 
     @property
     def z(self) -> np.ndarray:
-        floor = 1.0 / np.maximum(self.starts, 1)[:, :, None]
+        p = np.clip(self.predicted, 0.0, 1.0)
+        floor = np.sqrt(p * (1 - p) / np.maximum(self.particles, 1)[:, :, None])
+        floor = np.maximum(floor, 1.0 / np.maximum(self.starts, 1)[:, :, None])
         return np.abs(self.predicted - self.observed) / np.maximum(self.standard_error, floor)
 
     def max_z(self, min_starts: int = 200) -> float:
@@ -492,6 +497,7 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
     predicted = np.zeros_like(observed)
     error = np.zeros_like(observed)
     starts = np.zeros((n_lags, nx))
+    particles = np.zeros((n_lags, nx))
     for n, lag in enumerate(lags):
         p = expm(q * lag * data.interval_s)
         aggregate = np.zeros((s * k + 1, nx + 1))
@@ -520,11 +526,13 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
             hits = np.zeros((obs.shape[0], nx + 1))
             np.add.at(hits, (rows[in_i], end_slice[in_i]), 1.0)
             per_particle = np.bincount(rows[in_i], minlength=obs.shape[0]).astype(float)
+            particles[n, i] = np.count_nonzero(per_particle)
             fraction = hits.sum(axis=0) / total
             observed[n, i] = fraction
             residual = hits - per_particle[:, None] * fraction[None, :]
             error[n, i] = np.sqrt((residual**2).sum(axis=0)) / total
-    return CkTest(np.asarray(lags, float) * data.interval_s, observed, predicted, error, starts, float(z_limit))
+    return CkTest(np.asarray(lags, float) * data.interval_s, observed, predicted, error, starts, particles,
+                  float(z_limit))
 
 
 # ----------------------------------------------------------------------------- the fit

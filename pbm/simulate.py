@@ -237,7 +237,8 @@ def simulate(
     fed = np.stack([cumulative_feed(out_times, rates[s], factors[:, s], config.noise_interval_s) for s in (0, 1)], 1)
     holdup = counts.sum(axis=(2, 3))
     rsd_outlet = rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1)
-    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, n), counts[:, 1].reshape(out_times.size, n), axis=1)
+    cells = table.nx * table.ny
+    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, cells), counts[:, 1].reshape(out_times.size, cells), axis=1)
     rsd_slices = rsd(counts[-1, 0], counts[-1, 1], axis=1)
 
     # Steady-state means: exact, from the discharge accumulated over the span.
