@@ -25,10 +25,22 @@ the posterior entry phase. M-step: the entry distribution is the mean posterior 
 phase per feeder; Q maximises sum_ab C_ab log P_ab(Q), which is exactly the likelihood of
 a discretely observed chain that :func:`dem.rates.fit_pattern` maximises (L-BFGS with the
 exact gradient through expm's Frechet derivative, the same cap of 2 / Delta), here on the
-(compartment, phase) states, warm-started from the previous iteration. A few L-BFGS
-iterations per M-step suffice (a generalised EM: each M-step only has to increase the
-objective), so the fit alternates cheap E-steps and partial M-steps until the
-log-likelihood gains less than ``tol`` per particle-step.
+(compartment, phase) states, warm-started from the previous iteration. It need not be
+maximised: a generalised EM only has to increase it at each M-step. The default M-step
+(``m_step="em"``) makes a few updates of the classic EM of a discretely observed
+continuous-time chain instead: each rate becomes the expected number of its jumps over the
+expected time spent in its source state, both read off the same Frechet derivative that
+gives dem.rates its gradient (:func:`_ctmc_em_steps`), one derivative per update. On the
+validation run's first 20 s (10 x 10, K = 2, 1.4e5 particle-steps) it reached the
+L-BFGS M-step's log-likelihood (20 L-BFGS iterations per M-step) in half the EM
+iterations and a tenth of the time per iteration (0.86 s against ~4.7 s); on 10 x 1 both
+end at the same likelihood in 32 iterations, 6 s against 26 s. The fit stops when the
+log-likelihood gains less than ``tol`` nats per particle-step.
+
+Cost: the forward-backward is a loop over particles and dumps with K^2 work per step.
+Vectorised over particles with numpy it took 1.0 s for 3.1e5 particle-steps (K = 2);
+compiled with numba (:func:`_fb_kernel_python`, identical to 1e-10) 0.04 s, so numba pays
+25x and the E-step is no longer the cost: the matrix exponentials of the M-step are.
 
 Continuous time, not a discrete chain at the dump interval. A discrete (S*K)^2 transition
 matrix has a closed-form M-step, but the PBM needs a generator, and the logarithm of a
@@ -576,8 +588,35 @@ def _ordered(model: PhaseTransport, occupancy: np.ndarray) -> tuple[PhaseTranspo
                            model.interval_s, model.attrs), occupancy[order])
 
 
-def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float, m_step_iterations: int
-        ) -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
+def _ctmc_em_steps(counts: np.ndarray, moves: dict, start: dict[str, np.ndarray], interval_s: float,
+                   steps: int) -> np.ndarray:
+    """``steps`` EM updates of the rates of a chain observed at ``counts`` (expected
+    transitions per interval): each move's rate becomes its expected number of jumps over
+    the expected time spent in its source state, both read off the gradient of
+    :func:`dem.rates.log_likelihood` (for a move i -> j, rate * dL/dQ_ij is the expected
+    number of jumps and dL/dQ_ii the expected time in i, given the endpoints of every
+    interval). One Frechet derivative per update, against tens of evaluations for L-BFGS;
+    every update increases the likelihood. Capped at 2 / interval like the L-BFGS fit."""
+    src = np.concatenate([t[0] for t in moves.values()])
+    dst = np.concatenate([t[1] for t in moves.values()])
+    rates = np.concatenate([np.asarray(start[key], dtype=float) for key in moves])
+    # EM never moves a rate off 0: start every move slightly off it
+    rates = np.maximum(rates, 1e-4 / interval_s)
+    cap = rate_fit.MAX_RATE_X_INTERVAL / interval_s
+    n = counts.shape[0]
+    for _ in range(steps):
+        q = np.zeros((n, n))
+        q[src, dst] = rates
+        q[np.arange(n), np.arange(n)] = -q.sum(axis=1)
+        _value, d_q = rate_fit.log_likelihood(q, counts, interval_s)
+        dwell = d_q[src, src]
+        jumps = rates * d_q[src, dst]
+        rates = np.where(dwell > 0, np.minimum(jumps / np.maximum(dwell, 1e-300), cap), rates)
+    return rates
+
+
+def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float, m_step_iterations: int,
+        m_step: str = "em") -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
     """EM from ``model`` (module docstring); returns the model, its log-likelihood, the
     iterations, whether it converged and the expected time per (compartment, phase)."""
     nx, ny, k, interval = data.nx, data.ny, model.n_phases, data.interval_s
@@ -600,7 +639,10 @@ def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float,
         entry[missing] = model.entry[missing]
         counts = expected.counts.copy()
         counts[-1] = 0.0
-        values, _fit = rate_fit.fit_pattern(counts, moves, _move_rates(model), interval, m_step_iterations)
+        if m_step == "lbfgs":
+            values, _fit = rate_fit.fit_pattern(counts, moves, _move_rates(model), interval, m_step_iterations)
+        else:
+            values = _ctmc_em_steps(counts, moves, _move_rates(model), interval, m_step_iterations)
         split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
         per_move = dict(zip(moves, np.split(values, split)))
         model = phase_model.from_move_rates(per_move, nx, ny, k, entry, interval, model.attrs)
@@ -610,7 +652,8 @@ def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float,
 
 @single_threaded_blas()
 def fit(data: PhaseData, n_phases: int, starts: int = 3, seed: int = 0, max_iterations: int = 200,
-        tol: float = 1e-6, m_step_iterations: int = 20, base: PhaseTransport | None = None) -> PhaseFit:
+        tol: float = 1e-6, m_step_iterations: int = 20, base: PhaseTransport | None = None,
+        m_step: str = "em") -> PhaseFit:
     """Fit the K = ``n_phases`` chain to ``data`` by EM from ``starts`` starts (module
     docstring); stop when the log-likelihood gains less than ``tol`` nats per
     particle-step, or after ``max_iterations``. ``base``: the one-phase fit to start from
@@ -627,7 +670,7 @@ def fit(data: PhaseData, n_phases: int, starts: int = 3, seed: int = 0, max_iter
     results = []
     for start in range(starts if n_phases > 1 else 1):
         first = _initial(base, n_phases, None if start == 0 else rng)
-        results.append(_em(first, data, max_iterations, tol, m_step_iterations))
+        results.append(_em(first, data, max_iterations, tol, m_step_iterations, m_step))
     best = max(results, key=lambda r: r[1])
     model, log_likelihood, iterations, converged, dwell = best
     occupancy = dwell.reshape(data.nx, data.ny, n_phases).transpose(2, 0, 1)
