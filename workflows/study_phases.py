@@ -1,0 +1,245 @@
+"""Transport with memory, measured: hidden-phase chains fitted to a DEM run's compartment
+sequences, and the PBM built on each, against the DEM's RTD and hold-up.
+
+``run(results, ...)`` returns a :class:`PhaseStudy`; :func:`markdown` renders it. Needs DEM
+results made with the compartment sequences (``pbmdem dem post`` or ``dem run`` from this
+version on; the sequences are stored in the results file, so no dumps are needed).
+
+For every grid (NX x NY, a coarsening of the run's) and number of phases K:
+
+1. fit on every particle first seen after the steady-state time (:func:`dem.phases.fit`);
+2. held out: fit on those first seen in the first half of that period, score the second
+   half (log-likelihood per particle-step: higher is better; comparable across K on the
+   same grid only);
+3. Chapman-Kolmogorov test of the full fit at 1, 2, 5 and 10 s (:class:`dem.phases.CkTest`);
+4. the PBM in mode "phases" on a table carrying the model, fed like the DEM
+   (:func:`workflows.pipeline.pbm_config_for`): the pooled RTD over the DEM's entry window
+   and horizon (:func:`pbm.rtd.pooled_rtd`) and the steady hold-up per axial slice
+   (:func:`pbm.simulate.simulate`), against the DEM's values and 95 % intervals.
+
+The DEM's targets come from a results summary (``target``, default the run's own): a
+fresh run too short for its own pooled RTD is judged against a complete run of the same
+deck.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coupling.cache import try_load_entry
+from coupling.tables import make_table
+from dem import phases
+from dem.post import DemResults
+from pbm.rtd import pooled_rtd
+from pbm.simulate import simulate
+from workflows.config import Config
+from workflows.pipeline import config_of, pbm_config_for
+
+
+@dataclass(frozen=True)
+class Interval:
+    value: float
+    low: float
+    high: float
+
+    def inside(self, x: float) -> bool:
+        return bool(self.low <= x <= self.high)
+
+
+@dataclass(frozen=True)
+class DemTarget:
+    """The DEM's pooled RTD (mean [s], variance [s^2]), its entry window and horizon [s],
+    the steady hold-up per axial slice and in total [particles], each with its 95 %
+    interval; ``source`` says which results they come from."""
+
+    mean_s: Interval
+    variance_s2: Interval
+    entry_window_s: tuple[float, float]
+    horizon_s: float
+    holdup_by_slice: tuple[Interval, ...]
+    holdup: Interval
+    steady_time_s: float
+    source: str
+
+
+def _interval(d: dict) -> Interval:
+    return Interval(float(d["value"]), float(d["low"]), float(d["high"]))
+
+
+def dem_target(summary: dict[str, Any], source: str) -> DemTarget:
+    """:class:`DemTarget` from a DEM results summary (raises KeyError without a pooled RTD)."""
+    pooled, steady = summary["pooled_rtd"], summary["steady"]
+    by_slice = steady["holdup_by_slice"]
+    return DemTarget(
+        mean_s=_interval(pooled["mean_residence_time_s"]), variance_s2=_interval(pooled["rtd_variance_s2"]),
+        entry_window_s=tuple(float(v) for v in pooled["entry_window_s"]), horizon_s=float(pooled["horizon_s"]),
+        holdup_by_slice=tuple(Interval(v, lo, hi) for v, lo, hi in zip(by_slice["value"], by_slice["low"],
+                                                                       by_slice["high"])),
+        holdup=_interval(steady["holdup"]), steady_time_s=float(summary["steady_state_time_s"]), source=source)
+
+
+@dataclass(frozen=True)
+class ModelResult:
+    """One (grid, K): the fit, its held-out score, its CK test and its PBM's numbers.
+
+    ``slice_error``: PBM / DEM - 1 per axial slice; ``timescales_s``: the three longest
+    implied timescales; ``start_spread``: best minus worst final log-likelihood over the
+    starts [nats]; ``entry``: entry-phase distribution (rows A, B), phases slowest first."""
+
+    grid: tuple[int, int]
+    n_phases: int
+    n_parameters: int
+    log_likelihood_per_step: float
+    held_out_per_step: float
+    ck_max_z: float
+    ck_max_abs_error: float
+    ck_passed: bool
+    mean_s: float
+    variance_s2: float
+    recovered_fraction: float
+    holdup: float
+    slice_error: tuple[float, ...]
+    timescales_s: tuple[float, ...]
+    fit_wall_s: float
+    iterations: int
+    converged: bool
+    start_spread: float
+    entry: tuple[tuple[float, ...], ...]
+
+    def worst_slice_error(self) -> float:
+        return float(max(self.slice_error, key=abs))
+
+
+@dataclass(frozen=True)
+class PhaseStudy:
+    target: DemTarget
+    results: tuple[ModelResult, ...]
+    fit_window_s: tuple[float, float]
+    n_particles: int
+    n_steps: int
+    dem_wall_time_s: float
+
+
+def phase_table(model, length_m: float, diameter_m: float, t_end_s: float, window_s: float = 5.0):
+    """A time-invariant table on the model's grid that carries only the phase model (its
+    velocities are never read in mode "phases")."""
+    return make_table(np.arange(0.0, t_end_s, window_s), np.linspace(0.0, length_m, model.nx + 1),
+                      np.linspace(-diameter_m / 2, diameter_m / 2, model.ny + 1), 0.0, 0.0, 0.0, 0.0,
+                      window_s=window_s).replace(phases=model)
+
+
+def pbm_numbers(model, config: Config, target: DemTarget) -> dict[str, Any]:
+    """The PBM (mode "phases") on ``model``: pooled RTD over the target's entry window and
+    horizon, steady hold-up per slice (mean after the target's steady time)."""
+    g = config.dem.geometry
+    t_end = target.entry_window_s[1] + target.horizon_s + 5.0
+    table = phase_table(model, float(g.length_m), float(g.diameter_m), t_end)
+    pbm_config = pbm_config_for(config, table, None).model_copy(update={"rates": "phases", "duration_s": t_end})
+    rtd = pooled_rtd(table, pbm_config, target.entry_window_s, target.horizon_s)
+    result = simulate(table, pbm_config)
+    steady = result.times > target.steady_time_s
+    by_slice = result.counts[steady].sum(axis=(1, 3)).mean(axis=0)
+    return {"mean_s": rtd.mean_s, "variance_s2": rtd.variance_s2, "recovered_fraction": rtd.recovered_fraction,
+            "by_slice": by_slice, "holdup": float(by_slice.sum())}
+
+
+def evaluate(sequences, config: Config, target: DemTarget, grid: tuple[int, int], k: int, fit_window, starts: int,
+             max_iterations: int, seed: int = 0) -> ModelResult:
+    """One row of the study (module docstring)."""
+    t0, t1 = fit_window
+    data = phases.prepare(sequences, (t0, t1), grid)
+    wall0 = time.perf_counter()
+    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations)
+    wall = time.perf_counter() - wall0
+    middle = 0.5 * (t0 + t1)
+    train, test = phases.prepare(sequences, (t0, middle), grid), phases.prepare(sequences, (middle, t1), grid)
+    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations)
+    ck = fit.chapman_kolmogorov(data)
+    pbm = pbm_numbers(fit.transport, config, target)
+    # slice hold-ups: the DEM's are on 10 slices; a coarser or finer PBM grid is compared
+    # after summing onto the coarser of the two
+    dem_slices = np.array([s.value for s in target.holdup_by_slice])
+    pbm_slices = pbm["by_slice"]
+    n = min(dem_slices.size, pbm_slices.size)
+    dem_c = dem_slices.reshape(n, -1).sum(axis=1)
+    pbm_c = pbm_slices.reshape(n, -1).sum(axis=1)
+    lls = fit.start_log_likelihoods
+    return ModelResult(
+        grid=grid, n_phases=k, n_parameters=fit.n_parameters(),
+        log_likelihood_per_step=fit.log_likelihood / data.n_steps,
+        held_out_per_step=held.score(test) / test.n_steps,
+        ck_max_z=ck.max_z(), ck_max_abs_error=ck.max_abs_error(), ck_passed=ck.passed,
+        mean_s=pbm["mean_s"], variance_s2=pbm["variance_s2"], recovered_fraction=pbm["recovered_fraction"],
+        holdup=pbm["holdup"], slice_error=tuple(float(v) for v in pbm_c / dem_c - 1.0),
+        timescales_s=tuple(float(v) for v in fit.implied_timescales(3)), fit_wall_s=wall,
+        iterations=fit.iterations, converged=fit.converged, start_spread=float(max(lls) - min(lls)),
+        entry=tuple(tuple(float(v) for v in row) for row in fit.entry_distribution()))
+
+
+def run(results: str | Path, target: str | Path | None = None, grids=((10, 10), (10, 1)), ks=(1, 2, 3),
+        starts: int = 3, max_iterations: int = 200, fit_window_s: tuple[float, float] | None = None,
+        target_override: DemTarget | None = None, log=print) -> PhaseStudy:
+    """The study on the DEM results file ``results`` (with sequences), judged against the
+    DEM results ``target`` (default the same file) or ``target_override``. The fit window
+    defaults to (the target's steady-state time, the last dump]."""
+    entry, reason = try_load_entry(Path(results))
+    if entry is None:
+        raise ValueError(f"results {results}: {reason}")
+    dem = DemResults.from_cache_entry(entry)
+    if dem.sequences is None:
+        raise ValueError(f"results {results} hold no compartment sequences: post-process the run's dumps again "
+                         "with this version (pbmdem dem post)")
+    config = config_of(entry)
+    if target_override is None:
+        target_entry = entry if target is None else try_load_entry(Path(target))[0]
+        goal = dem_target(target_entry.summary, str(target or results))
+    else:
+        goal = target_override
+    seq = dem.sequences
+    window = fit_window_s or (goal.steady_time_s, float(seq.snapshot_t[-1]))
+    data = phases.prepare(seq, window)
+    out = []
+    for grid in grids:
+        for k in ks:
+            row = evaluate(seq, config, goal, tuple(grid), k, window, starts, max_iterations)
+            log(f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
+                f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
+                f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s")
+            out.append(row)
+    return PhaseStudy(goal, tuple(out), tuple(window), data.n_particles, data.n_steps,
+                      float(entry.provenance.get("wall_time_s", float("nan"))))
+
+
+def markdown(study: PhaseStudy) -> str:
+    """The study as a markdown table (✓ inside the DEM's 95 % interval)."""
+    g = study.target
+
+    def mark(ok: bool) -> str:
+        return "✓" if ok else "✗"
+
+    lines = [f"DEM ({g.source}): mean {g.mean_s.value:.2f} s [{g.mean_s.low:.2f}, {g.mean_s.high:.2f}], variance "
+             f"{g.variance_s2.value:.0f} s² [{g.variance_s2.low:.0f}, {g.variance_s2.high:.0f}], hold-up "
+             f"{g.holdup.value:.0f} [{g.holdup.low:.0f}, {g.holdup.high:.0f}]; fit window {study.fit_window_s[0]:.1f}-"
+             f"{study.fit_window_s[1]:.1f} s, {study.n_particles} particles, {study.n_steps} particle-steps",
+             "",
+             "| grid | K | mean [s] | variance [s²] | hold-up | worst slice | held-out ll/step | CK max z | fit [s] |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in study.results:
+        lines.append(f"| {r.grid[0]}×{r.grid[1]} | {r.n_phases} | {r.mean_s:.2f} {mark(g.mean_s.inside(r.mean_s))} | "
+                     f"{r.variance_s2:.0f} {mark(g.variance_s2.inside(r.variance_s2))} | "
+                     f"{r.holdup:.0f} {mark(g.holdup.inside(r.holdup))} | {r.worst_slice_error():+.1%} | "
+                     f"{r.held_out_per_step:.4f} | {r.ck_max_z:.1f} {mark(r.ck_passed)} | {r.fit_wall_s:.0f} |")
+    return "\n".join(lines)
+
+
+def write_json(study: PhaseStudy, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(asdict(study), indent=1, default=float))
+    return path
