@@ -759,3 +759,68 @@ def sequences_from_padded(obs: np.ndarray, start: np.ndarray, component: np.ndar
                                 run_state=state[starts].astype(np.int16),
                                 run_length=np.diff(np.append(starts, rows.size)).astype(np.int32),
                                 snapshot_t=np.asarray(snapshot_t, float), interval_s=float(interval_s), nx=nx, ny=ny)
+
+
+# ----------------------------------------------------------------------------- discrete time
+@dataclass(frozen=True)
+class DiscretePhaseFit:
+    """The alternative to a generator: a transition matrix over one dump interval on the
+    (compartment, phase) states, every compartment move seen in the data allowed between
+    every pair of phases. ``transition`` (S*K+1, S*K+1), row = from, last state discharged;
+    ``entry`` (2, K); ``log_likelihood`` [nats]; ``n_parameters`` free entries."""
+
+    transition: np.ndarray
+    entry: np.ndarray
+    log_likelihood: float
+    n_parameters: int
+    iterations: int
+    interval_s: float
+
+
+@single_threaded_blas()
+def fit_discrete(data: PhaseData, n_phases: int, start: PhaseTransport, max_iterations: int = 200,
+                 tol: float = 1e-6) -> DiscretePhaseFit:
+    """Baum-Welch of the discrete-time chain at the dump interval (closed-form M-step:
+    expected transitions over their row sums), started from ``start``'s expm(Q interval)
+    restricted to the allowed entries."""
+    k, s = n_phases, data.n_cells
+    m = s * k + 1
+    seen = data.counts() > 0  # (S+1, S+1) compartment moves observed at all
+    allowed = np.zeros((m, m), bool)
+    allowed[: s * k, : s * k] = np.kron(seen[:s, :s], np.ones((k, k), bool))
+    allowed[: s * k, s * k] = np.repeat(seen[:s, s], k)
+    allowed[-1, -1] = True
+    t_matrix = np.where(allowed, expm(start.generator() * data.interval_s), 0.0)
+    t_matrix /= t_matrix.sum(axis=1, keepdims=True)
+    entry = start.entry.copy()
+    previous, iteration = -math.inf, 0
+    for iteration in range(1, max_iterations + 1):
+        expected = forward_backward(t_matrix, entry, data, k)
+        if (expected.log_likelihood - previous) / max(data.n_steps, 1) < tol:
+            previous = expected.log_likelihood
+            break
+        previous = expected.log_likelihood
+        rows = expected.counts.sum(axis=1, keepdims=True)
+        updated = np.where(allowed, expected.counts, 0.0) / np.maximum(rows, 1e-300)
+        keep = rows[:, 0] <= 0  # states never visited keep their row
+        t_matrix = np.where(keep[:, None], t_matrix, updated)
+        t_matrix[-1] = 0.0
+        t_matrix[-1, -1] = 1.0
+        entry = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
+    n_parameters = int(allowed[:-1].sum() - (m - 1) + 2 * (k - 1))
+    return DiscretePhaseFit(t_matrix, entry, previous, n_parameters, iteration, data.interval_s)
+
+
+def generator_from_transition(fit_d: DiscretePhaseFit, nx: int, ny: int) -> PhaseTransport:
+    """The discrete chain turned into a generator: the principal matrix logarithm over the
+    interval, kept on the nearest-neighbour and switching moves of
+    :func:`coupling.phases.transitions`, negative entries set to 0 (what a generator must
+    be; the difference is what the discrete chain cannot be as a PBM)."""
+    from scipy.linalg import logm
+
+    k = fit_d.entry.shape[1]
+    log_t = np.real(logm(fit_d.transition)) / fit_d.interval_s
+    values = {name: np.clip(log_t[src, dst], 0.0, None)
+              for name, (src, dst, _c) in phase_model.transitions(nx, ny, k).items()}
+    return phase_model.from_move_rates(values, nx, ny, k, fit_d.entry, fit_d.interval_s,
+                                       {"method": "discrete-time Baum-Welch, projected matrix logarithm"})

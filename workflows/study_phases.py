@@ -243,3 +243,76 @@ def write_json(study: PhaseStudy, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(asdict(study), indent=1, default=float))
     return path
+
+
+# ----------------------------------------------------------------------------- continuous vs discrete time
+@dataclass(frozen=True)
+class TimeComparison:
+    """Continuous-time generator vs discrete-time chain at the dump interval, same data,
+    grid and K: log-likelihoods per particle-step and free parameters of each; the RTD
+    (mean [s], variance [s^2], within the target's horizon) of the continuous model's PBM,
+    of the discrete chain itself (exact at the dump interval, exit at the mid-interval) and
+    of the PBM on the discrete chain's projected logarithm (what it becomes as a generator)."""
+
+    grid: tuple[int, int]
+    n_phases: int
+    continuous_ll_per_step: float
+    continuous_parameters: int
+    discrete_ll_per_step: float
+    discrete_parameters: int
+    continuous_rtd: tuple[float, float]
+    discrete_rtd: tuple[float, float]
+    projected_rtd: tuple[float, float]
+    continuous_wall_s: float
+    discrete_wall_s: float
+
+
+def discrete_rtd(transition: np.ndarray, start: np.ndarray, interval_s: float, horizon_s: float) -> tuple[float, float]:
+    """Mean and variance of the time to absorption of the chain ``transition`` from the
+    distribution ``start`` over its transient states, truncated at ``horizon_s``."""
+    v = np.append(start, 0.0)
+    absorbed = [0.0]
+    for _ in range(int(round(horizon_s / interval_s))):
+        v = v @ transition
+        absorbed.append(v[-1])
+    density = np.diff(absorbed)
+    t = (np.arange(density.size) + 0.5) * interval_s
+    total = density.sum()
+    mean = float(density @ t / total)
+    return mean, float(density @ (t - mean) ** 2 / total)
+
+
+def compare_time(results: str | Path, target: DemTarget, grid=(10, 1), k: int = 2,
+                 fit_window_s: tuple[float, float] | None = None, max_iterations: int = 200) -> TimeComparison:
+    """:class:`TimeComparison` on the DEM results ``results`` (with sequences)."""
+    from pbm.model import feed_distribution
+
+    entry, reason = try_load_entry(Path(results))
+    if entry is None:
+        raise ValueError(f"results {results}: {reason}")
+    dem = DemResults.from_cache_entry(entry)
+    config = config_of(entry)
+    window = fit_window_s or (target.steady_time_s, float(dem.sequences.snapshot_t[-1]))
+    data = phases.prepare(dem.sequences, window, tuple(grid))
+    wall0 = time.perf_counter()
+    cont = phases.fit(data, k, starts=1, max_iterations=max_iterations)
+    wall1 = time.perf_counter()
+    disc = phases.fit_discrete(data, k, cont.transport, max_iterations=max_iterations)
+    wall2 = time.perf_counter()
+    projected = phases.generator_from_transition(disc, data.nx, data.ny)
+    g = config.dem.geometry
+    t_end = target.entry_window_s[1] + target.horizon_s + 5.0
+    table = phase_table(projected, float(g.length_m), float(g.diameter_m), t_end)
+    pbm_config = pbm_config_for(config, table, None).model_copy(update={"rates": "phases", "duration_s": t_end})
+    start_cont = pbm_numbers(cont.transport, config, target)
+    start_proj = pbm_numbers(projected, config, target)
+    # the discrete chain from the same inlet, in its own entry phases
+    feed_d = feed_distribution(table, pbm_config.feed_weights_a, pbm_config.feed_weights_b, "phases").mean(axis=1)
+    return TimeComparison(
+        grid=tuple(grid), n_phases=k,
+        continuous_ll_per_step=cont.log_likelihood / data.n_steps, continuous_parameters=cont.n_parameters(),
+        discrete_ll_per_step=disc.log_likelihood / data.n_steps, discrete_parameters=disc.n_parameters,
+        continuous_rtd=(start_cont["mean_s"], start_cont["variance_s2"]),
+        discrete_rtd=discrete_rtd(disc.transition, feed_d, data.interval_s, target.horizon_s),
+        projected_rtd=(start_proj["mean_s"], start_proj["variance_s2"]),
+        continuous_wall_s=wall1 - wall0, discrete_wall_s=wall2 - wall1)
