@@ -824,3 +824,24 @@ def generator_from_transition(fit_d: DiscretePhaseFit, nx: int, ny: int) -> Phas
               for name, (src, dst, _c) in phase_model.transitions(nx, ny, k).items()}
     return phase_model.from_move_rates(values, nx, ny, k, fit_d.entry, fit_d.interval_s,
                                        {"method": "discrete-time Baum-Welch, projected matrix logarithm"})
+
+
+# ----------------------------------------------------------------------------- into the table
+def steady_window(sequences: CompartmentSequences, steady_time_s: float | None) -> tuple[float, float]:
+    """(steady-state time, last dump) [s]: the particles the model is fitted to are those
+    first seen in between. Raises ValueError when the run never became steady."""
+    if steady_time_s is None or not math.isfinite(steady_time_s):
+        raise ValueError("the run has no steady-state time: the phase model is fitted to the steady period")
+    return float(steady_time_s), float(sequences.snapshot_t[-1])
+
+
+def table_with_phases(table, sequences: CompartmentSequences, steady_time_s: float | None, n_phases: int = 2,
+                      starts: int = 3, seed: int = 0, max_iterations: int = 200):
+    """``table`` (a :class:`coupling.tables.VelocityTable` on the sequences' grid) carrying
+    the K = ``n_phases`` model fitted to the particles first seen after ``steady_time_s``:
+    a schema-3 table that ``pbm`` runs with ``rates = "phases"``. Returns (table, fit)."""
+    if (table.nx, table.ny) != (sequences.nx, sequences.ny):
+        raise ValueError(f"table grid {table.nx}x{table.ny} differs from the sequences' {sequences.nx}x{sequences.ny}")
+    data = prepare(sequences, steady_window(sequences, steady_time_s))
+    result = fit(data, n_phases, starts=starts, seed=seed, max_iterations=max_iterations)
+    return table.replace(phases=result.transport), result
