@@ -155,10 +155,14 @@ def coarsen(states: np.ndarray, nx: int, ny: int, to_nx: int, to_ny: int) -> np.
 
 
 def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | None = None,
-            grid: tuple[int, int] | None = None) -> PhaseData:
+            grid: tuple[int, int] | None = None, lag: int = 1) -> PhaseData:
     """The sequences of the particles first seen in ``entered_s`` = (t0, t1] [s] (default
     all), on ``grid`` = (NX, NY) (default the sequences' own; a coarser grid must divide
-    it), as a :class:`PhaseData`. Raises ValueError for an empty selection."""
+    it), observed every ``lag`` dumps (a particle discharged in between is seen discharged
+    at the next observation), as a :class:`PhaseData`. Raises ValueError for an empty
+    selection or a lag < 1."""
+    if not isinstance(lag, (int, np.integer)) or lag < 1:
+        raise ValueError(f"lag = {lag!r}: expected a whole number of dumps >= 1")
     entry_t = sequences.entry_t
     chosen = np.ones(sequences.n_particles, bool)
     if entered_s is not None:
@@ -173,16 +177,35 @@ def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | No
     nx, ny = grid or (sequences.nx, sequences.ny)
     if (nx, ny) != (sequences.nx, sequences.ny):
         obs = coarsen(obs, sequences.nx, sequences.ny, nx, ny)
+    if lag > 1:
+        obs = _subsample(obs, lag, nx * ny)
     lengths = (obs >= 0).sum(axis=1)
     order = np.argsort(-lengths, kind="stable")
     obs, lengths = obs[order], lengths[order]
     active = np.searchsorted(-lengths, -np.arange(obs.shape[1]), side="left")  # rows with length > t
     feeder = np.where(sequences.component[index][order] == FEEDERS[1], 1, 0)
+    # with a lag, dump indices count observations: start and last dump in units of the lag
     return PhaseData(obs=obs, lengths=lengths, active=active, feeder=feeder.astype(np.int64),
-                     start=sequences.start[index][order].astype(np.int64), last_dump=int(sequences.snapshot_t.size - 1),
-                     nx=int(nx), ny=int(ny), interval_s=float(sequences.interval_s),
+                     start=sequences.start[index][order].astype(np.int64) // lag,
+                     last_dump=int(sequences.snapshot_t.size - 1) // lag,
+                     nx=int(nx), ny=int(ny), interval_s=float(sequences.interval_s) * lag,
                      flat=obs[obs >= 0].astype(np.int64),
                      offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64))
+
+
+def _subsample(obs: np.ndarray, lag: int, n_cells: int) -> np.ndarray:
+    """Every ``lag``-th column of the padded sequences, a discharge in between moved to the
+    next kept column."""
+    lengths = (obs >= 0).sum(axis=1)
+    last = obs[np.arange(obs.shape[0]), np.maximum(lengths - 1, 0)]
+    out = obs[:, ::lag].copy()
+    out[out == n_cells] = -1
+    discharged = (last == n_cells) & (lengths > 0)
+    column = -(-(lengths - 1) // lag)  # ceil((length - 1) / lag): first kept column at or after the discharge
+    if out.shape[1] <= column.max(initial=0):
+        out = np.concatenate([out, np.full((out.shape[0], column.max() + 1 - out.shape[1]), -1, out.dtype)], axis=1)
+    out[np.flatnonzero(discharged), column[discharged]] = n_cells
+    return out
 
 
 # ----------------------------------------------------------------------------- E-step
