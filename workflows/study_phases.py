@@ -316,3 +316,24 @@ def compare_time(results: str | Path, target: DemTarget, grid=(10, 1), k: int = 
         discrete_rtd=discrete_rtd(disc.transition, feed_d, data.interval_s, target.horizon_s),
         projected_rtd=(start_proj["mean_s"], start_proj["variance_s2"]),
         continuous_wall_s=wall1 - wall0, discrete_wall_s=wall2 - wall1)
+
+
+def timescales_over_lags(results: str | Path, grid=(10, 1), lags=(1, 2, 5, 10), n_phases: int = 1,
+                         fit_window_s: tuple[float, float] | None = None, count: int = 3,
+                         steady_time_s: float | None = None) -> dict[int, tuple[float, ...]]:
+    """The ``count`` longest implied timescales [s] of the K = ``n_phases`` chain fitted at
+    each lag (in dumps), the MSM test of Markovianity: a Markovian chain's are the same at
+    every lag, a chain on states that forget too much speeds up (shorter timescales) at
+    short lags. Returns lag -> timescales."""
+    entry, reason = try_load_entry(Path(results))
+    if entry is None:
+        raise ValueError(f"results {results}: {reason}")
+    seq = DemResults.from_cache_entry(entry).sequences
+    t0 = steady_time_s if steady_time_s is not None else float(entry.summary.get("steady_state_time_s"))
+    window = fit_window_s or (t0, float(seq.snapshot_t[-1]))
+    out = {}
+    for lag in lags:
+        data = phases.prepare(seq, window, tuple(grid), lag=int(lag))
+        model = phases.fit(data, n_phases, starts=1)
+        out[int(lag)] = tuple(float(v) for v in model.implied_timescales(count))
+    return out
