@@ -272,3 +272,31 @@ def test_pbm_two_phase_rtd_and_holdup_are_the_generators():
     res = simulate(table, cfg)
     occupancy = phases.steady_occupancy(model, inlet() * 30.0)
     np.testing.assert_allclose(res.counts[-1].sum(axis=(0, 2)), occupancy.sum(axis=1), rtol=1e-6)
+
+
+def test_results_to_schema_3_table_to_pbm(tmp_path):
+    """The whole path: dumps -> results with sequences -> a schema-3 table with the fitted
+    phases -> file -> the PBM in mode "phases", conserving particles."""
+    cfg = synthetic_config()
+    write_synthetic(tmp_path / "dumps", cfg)
+    res = postprocess(str(tmp_path / "dumps" / "dump.*.txt"), cfg, STEADY)
+    table, fit = phases.table_with_phases(res.table, res.sequences, res.summary["steady_state_time_s"], 2, starts=1)
+    assert fit.n_phases == 2 and table.has_phases
+    back = read_table(write_table(tmp_path / "t.h5", table))
+    out = simulate(back, PbmConfig(rates="phases", feed_rate_a_per_s=2.0, feed_rate_b_per_s=2.0))
+    fed = out.fed_A[-1] + out.fed_B[-1]
+    held = out.holdup_A[-1] + out.holdup_B[-1]
+    assert fed == pytest.approx(held + out.discharged_A[-1] + out.discharged_B[-1], rel=1e-9)
+    with pytest.raises(ValueError, match="no steady-state time"):
+        phases.table_with_phases(res.table, res.sequences, None)
+
+
+def test_a_lag_subsamples_and_keeps_the_discharge():
+    obs = np.array([[0, 0, 1, 1, 2, 3], [0, 1, 1, 2, -1, -1]], np.int16)
+    seq = phases.sequences_from_padded(obs, np.zeros(2, int), np.array([1, 2]), np.arange(6) * 0.1, 0.1, 3, 1)
+    data = phases.prepare(seq, lag=2)
+    assert data.interval_s == pytest.approx(0.2)
+    # row 0: dumps 0, 2, 4 then discharged (3 = S) at the next kept column; row 1 censored
+    assert data.obs.tolist() == [[0, 1, 2, 3], [0, 1, -1, -1]]
+    with pytest.raises(ValueError, match="lag = 0"):
+        phases.prepare(seq, lag=0)
