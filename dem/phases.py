@@ -92,15 +92,17 @@ class PhaseData:
     ``obs`` (P, L) int16: state at each dump since first sight (compartment of the fitted
     grid, ``n_cells`` = discharged, -1 after the sequence ended), rows sorted by
     ``lengths`` descending, so that the particles still followed at step t are the first
-    ``active[t]`` rows. ``feeder`` (P,): row of the entry distribution (0 = A, 1 = B;
-    other types count as A). ``start`` (P,): index of the first dump (absolute, in the
+    ``active[t]`` rows. ``group`` (P,): the row of the initial phase distribution: 0 =
+    entered from feeder A (other types count as A), 1 = from feeder B, 2 + c = already
+    inside when the data's window opened, first observed in compartment c (its phase then
+    is not the feed's). ``start`` (P,): index of the first dump (absolute, in the
     sequences' ``snapshot_t``); ``last_dump``: index of the last dump of the run.
     """
 
     obs: np.ndarray
     lengths: np.ndarray
     active: np.ndarray
-    feeder: np.ndarray
+    group: np.ndarray
     start: np.ndarray
     last_dump: int
     nx: int
@@ -117,6 +119,11 @@ class PhaseData:
     @property
     def n_particles(self) -> int:
         return int(self.obs.shape[0])
+
+    @property
+    def n_groups(self) -> int:
+        """Rows of the initial distribution: the two feeders and one per compartment."""
+        return 2 + self.n_cells
 
     @property
     def n_steps(self) -> int:
@@ -155,12 +162,15 @@ def coarsen(states: np.ndarray, nx: int, ny: int, to_nx: int, to_ny: int) -> np.
 
 
 def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | None = None,
-            grid: tuple[int, int] | None = None, lag: int = 1) -> PhaseData:
+            grid: tuple[int, int] | None = None, lag: int = 1, residents: bool = False) -> PhaseData:
     """The sequences of the particles first seen in ``entered_s`` = (t0, t1] [s] (default
     all), on ``grid`` = (NX, NY) (default the sequences' own; a coarser grid must divide
     it), observed every ``lag`` dumps (a particle discharged in between is seen discharged
-    at the next observation), as a :class:`PhaseData`. Raises ValueError for an empty
-    selection or a lag < 1."""
+    at the next observation), as a :class:`PhaseData`. With ``residents`` also the
+    particles already inside at t0, from their first dump after t0 on (initial group 2 + c):
+    the moves they make in the window are data too, and the only data on how long
+    particles stay when the window is shorter than the longest stays. Raises ValueError
+    for an empty selection or a lag < 1."""
     if not isinstance(lag, (int, np.integer)) or lag < 1:
         raise ValueError(f"lag = {lag!r}: expected a whole number of dumps >= 1")
     entry_t = sequences.entry_t
@@ -174,6 +184,15 @@ def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | No
         raise ValueError(f"no particle entered in {entered_s} s (sequences span {entry_t.min() if entry_t.size else 'nothing'}"
                          f"..{entry_t.max() if entry_t.size else ''} s)")
     obs = sequences.padded(index)
+    group = np.where(sequences.component[index] == FEEDERS[1], 1, 0)
+    start = sequences.start[index].astype(np.int64)
+    if residents and entered_s is not None:
+        old_obs, old_start, old_cells = _residents(sequences, entered_s[0])
+        width = max(obs.shape[1], old_obs.shape[1])
+        obs = np.concatenate([_widen(obs, width), _widen(old_obs, width)])
+        group = np.concatenate([group, 2 + coarsen(old_cells, sequences.nx, sequences.ny, *(grid or (sequences.nx,
+                                                                                                     sequences.ny)))])
+        start = np.concatenate([start, old_start])
     nx, ny = grid or (sequences.nx, sequences.ny)
     if (nx, ny) != (sequences.nx, sequences.ny):
         obs = coarsen(obs, sequences.nx, sequences.ny, nx, ny)
@@ -183,14 +202,37 @@ def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | No
     order = np.argsort(-lengths, kind="stable")
     obs, lengths = obs[order], lengths[order]
     active = np.searchsorted(-lengths, -np.arange(obs.shape[1]), side="left")  # rows with length > t
-    feeder = np.where(sequences.component[index][order] == FEEDERS[1], 1, 0)
     # with a lag, dump indices count observations: start and last dump in units of the lag
-    return PhaseData(obs=obs, lengths=lengths, active=active, feeder=feeder.astype(np.int64),
-                     start=sequences.start[index][order].astype(np.int64) // lag,
+    return PhaseData(obs=obs, lengths=lengths, active=active, group=group[order].astype(np.int64),
+                     start=start[order] // lag,
                      last_dump=int(sequences.snapshot_t.size - 1) // lag,
                      nx=int(nx), ny=int(ny), interval_s=float(sequences.interval_s) * lag,
                      flat=obs[obs >= 0].astype(np.int64),
                      offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64))
+
+
+def _widen(obs: np.ndarray, width: int) -> np.ndarray:
+    return obs if obs.shape[1] == width else np.concatenate(
+        [obs, np.full((obs.shape[0], width - obs.shape[1]), -1, obs.dtype)], axis=1)
+
+
+def _residents(sequences: CompartmentSequences, t0_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(padded sequences from the first dump after ``t0_s`` on, that dump's index, the
+    compartment there) of the particles first seen at or before ``t0_s`` and still in a
+    compartment at that dump."""
+    first = int(np.searchsorted(sequences.snapshot_t, t0_s + 1e-6 * sequences.interval_s, side="right"))
+    entered_before = np.flatnonzero(sequences.start < first)
+    ends = sequences.start[entered_before] + sequences.lengths[entered_before]  # one past the last dump
+    alive = entered_before[ends > first]
+    if not alive.size:
+        return np.zeros((0, 1), np.int16), np.zeros(0, np.int64), np.zeros(0, np.int16)
+    full = sequences.padded(alive)
+    shift = first - sequences.start[alive].astype(np.int64)
+    width = full.shape[1] - int(shift.min())
+    cols = np.arange(width)[None, :] + shift[:, None]
+    obs = np.where(cols < full.shape[1], full[np.arange(alive.size)[:, None], np.minimum(cols, full.shape[1] - 1)], -1)
+    keep = (obs[:, 0] >= 0) & (obs[:, 0] < sequences.n_cells)  # not already discharged there
+    return obs[keep].astype(np.int16), np.full(int(keep.sum()), first, np.int64), obs[keep, 0].astype(np.int16)
 
 
 def _subsample(obs: np.ndarray, lag: int, n_cells: int) -> np.ndarray:
@@ -213,7 +255,7 @@ def _subsample(obs: np.ndarray, lag: int, n_cells: int) -> np.ndarray:
 class Expectations:
     """What one forward-backward pass gives: ``log_likelihood`` [nats] of the data,
     ``counts`` (S*K+1, S*K+1) expected (compartment, phase) transitions per interval,
-    ``entry`` (2, K) summed posterior entry phases per feeder."""
+    ``entry`` (G, K) summed posterior initial phases per initial group (:class:`PhaseData`)."""
 
     log_likelihood: float
     counts: np.ndarray
@@ -245,7 +287,7 @@ def forward_backward(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
     blocks = _blocks(p, s, k)
     m = s * k + 1
     n_steps = obs.shape[1]
-    alphas = [entry[data.feeder]]  # (P, K); emission 1: the first compartment is given
+    alphas = [entry[data.group]]  # (P, K); emission 1: the first compartment is given
     scales = [np.ones(data.n_particles)]
     log_likelihood = 0.0
     for t in range(1, n_steps):
@@ -262,7 +304,7 @@ def forward_backward(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
         alphas.append(a)
         scales.append(c)
     if not backward:
-        return Expectations(log_likelihood, np.zeros((m, m)), np.zeros((2, k)))
+        return Expectations(log_likelihood, np.zeros((m, m)), np.zeros((entry.shape[0], k)))
     flat = np.zeros(m * m)
     h_from = np.arange(k)[:, None]
     h_to = np.arange(k)[None, :]
@@ -289,7 +331,8 @@ def forward_backward(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
         flat += np.bincount(np.concatenate(pending_index), np.concatenate(pending_weight), minlength=m * m)
     gamma0 = alphas[0] * beta
     gamma0 /= gamma0.sum(axis=1, keepdims=True)
-    entry_sums = np.stack([gamma0[data.feeder == f].sum(axis=0) for f in (0, 1)])
+    entry_sums = np.zeros((entry.shape[0], k))
+    np.add.at(entry_sums, data.group, gamma0)
     return Expectations(log_likelihood, flat.reshape(m, m), entry_sums)
 
 
@@ -300,7 +343,7 @@ def _fb_kernel_python(blocks, entry, flat, offsets, feeder, backward):
     k = entry.shape[1]
     s = blocks.shape[0]
     counts = np.zeros((s, k, s + 1, k))
-    entry_sums = np.zeros((2, k))
+    entry_sums = np.zeros((entry.shape[0], k))
     longest = 1
     for p in range(offsets.size - 1):
         longest = max(longest, offsets[p + 1] - offsets[p])
@@ -362,7 +405,7 @@ def _forward_backward_compiled(p: np.ndarray, entry: np.ndarray, data: PhaseData
     s = data.n_cells
     blocks = _blocks(p, s, k)
     log_likelihood, counts4, entry_sums = _fb_kernel(blocks, np.ascontiguousarray(entry, dtype=np.float64),
-                                                     data.flat, data.offsets, data.feeder, backward)
+                                                     data.flat, data.offsets, data.group, backward)
     if not np.isfinite(log_likelihood):
         raise FloatingPointError("a move has probability 0 under the model (a jump the nearest-neighbour pattern "
                                  "cannot make within a dump interval?)")
@@ -455,6 +498,10 @@ class PhaseFit:
         """(2, K): probability of entering in each phase, feed A and feed B."""
         return self.transport.entry
 
+    def initial_distribution(self, data: "PhaseData") -> np.ndarray:
+        """(2 + S, K): :func:`initial_distribution` of this model for ``data``."""
+        return initial_distribution(self.transport, data)
+
     def n_parameters(self) -> int:
         """Free parameters: every allowed move's rate and K-1 entry probabilities per feeder."""
         moves = phase_model.transitions(self.transport.nx, self.transport.ny, self.n_phases)
@@ -464,7 +511,8 @@ class PhaseFit:
         """Log-likelihood [nats] of ``data`` (e.g. held out) under this model."""
         check_grid(self.transport, data)
         p = expm(self.generator() * data.interval_s)
-        return forward_backward(p, self.entry_distribution(), data, self.n_phases, backward=False).log_likelihood
+        return forward_backward(p, initial_distribution(self.transport, data), data, self.n_phases,
+                                backward=False).log_likelihood
 
     def implied_timescales(self, count: int = 5) -> np.ndarray:
         """The ``count`` longest relaxation times [s] of the chain, -1/Re(lambda) over the
@@ -493,10 +541,20 @@ def check_grid(model: PhaseTransport, data: PhaseData) -> None:
         raise ValueError(f"model grid {model.nx}x{model.ny} differs from the data's {data.nx}x{data.ny}")
 
 
+def initial_distribution(model: PhaseTransport, data: PhaseData) -> np.ndarray:
+    """(2 + S, K) initial phase distribution of each group of :class:`PhaseData`: the
+    entry distributions of the two feeders, then for the particles already inside, the
+    model's steady phase distribution in their first compartment (what the EM starts
+    from and what a held-out score assumes; the EM refits those rows)."""
+    occupancy = steady_occupancy(model, np.maximum(first_compartments(data), 0.0) + 1e-12)
+    given_cell = occupancy / np.maximum(occupancy.sum(axis=1, keepdims=True), 1e-300)
+    return np.vstack([model.entry, given_cell])
+
+
 def first_compartments(data: PhaseData) -> np.ndarray:
     """(2, S): how many particles of each feeder were first seen in each compartment."""
     first = data.obs[:, 0].astype(np.int64)
-    return np.stack([np.bincount(first[data.feeder == f], minlength=data.n_cells)[: data.n_cells]
+    return np.stack([np.bincount(first[data.group == f], minlength=data.n_cells)[: data.n_cells]
                      for f in (0, 1)]).astype(float)
 
 
@@ -648,18 +706,20 @@ def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float,
     converged = False
     dwell = np.zeros(nx * ny * k)
     iteration = 0
+    initial = initial_distribution(model, data)
     for iteration in range(1, max_iterations + 1):
         p = expm(model.generator() * interval)
-        expected = forward_backward(p, model.entry, data, k)
+        expected = forward_backward(p, initial, data, k)
         # the likelihood is that of the model before this M-step
         gain = (expected.log_likelihood - previous) / max(data.n_steps, 1)
         if gain < tol:
             converged = True
             break
         previous = expected.log_likelihood
-        entry = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
-        missing = expected.entry.sum(axis=1) <= 0  # a feeder without particles keeps its entry
-        entry[missing] = model.entry[missing]
+        updated = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
+        missing = expected.entry.sum(axis=1) <= 0  # a group without particles keeps its row
+        initial = np.where(missing[:, None], initial, updated)
+        entry = initial[:2]
         counts = expected.counts.copy()
         counts[-1] = 0.0
         if m_step == "lbfgs":
@@ -815,10 +875,10 @@ def fit_discrete(data: PhaseData, n_phases: int, start: PhaseTransport, max_iter
     allowed[-1, -1] = True
     t_matrix = np.where(allowed, expm(start.generator() * data.interval_s), 0.0)
     t_matrix /= t_matrix.sum(axis=1, keepdims=True)
-    entry = start.entry.copy()
+    initial = initial_distribution(start, data)
     previous, iteration = -math.inf, 0
     for iteration in range(1, max_iterations + 1):
-        expected = forward_backward(t_matrix, entry, data, k)
+        expected = forward_backward(t_matrix, initial, data, k)
         if (expected.log_likelihood - previous) / max(data.n_steps, 1) < tol:
             previous = expected.log_likelihood
             break
@@ -829,7 +889,9 @@ def fit_discrete(data: PhaseData, n_phases: int, start: PhaseTransport, max_iter
         t_matrix = np.where(keep[:, None], t_matrix, updated)
         t_matrix[-1] = 0.0
         t_matrix[-1, -1] = 1.0
-        entry = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
+        updated = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
+        initial = np.where(expected.entry.sum(axis=1, keepdims=True) <= 0, initial, updated)
+    entry = initial[:2]
     n_parameters = int(allowed[:-1].sum() - (m - 1) + 2 * (k - 1))
     return DiscretePhaseFit(t_matrix, entry, previous, n_parameters, iteration, data.interval_s)
 

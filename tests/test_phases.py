@@ -300,3 +300,19 @@ def test_a_lag_subsamples_and_keeps_the_discharge():
     assert data.obs.tolist() == [[0, 1, 2, 3], [0, 1, -1, -1]]
     with pytest.raises(ValueError, match="lag = 0"):
         phases.prepare(seq, lag=0)
+
+
+def test_residents_join_from_the_window_on(synthetic_two_phase):
+    """Particles inside when the window opens are followed from there, their first
+    compartment their group; the window's entrants are unchanged."""
+    _truth, sequences, _data, _fit = synthetic_two_phase
+    t0 = 60.0
+    only_new = phases.prepare(sequences, (t0, np.inf))
+    both = phases.prepare(sequences, (t0, np.inf), residents=True)
+    old = both.group >= 2
+    assert (~old).sum() == only_new.n_particles and old.sum() > 100
+    first_dump = int(np.searchsorted(sequences.snapshot_t, t0, side="right"))
+    assert np.all(both.start[old] == first_dump)
+    assert np.array_equal(both.obs[old, 0], both.group[old] - 2)
+    fit = phases.fit(both, 2, starts=1, max_iterations=30)
+    assert np.isfinite(fit.log_likelihood)

@@ -150,15 +150,18 @@ def pbm_numbers(model, config: Config, target: DemTarget) -> dict[str, Any]:
 
 
 def evaluate(sequences, config: Config, target: DemTarget, grid: tuple[int, int], k: int, fit_window, starts: int,
-             max_iterations: int, seed: int = 0) -> ModelResult:
-    """One row of the study (module docstring)."""
+             max_iterations: int, seed: int = 0, residents: bool = True) -> ModelResult:
+    """One row of the study (module docstring). ``residents``: fit also to the moves of
+    the particles already inside when the window opens (:func:`dem.phases.prepare`); the
+    held-out particles are only those that enter in the second half."""
     t0, t1 = fit_window
-    data = phases.prepare(sequences, (t0, t1), grid)
+    data = phases.prepare(sequences, (t0, t1), grid, residents=residents)
     wall0 = time.perf_counter()
     fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
-    train, test = phases.prepare(sequences, (t0, middle), grid), phases.prepare(sequences, (middle, t1), grid)
+    train = phases.prepare(sequences, (t0, middle), grid, residents=residents)
+    test = phases.prepare(sequences, (middle, t1), grid)
     held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations)
     ck = fit.chapman_kolmogorov(data)
     pbm = pbm_numbers(fit.transport, config, target)
@@ -184,7 +187,7 @@ def evaluate(sequences, config: Config, target: DemTarget, grid: tuple[int, int]
 
 def run(results: str | Path, target: str | Path | None = None, grids=((10, 10), (10, 1)), ks=(1, 2, 3),
         starts: int = 3, max_iterations: int = 200, fit_window_s: tuple[float, float] | None = None,
-        target_override: DemTarget | None = None, log=print) -> PhaseStudy:
+        target_override: DemTarget | None = None, residents: bool = True, log=print) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
     defaults to (the target's steady-state time, the last dump]."""
@@ -202,12 +205,14 @@ def run(results: str | Path, target: str | Path | None = None, grids=((10, 10), 
     else:
         goal = target_override
     seq = dem.sequences
-    window = fit_window_s or (goal.steady_time_s, float(seq.snapshot_t[-1]))
-    data = phases.prepare(seq, window)
+    last = float(seq.snapshot_t[-1])
+    window = fit_window_s or (goal.steady_time_s, last)
+    window = (float(window[0]), min(float(window[1]), last))  # a run still going ends at its last dump
+    data = phases.prepare(seq, window, residents=residents)
     out = []
     for grid in grids:
         for k in ks:
-            row = evaluate(seq, config, goal, tuple(grid), k, window, starts, max_iterations)
+            row = evaluate(seq, config, goal, tuple(grid), k, window, starts, max_iterations, residents=residents)
             log(f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
                 f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
                 f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s")
