@@ -20,6 +20,15 @@ For every grid (NX x NY, a coarsening of the run's) and number of phases K:
 The DEM's targets come from a results summary (``target``, default the run's own): a
 fresh run too short for its own pooled RTD is judged against a complete run of the same
 deck.
+
+Reproduce (from the repository root; a run directory with dumps, e.g. /work/runs/<key>)::
+
+    pbmdem dem post --preset validation --dumps '<run>/dumps/dump.*.txt' --out dem.h5 --massflow-dir <run>
+    python -c "from workflows import study_phases as sp; \
+               print(sp.markdown(sp.run('dem.h5', grids=((10, 1), (10, 10)), ks=(1, 2, 3))))"
+
+and for NX = 20 the same post-processing with ``[dem.tables] nx = 20`` in a ``--config``
+file, then ``grids=((20, 1),)``.
 """
 
 from __future__ import annotations
