@@ -44,6 +44,13 @@ the PBM decides how to fill them, never reading the 0 as a measured velocity.
 Versions: every table is written as version 2, with the rate datasets only when it has
 rates. A version-2 file without them holds exactly what a version-1 file holds, so
 version-1 files (which never carry rates) are still read.
+
+Schema 3 adds one optional subgroup, ``phases``: the hidden-phase transport model
+(:class:`coupling.phases.PhaseTransport`, fitted by :mod:`dem.phases`) with datasets
+``phase_rates`` (K, 4, NX, NY) [1/s], ``phase_switching`` (K, K, NX, NY) [1/s],
+``phase_entry`` (2, K) [-] and attributes ``interval_s`` (the dump interval it was fitted
+at) and ``attrs`` (JSON provenance). Only a table that carries it is written as version 3;
+every other table is still written as version 2, byte for byte as before.
 """
 
 from __future__ import annotations
@@ -58,11 +65,16 @@ from typing import Any
 import h5py
 import numpy as np
 
+from coupling import phases as phase_model
 from coupling.errors import TableError, os_reason
 from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5
+from coupling.phases import PhaseTransport
 
 SCHEMA_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: the version of a table that carries the hidden-phase model (its ``phases`` subgroup)
+PHASES_SCHEMA_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
+PHASES_GROUP = "phases"
 GROUP = "velocity_table"
 #: Root attribute ``format`` of a table file written by :func:`write_table` (it also carries
 #: the ``sha256`` digest of :func:`coupling.files.h5_digest`).
@@ -117,6 +129,8 @@ class VelocityTable:
     rate_x_neg: np.ndarray | None = None
     rate_y_pos: np.ndarray | None = None
     rate_y_neg: np.ndarray | None = None
+    #: the hidden-phase transport model (schema 3), time-invariant; None without it
+    phases: PhaseTransport | None = None
 
     def __post_init__(self) -> None:
         present = [name for name in RATE_NAMES if getattr(self, name) is not None]
@@ -126,6 +140,11 @@ class VelocityTable:
         object.__setattr__(self, "window_s", float(self.window_s))
         object.__setattr__(self, "min_samples", int(self.min_samples))
         _validate(self)
+
+    @property
+    def has_phases(self) -> bool:
+        """The table carries a hidden-phase transport model (schema 3)."""
+        return self.phases is not None
 
     @property
     def has_rates(self) -> bool:
@@ -210,6 +229,9 @@ def _validate(table: VelocityTable) -> None:
         # NaN is how the DEM post-processing marks a rate it observed too few transitions for.
         _check_field(name, getattr(table, name), shape, nan_allowed=True)
         _check_bound(name, getattr(table, name), MAX_RATE_PER_S, "/s")
+    if table.phases is not None and (table.phases.nx, table.phases.ny) != shape[1:]:
+        raise TableError(f"the phase model's grid {table.phases.nx}x{table.phases.ny} differs from the table's "
+                         f"{shape[1]}x{shape[2]}")
 
 
 def _check_bound(name: str, values: np.ndarray, bound: float, unit: str) -> None:
@@ -326,6 +348,13 @@ def table_to_group(group: h5py.Group, table: VelocityTable) -> None:
     for key, value in table.attrs.items():
         group.attrs[key] = _attr_value(value)
     group.attrs["schema_version"] = SCHEMA_VERSION
+    if table.phases is not None:
+        sub = group.create_group(PHASES_GROUP)
+        for name, values in phase_model.to_arrays(table.phases).items():
+            sub.create_dataset(name, data=values)
+        sub.attrs["interval_s"] = table.phases.interval_s
+        sub.attrs["attrs"] = json.dumps(table.phases.attrs, sort_keys=True, default=str)
+        group.attrs["schema_version"] = PHASES_SCHEMA_VERSION
     group.attrs["window_s"] = table.window_s
     group.attrs["min_samples"] = table.min_samples
     group.attrs["units"] = json.dumps(UNITS)
@@ -356,6 +385,8 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     for name in ("window_s", "min_samples"):
         if name not in group.attrs:
             raise TableError(f"attribute '{name}' is missing{where}")
+    if int(version) >= 3 and PHASES_GROUP in group:
+        arrays["phases"] = _phases_from_group(group[PHASES_GROUP], where)
     reserved = {"schema_version", "window_s", "min_samples", "units"}
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
     min_samples = group.attrs["min_samples"]
@@ -373,6 +404,19 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
         raise TableError(f"{exc}{where}") from None
     check_motion(table, source)
     return table
+
+
+def _phases_from_group(sub: h5py.Group, where: str) -> PhaseTransport:
+    names = ("phase_rates", "phase_switching", "phase_entry")
+    missing = [name for name in names if name not in sub]
+    if missing:
+        raise TableError(f"dataset(s) {missing} of the '{PHASES_GROUP}' subgroup are missing{where}")
+    attrs = _attr_python(sub.attrs.get("attrs", "{}"))  # JSON text -> dict
+    try:
+        return phase_model.from_arrays({name: sub[name][()] for name in names}, float(sub.attrs.get("interval_s", np.nan)),
+                                       attrs if isinstance(attrs, dict) else {})
+    except TableError as exc:
+        raise TableError(f"{exc}{where}") from None
 
 
 def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:

@@ -76,13 +76,18 @@ from dem.tracking import (
     EXIT_VANISHED,
     SUM_ROWS,
     Accumulation,
+    CompartmentSequences,
     Exits,
     accumulate,
+    compartment_sequences,
     find_exits,
     transition_counts,
 )
 
 __all__ = ["DemResults", "postprocess"]
+
+#: names of the compartment sequences' arrays in a results file start with this
+SEQUENCE_PREFIX = "sequences_"
 
 
 
@@ -102,6 +107,9 @@ class DemResults:
     * ``transitions``: (K, S+1, S+1) particle moves between consecutive dumps
       (:func:`dem.tracking.transition_counts`), what the measured rates were fitted to.
     * ``summary``: the scalars (:class:`dem.summary.DemSummary`).
+    * ``sequences``: every particle's compartment at every dump, run-length encoded
+      (:class:`dem.tracking.CompartmentSequences`), what the hidden-phase model is fitted
+      to (:mod:`dem.phases`); None in results made before they were recorded.
     """
 
     table: VelocityTable
@@ -114,17 +122,23 @@ class DemResults:
     particles: pd.DataFrame
     transitions: np.ndarray
     summary: DemSummary = field(default_factory=DemSummary)
+    sequences: CompartmentSequences | None = None
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
         arrays = {"rsd_by_slice": self.rsd_by_slice, "rsd_by_slice_floor": self.rsd_by_slice_floor,
                   "residence_times_s": self.residence_times_s, "transitions": self.transitions}
+        if self.sequences is not None:
+            arrays.update(self.sequences.to_arrays(SEQUENCE_PREFIX))
         return CacheEntry(self.table, self.summary.record(), frames, arrays, provenance)
 
     @classmethod
     def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
-        return cls(table=entry.table, summary=DemSummary.from_record(entry.summary), **entry.frames,
-                   **{name: np.asarray(values) for name, values in entry.arrays.items()})
+        arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
+        sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
+        plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
+        return cls(table=entry.table, summary=DemSummary.from_record(entry.summary), **entry.frames, **plain,
+                   sequences=sequences)
 
 
 def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:
@@ -388,11 +402,13 @@ def postprocess(
     check_postprocess_resources(config)  # a grid that cannot be held or fitted: refused before reading
     if massflow_dir is not None:  # given and missing would silently drop the discharge cross-check
         input_directory(massflow_dir, "massflow directory (the solver's discharge files)", ConfigError)
-    acc = accumulate(dump_paths, config, types_a, types_b)
+    acc = accumulate(dump_paths, config, types_a, types_b, record_sequences=True)
     check_windows_covered(acc.snapshot_t, config)
     table = velocity_table(acc, config, dict(provenance or {}))
     exits = find_exits(acc, config, massflow_files(massflow_dir))
     table, transitions = measured_rates(acc, exits, table)
+    sequences = compartment_sequences(acc, exits, table.nx, table.ny)
+    acc.visits.clear()  # the per-dump states now live, encoded, in ``sequences``
     records = particle_records(acc, exits)
     timeseries = cqa_timeseries(acc, exits, config)
     steady_time = steady.time(timeseries["t_s"], timeseries["holdup_A"] + timeseries["holdup_B"])
@@ -456,4 +472,4 @@ def postprocess(
     return DemResults(table=table, timeseries=timeseries, holdup=holdup,
                       rsd_by_slice=rsd(last_a, last_b, axis=1), rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
                       rtd=rtd, residence_times_s=residence, particles=records, transitions=transitions,
-                      summary=DemSummary.from_record(summary))
+                      summary=DemSummary.from_record(summary), sequences=sequences)

@@ -6,13 +6,19 @@ particle ID (IDs are bounded by the number of particles seen, :func:`id_bound`),
 velocity sums one array per window and the compartment counts one small array per
 snapshot. The conventions (times, binning, windows, exits) are listed in
 :mod:`dem.post`, which runs these steps.
+
+The one exception to flat memory is optional: with ``record_sequences`` the pass also keeps
+every particle's state at every dump (6 bytes per particle-dump: ~36 MB for the reduced
+preset's 6e6), from which :func:`compartment_sequences` builds the run-length-encoded
+compartment sequences that the hidden-phase transport model is fitted to
+(:mod:`dem.phases`).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -125,6 +131,9 @@ class Accumulation:
     last_step: int
     reappeared: int
     other_types: set[int]
+    #: per snapshot (only with ``record_sequences``): the IDs (int32) and their states
+    #: (int16: compartment, S past the weir, -1 outside the grid), in dump order
+    visits: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
 def snapshot_sums(cell: np.ndarray, vx: np.ndarray, vy: np.ndarray, is_a: np.ndarray, is_b: np.ndarray,
@@ -144,8 +153,10 @@ def snapshot_sums(cell: np.ndarray, vx: np.ndarray, vy: np.ndarray, is_a: np.nda
     return np.stack([rows[name].astype(float) for name in SUM_ROWS])
 
 
-def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int]) -> Accumulation:
-    """Stream every snapshot once into an :class:`Accumulation`."""
+def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int],
+               record_sequences: bool = False) -> Accumulation:
+    """Stream every snapshot once into an :class:`Accumulation`; with ``record_sequences``
+    also keep every particle's state at every dump (:attr:`Accumulation.visits`)."""
     g, tables = config.geometry, config.tables
     dt = float(config.timestep_s)
     length, diameter, nx, ny = float(g.length_m), float(g.diameter_m), int(tables.nx), int(tables.ny)
@@ -160,6 +171,7 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
     counts: list[np.ndarray] = []
     prev_ids = np.zeros(0, np.int64)
     last_step, reappeared, other_types = -1, 0, set()
+    visits: list[tuple[np.ndarray, np.ndarray]] = []
     n_seen = 0
     max_t = MAX_SAMPLING_INTERVALS * float(tables.sample_interval_s)
     # The reader has checked that ids and types are integers >= 1 and that the columns used
@@ -233,6 +245,8 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
                 transitions[prev_k] = pairs
         log.last_state[ids] = state
         log.last_snapshot[ids] = len(times)
+        if record_sequences:
+            visits.append((ids.astype(np.int32), state.astype(np.int16)))
         log.last_cell[ids[inside]] = cell
         prev_t, prev_k = t, k
         sums = snapshot_sums(cell, vx[inside], vy[inside], is_a[inside], is_b[inside], ncell)
@@ -246,7 +260,7 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
     if not times:
         raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
     return Accumulation(log, window_sums, transitions, interval, irregular, window_snapshots, np.asarray(times),
-                        np.stack(counts), prev_ids, last_step, reappeared, other_types)
+                        np.stack(counts), prev_ids, last_step, reappeared, other_types, visits)
 
 
 @dataclass
@@ -330,3 +344,161 @@ def transition_counts(acc: Accumulation, exits: Exits, n_windows: int, n_cells: 
     k = np.minimum(log.vanish_window[left], n_windows - 1)
     np.add.at(counts, (k, log.vanish_state[left].astype(np.int64) * n_states + n_cells), 1)
     return counts.reshape(n_windows, n_states, n_states)
+
+
+@dataclass(frozen=True)
+class CompartmentSequences:
+    """Every particle's compartment at every dump, run-length encoded.
+
+    Particle ``p`` (ID ``ids[p]``) is first seen at dump ``start[p]`` (time
+    ``snapshot_t[start[p]]`` [s]) and then sits in state ``run_state[r]`` for
+    ``run_length[r]`` consecutive dumps, for its runs ``r`` in
+    ``run_offsets[p]:run_offsets[p+1]``. States: flat compartment c = i * NY + j of the
+    tables' grid (:func:`coupling.compartments.bin_particles`), or ``n_cells`` = past the
+    weir (absorbing: a sequence ends with at most one dump there). A particle that the
+    solver deleted between two dumps and :func:`find_exits` counts as discharged gets that
+    absorbing state at the dump from which it is absent, as the measured rates count it
+    (:func:`transition_counts`). A sequence without the absorbing state is censored: the
+    particle was still inside at the last dump, was lost, was once seen outside the grid
+    (x < 0) or skipped a dump; it ends at its last regular sight.
+
+    ``component`` (int8): 1 = A, 2 = B, 3 = another type (the feeder a particle came from).
+    ``interval_s`` [s]: the dump interval; ``nx``, ``ny``: the grid.
+    """
+
+    ids: np.ndarray
+    component: np.ndarray
+    start: np.ndarray
+    run_offsets: np.ndarray
+    run_state: np.ndarray
+    run_length: np.ndarray
+    snapshot_t: np.ndarray
+    interval_s: float
+    nx: int
+    ny: int
+
+    ARRAYS = ("ids", "component", "start", "run_offsets", "run_state", "run_length", "snapshot_t")
+
+    @property
+    def n_cells(self) -> int:
+        return self.nx * self.ny
+
+    @property
+    def n_particles(self) -> int:
+        return int(self.ids.size)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """Dumps in each particle's sequence (including a final absorbing one)."""
+        return np.add.reduceat(self.run_length, self.run_offsets[:-1]) if self.ids.size else np.zeros(0, np.int64)
+
+    @property
+    def entry_t(self) -> np.ndarray:
+        """First sight of each particle [s]."""
+        return self.snapshot_t[self.start]
+
+    @property
+    def discharged(self) -> np.ndarray:
+        """Whether each sequence ends in the absorbing state (else it is censored)."""
+        return self.run_state[self.run_offsets[1:] - 1] == self.n_cells if self.ids.size else np.zeros(0, bool)
+
+    def states(self, particles: np.ndarray | None = None) -> list[np.ndarray]:
+        """Decoded state sequences (int16) of ``particles`` (indices; default all)."""
+        chosen = np.arange(self.n_particles) if particles is None else np.asarray(particles)
+        out = []
+        for p in chosen:
+            a, b = self.run_offsets[p], self.run_offsets[p + 1]
+            out.append(np.repeat(self.run_state[a:b], self.run_length[a:b]))
+        return out
+
+    def padded(self, particles: np.ndarray | None = None, fill: int = -1) -> np.ndarray:
+        """(P, max length) int16 matrix of decoded sequences, ``fill`` after each one ends
+        (vectorised: no Python loop over particles)."""
+        chosen = np.arange(self.n_particles) if particles is None else np.asarray(particles, dtype=np.int64)
+        first, last = self.run_offsets[chosen], self.run_offsets[chosen + 1]
+        n_runs = last - first
+        run_index = np.repeat(first - np.concatenate([[0], np.cumsum(n_runs)[:-1]]), n_runs) + np.arange(n_runs.sum())
+        owner = np.repeat(np.arange(chosen.size), n_runs)
+        lengths = self.run_length[run_index]
+        per_particle = np.bincount(owner, lengths, minlength=chosen.size).astype(np.int64)
+        out = np.full((chosen.size, int(per_particle.max()) if chosen.size else 0), fill, np.int16)
+        # position of every decoded element inside its particle's row
+        element_owner = np.repeat(owner, lengths)
+        row_start = np.concatenate([[0], np.cumsum(per_particle)[:-1]])
+        position = np.arange(element_owner.size) - row_start[element_owner]
+        out[element_owner, position] = np.repeat(self.run_state[run_index], lengths)
+        return out
+
+    def to_arrays(self, prefix: str = "sequences_") -> dict[str, np.ndarray]:
+        """Named arrays for a results file; the scalars ride along as 0-d arrays."""
+        out = {prefix + name: getattr(self, name) for name in self.ARRAYS}
+        out[prefix + "grid"] = np.array([self.nx, self.ny], np.int64)
+        out[prefix + "interval_s"] = np.array(self.interval_s)
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str = "sequences_") -> "CompartmentSequences | None":
+        """The inverse of :meth:`to_arrays`; None when ``arrays`` holds no sequences (results
+        made before they were recorded)."""
+        if prefix + "ids" not in arrays:
+            return None
+        nx, ny = (int(v) for v in np.asarray(arrays[prefix + "grid"]))
+        return cls(**{name: np.asarray(arrays[prefix + name]) for name in cls.ARRAYS},
+                   interval_s=float(np.asarray(arrays[prefix + "interval_s"])), nx=nx, ny=ny)
+
+
+def compartment_sequences(acc: Accumulation, exits: Exits, nx: int, ny: int) -> CompartmentSequences:
+    """Run-length-encoded compartment sequences of every particle (:class:`CompartmentSequences`)
+    from a pass made with ``record_sequences``. Raises ValueError if it was made without."""
+    if not acc.visits:
+        raise ValueError("the accumulation holds no per-dump states: run accumulate(..., record_sequences=True)")
+    n_cells = nx * ny
+    ids = np.concatenate([v[0] for v in acc.visits]).astype(np.int64)
+    state = np.concatenate([v[1] for v in acc.visits])
+    snap = np.repeat(np.arange(len(acc.visits), dtype=np.int32), [v[0].size for v in acc.visits])
+    order = np.argsort(ids, kind="stable")  # dumps stay in time order within a particle
+    ids, state, snap = ids[order], state[order], snap[order]
+    new = np.ones(ids.size, bool)
+    new[1:] = ids[1:] != ids[:-1]
+    # A sequence stops at the first sight that breaks it: outside the grid, a skipped dump,
+    # or anything after the absorbing state (the dumps can show a particle past the weir
+    # for a while before the solver deletes it).
+    broken = state < 0
+    broken[1:] |= ~new[1:] & ((snap[1:] != snap[:-1] + 1) | (state[:-1] == n_cells))
+    group = np.cumsum(new) - 1
+    breaks_so_far = np.cumsum(broken)
+    before_group = (breaks_so_far - broken)[new]  # breaks before each particle's first sight
+    keep = breaks_so_far - before_group[group] == 0
+    ids, state, snap, group = ids[keep], state[keep], snap[keep], group[keep]
+    new = np.ones(ids.size, bool)
+    new[1:] = ids[1:] != ids[:-1]
+    # Particles first seen past the weir carry no transport information.
+    first_state = state[new]
+    drop = np.repeat(first_state == n_cells, np.diff(np.append(np.flatnonzero(new), ids.size)))
+    ids, state, snap = ids[~drop], state[~drop], snap[~drop]
+    new = np.ones(ids.size, bool)
+    new[1:] = ids[1:] != ids[:-1]
+    last = np.append(np.flatnonzero(new)[1:] - 1, ids.size - 1) if ids.size else np.zeros(0, np.int64)
+    # Deleted by the solver between dumps and counted as discharged: absorbed at the next
+    # dump, if the kept sequence reaches the particle's last sight (and that dump exists).
+    pid = ids[last]
+    deleted = (exits.exited[pid] & (state[last] < n_cells) & (snap[last] == acc.particles.last_snapshot[pid])
+               & (snap[last] + 1 < len(acc.visits)))
+    ids = np.insert(ids, last[deleted] + 1, pid[deleted])
+    snap = np.insert(snap, last[deleted] + 1, snap[last[deleted]] + 1)
+    state = np.insert(state, last[deleted] + 1, np.int16(n_cells))
+    # Run-length encoding: a run starts at each particle's first sight and at each change.
+    new = np.ones(ids.size, bool)
+    new[1:] = ids[1:] != ids[:-1]
+    run_start = new.copy()
+    run_start[1:] |= state[1:] != state[:-1]
+    starts = np.flatnonzero(run_start)
+    run_length = np.diff(np.append(starts, ids.size)).astype(np.int32)
+    particle_of_run = np.cumsum(new)[starts] - 1
+    n_particles = int(new.sum())
+    run_offsets = np.searchsorted(particle_of_run, np.arange(n_particles + 1)).astype(np.int64)
+    return CompartmentSequences(ids=ids[new].astype(np.int64), component=acc.particles.kind[ids[new]].astype(np.int8),
+                                start=snap[new].astype(np.int32),
+                                run_offsets=run_offsets, run_state=state[starts].astype(np.int16),
+                                run_length=run_length, snapshot_t=np.asarray(acc.snapshot_t, float),
+                                interval_s=float(acc.transition_interval_s), nx=int(nx), ny=int(ny))

@@ -46,10 +46,12 @@ class PbmConfig(BaseModel):
         None, ge=0, allow_inf_nan=False, description="tracer pulse time; None = at detected steady state"
     )
     rtd_bin_s: float = Field(1.0, gt=0, allow_inf_nan=False, description="width of the E(t) histogram bins")
-    rates: Literal["velocity", "measured"] = Field(
+    rates: Literal["velocity", "measured", "phases"] = Field(
         "velocity",
         description="transfer rates: 'velocity' = v/dx from the table's velocities (the paper's eq. 4); "
-        "'measured' = the table's measured transition rates (schema 2, DEM transition tracking)",
+        "'measured' = the table's measured transition rates (schema 2, DEM transition tracking); "
+        "'phases' = the table's hidden-phase transport model (schema 3, fitted to the DEM's compartment "
+        "sequences by dem.phases)",
     )
     method: Literal["expm", "bdf"] = Field("expm", description="exact propagation or the solve_ivp BDF cross-check")
     bdf_rtol: float = Field(1e-6, gt=0, lt=1)

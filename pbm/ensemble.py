@@ -91,6 +91,10 @@ def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma:
     if isinstance(members, bool) or int(members) != members or members < 1:
         raise ConfigError(f"members must be an integer >= 1, got {members!r}")
     members = int(members)
+    if config.rates == "phases":
+        # the ensemble reads compartment populations straight off the state vector; with
+        # phases they are NX*NY*K entries (pbm.model.collapse_phases): not wired here yet
+        raise ConfigError("the noise ensemble does not run rates = 'phases' yet; use 'measured' or 'velocity'")
     t_end = check_run(table, config)
     # refused up front with the estimate, not killed by the kernel halfway (pbm.resources)
     check_ensemble_memory(members, t_end, config.noise_interval_s, config.output_interval_s, table.nx)

@@ -46,7 +46,7 @@ from scipy.linalg import expm, schur, solve_triangular
 from coupling.errors import ConfigError, TableError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
-from pbm.model import feed_distribution, filled_table, generator_matrix
+from pbm.model import feed_distribution, filled_table, generator_matrix, n_populations
 
 #: Correlation times [s] of the first-order feeder noises studied (0: white noise).
 NOISE_TAUS_S = (0.0, 1.0, 5.0, 20.0)
@@ -102,11 +102,11 @@ def stationary_system(table: VelocityTable, config: PbmConfig | None = None, win
                 f"valid: t_start_s <= {table.t[-1]} s"
             )
     filled, _ = filled_table(table, config.rates)
-    n = table.nx * table.ny
+    n = n_populations(table, config.rates)  # NX*NY, times K phases in mode "phases"
     g = generator_matrix(filled, windows, config.rates).mean(axis=0)
     return StationarySystem(
         generator=g[:n, :n].copy(),
-        feed=feed_distribution(table, config.feed_weights_a, config.feed_weights_b),
+        feed=feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates),
         # Row n is the OUT accumulator: its entries are the compartments' discharge rates.
         outlet=g[n, :n].copy(),
         windows=windows,

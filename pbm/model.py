@@ -20,6 +20,13 @@ or at the table's measured rate_x_pos, rate_x_neg, rate_y_pos, rate_y_neg (mode 
 The mode only chooses the four rate arrays; one generator builder serves both. The last
 slice's forward flux is the outflow; there is no flux through the inlet wall nor through
 the side walls.
+
+Mode "phases" (transport with memory, :mod:`coupling.phases`): every compartment carries K
+hidden mobility phases, so the populations are the NX*NY*K entries ``c * K + h`` (then the
+same three accumulators), moved by the generator of the table's time-invariant phase model
+(schema 3); the feed enters the inlet compartments in the model's entry phases
+(:func:`feed_distribution`), and :func:`n_populations` / :func:`collapse_phases` give the
+callers the per-compartment view. With K = 1 it is the "measured" chain of those rates.
 """
 
 from __future__ import annotations
@@ -33,8 +40,9 @@ from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 
 N_ACCUMULATORS = 3
 # Where the per-particle transfer rates come from: "velocity" = v/dx (the paper's eq. 4),
-# "measured" = the table's rate_* fields (transitions counted by the DEM post-processing).
-RATE_MODES = ("velocity", "measured")
+# "measured" = the table's rate_* fields (transitions counted by the DEM post-processing),
+# "phases" = the table's hidden-phase model (schema 3, fitted to the particles' sequences).
+RATE_MODES = ("velocity", "measured", "phases")
 
 
 def fill_missing_velocities(table: VelocityTable) -> tuple[VelocityTable, np.ndarray]:
@@ -145,6 +153,31 @@ def require_rates(table: VelocityTable, rates: str) -> None:
             f"measured rates ({', '.join(RATE_NAMES)}): use a schema-2 table from a DEM run with transition "
             "tracking, or rates = 'velocity'"
         )
+    if rates == "phases" and not table.has_phases:
+        raise ConfigError(
+            "rates = 'phases' needs the velocity table's hidden-phase transport model (schema 3, fitted by "
+            "dem.phases from the DEM's compartment sequences), but this table has none: fit one, or use "
+            "rates = 'measured' or 'velocity'"
+        )
+
+
+def n_phases(table: VelocityTable, rates: str) -> int:
+    """Phases per compartment of mode ``rates``: the phase model's K, else 1."""
+    return table.phases.n_phases if rates == "phases" else 1
+
+
+def n_populations(table: VelocityTable, rates: str) -> int:
+    """Population entries of the state vector: NX*NY compartments times the phases."""
+    return table.nx * table.ny * n_phases(table, rates)
+
+
+def collapse_phases(populations: np.ndarray, k: int, axis: int = 0) -> np.ndarray:
+    """Sum the K phases of each compartment: ``axis`` of length NX*NY*K -> NX*NY."""
+    if k == 1:
+        return populations
+    populations = np.moveaxis(np.asarray(populations), axis, -1)
+    collapsed = populations.reshape(*populations.shape[:-1], -1, k).sum(axis=-1)
+    return np.moveaxis(collapsed, -1, axis)
 
 
 def filled_table(table: VelocityTable, rates: str) -> tuple[VelocityTable, np.ndarray]:
@@ -152,6 +185,8 @@ def filled_table(table: VelocityTable, rates: str) -> tuple[VelocityTable, np.nd
     (K, NX, NY) mask of the compartment-windows filled: velocities for "velocity"
     (:func:`fill_missing_velocities`), measured rates for "measured" (:func:`fill_missing_rates`)."""
     require_rates(table, rates)
+    if rates == "phases":  # the phase model is complete: nothing to fill
+        return table, np.zeros((table.n_windows, table.nx, table.ny), dtype=bool)
     return fill_missing_velocities(table) if rates == "velocity" else fill_missing_rates(table)
 
 
@@ -172,13 +207,20 @@ def default_feed_weights(y_edges: np.ndarray, side: int) -> np.ndarray:
         ) from None
 
 
-def feed_distribution(table: VelocityTable, weights_a, weights_b) -> np.ndarray:
+def feed_distribution(table: VelocityTable, weights_a, weights_b, rates: str = "velocity") -> np.ndarray:
     """(n, 2) matrix: how one particle/s of feed A (column 0) and B (column 1) enters.
 
     Only the first axial slice (i = 0) receives feed; each column sums to 1. ``weights_a``
     / ``weights_b`` are NY relative weights or None for the default halves. Raises
-    ConfigError when a weight list does not have NY entries.
+    ConfigError when a weight list does not have NY entries. With ``rates`` = "phases"
+    n is NX*NY*K: each compartment's share is split over the phases by the model's
+    entry-phase distribution of that feeder.
     """
+    if rates == "phases":
+        require_rates(table, rates)
+        plain = feed_distribution(table, weights_a, weights_b)
+        entry = table.phases.entry  # (2, K): feeder A, feeder B
+        return np.stack([(plain[:, f, None] * entry[f][None, :]).ravel() for f in (0, 1)], axis=1)
     ny = table.ny
     columns = []
     for name, weights, side in (("feed_weights_a", weights_a, +1), ("feed_weights_b", weights_b, -1)):
@@ -231,9 +273,29 @@ def transfer_rates(table: VelocityTable, k, rates: str = "velocity") -> dict[str
     return {"forward": forward, "backward": backward, "up": up, "down": down}
 
 
+def _phase_triplets(table: VelocityTable, k):
+    """:func:`_generator_triplets` of mode "phases": the phase model's generator (the same
+    in every window) transposed to the column convention, with the accumulators."""
+    require_rates(table, "phases")
+    q = table.phases.generator()  # row = from, last state discharged
+    n = q.shape[0] - 1
+    src, dst = np.nonzero(q[:n])  # off-diagonal moves, the discharge and the diagonal
+    rows = np.where(dst == n, n, dst)
+    cols = src
+    values = q[src, dst]
+    # accumulators: INT1 gathers every population, INT2 integrates INT1
+    rows = np.concatenate([rows, np.full(n, n + 1), [n + 2]])
+    cols = np.concatenate([cols, np.arange(n), [n + 1]])
+    values = np.concatenate([values, np.ones(n), [1.0]])
+    lead = np.shape(np.arange(table.n_windows)[k])
+    return rows, cols, np.broadcast_to(values, (*lead, values.size)).copy(), n + N_ACCUMULATORS
+
+
 def _generator_triplets(table: VelocityTable, k, rates: str):
     """Row, column and value arrays of the generator entries; values carry the leading
     window axis of ``k`` (if any), rows and columns are the same for every window."""
+    if rates == "phases":
+        return _phase_triplets(table, k)
     nx, ny = table.nx, table.ny
     n = nx * ny
     r = transfer_rates(table, k, rates)

@@ -26,7 +26,7 @@ from coupling.metrics import residence_moments
 from coupling.tables import VelocityTable
 from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
-from pbm.model import feed_distribution, filled_table
+from pbm.model import feed_distribution, filled_table, n_populations
 from pbm.simulate import BDF_ATOL_PARTICLES, check_run, recovered_moments, tracer_pulse
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
@@ -99,9 +99,9 @@ def pooled_rtd(
         )
 
     filled, _ = filled_table(table, config.rates)
-    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
     props = Propagators(filled, feed, config.rates)
-    n = table.nx * table.ny
+    n = n_populations(table, config.rates)
     m = props.n_states
     amount, vector = tracer_pulse(feed, np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s]), m)
 

@@ -24,7 +24,7 @@ from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fracti
 from coupling.tables import VelocityTable
 from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
-from pbm.model import feed_distribution, filled_table
+from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases, n_populations
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 BDF_ATOL_PARTICLES = 1e-9
@@ -170,9 +170,10 @@ def simulate(
     if pulse is not None and not (0.0 <= pulse < t_end):
         raise ConfigError(f"RTD pulse time {pulse} s must lie in [0, {t_end}) s, the simulated time")
     filled, filled_mask = filled_table(table, config.rates)
-    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
     props = Propagators(filled, feed, config.rates)
-    n = table.nx * table.ny
+    # populations: NX*NY compartments, times K phases in mode "phases" (collapsed below)
+    n, k_phases = n_populations(table, config.rates), n_phases(table, config.rates)
     m = props.n_states
 
     z0 = np.zeros((m, 2))
@@ -183,8 +184,8 @@ def simulate(
                 f"initial_counts must be finite, >= 0 and shaped (2, NX, NY) = (2, {table.nx}, {table.ny}); "
                 f"got shape {init.shape}"
             )
-        z0[:n, 0] = init[0].ravel()
-        z0[:n, 1] = init[1].ravel()
+        z0[:n, 0] = initial_populations(init[0], table, config.rates, 0)
+        z0[:n, 1] = initial_populations(init[1], table, config.rates, 1)
 
     dt_out = config.output_interval_s
     out_times = multiples(dt_out, dt_out, t_end)
@@ -229,13 +230,15 @@ def simulate(
     moments = rtd_moments(tracer_amount, final_tracer[:n].sum(), final_tracer[n + 1], final_tracer[n + 2],
                           t_end - pulse)
 
-    counts = main_z[:, :n, :2].transpose(0, 2, 1).reshape(out_times.size, 2, table.nx, table.ny)
+    counts = (collapse_phases(main_z[:, :n, :2], k_phases, axis=1)
+              .transpose(0, 2, 1).reshape(out_times.size, 2, table.nx, table.ny))
     discharged = main_z[:, n, :2]
     increments = np.diff(np.vstack([np.zeros(2), discharged]), axis=0)
     fed = np.stack([cumulative_feed(out_times, rates[s], factors[:, s], config.noise_interval_s) for s in (0, 1)], 1)
     holdup = counts.sum(axis=(2, 3))
     rsd_outlet = rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1)
-    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, n), counts[:, 1].reshape(out_times.size, n), axis=1)
+    cells = table.nx * table.ny
+    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, cells), counts[:, 1].reshape(out_times.size, cells), axis=1)
     rsd_slices = rsd(counts[-1, 0], counts[-1, 1], axis=1)
 
     # Steady-state means: exact, from the discharge accumulated over the span.
@@ -293,6 +296,16 @@ def simulate(
         rtd_pulse_s=float(pulse),
         summary=summary,
     )
+
+
+def initial_populations(counts: np.ndarray, table: VelocityTable, rates: str, feeder: int) -> np.ndarray:
+    """The population entries of ``counts`` (NX, NY) particles already in the blender: the
+    counts themselves, or in mode "phases" split over the phases like that feeder's entry
+    (the phases of particles fed earlier are not known; the feed's is the one stated)."""
+    flat = np.asarray(counts, dtype=float).ravel()
+    if rates != "phases":
+        return flat
+    return (flat[:, None] * table.phases.entry[feeder][None, :]).ravel()
 
 
 def recovered_moments(amount, held, int1, int2, elapsed_s):

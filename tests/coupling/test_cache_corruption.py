@@ -290,7 +290,7 @@ def _foreign_table(path, entry, **changes):
     ({"vy_neg": lambda v: v + 150.0}, "dataset 'vy_neg' holds 15"),
     ({name: (lambda v: v * 0) for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg")},
      "every velocity is 0 in all .* compartment-windows with samples"),
-    ({"schema_version": 2.5}, r"'schema_version' = .*2\.5.* is not an integer; valid versions: \(1, 2\)"),
+    ({"schema_version": 2.5}, r"'schema_version' = .*2\.5.* is not an integer; valid versions: \(1, 2, 3\)"),
     ({"schema_version": "2"}, "'schema_version' = '2' .*is not an integer"),
     ({"schema_version": True}, "is not an integer"),
     ({"min_samples": 2.5}, "'min_samples' = 2.5 .*is not an integer"),

@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="tracer pulse time [s] (default: config, else the detected steady state)")
     run.add_argument("--method", choices=("expm", "bdf"), default=None,
                      help="exact propagation (default) or the solve_ivp BDF cross-check")
-    run.add_argument("--rates", choices=("velocity", "measured", "both"), default=None,
+    run.add_argument("--rates", choices=("velocity", "measured", "phases", "both"), default=None,
                      help="transfer rates: the paper's v/dx rule, the rates measured from DEM particle moves (schema-2 "
                           "tables), or both into OUT/velocity and OUT/measured (default: the config's pbm.rates)")
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")

@@ -13,6 +13,7 @@ HELP = "research studies on DEM runs (why the transport model is what it is)"
 STUDIES = (
     ("lag", "workflows.studies.lag"),
     ("layers", "workflows.studies.layers"),
+    ("phases", "workflows.studies.phases"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),
     ("paper-scale", "workflows.studies.paper_scale"),

@@ -1,0 +1,181 @@
+"""Transport with memory: the compartment chain whose particles carry a hidden mobility phase.
+
+This is the neutral description both sides share: the DEM side fits it to every particle's
+compartment sequence (:mod:`dem.phases`), the velocity table carries it (schema 3,
+:mod:`coupling.tables`), the PBM solves it (``rates = "phases"``, :mod:`pbm.model`).
+
+State. A particle is in compartment c = i * NY + j (the tables' grid) and in one of K
+phases h = 0..K-1; the flat state is ``c * K + h``, and ``S * K`` (S = NX * NY) is
+"discharged" (absorbing). K = 1 is the measured-rate chain of :mod:`dem.rates`.
+
+Moves (per particle, 1/s), all constant in time (fitted over the steady period):
+
+* in phase h, from (i, j) to (i+1, j) at ``rates[h, 0, i, j]`` (from the last slice: the
+  discharge), to (i-1, j) at ``rates[h, 1]``, to (i, j+1) at ``rates[h, 2]``, to (i, j-1)
+  at ``rates[h, 3]`` (the order of :data:`coupling.tables.RATE_NAMES`); the phase is kept;
+* inside compartment (i, j), from phase h to phase g at ``switching[h, g, i, j]``.
+
+Nothing crosses the inlet wall or the side walls (those entries are ignored and stored 0).
+Feed of component A (row 0) and B (row 1) enters in phase h with probability
+``entry[row, h]``; where it enters (which compartments) is the PBM's feed distribution.
+
+Phases are ordered by mobility, slowest first (:func:`mobility`): the hidden phase has no
+name of its own, and without an order two fits of the same data could differ by a
+relabelling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from coupling.errors import TableError
+
+#: directions of the phase-keeping moves, in the order of ``PhaseTransport.rates[:, d]``
+DIRECTIONS = ("x_pos", "x_neg", "y_pos", "y_neg")
+
+
+@dataclass(frozen=True)
+class PhaseTransport:
+    """A fitted hidden-phase compartment chain (module docstring for the meaning).
+
+    ``rates`` (K, 4, NX, NY) [1/s], ``switching`` (K, K, NX, NY) [1/s] (diagonal 0),
+    ``entry`` (2, K) [-] (rows sum to 1: feed A, feed B), ``interval_s`` [s] the dump
+    interval the model was fitted at (provenance), ``attrs``: free provenance (JSON-able).
+    """
+
+    rates: np.ndarray
+    switching: np.ndarray
+    entry: np.ndarray
+    interval_s: float = float("nan")
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @property
+    def n_phases(self) -> int:
+        return int(self.rates.shape[0])
+
+    @property
+    def nx(self) -> int:
+        return int(self.rates.shape[2])
+
+    @property
+    def ny(self) -> int:
+        return int(self.rates.shape[3])
+
+    @property
+    def n_cells(self) -> int:
+        return self.nx * self.ny
+
+    def generator(self) -> np.ndarray:
+        """Dense generator (S*K + 1, S*K + 1), row = from, column = to, rows sum to 0; the
+        last state is "discharged" (row of zeros)."""
+        return generator(self.rates, self.switching)
+
+    def phase_rates(self, h: int) -> dict[str, np.ndarray]:
+        """The four (NX, NY) rate arrays of phase h, keyed like :data:`DIRECTIONS`."""
+        return {key: self.rates[h, d] for d, key in enumerate(DIRECTIONS)}
+
+
+def validate(model: PhaseTransport) -> None:
+    """Raise TableError naming the first inconsistent field of ``model``."""
+    rates, switching, entry = (np.asarray(a, dtype=float) for a in (model.rates, model.switching, model.entry))
+    if rates.ndim != 4 or rates.shape[1] != len(DIRECTIONS) or min(rates.shape) < 1:
+        raise TableError(f"phase rates have shape {rates.shape}; expected (K, 4, NX, NY) with K, NX, NY >= 1")
+    k, _, nx, ny = rates.shape
+    if switching.shape != (k, k, nx, ny):
+        raise TableError(f"phase switching has shape {switching.shape}; expected (K, K, NX, NY) = {(k, k, nx, ny)}")
+    if entry.shape != (2, k):
+        raise TableError(f"entry-phase distribution has shape {entry.shape}; expected (2, K) = (2, {k})")
+    for name, values in (("phase rates", rates), ("phase switching", switching), ("entry-phase distribution", entry)):
+        bad = ~np.isfinite(values) | (values < 0)
+        if bad.any():
+            raise TableError(f"{name} hold {float(values[bad][0])!r} at index {tuple(int(v) for v in np.argwhere(bad)[0])}; "
+                             "expected finite values >= 0")
+    sums = entry.sum(axis=1)
+    if np.any(np.abs(sums - 1.0) > 1e-6):
+        raise TableError(f"entry-phase distribution rows sum to {sums.tolist()}; each must sum to 1")
+
+
+def transitions(nx: int, ny: int, n_phases: int) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Every move the model allows, by kind: ``"<direction>/<h>"`` for the phase-keeping
+    moves of phase h and ``"switch/<h>/<g>"`` for phase switches, each as (source state,
+    target state, flat compartment) arrays of the flat (compartment, phase) states; walls
+    have none. The layout of :func:`dem.rates.allowed_transitions`, phase by phase."""
+    i, j = (a.ravel() for a in np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"))
+    c = i * ny + j
+    s = nx * ny
+    k = n_phases
+    steps = {"x_pos": (np.ones(c.size, bool), None), "x_neg": (i > 0, -ny), "y_pos": (j < ny - 1, 1),
+             "y_neg": (j > 0, -1)}
+    out = {}
+    for h in range(k):
+        for key, (ok, step) in steps.items():
+            src_c = c[ok]
+            if key == "x_pos":
+                dst = np.where(i == nx - 1, s * k, (c + ny) * k + h)
+            else:
+                dst = (src_c + step) * k + h
+            out[f"{key}/{h}"] = (src_c * k + h, dst, src_c)
+    for h in range(k):
+        for g in range(k):
+            if g != h:
+                out[f"switch/{h}/{g}"] = (c * k + h, c * k + g, c.copy())
+    return out
+
+
+def generator(rates: np.ndarray, switching: np.ndarray) -> np.ndarray:
+    """Dense generator of the flat (compartment, phase) chain: see :class:`PhaseTransport`."""
+    k, _, nx, ny = rates.shape
+    n = nx * ny * k + 1
+    q = np.zeros((n, n))
+    for name, (src, dst, comp) in transitions(nx, ny, k).items():
+        parts = name.split("/")
+        if parts[0] == "switch":
+            values = switching[int(parts[1]), int(parts[2])].ravel()[comp]
+        else:
+            values = rates[int(parts[1]), DIRECTIONS.index(parts[0])].ravel()[comp]
+        q[src, dst] += values
+    q[np.arange(n), np.arange(n)] = -q.sum(axis=1)
+    return q
+
+
+def from_move_rates(values: dict[str, np.ndarray], nx: int, ny: int, n_phases: int, entry: np.ndarray,
+                    interval_s: float = float("nan"), attrs: dict[str, Any] | None = None) -> PhaseTransport:
+    """A :class:`PhaseTransport` from one rate per move of :func:`transitions` (``values``
+    maps each of its keys to the rates of its moves, in its order)."""
+    k = n_phases
+    rates = np.zeros((k, len(DIRECTIONS), nx, ny))
+    switching = np.zeros((k, k, nx, ny))
+    for name, (_src, _dst, comp) in transitions(nx, ny, k).items():
+        parts = name.split("/")
+        target = (switching[int(parts[1]), int(parts[2])] if parts[0] == "switch"
+                  else rates[int(parts[1]), DIRECTIONS.index(parts[0])])
+        target.reshape(-1)[comp] = values[name]
+    entry = np.asarray(entry, dtype=float)
+    if entry.ndim == 1:
+        entry = np.stack([entry, entry])
+    return PhaseTransport(rates, switching, entry, float(interval_s), dict(attrs or {}))
+
+
+def mobility(rates: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
+    """Mobility of each phase [1/s]: its forward axial rate averaged over the compartments
+    with weights ``occupancy`` (K, NX, NY) (how much of the particles' time each phase spends
+    there). The order of the phases is ascending mobility."""
+    weights = occupancy / np.maximum(occupancy.sum(axis=(1, 2), keepdims=True), 1e-300)
+    return (rates[:, 0] * weights).sum(axis=(1, 2))
+
+
+def to_arrays(model: PhaseTransport) -> dict[str, np.ndarray]:
+    """The datasets of a schema-3 table (:mod:`coupling.tables`)."""
+    return {"phase_rates": model.rates, "phase_switching": model.switching, "phase_entry": model.entry}
+
+
+def from_arrays(arrays: dict[str, np.ndarray], interval_s: float, attrs: dict[str, Any] | None = None) -> PhaseTransport:
+    """The inverse of :func:`to_arrays`."""
+    return PhaseTransport(np.asarray(arrays["phase_rates"], float), np.asarray(arrays["phase_switching"], float),
+                          np.asarray(arrays["phase_entry"], float), float(interval_s), dict(attrs or {}))

@@ -1,0 +1,937 @@
+"""Hidden mobility phases fitted to every particle's compartment sequence (EM / Baum-Welch).
+
+The measured-rate chain (:mod:`dem.rates`) is Markov on compartments alone, and the DEM's
+particles are not: the ones that stay long keep staying (slow bed), the fast ones keep
+running (the stream over the bed). Here each particle also carries a hidden phase h =
+0..K-1 and the chain is Markov on (compartment, phase): :class:`coupling.phases.PhaseTransport`,
+a generator Q with phase-dependent nearest-neighbour rates, phase switching inside each
+compartment and an entry-phase distribution per feeder. K = 1 is the measured-rate chain.
+
+Data: :class:`dem.tracking.CompartmentSequences`, every particle's compartment at every
+dump (interval Delta) from its first sight until it passes the weir (absorbing) or the
+record ends (censored: its likelihood is that of the part seen).
+
+Likelihood. With P = expm(Q Delta), a particle's sequence c_0, c_1, ..., c_T has
+probability sum over phase paths of pi(h_0) prod_t P[(c_{t-1}, h_{t-1}), (c_t, h_t)]: a
+hidden Markov model whose observation pins the compartment, so the forward-backward
+recursion runs over the K phases only, K^2 per particle-step (a general HMM on the
+S*K states would cost (S*K)^2). It is vectorised over particles: sequences sorted by
+length, step t of all particles still followed is one gather of their (K, K) blocks of P
+and one batched product.
+
+EM. E-step: forward-backward gives, for every compartment pair seen between dumps, the
+expected number of (c, h) -> (c', h') transitions over one interval (soft counts C) and
+the posterior entry phase. M-step: the entry distribution is the mean posterior entry
+phase per feeder; Q maximises sum_ab C_ab log P_ab(Q), which is exactly the likelihood of
+a discretely observed chain that :func:`dem.rates.fit_pattern` maximises (L-BFGS with the
+exact gradient through expm's Frechet derivative, the same cap of 2 / Delta), here on the
+(compartment, phase) states, warm-started from the previous iteration. It need not be
+maximised: a generalised EM only has to increase it at each M-step. The default M-step
+(``m_step="em"``) makes a few updates of the classic EM of a discretely observed
+continuous-time chain instead: each rate becomes the expected number of its jumps over the
+expected time spent in its source state, both read off the same Frechet derivative that
+gives dem.rates its gradient (:func:`_ctmc_em_steps`), one derivative per update. On the
+validation run's first 20 s (10 x 10, K = 2, 1.4e5 particle-steps) it reached the
+L-BFGS M-step's log-likelihood (20 L-BFGS iterations per M-step) in half the EM
+iterations and a tenth of the time per iteration (0.86 s against ~4.7 s); on 10 x 1 both
+end at the same likelihood in 32 iterations, 6 s against 26 s. The fit stops when the
+log-likelihood gains less than ``tol`` nats per particle-step.
+
+Cost: the forward-backward is a loop over particles and dumps with K^2 work per step.
+Vectorised over particles with numpy it took 1.0 s for 3.1e5 particle-steps (K = 2);
+compiled with numba (:func:`_fb_kernel_python`, identical to 1e-10) 0.04 s, so numba pays
+25x and the E-step is no longer the cost: the matrix exponentials of the M-step are.
+
+Continuous time, not a discrete chain at the dump interval. A discrete (S*K)^2 transition
+matrix has a closed-form M-step, but the PBM needs a generator, and the logarithm of a
+fitted transition matrix is in general no generator (negative off-diagonal entries, moves
+beyond the nearest neighbours), so it has to be projected, which changes the very RTD it
+was fitted to reproduce. Fitting Q directly keeps the PBM's structure (nearest-neighbour
+moves, conservation) and the likelihood of exactly the model that is solved. Measured
+(``workflows.study_phases.compare_time``; fresh validation run, particles in the blender
+from 25 to 60 s, 10 x 1 slices, K = 2, 5.5e5 particle-steps): the discrete chain (216 free
+entries) scores 0.010 nats per particle-step above the generator (60 rates), and its own
+RTD is the generator's (21.75 s / 233 s^2 against 21.74 s / 238 s^2); but its projected
+logarithm, the only way to make it a PBM, gives 9.9 s / 69 s^2. The generator is the
+model.
+
+Identifiability. Phases have no names: any relabelling fits equally well. After the fit
+they are ordered by mobility, slowest first (:func:`coupling.phases.mobility`: forward
+axial rate weighted by the expected time each phase spends in each compartment). Starts:
+start 0 splits the K = 1 rates into phases whose rates are the K = 1 rates times
+geometrically spaced factors (0.3 ... 3), switching at 0.2 /s and a uniform entry; the
+others draw the factors, the switching rates and the entry at random (seeded). Every
+start is run to convergence and the best kept; the spread of their log-likelihoods is
+reported (:attr:`PhaseFit.start_log_likelihoods`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import expm
+
+try:  # compiled forward-backward (module docstring, "Cost"); the numpy version is the reference
+    import numba
+except ImportError:  # pragma: no cover - numba is a dependency; kept importable without it
+    numba = None
+
+from coupling import phases as phase_model
+from coupling.blas import single_threaded_blas
+from coupling.phases import PhaseTransport
+from dem import rates as rate_fit
+from dem.tracking import CompartmentSequences
+
+#: components of the feed (the sequences' ``component``): rows of the entry distribution
+FEEDERS = (1, 2)
+
+
+# ----------------------------------------------------------------------------- data
+@dataclass(frozen=True)
+class PhaseData:
+    """Sequences prepared for the forward-backward pass.
+
+    ``obs`` (P, L) int16: state at each dump since first sight (compartment of the fitted
+    grid, ``n_cells`` = discharged, -1 after the sequence ended), rows sorted by
+    ``lengths`` descending, so that the particles still followed at step t are the first
+    ``active[t]`` rows. ``group`` (P,): the row of the initial phase distribution: 0 =
+    entered from feeder A (other types count as A), 1 = from feeder B, 2 + c = already
+    inside when the data's window opened, first observed in compartment c (its phase then
+    is not the feed's). ``start`` (P,): index of the first dump (absolute, in the
+    sequences' ``snapshot_t``); ``last_dump``: index of the last dump of the run.
+    """
+
+    obs: np.ndarray
+    lengths: np.ndarray
+    active: np.ndarray
+    group: np.ndarray
+    start: np.ndarray
+    last_dump: int
+    nx: int
+    ny: int
+    interval_s: float
+    #: every sequence, one after the other (int64, row order), and where each starts (P + 1,)
+    flat: np.ndarray
+    offsets: np.ndarray
+
+    @property
+    def n_cells(self) -> int:
+        return self.nx * self.ny
+
+    @property
+    def n_particles(self) -> int:
+        return int(self.obs.shape[0])
+
+    @property
+    def n_groups(self) -> int:
+        """Rows of the initial distribution: the two feeders and one per compartment."""
+        return 2 + self.n_cells
+
+    @property
+    def n_steps(self) -> int:
+        """Particle-steps (pairs of consecutive dumps) in the data."""
+        return int(np.maximum(self.lengths - 1, 0).sum())
+
+    def counts(self, lag: int = 1) -> np.ndarray:
+        """(S+1, S+1) counts of state a at one dump and b ``lag`` dumps later (moves of the
+        observed chain; a particle discharged before then counts as discharged)."""
+        s = self.n_cells
+        out = np.zeros((s + 1) * (s + 1), np.int64)
+        obs, lengths = self.obs, self.lengths
+        ends_out = obs[np.arange(obs.shape[0]), np.maximum(lengths - 1, 0)] == s
+        for t in range(obs.shape[1] - 1):
+            n = int(self.active[t])
+            a = obs[:n, t].astype(np.int64)
+            ahead = t + lag
+            in_range = lengths[:n] > ahead
+            b = np.where(in_range, obs[:n, min(ahead, obs.shape[1] - 1)], np.where(ends_out[:n], s, -1))
+            ok = (a < s) & (b >= 0)
+            out += np.bincount(a[ok] * (s + 1) + b[ok], minlength=out.size)
+        return out.reshape(s + 1, s + 1)
+
+
+def coarsen(states: np.ndarray, nx: int, ny: int, to_nx: int, to_ny: int) -> np.ndarray:
+    """Map flat states of an ``nx`` x ``ny`` grid onto a coarser ``to_nx`` x ``to_ny`` grid
+    whose edges are a subset (``nx`` and ``ny`` multiples of ``to_nx`` and ``to_ny``);
+    the discharged state and -1 are kept as such."""
+    if nx % to_nx or ny % to_ny:
+        raise ValueError(f"grid {to_nx}x{to_ny} does not divide {nx}x{ny}: its edges must be the finer grid's")
+    s = nx * ny
+    states = np.asarray(states)
+    i, j = states // ny, states % ny
+    coarse = (i // (nx // to_nx)) * to_ny + j // (ny // to_ny)
+    return np.where(states == s, to_nx * to_ny, np.where(states < 0, -1, coarse)).astype(np.int16)
+
+
+def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | None = None,
+            grid: tuple[int, int] | None = None, lag: int = 1, residents: bool = False) -> PhaseData:
+    """The sequences of the particles first seen in ``entered_s`` = (t0, t1] [s] (default
+    all), on ``grid`` = (NX, NY) (default the sequences' own; a coarser grid must divide
+    it), observed every ``lag`` dumps (a particle discharged in between is seen discharged
+    at the next observation), as a :class:`PhaseData`. With ``residents`` also the
+    particles already inside at t0, from their first dump after t0 on (initial group 2 + c):
+    the moves they make in the window are data too, and the only data on how long
+    particles stay when the window is shorter than the longest stays. Raises ValueError
+    for an empty selection or a lag < 1."""
+    if not isinstance(lag, (int, np.integer)) or lag < 1:
+        raise ValueError(f"lag = {lag!r}: expected a whole number of dumps >= 1")
+    entry_t = sequences.entry_t
+    chosen = np.ones(sequences.n_particles, bool)
+    if entered_s is not None:
+        t0, t1 = entered_s
+        tol = 1e-6 * sequences.interval_s
+        chosen = (entry_t > t0 + tol) & (entry_t <= t1 + tol)
+    index = np.flatnonzero(chosen)
+    if not index.size:
+        raise ValueError(f"no particle entered in {entered_s} s (sequences span {entry_t.min() if entry_t.size else 'nothing'}"
+                         f"..{entry_t.max() if entry_t.size else ''} s)")
+    obs = sequences.padded(index)
+    group = np.where(sequences.component[index] == FEEDERS[1], 1, 0)
+    start = sequences.start[index].astype(np.int64)
+    if residents and entered_s is not None:
+        old_obs, old_start, old_cells = _residents(sequences, entered_s[0])
+        width = max(obs.shape[1], old_obs.shape[1])
+        obs = np.concatenate([_widen(obs, width), _widen(old_obs, width)])
+        group = np.concatenate([group, 2 + coarsen(old_cells, sequences.nx, sequences.ny, *(grid or (sequences.nx,
+                                                                                                     sequences.ny)))])
+        start = np.concatenate([start, old_start])
+    nx, ny = grid or (sequences.nx, sequences.ny)
+    if (nx, ny) != (sequences.nx, sequences.ny):
+        obs = coarsen(obs, sequences.nx, sequences.ny, nx, ny)
+    if lag > 1:
+        obs = _subsample(obs, lag, nx * ny)
+    lengths = (obs >= 0).sum(axis=1)
+    order = np.argsort(-lengths, kind="stable")
+    obs, lengths = obs[order], lengths[order]
+    active = np.searchsorted(-lengths, -np.arange(obs.shape[1]), side="left")  # rows with length > t
+    # with a lag, dump indices count observations: start and last dump in units of the lag
+    return PhaseData(obs=obs, lengths=lengths, active=active, group=group[order].astype(np.int64),
+                     start=start[order] // lag,
+                     last_dump=int(sequences.snapshot_t.size - 1) // lag,
+                     nx=int(nx), ny=int(ny), interval_s=float(sequences.interval_s) * lag,
+                     flat=obs[obs >= 0].astype(np.int64),
+                     offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64))
+
+
+def _widen(obs: np.ndarray, width: int) -> np.ndarray:
+    return obs if obs.shape[1] == width else np.concatenate(
+        [obs, np.full((obs.shape[0], width - obs.shape[1]), -1, obs.dtype)], axis=1)
+
+
+def _residents(sequences: CompartmentSequences, t0_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(padded sequences from the first dump after ``t0_s`` on, that dump's index, the
+    compartment there) of the particles first seen at or before ``t0_s`` and still in a
+    compartment at that dump."""
+    first = int(np.searchsorted(sequences.snapshot_t, t0_s + 1e-6 * sequences.interval_s, side="right"))
+    entered_before = np.flatnonzero(sequences.start < first)
+    ends = sequences.start[entered_before] + sequences.lengths[entered_before]  # one past the last dump
+    alive = entered_before[ends > first]
+    if not alive.size:
+        return np.zeros((0, 1), np.int16), np.zeros(0, np.int64), np.zeros(0, np.int16)
+    full = sequences.padded(alive)
+    shift = first - sequences.start[alive].astype(np.int64)
+    width = full.shape[1] - int(shift.min())
+    cols = np.arange(width)[None, :] + shift[:, None]
+    obs = np.where(cols < full.shape[1], full[np.arange(alive.size)[:, None], np.minimum(cols, full.shape[1] - 1)], -1)
+    keep = (obs[:, 0] >= 0) & (obs[:, 0] < sequences.n_cells)  # not already discharged there
+    return obs[keep].astype(np.int16), np.full(int(keep.sum()), first, np.int64), obs[keep, 0].astype(np.int16)
+
+
+def _subsample(obs: np.ndarray, lag: int, n_cells: int) -> np.ndarray:
+    """Every ``lag``-th column of the padded sequences, a discharge in between moved to the
+    next kept column."""
+    lengths = (obs >= 0).sum(axis=1)
+    last = obs[np.arange(obs.shape[0]), np.maximum(lengths - 1, 0)]
+    out = obs[:, ::lag].copy()
+    out[out == n_cells] = -1
+    discharged = (last == n_cells) & (lengths > 0)
+    column = -(-(lengths - 1) // lag)  # ceil((length - 1) / lag): first kept column at or after the discharge
+    if out.shape[1] <= column.max(initial=0):
+        out = np.concatenate([out, np.full((out.shape[0], column.max() + 1 - out.shape[1]), -1, out.dtype)], axis=1)
+    out[np.flatnonzero(discharged), column[discharged]] = n_cells
+    return out
+
+
+# ----------------------------------------------------------------------------- E-step
+@dataclass(frozen=True)
+class Expectations:
+    """What one forward-backward pass gives: ``log_likelihood`` [nats] of the data,
+    ``counts`` (S*K+1, S*K+1) expected (compartment, phase) transitions per interval,
+    ``entry`` (G, K) summed posterior initial phases per initial group (:class:`PhaseData`)."""
+
+    log_likelihood: float
+    counts: np.ndarray
+    entry: np.ndarray
+
+
+def _blocks(p: np.ndarray, n_cells: int, k: int) -> np.ndarray:
+    """P as (S, K, S+1, K): [c, h, c', h'] = P[(c, h), (c', h')], and [c, h, S, 0] the
+    discharge (the other phases of the discharged "compartment" are empty)."""
+    s = n_cells
+    out = np.zeros((s, k, s + 1, k))
+    out[:, :, :s, :] = p[: s * k, : s * k].reshape(s, k, s, k)
+    out[:, :, s, 0] = p[: s * k, s * k].reshape(s, k)
+    return out
+
+
+def forward_backward(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
+                     backward: bool = True, compiled: bool | None = None) -> Expectations:
+    """Forward-backward on every sequence of ``data`` for the transition matrix ``p``
+    (S*K+1, S*K+1) over one dump interval and ``entry`` (2, K). With ``backward`` False
+    only the log-likelihood is computed (counts and entry are zeros). ``compiled``: use
+    the numba kernel (default: when numba is there) or the vectorised numpy version (the
+    reference it is tested against)."""
+    if compiled is None:
+        compiled = numba is not None
+    if compiled:
+        return _forward_backward_compiled(p, entry, data, k, backward)
+    s, obs, active = data.n_cells, data.obs, data.active
+    blocks = _blocks(p, s, k)
+    m = s * k + 1
+    n_steps = obs.shape[1]
+    alphas = [entry[data.group]]  # (P, K); emission 1: the first compartment is given
+    scales = [np.ones(data.n_particles)]
+    log_likelihood = 0.0
+    for t in range(1, n_steps):
+        n = int(active[t])
+        block = blocks[obs[:n, t - 1], :, obs[:n, t], :]  # (n, K, K)
+        a = np.einsum("nk,nkl->nl", alphas[-1][:n], block)
+        c = a.sum(axis=1)
+        if np.any(c <= 0):
+            bad = int(np.flatnonzero(c <= 0)[0])
+            raise FloatingPointError(f"a move {int(obs[bad, t - 1])} -> {int(obs[bad, t])} has probability 0 under the "
+                                     "model (a jump the nearest-neighbour pattern cannot make within a dump interval?)")
+        a /= c[:, None]
+        log_likelihood += float(np.log(c).sum())
+        alphas.append(a)
+        scales.append(c)
+    if not backward:
+        return Expectations(log_likelihood, np.zeros((m, m)), np.zeros((entry.shape[0], k)))
+    flat = np.zeros(m * m)
+    h_from = np.arange(k)[:, None]
+    h_to = np.arange(k)[None, :]
+    beta = np.ones((int(active[n_steps - 1]), k))
+    pending_index, pending_weight, pending = [], [], 0
+    for t in range(n_steps - 1, 0, -1):
+        n = int(active[t])
+        a_prev, b_now = obs[:n, t - 1].astype(np.int64), obs[:n, t].astype(np.int64)
+        block = blocks[a_prev, :, b_now, :]
+        xi = alphas[t - 1][:n, :, None] * block * (beta / scales[t][:, None])[:, None, :]
+        src = a_prev[:, None, None] * k + h_from[None]
+        dst = np.where(b_now[:, None, None] == s, s * k, b_now[:, None, None] * k + h_to[None])
+        pending_index.append((src * m + dst).ravel())
+        pending_weight.append(xi.ravel())
+        pending += xi.size
+        if pending > 2_000_000:
+            flat += np.bincount(np.concatenate(pending_index), np.concatenate(pending_weight), minlength=m * m)
+            pending_index, pending_weight, pending = [], [], 0
+        new_beta = np.einsum("nkl,nl->nk", block, beta) / scales[t][:, None]
+        previous = int(active[t - 1])
+        beta = np.ones((previous, k))
+        beta[:n] = new_beta
+    if pending_index:
+        flat += np.bincount(np.concatenate(pending_index), np.concatenate(pending_weight), minlength=m * m)
+    gamma0 = alphas[0] * beta
+    gamma0 /= gamma0.sum(axis=1, keepdims=True)
+    entry_sums = np.zeros((entry.shape[0], k))
+    np.add.at(entry_sums, data.group, gamma0)
+    return Expectations(log_likelihood, flat.reshape(m, m), entry_sums)
+
+
+def _fb_kernel_python(blocks, entry, flat, offsets, feeder, backward):
+    """Forward-backward particle by particle (compiled by numba): per step K^2 products,
+    the blocks of P gathered by the observed pair. Returns (log-likelihood, counts
+    (S, K, S+1, K), entry sums (2, K)); a move of probability 0 returns -inf."""
+    k = entry.shape[1]
+    s = blocks.shape[0]
+    counts = np.zeros((s, k, s + 1, k))
+    entry_sums = np.zeros((entry.shape[0], k))
+    longest = 1
+    for p in range(offsets.size - 1):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    alpha = np.empty((longest, k))
+    scale = np.empty(longest)
+    beta = np.empty(k)
+    new_beta = np.empty(k)
+    total = 0.0
+    for p in range(offsets.size - 1):
+        a0, length = offsets[p], offsets[p + 1] - offsets[p]
+        f = feeder[p]
+        for h in range(k):
+            alpha[0, h] = entry[f, h]
+        scale[0] = 1.0
+        for t in range(1, length):
+            a, b = flat[a0 + t - 1], flat[a0 + t]
+            c = 0.0
+            for g in range(k):
+                v = 0.0
+                for h in range(k):
+                    v += alpha[t - 1, h] * blocks[a, h, b, g]
+                alpha[t, g] = v
+                c += v
+            if c <= 0.0:
+                return -np.inf, counts, entry_sums
+            for g in range(k):
+                alpha[t, g] /= c
+            scale[t] = c
+            total += np.log(c)
+        if not backward:
+            continue
+        for h in range(k):
+            beta[h] = 1.0
+        for t in range(length - 1, 0, -1):
+            a, b = flat[a0 + t - 1], flat[a0 + t]
+            c = scale[t]
+            for h in range(k):
+                v = 0.0
+                for g in range(k):
+                    w = blocks[a, h, b, g] * beta[g] / c
+                    counts[a, h, b, g] += alpha[t - 1, h] * w
+                    v += w
+                new_beta[h] = v
+            for h in range(k):
+                beta[h] = new_beta[h]
+        norm = 0.0
+        for h in range(k):
+            norm += alpha[0, h] * beta[h]
+        for h in range(k):
+            entry_sums[f, h] += alpha[0, h] * beta[h] / norm
+    return total, counts, entry_sums
+
+
+_fb_kernel = numba.njit(cache=True, nogil=True)(_fb_kernel_python) if numba is not None else None
+
+
+def _forward_backward_compiled(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
+                               backward: bool) -> Expectations:
+    s = data.n_cells
+    blocks = _blocks(p, s, k)
+    log_likelihood, counts4, entry_sums = _fb_kernel(blocks, np.ascontiguousarray(entry, dtype=np.float64),
+                                                     data.flat, data.offsets, data.group, backward)
+    if not np.isfinite(log_likelihood):
+        raise FloatingPointError("a move has probability 0 under the model (a jump the nearest-neighbour pattern "
+                                 "cannot make within a dump interval?)")
+    m = s * k + 1
+    counts = np.zeros((m, m))
+    counts[: s * k, : s * k] = counts4[:, :, :s, :].reshape(s * k, s * k)
+    counts[: s * k, s * k] = counts4[:, :, s, 0].reshape(s * k)
+    return Expectations(float(log_likelihood), counts, entry_sums)
+
+
+# ----------------------------------------------------------------------------- the model
+@dataclass(frozen=True)
+class CkTest:
+    """Chapman-Kolmogorov test of a fitted chain on the observed axial slices.
+
+    For start points in slice i (every particle-dump of the data there, whose particle is
+    followed, or discharged, ``lags_s[n]`` later): ``observed[n, i, j]`` the fraction in
+    slice j then (j = NX: discharged), ``predicted[n, i, j]`` the model's probability,
+    starting from the data's compartments in slice i with the model's steady phase
+    distribution in each; ``standard_error`` of the observed fractions (particles as
+    clusters: a particle's start points are not independent); ``particles``: how many
+    particles the start points of (lag, slice) come from; ``z`` = |predicted - observed| /
+    the standard error, floored at the binomial one of the predicted probability over those
+    particles (a cluster estimate is 0 for an outcome never observed, however unlikely).
+    ``passed``: max z <= ``z_limit`` over the entries with at least ``min_starts`` starts.
+    """
+
+    lags_s: np.ndarray
+    observed: np.ndarray
+    predicted: np.ndarray
+    standard_error: np.ndarray
+    starts: np.ndarray
+    particles: np.ndarray
+    z_limit: float
+
+    @property
+    def z(self) -> np.ndarray:
+        p = np.clip(self.predicted, 0.0, 1.0)
+        floor = np.sqrt(p * (1 - p) / np.maximum(self.particles, 1)[:, :, None])
+        floor = np.maximum(floor, 1.0 / np.maximum(self.starts, 1)[:, :, None])
+        return np.abs(self.predicted - self.observed) / np.maximum(self.standard_error, floor)
+
+    def max_z(self, min_starts: int = 200) -> float:
+        use = self.starts >= min_starts
+        return float(self.z[use].max()) if use.any() else float("nan")
+
+    def max_abs_error(self, min_starts: int = 200) -> float:
+        use = self.starts >= min_starts
+        return float(np.abs(self.predicted - self.observed)[use].max()) if use.any() else float("nan")
+
+    @property
+    def passed(self) -> bool:
+        return bool(self.max_z() <= self.z_limit)
+
+
+@dataclass(frozen=True)
+class PhaseFit:
+    """A fitted hidden-phase chain and how the fit went.
+
+    ``transport``: the model (:class:`coupling.phases.PhaseTransport`, phases slowest
+    first); ``log_likelihood`` [nats] of the training data; ``n_particles``, ``n_steps``
+    (particle-steps) of the training data; ``iterations`` (EM) and ``converged`` of the
+    best start; ``start_log_likelihoods``: the final log-likelihood of every start (their
+    spread says how multimodal the likelihood is); ``wall_time_s`` of the whole fit.
+    """
+
+    transport: PhaseTransport
+    log_likelihood: float
+    n_particles: int
+    n_steps: int
+    iterations: int
+    converged: bool
+    start_log_likelihoods: tuple[float, ...] = ()
+    wall_time_s: float = float("nan")
+    occupancy: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def n_phases(self) -> int:
+        return self.transport.n_phases
+
+    @property
+    def interval_s(self) -> float:
+        return self.transport.interval_s
+
+    def generator(self) -> np.ndarray:
+        """Q (S*K+1, S*K+1) [1/s], row = from; last state discharged."""
+        return self.transport.generator()
+
+    def entry_distribution(self) -> np.ndarray:
+        """(2, K): probability of entering in each phase, feed A and feed B."""
+        return self.transport.entry
+
+    def initial_distribution(self, data: "PhaseData") -> np.ndarray:
+        """(2 + S, K): :func:`initial_distribution` of this model for ``data``."""
+        return initial_distribution(self.transport, data)
+
+    def n_parameters(self) -> int:
+        """Free parameters: every allowed move's rate and K-1 entry probabilities per feeder."""
+        moves = phase_model.transitions(self.transport.nx, self.transport.ny, self.n_phases)
+        return int(sum(src.size for src, _dst, _c in moves.values()) + 2 * (self.n_phases - 1))
+
+    def score(self, data: PhaseData) -> float:
+        """Log-likelihood [nats] of ``data`` (e.g. held out) under this model."""
+        check_grid(self.transport, data)
+        p = expm(self.generator() * data.interval_s)
+        return forward_backward(p, initial_distribution(self.transport, data), data, self.n_phases,
+                                backward=False).log_likelihood
+
+    def implied_timescales(self, count: int = 5) -> np.ndarray:
+        """The ``count`` longest relaxation times [s] of the chain, -1/Re(lambda) over the
+        eigenvalues of Q restricted to the transient states (a continuous-time chain's are
+        the same at every lag; the observed chain's, fitted at growing lags, are not when
+        the compartments alone are not Markovian)."""
+        q = self.generator()[:-1, :-1]
+        eigenvalues = np.linalg.eigvals(q)
+        times = np.sort(-1.0 / eigenvalues.real[eigenvalues.real < 0])[::-1]
+        return times[:count]
+
+    def steady_occupancy(self, data: PhaseData) -> np.ndarray:
+        """(S, K): expected particles in each (compartment, phase) at steady state for a
+        feed of one particle per second entering where ``data``'s particles were first seen,
+        in the entry phases [particles per (particle/s)]."""
+        return steady_occupancy(self.transport, first_compartments(data))
+
+    def chapman_kolmogorov(self, data: PhaseData, lags: tuple[int, ...] = (10, 20, 50, 100),
+                           z_limit: float = 4.0) -> CkTest:
+        """:class:`CkTest` at ``lags`` (in dumps) on ``data``'s particle-dumps."""
+        return chapman_kolmogorov(self.transport, data, lags, z_limit)
+
+
+def check_grid(model: PhaseTransport, data: PhaseData) -> None:
+    if (model.nx, model.ny) != (data.nx, data.ny):
+        raise ValueError(f"model grid {model.nx}x{model.ny} differs from the data's {data.nx}x{data.ny}")
+
+
+def initial_distribution(model: PhaseTransport, data: PhaseData) -> np.ndarray:
+    """(2 + S, K) initial phase distribution of each group of :class:`PhaseData`: the
+    entry distributions of the two feeders, then for the particles already inside, the
+    model's steady phase distribution in their first compartment (what the EM starts
+    from and what a held-out score assumes; the EM refits those rows)."""
+    occupancy = steady_occupancy(model, np.maximum(first_compartments(data), 0.0) + 1e-12)
+    given_cell = occupancy / np.maximum(occupancy.sum(axis=1, keepdims=True), 1e-300)
+    return np.vstack([model.entry, given_cell])
+
+
+def first_compartments(data: PhaseData) -> np.ndarray:
+    """(2, S): how many particles of each feeder were first seen in each compartment."""
+    first = data.obs[:, 0].astype(np.int64)
+    return np.stack([np.bincount(first[data.group == f], minlength=data.n_cells)[: data.n_cells]
+                     for f in (0, 1)]).astype(float)
+
+
+def steady_occupancy(model: PhaseTransport, entering: np.ndarray) -> np.ndarray:
+    """(S, K) steady particles per (compartment, phase) for ``entering`` (2, S) particles/s
+    of feed A and B into each compartment, in the model's entry phases: the solution of
+    0 = feed + N Q on the transient states."""
+    k, s = model.n_phases, model.n_cells
+    feed = np.zeros(s * k)
+    for f in (0, 1):
+        feed += (entering[f][:, None] * model.entry[f][None, :]).ravel()
+    q = model.generator()[:-1, :-1]
+    return np.linalg.solve(-q.T, feed).reshape(s, k)
+
+
+def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, ...], z_limit: float = 4.0) -> CkTest:
+    """The Chapman-Kolmogorov test (:class:`CkTest`) of ``model`` on ``data``.
+
+    Start points: every particle-dump at index t of a particle's sequence, in a
+    compartment, such that the run lasts at least ``lag`` dumps more (so that no outcome is
+    censored by the end of the run); a sequence censored otherwise (lost particle) before
+    t + lag is left out. Outcome: the slice at t + lag, or discharged."""
+    check_grid(model, data)
+    s, nx, ny, k = data.n_cells, data.nx, data.ny, model.n_phases
+    occupancy = steady_occupancy(model, first_compartments(data))
+    phase_given_cell = occupancy / np.maximum(occupancy.sum(axis=1, keepdims=True), 1e-300)
+    q = model.generator()
+    obs, lengths = data.obs, data.lengths
+    discharged = obs[np.arange(obs.shape[0]), np.maximum(lengths - 1, 0)] == s
+    slice_of = np.append(np.arange(s) // ny, nx)  # discharged -> column NX
+    n_lags = len(lags)
+    observed = np.zeros((n_lags, nx, nx + 1))
+    predicted = np.zeros_like(observed)
+    error = np.zeros_like(observed)
+    starts = np.zeros((n_lags, nx))
+    particles = np.zeros((n_lags, nx))
+    for n, lag in enumerate(lags):
+        p = expm(q * lag * data.interval_s)
+        aggregate = np.zeros((s * k + 1, nx + 1))
+        aggregate[np.arange(s * k + 1), np.append(np.repeat(slice_of[:-1], k), nx)] = 1.0
+        from_cell = (p @ aggregate)[:-1].reshape(s, k, nx + 1)
+        from_cell = (from_cell * phase_given_cell[:, :, None]).sum(axis=1)  # (S, NX+1)
+        # every start point (row, t) in a compartment, with its outcome
+        rows, ts = np.nonzero((obs >= 0) & (obs < s))
+        ahead = ts + lag
+        followed = (data.start[rows] + ahead <= data.last_dump)
+        in_range = ahead < lengths[rows]
+        outcome = np.where(in_range, obs[rows, np.minimum(ahead, obs.shape[1] - 1)],
+                           np.where(discharged[rows], s, -1))
+        use = followed & (outcome >= 0)
+        rows, cells, outcome = rows[use], obs[rows[use], ts[use]].astype(np.int64), outcome[use].astype(np.int64)
+        start_slice, end_slice = slice_of[cells], slice_of[outcome]
+        cell_counts = np.bincount(cells, minlength=s)[:s].astype(float)
+        for i in range(nx):
+            in_i = start_slice == i
+            total = int(in_i.sum())
+            starts[n, i] = total
+            if not total:
+                continue
+            weights = cell_counts[i * ny:(i + 1) * ny]
+            predicted[n, i] = weights @ from_cell[i * ny:(i + 1) * ny] / weights.sum()
+            hits = np.zeros((obs.shape[0], nx + 1))
+            np.add.at(hits, (rows[in_i], end_slice[in_i]), 1.0)
+            per_particle = np.bincount(rows[in_i], minlength=obs.shape[0]).astype(float)
+            particles[n, i] = np.count_nonzero(per_particle)
+            fraction = hits.sum(axis=0) / total
+            observed[n, i] = fraction
+            residual = hits - per_particle[:, None] * fraction[None, :]
+            error[n, i] = np.sqrt((residual**2).sum(axis=0)) / total
+    return CkTest(np.asarray(lags, float) * data.interval_s, observed, predicted, error, starts, particles,
+                  float(z_limit))
+
+
+# ----------------------------------------------------------------------------- the fit
+def _moves(nx: int, ny: int, k: int):
+    moves = phase_model.transitions(nx, ny, k)
+    return moves, {name: src.size for name, (src, _d, _c) in moves.items()}
+
+
+def _move_rates(model: PhaseTransport) -> dict[str, np.ndarray]:
+    """The rate of every move of :func:`coupling.phases.transitions`, read off ``model``."""
+    q = model.generator()
+    return {name: q[src, dst] for name, (src, dst, _c) in
+            phase_model.transitions(model.nx, model.ny, model.n_phases).items()}
+
+
+def _initial(base: PhaseTransport, k: int, rng: np.random.Generator | None) -> PhaseTransport:
+    """A K-phase start from the one-phase fit ``base`` (module docstring, "Starts")."""
+    nx, ny = base.nx, base.ny
+    if rng is None:
+        factors = np.geomspace(0.3, 3.0, k) if k > 1 else np.ones(1)
+        switch = np.full((k, k), 0.2)
+        entry = np.full(k, 1.0 / k)
+    else:
+        factors = np.sort(np.exp(rng.normal(0.0, 0.8, k)))
+        switch = np.exp(rng.uniform(np.log(0.02), np.log(1.0), (k, k)))
+        entry = rng.dirichlet(np.ones(k))
+    rates = np.stack([base.rates[0] * f for f in factors])
+    if rng is not None:
+        rates = rates * np.exp(rng.normal(0.0, 0.1, rates.shape))
+    switching = np.broadcast_to(switch[:, :, None, None], (k, k, nx, ny)).copy()
+    switching[np.arange(k), np.arange(k)] = 0.0
+    cap = rate_fit.MAX_RATE_X_INTERVAL / base.interval_s
+    return PhaseTransport(np.minimum(rates, cap), switching, np.stack([entry, entry]), base.interval_s)
+
+
+def _ordered(model: PhaseTransport, occupancy: np.ndarray) -> tuple[PhaseTransport, np.ndarray]:
+    """``model`` with its phases sorted by :func:`coupling.phases.mobility`, slowest first,
+    and ``occupancy`` (K, NX, NY) sorted alike."""
+    order = np.argsort(phase_model.mobility(model.rates, occupancy), kind="stable")
+    return (PhaseTransport(model.rates[order], model.switching[order][:, order], model.entry[:, order],
+                           model.interval_s, model.attrs), occupancy[order])
+
+
+def _ctmc_em_steps(counts: np.ndarray, moves: dict, start: dict[str, np.ndarray], interval_s: float,
+                   steps: int) -> np.ndarray:
+    """``steps`` EM updates of the rates of a chain observed at ``counts`` (expected
+    transitions per interval): each move's rate becomes its expected number of jumps over
+    the expected time spent in its source state, both read off the gradient of
+    :func:`dem.rates.log_likelihood` (for a move i -> j, rate * dL/dQ_ij is the expected
+    number of jumps and dL/dQ_ii the expected time in i, given the endpoints of every
+    interval). One Frechet derivative per update, against tens of evaluations for L-BFGS;
+    every update increases the likelihood. Capped at 2 / interval like the L-BFGS fit."""
+    src = np.concatenate([t[0] for t in moves.values()])
+    dst = np.concatenate([t[1] for t in moves.values()])
+    rates = np.concatenate([np.asarray(start[key], dtype=float) for key in moves])
+    # EM never moves a rate off 0: start every move slightly off it
+    rates = np.maximum(rates, 1e-4 / interval_s)
+    cap = rate_fit.MAX_RATE_X_INTERVAL / interval_s
+    n = counts.shape[0]
+    for _ in range(steps):
+        q = np.zeros((n, n))
+        q[src, dst] = rates
+        q[np.arange(n), np.arange(n)] = -q.sum(axis=1)
+        _value, d_q = rate_fit.log_likelihood(q, counts, interval_s)
+        dwell = d_q[src, src]
+        jumps = rates * d_q[src, dst]
+        rates = np.where(dwell > 0, np.minimum(jumps / np.maximum(dwell, 1e-300), cap), rates)
+    return rates
+
+
+def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float, m_step_iterations: int,
+        m_step: str = "em") -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
+    """EM from ``model`` (module docstring); returns the model, its log-likelihood, the
+    iterations, whether it converged and the expected time per (compartment, phase)."""
+    nx, ny, k, interval = data.nx, data.ny, model.n_phases, data.interval_s
+    moves, _sizes = _moves(nx, ny, k)
+    previous = -math.inf
+    converged = False
+    dwell = np.zeros(nx * ny * k)
+    iteration = 0
+    initial = initial_distribution(model, data)
+    for iteration in range(1, max_iterations + 1):
+        p = expm(model.generator() * interval)
+        expected = forward_backward(p, initial, data, k)
+        # the likelihood is that of the model before this M-step
+        gain = (expected.log_likelihood - previous) / max(data.n_steps, 1)
+        if gain < tol:
+            converged = True
+            break
+        previous = expected.log_likelihood
+        updated = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
+        missing = expected.entry.sum(axis=1) <= 0  # a group without particles keeps its row
+        initial = np.where(missing[:, None], initial, updated)
+        entry = initial[:2]
+        counts = expected.counts.copy()
+        counts[-1] = 0.0
+        if m_step == "lbfgs":
+            values, _fit = rate_fit.fit_pattern(counts, moves, _move_rates(model), interval, m_step_iterations)
+        else:
+            values = _ctmc_em_steps(counts, moves, _move_rates(model), interval, m_step_iterations)
+        split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
+        per_move = dict(zip(moves, np.split(values, split)))
+        model = phase_model.from_move_rates(per_move, nx, ny, k, entry, interval, model.attrs)
+        dwell = counts[:-1].sum(axis=1)
+    return model, previous if not converged else expected.log_likelihood, iteration, converged, dwell
+
+
+@single_threaded_blas()
+def fit(data: PhaseData, n_phases: int, starts: int = 3, seed: int = 0, max_iterations: int = 200,
+        tol: float = 1e-6, m_step_iterations: int = 20, base: PhaseTransport | None = None,
+        m_step: str = "em") -> PhaseFit:
+    """Fit the K = ``n_phases`` chain to ``data`` by EM from ``starts`` starts (module
+    docstring); stop when the log-likelihood gains less than ``tol`` nats per
+    particle-step, or after ``max_iterations``. ``base``: the one-phase fit to start from
+    (default: fitted here, by the same EM with K = 1). Raises ValueError for K < 1 or
+    starts < 1."""
+    if not isinstance(n_phases, (int, np.integer)) or n_phases < 1:
+        raise ValueError(f"n_phases = {n_phases!r}: expected an integer >= 1")
+    if starts < 1:
+        raise ValueError(f"starts = {starts!r}: expected at least one start")
+    wall0 = time.perf_counter()
+    if base is None:
+        base = one_phase(data)
+    rng = np.random.default_rng(seed)
+    results = []
+    for start in range(starts if n_phases > 1 else 1):
+        first = _initial(base, n_phases, None if start == 0 else rng)
+        results.append(_em(first, data, max_iterations, tol, m_step_iterations, m_step))
+    best = max(results, key=lambda r: r[1])
+    model, log_likelihood, iterations, converged, dwell = best
+    occupancy = dwell.reshape(data.nx, data.ny, n_phases).transpose(2, 0, 1)
+    model, occupancy = _ordered(model, occupancy)
+    model = PhaseTransport(model.rates, model.switching, model.entry, model.interval_s,
+                           {"method": "EM (forward-backward on the phases, dem.rates M-step)",
+                            "n_particles": data.n_particles, "n_steps": data.n_steps,
+                            "log_likelihood": log_likelihood, "grid": [data.nx, data.ny]})
+    return PhaseFit(model, log_likelihood, data.n_particles, data.n_steps, iterations, converged,
+                    tuple(float(r[1]) for r in results), time.perf_counter() - wall0, occupancy)
+
+
+@single_threaded_blas()
+def one_phase(data: PhaseData, max_iterations: int = 2000) -> PhaseTransport:
+    """The K = 1 chain: the measured rates of :mod:`dem.rates` (maximum likelihood of the
+    observed moves, pooled over ``data``), entry phase trivially 0."""
+    counts = data.counts().astype(float)
+    counts[-1] = 0.0
+    nx, ny = data.nx, data.ny
+    moves, _sizes = _moves(nx, ny, 1)
+    start = rate_fit.naive_rates(counts, nx, ny, data.interval_s)
+    start_moves = {f"{key}/0": start[key].ravel()[moves[f"{key}/0"][2]] for key in rate_fit.RATE_KEYS}
+    values, _fit = rate_fit.fit_pattern(counts, moves, start_moves, data.interval_s, max_iterations)
+    split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
+    return phase_model.from_move_rates(dict(zip(moves, np.split(values, split))), nx, ny, 1, np.ones(1),
+                                       data.interval_s)
+
+
+# ----------------------------------------------------------------------------- synthetic data
+def simulate_sequences(model: PhaseTransport, entering: np.ndarray, n_particles: int, n_dumps: int,
+                       rng: np.random.Generator, entry_every: int = 1) -> CompartmentSequences:
+    """Sequences of ``n_particles`` particles of the chain ``model`` observed every
+    ``model.interval_s`` (exact: each step draws from expm(Q interval)), for tests with a
+    known answer. Particle p enters at dump p // (``n_particles`` / (n_dumps / entry_every))...
+    precisely: entries are spread evenly over the first half of the ``n_dumps`` dumps, each
+    into a compartment drawn from ``entering`` (2, S) (rows: feed A, B; half the particles
+    each) and a phase drawn from the model's entry distribution; the record ends at dump
+    ``n_dumps`` - 1 (later particles are censored there)."""
+    k, s = model.n_phases, model.n_cells
+    p = expm(model.generator() * model.interval_s)
+    cdf = np.cumsum(p, axis=1)
+    cdf[:, -1] = 1.0
+    feeder = np.arange(n_particles) % 2
+    start = (np.arange(n_particles) * (n_dumps // 2) // max(n_particles, 1)).astype(np.int64)
+    entering = np.asarray(entering, float)
+    cells = np.empty(n_particles, np.int64)
+    phases = np.empty(n_particles, np.int64)
+    for f in (0, 1):
+        chosen = feeder == f
+        cells[chosen] = rng.choice(s, size=int(chosen.sum()), p=entering[f] / entering[f].sum())
+        phases[chosen] = rng.choice(k, size=int(chosen.sum()), p=model.entry[f])
+    state = cells * k + phases
+    obs = np.full((n_particles, n_dumps), -1, np.int16)
+    for t in range(n_dumps):
+        inside = (start <= t) & (state < s * k)
+        entering_now = start == t
+        stepping = inside & ~entering_now
+        if stepping.any():
+            u = rng.random(int(stepping.sum()))
+            rows = state[stepping]
+            state[stepping] = (u[:, None] > cdf[rows]).sum(axis=1)
+        recorded = start <= t
+        just_out = recorded & (state == s * k) & (obs[:, t - 1] < s) & (obs[:, t - 1] >= 0) if t else np.zeros(n_particles, bool)
+        obs[inside & (state < s * k), t] = (state[inside & (state < s * k)] // k).astype(np.int16)
+        obs[just_out, t] = s
+    return sequences_from_padded(obs, start, feeder + 1, np.arange(n_dumps) * model.interval_s, model.interval_s,
+                                 model.nx, model.ny)
+
+
+def sequences_from_padded(obs: np.ndarray, start: np.ndarray, component: np.ndarray, snapshot_t: np.ndarray,
+                          interval_s: float, nx: int, ny: int) -> CompartmentSequences:
+    """:class:`CompartmentSequences` from a (P, T) matrix of states at absolute dumps (-1:
+    not in the record), each row one contiguous sequence starting at ``start``."""
+    rows, cols = np.nonzero(obs >= 0)
+    state = obs[rows, cols]
+    new = np.ones(rows.size, bool)
+    new[1:] = rows[1:] != rows[:-1]
+    run_start = new.copy()
+    run_start[1:] |= state[1:] != state[:-1]
+    starts = np.flatnonzero(run_start)
+    present = np.unique(rows)
+    particle_of_run = np.searchsorted(present, rows[starts])
+    offsets = np.searchsorted(particle_of_run, np.arange(present.size + 1)).astype(np.int64)
+    return CompartmentSequences(ids=present.astype(np.int64) + 1, component=np.asarray(component)[present].astype(np.int8),
+                                start=np.asarray(start)[present].astype(np.int32), run_offsets=offsets,
+                                run_state=state[starts].astype(np.int16),
+                                run_length=np.diff(np.append(starts, rows.size)).astype(np.int32),
+                                snapshot_t=np.asarray(snapshot_t, float), interval_s=float(interval_s), nx=nx, ny=ny)
+
+
+# ----------------------------------------------------------------------------- discrete time
+@dataclass(frozen=True)
+class DiscretePhaseFit:
+    """The alternative to a generator: a transition matrix over one dump interval on the
+    (compartment, phase) states, every compartment move seen in the data allowed between
+    every pair of phases. ``transition`` (S*K+1, S*K+1), row = from, last state discharged;
+    ``entry`` (2, K); ``log_likelihood`` [nats]; ``n_parameters`` free entries."""
+
+    transition: np.ndarray
+    entry: np.ndarray
+    log_likelihood: float
+    n_parameters: int
+    iterations: int
+    interval_s: float
+
+
+@single_threaded_blas()
+def fit_discrete(data: PhaseData, n_phases: int, start: PhaseTransport, max_iterations: int = 200,
+                 tol: float = 1e-6) -> DiscretePhaseFit:
+    """Baum-Welch of the discrete-time chain at the dump interval (closed-form M-step:
+    expected transitions over their row sums), started from ``start``'s expm(Q interval)
+    restricted to the allowed entries."""
+    k, s = n_phases, data.n_cells
+    m = s * k + 1
+    seen = data.counts() > 0  # (S+1, S+1) compartment moves observed at all
+    allowed = np.zeros((m, m), bool)
+    allowed[: s * k, : s * k] = np.kron(seen[:s, :s], np.ones((k, k), bool))
+    allowed[: s * k, s * k] = np.repeat(seen[:s, s], k)
+    allowed[-1, -1] = True
+    t_matrix = np.where(allowed, expm(start.generator() * data.interval_s), 0.0)
+    t_matrix /= t_matrix.sum(axis=1, keepdims=True)
+    initial = initial_distribution(start, data)
+    previous, iteration = -math.inf, 0
+    for iteration in range(1, max_iterations + 1):
+        expected = forward_backward(t_matrix, initial, data, k)
+        if (expected.log_likelihood - previous) / max(data.n_steps, 1) < tol:
+            previous = expected.log_likelihood
+            break
+        previous = expected.log_likelihood
+        rows = expected.counts.sum(axis=1, keepdims=True)
+        updated = np.where(allowed, expected.counts, 0.0) / np.maximum(rows, 1e-300)
+        keep = rows[:, 0] <= 0  # states never visited keep their row
+        t_matrix = np.where(keep[:, None], t_matrix, updated)
+        t_matrix[-1] = 0.0
+        t_matrix[-1, -1] = 1.0
+        updated = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
+        initial = np.where(expected.entry.sum(axis=1, keepdims=True) <= 0, initial, updated)
+    entry = initial[:2]
+    n_parameters = int(allowed[:-1].sum() - (m - 1) + 2 * (k - 1))
+    return DiscretePhaseFit(t_matrix, entry, previous, n_parameters, iteration, data.interval_s)
+
+
+def generator_from_transition(fit_d: DiscretePhaseFit, nx: int, ny: int) -> PhaseTransport:
+    """The discrete chain turned into a generator: the principal matrix logarithm over the
+    interval, kept on the nearest-neighbour and switching moves of
+    :func:`coupling.phases.transitions`, negative entries set to 0 (what a generator must
+    be; the difference is what the discrete chain cannot be as a PBM)."""
+    from scipy.linalg import logm
+
+    k = fit_d.entry.shape[1]
+    log_t = np.real(logm(fit_d.transition)) / fit_d.interval_s
+    values = {name: np.clip(log_t[src, dst], 0.0, None)
+              for name, (src, dst, _c) in phase_model.transitions(nx, ny, k).items()}
+    return phase_model.from_move_rates(values, nx, ny, k, fit_d.entry, fit_d.interval_s,
+                                       {"method": "discrete-time Baum-Welch, projected matrix logarithm"})
+
+
+# ----------------------------------------------------------------------------- into the table
+def steady_window(sequences: CompartmentSequences, steady_time_s: float | None) -> tuple[float, float]:
+    """(steady-state time, last dump) [s]: the particles the model is fitted to are those
+    first seen in between. Raises ValueError when the run never became steady."""
+    if steady_time_s is None or not math.isfinite(steady_time_s):
+        raise ValueError("the run has no steady-state time: the phase model is fitted to the steady period")
+    return float(steady_time_s), float(sequences.snapshot_t[-1])
+
+
+def table_with_phases(table, sequences: CompartmentSequences, steady_time_s: float | None, n_phases: int = 2,
+                      starts: int = 3, seed: int = 0, max_iterations: int = 200):
+    """``table`` (a :class:`coupling.tables.VelocityTable` on the sequences' grid) carrying
+    the K = ``n_phases`` model fitted to the particles first seen after ``steady_time_s``:
+    a schema-3 table that ``pbm`` runs with ``rates = "phases"``. Returns (table, fit)."""
+    if (table.nx, table.ny) != (sequences.nx, sequences.ny):
+        raise ValueError(f"table grid {table.nx}x{table.ny} differs from the sequences' {sequences.nx}x{sequences.ny}")
+    data = prepare(sequences, steady_window(sequences, steady_time_s))
+    result = fit(data, n_phases, starts=starts, seed=seed, max_iterations=max_iterations)
+    return table.replace(phases=result.transport), result

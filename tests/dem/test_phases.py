@@ -1,0 +1,319 @@
+"""Transport with memory (dem/phases.py, coupling/phases.py, PBM mode "phases") against known
+answers: sequences extracted exactly, a synthetic hidden-phase chain recovered, K = 1 equal
+to the measured rates, the Chapman-Kolmogorov test telling Markovian from non-Markovian
+data, schema 3 round trips, and the PBM's phase chain equal to the measured chain at K = 1
+and to the generator's exact RTD at K = 2.
+
+Tolerances: the synthetic chain has 6000 particles and ~5e5 particle-steps, so a
+compartment's rate carries ~3-10 % sampling noise, a rate averaged over the compartments
+(weighted by the time spent there) ~1-2 %: the recovery is judged on those averages (5 %)
+and on the RTD variance (2 %), which is what the PBM uses the model for.
+"""
+
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from coupling.errors import ConfigError, TableError
+from coupling.phases import PhaseTransport, mobility
+from coupling.tables import make_table, read_table, write_table
+from dem import phases
+from dem import rates as rate_fit
+from dem.post import postprocess
+from pbm.config import PbmConfig
+from pbm.rtd import pooled_rtd
+from pbm.simulate import simulate
+from tests.known_dumps import STEADY, write_synthetic
+from tests.known_dumps import config as synthetic_config
+
+INTERVAL = 0.1
+NX = 10
+
+
+def two_phase_model(ny: int = 1) -> PhaseTransport:
+    """A slow bed (forward 1.2 /s, back 0.9 /s) and a fast stream (forward 7 /s, back
+    2 /s; rate x interval up to 0.7), switching slow -> fast at 0.15 /s and back at
+    0.4 /s; feed A enters mostly fast, B mostly slow."""
+    rates = np.zeros((2, 4, NX, ny))
+    rates[0, 0], rates[0, 1] = 1.2, 0.9
+    rates[1, 0], rates[1, 1] = 7.0, 2.0
+    if ny > 1:
+        rates[:, 2], rates[:, 3] = 3.0, 3.0
+    switching = np.zeros((2, 2, NX, ny))
+    switching[0, 1], switching[1, 0] = 0.15, 0.4
+    return PhaseTransport(rates, switching, np.array([[0.3, 0.7], [0.6, 0.4]]), INTERVAL)
+
+
+def inlet(ny: int = 1) -> np.ndarray:
+    entering = np.zeros((2, NX * ny))
+    entering[:, 0] = 1.0
+    return entering
+
+
+def exact_rtd_moments(model: PhaseTransport, entry_cells: np.ndarray, feeder_share=(0.5, 0.5)) -> tuple[float, float]:
+    """Mean [s] and variance [s^2] of the time to absorption from the entry distribution
+    (no truncation): from the fundamental matrix, m1 = v T 1, m2 = 2 v T^2 1, T = (-Q_tt)^-1."""
+    k, s = model.n_phases, model.n_cells
+    v = sum(share * (entry_cells[f][:, None] * model.entry[f][None, :]).ravel()
+            for f, share in enumerate(feeder_share))
+    v = v / v.sum()
+    q = model.generator()[:-1, :-1]
+    t1 = np.linalg.solve(-q, np.ones(s * k))
+    t2 = np.linalg.solve(-q, t1)
+    m1, m2 = v @ t1, 2 * v @ t2
+    return float(m1), float(m2 - m1**2)
+
+
+@pytest.fixture(scope="module")
+def synthetic_two_phase():
+    model = two_phase_model()
+    sequences = phases.simulate_sequences(model, inlet(), 6000, 2400, np.random.default_rng(7))
+    data = phases.prepare(sequences)
+    return model, sequences, data, phases.fit(data, 2, starts=2, seed=1)
+
+
+# ----------------------------------------------------------------------------- extraction
+def test_sequences_reproduce_the_measured_transition_counts(tmp_path):
+    """The lag-1 moves of the stored sequences are exactly the moves the measured rates are
+    fitted to (same binning, same discharge rule), including particles the solver deleted
+    between dumps; and the sequences survive the results file."""
+    cfg = synthetic_config()
+    for name, unseen in (("seen", False), ("unseen", True)):
+        write_synthetic(tmp_path / name, cfg, vanish_unseen=unseen)
+        res = postprocess(str(tmp_path / name / "dump.*.txt"), cfg, STEADY)
+        seq = res.sequences
+        assert (seq.nx, seq.ny) == (4, 2) and seq.interval_s == pytest.approx(0.5, rel=1e-4)
+        counts = phases.prepare(seq).counts()
+        assert np.array_equal(counts, res.transitions.sum(axis=0))
+        # A crosses in 4 s (2 dumps per slice), B in 6 s: sequences are exact
+        a = seq.states(np.flatnonzero(seq.component == 1)[:1])[0]
+        assert a.tolist() == [1, 1, 3, 3, 5, 5, 7, 7, 8]
+        assert seq.discharged.sum() == int(np.isfinite(res.particles["exit_t_s"]).sum())
+    entry = res.to_cache_entry({"input_hash": "test"})
+    back = type(res).from_cache_entry(entry).sequences
+    for name in seq.ARRAYS:
+        assert np.array_equal(getattr(back, name), getattr(seq, name))
+
+
+def test_padded_and_run_length_decoding_agree(synthetic_two_phase):
+    _model, sequences, _data, _fit = synthetic_two_phase
+    chosen = np.arange(0, sequences.n_particles, 37)
+    padded = sequences.padded(chosen)
+    for row, states in zip(padded, sequences.states(chosen)):
+        assert np.array_equal(row[: states.size], states) and np.all(row[states.size:] == -1)
+
+
+# ----------------------------------------------------------------------------- estimator
+def test_compiled_forward_backward_equals_numpy(synthetic_two_phase):
+    model, _seq, data, _fit = synthetic_two_phase
+    p = expm(model.generator() * INTERVAL)
+    fast = phases.forward_backward(p, model.entry, data, 2, compiled=True)
+    slow = phases.forward_backward(p, model.entry, data, 2, compiled=False)
+    assert fast.log_likelihood == pytest.approx(slow.log_likelihood, rel=1e-12)
+    np.testing.assert_allclose(fast.counts, slow.counts, atol=1e-8)
+    np.testing.assert_allclose(fast.entry, slow.entry, atol=1e-9)
+    # the expected transitions are the particle-steps
+    assert fast.counts.sum() == pytest.approx(data.n_steps, rel=1e-12)
+
+
+def test_two_phase_chain_is_recovered(synthetic_two_phase):
+    truth, _seq, data, fit = synthetic_two_phase
+    assert fit.converged
+    got = fit.transport
+    weights = fit.occupancy  # (K, NX, NY): time each phase spends in each compartment
+    for h in range(2):
+        w = weights[h] / weights[h].sum()
+        for d in (0, 1):
+            inside = w.copy()
+            if d == 1:
+                inside[0] = 0.0  # no backward move through the inlet wall
+            inside /= inside.sum()
+            assert (got.rates[h, d] * inside).sum() == pytest.approx((truth.rates[h, d] * inside).sum(), rel=0.05)
+        g = 1 - h
+        assert (got.switching[h, g] * w).sum() == pytest.approx(truth.switching[h, g, 0, 0], rel=0.05), h
+    np.testing.assert_allclose(got.entry, truth.entry, atol=0.03)
+    # ordered slowest first
+    assert np.all(np.diff(mobility(got.rates, weights)) > 0)
+    mean_t, var_t = exact_rtd_moments(truth, inlet())
+    mean_f, var_f = exact_rtd_moments(got, inlet())
+    assert mean_f == pytest.approx(mean_t, rel=0.02)
+    assert var_f == pytest.approx(var_t, rel=0.02)
+    # the truth's likelihood is no better than the fit's (EM found the maximum)
+    assert fit.log_likelihood >= fit.score(data) - 1e-6 * data.n_steps
+    assert phases.PhaseFit(truth, 0, 0, 0, 0, True).score(data) <= fit.log_likelihood + 1e-6 * data.n_steps
+
+
+def test_one_phase_is_the_measured_chain(synthetic_two_phase):
+    """K = 1 is dem.rates' maximum likelihood on the pooled moves."""
+    _truth, _seq, data, _fit = synthetic_two_phase
+    one = phases.fit(data, 1)
+    measured = rate_fit.fit_rates(data.counts(), NX, 1, INTERVAL, min_observations=1)
+    for d, key in enumerate(rate_fit.RATE_KEYS[:2]):
+        got = one.transport.rates[0, d]
+        want = np.nan_to_num(measured.rates()[key])
+        np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-4)
+    assert one.log_likelihood == pytest.approx(measured.log_likelihood, rel=1e-6)
+
+
+def test_held_out_likelihood_prefers_the_true_number_of_phases(synthetic_two_phase):
+    _truth, sequences, _data, _fit = synthetic_two_phase
+    t_mid = sequences.snapshot_t[sequences.start].max() / 2
+    train = phases.prepare(sequences, (-1.0, t_mid))
+    test = phases.prepare(sequences, (t_mid, np.inf))
+    one, two = phases.fit(train, 1), phases.fit(train, 2, starts=1)
+    assert two.score(test) > one.score(test) + 100.0
+
+
+def test_chapman_kolmogorov_tells_markovian_from_hidden_phases(synthetic_two_phase):
+    truth, _seq, data, fit_two = synthetic_two_phase
+    one_on_two = phases.fit(data, 1)
+    assert not one_on_two.chapman_kolmogorov(data).passed
+    assert fit_two.chapman_kolmogorov(data).passed
+    # a chain that is Markovian on the compartments: its own K = 1 fit passes
+    markov = PhaseTransport(truth.rates[:1] * 0 + np.array([2.0, 1.2, 0, 0])[None, :, None, None],
+                            np.zeros((1, 1, NX, 1)), np.ones((2, 1)), INTERVAL)
+    markov_data = phases.prepare(phases.simulate_sequences(markov, inlet(), 6000, 2400, np.random.default_rng(3)))
+    test = phases.fit(markov_data, 1).chapman_kolmogorov(markov_data)
+    assert test.passed and test.max_abs_error() < 0.02
+
+
+def test_implied_timescales_and_generator_shape(synthetic_two_phase):
+    _truth, _seq, _data, fit = synthetic_two_phase
+    q = fit.generator()
+    assert q.shape == (NX * 2 + 1, NX * 2 + 1)
+    np.testing.assert_allclose(q.sum(axis=1), 0.0, atol=1e-12)
+    times = fit.implied_timescales(3)
+    assert times.size == 3 and np.all(np.diff(times) <= 0) and times[0] > 1.0
+
+
+def test_bad_arguments_are_named():
+    data = phases.prepare(phases.simulate_sequences(two_phase_model(), inlet(), 50, 100, np.random.default_rng(0)))
+    with pytest.raises(ValueError, match="n_phases = 0"):
+        phases.fit(data, 0)
+    with pytest.raises(ValueError, match="no particle entered"):
+        phases.prepare(phases.simulate_sequences(two_phase_model(), inlet(), 50, 100, np.random.default_rng(0)),
+                       (1e3, 2e3))
+    with pytest.raises(ValueError, match="does not divide"):
+        phases.coarsen(np.zeros(3, np.int16), 10, 10, 3, 1)
+
+
+# ----------------------------------------------------------------------------- schema 3 and the PBM
+def test_phase_model_validation_names_the_field():
+    model = two_phase_model()
+    with pytest.raises(TableError, match="entry-phase distribution rows sum"):
+        PhaseTransport(model.rates, model.switching, np.array([[0.5, 0.6], [0.5, 0.5]]))
+    with pytest.raises(TableError, match="phase switching has shape"):
+        PhaseTransport(model.rates, model.switching[:1], model.entry)
+    bad = model.rates.copy()
+    bad[1, 0, 3, 0] = -1.0
+    with pytest.raises(TableError, match=r"phase rates hold -1.0 at index \(1, 0, 3, 0\)"):
+        PhaseTransport(bad, model.switching, model.entry)
+
+
+def table_with(model: PhaseTransport | None, ny: int = 1, rates=None):
+    rates = rates or {}
+    return make_table(np.arange(0.0, 200.0, 5.0), np.linspace(0, 0.33, NX + 1), np.linspace(-0.05, 0.05, ny + 1),
+                      0.01, 0.01, 0.0, 0.0, **rates).replace(phases=model)
+
+
+def test_schema_3_round_trip_and_schema_2_unchanged(tmp_path):
+    import h5py
+
+    model = two_phase_model()
+    path = write_table(tmp_path / "t3.h5", table_with(model))
+    back = read_table(path)
+    assert back.has_phases and back.phases.n_phases == 2
+    np.testing.assert_array_equal(back.phases.rates, model.rates)
+    np.testing.assert_array_equal(back.phases.switching, model.switching)
+    np.testing.assert_array_equal(back.phases.entry, model.entry)
+    with h5py.File(path) as h5:
+        assert h5["velocity_table"].attrs["schema_version"] == 3
+    plain = write_table(tmp_path / "t2.h5", table_with(None))
+    with h5py.File(plain) as h5:
+        assert h5["velocity_table"].attrs["schema_version"] == 2 and "phases" not in h5["velocity_table"]
+    assert not read_table(plain).has_phases
+    with pytest.raises(TableError, match="grid 10x1 differs"):
+        table_with(model, ny=2)
+
+
+def test_pbm_phases_mode_needs_the_model():
+    with pytest.raises(ConfigError, match="rates = 'phases' needs"):
+        simulate(table_with(None), PbmConfig(rates="phases"))
+
+
+def test_pbm_one_phase_equals_measured():
+    rng = np.random.default_rng(4)
+    ny = 3
+    r = [rng.uniform(0.5, 3.0, (NX, ny)) for _ in range(4)]
+    model = PhaseTransport(np.stack(r)[None], np.zeros((1, 1, NX, ny)), np.ones((2, 1)), INTERVAL)
+    # the walls: the table's rates through them are ignored by both modes
+    table = table_with(model, ny, dict(zip(("rate_x_pos", "rate_x_neg", "rate_y_pos", "rate_y_neg"), r)))
+    out = {}
+    for mode in ("measured", "phases"):
+        cfg = PbmConfig(rates=mode, feed_rate_a_per_s=40.0, feed_rate_b_per_s=40.0)
+        res = simulate(table, cfg)
+        rtd = pooled_rtd(table, cfg, (30.0, 60.0), 100.0)
+        out[mode] = (res.summary["mean_residence_time_s"], res.summary["rtd_variance_s2"], res.counts[-1],
+                     rtd.mean_s, rtd.variance_s2)
+    for a, b in zip(out["measured"], out["phases"]):
+        np.testing.assert_allclose(a, b, rtol=1e-9)
+
+
+def test_pbm_two_phase_rtd_and_holdup_are_the_generators():
+    """The PBM's pooled RTD (horizon long enough to recover everything) and steady hold-up
+    equal the phase chain's exact moments and its steady occupancy under the feed."""
+    model = two_phase_model()
+    table = table_with(model)
+    cfg = PbmConfig(rates="phases", feed_rate_a_per_s=30.0, feed_rate_b_per_s=30.0, duration_s=200.0)
+    rtd = pooled_rtd(table, cfg, (10.0, 20.0), 180.0)
+    mean, var = exact_rtd_moments(model, inlet())
+    assert rtd.recovered_fraction > 0.99999
+    assert rtd.mean_s == pytest.approx(mean, rel=1e-5)
+    assert rtd.variance_s2 == pytest.approx(var, rel=1e-4)
+    res = simulate(table, cfg)
+    occupancy = phases.steady_occupancy(model, inlet() * 30.0)
+    np.testing.assert_allclose(res.counts[-1].sum(axis=(0, 2)), occupancy.sum(axis=1), rtol=1e-6)
+
+
+def test_results_to_schema_3_table_to_pbm(tmp_path):
+    """The whole path: dumps -> results with sequences -> a schema-3 table with the fitted
+    phases -> file -> the PBM in mode "phases", conserving particles."""
+    cfg = synthetic_config()
+    write_synthetic(tmp_path / "dumps", cfg)
+    res = postprocess(str(tmp_path / "dumps" / "dump.*.txt"), cfg, STEADY)
+    table, fit = phases.table_with_phases(res.table, res.sequences, res.summary.steady_state_time_s, 2, starts=1)
+    assert fit.n_phases == 2 and table.has_phases
+    back = read_table(write_table(tmp_path / "t.h5", table))
+    out = simulate(back, PbmConfig(rates="phases", feed_rate_a_per_s=2.0, feed_rate_b_per_s=2.0))
+    fed = out.fed_A[-1] + out.fed_B[-1]
+    held = out.holdup_A[-1] + out.holdup_B[-1]
+    assert fed == pytest.approx(held + out.discharged_A[-1] + out.discharged_B[-1], rel=1e-9)
+    with pytest.raises(ValueError, match="no steady-state time"):
+        phases.table_with_phases(res.table, res.sequences, None)
+
+
+def test_a_lag_subsamples_and_keeps_the_discharge():
+    obs = np.array([[0, 0, 1, 1, 2, 3], [0, 1, 1, 2, -1, -1]], np.int16)
+    seq = phases.sequences_from_padded(obs, np.zeros(2, int), np.array([1, 2]), np.arange(6) * 0.1, 0.1, 3, 1)
+    data = phases.prepare(seq, lag=2)
+    assert data.interval_s == pytest.approx(0.2)
+    # row 0: dumps 0, 2, 4 then discharged (3 = S) at the next kept column; row 1 censored
+    assert data.obs.tolist() == [[0, 1, 2, 3], [0, 1, -1, -1]]
+    with pytest.raises(ValueError, match="lag = 0"):
+        phases.prepare(seq, lag=0)
+
+
+def test_residents_join_from_the_window_on(synthetic_two_phase):
+    """Particles inside when the window opens are followed from there, their first
+    compartment their group; the window's entrants are unchanged."""
+    _truth, sequences, _data, _fit = synthetic_two_phase
+    t0 = 60.0
+    only_new = phases.prepare(sequences, (t0, np.inf))
+    both = phases.prepare(sequences, (t0, np.inf), residents=True)
+    old = both.group >= 2
+    assert (~old).sum() == only_new.n_particles and old.sum() > 100
+    first_dump = int(np.searchsorted(sequences.snapshot_t, t0, side="right"))
+    assert np.all(both.start[old] == first_dump)
+    assert np.array_equal(both.obs[old, 0], both.group[old] - 2)
+    fit = phases.fit(both, 2, starts=1, max_iterations=30)
+    assert np.isfinite(fit.log_likelihood)

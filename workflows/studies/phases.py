@@ -1,0 +1,389 @@
+"""Transport with memory, measured: hidden-phase chains fitted to a DEM run's compartment
+sequences, and the PBM built on each, against the DEM's RTD and hold-up.
+
+``phase_study(results, ...)`` returns a :class:`PhaseStudy`; :func:`markdown` renders it. Needs DEM
+results made with the compartment sequences (``pbmdem dem post`` or ``dem run`` from this
+version on; the sequences are stored in the results file, so no dumps are needed).
+
+For every grid (NX x NY, a coarsening of the run's) and number of phases K:
+
+1. fit on every particle first seen after the steady-state time (:func:`dem.phases.fit`);
+2. held out: fit on those first seen in the first half of that period, score the second
+   half (log-likelihood per particle-step: higher is better; comparable across K on the
+   same grid only);
+3. Chapman-Kolmogorov test of the full fit at 1, 2, 5 and 10 s (:class:`dem.phases.CkTest`);
+4. the PBM in mode "phases" on a table carrying the model, fed like the DEM
+   (:func:`workflows.pipeline.pbm_config_for`): the pooled RTD over the DEM's entry window
+   and horizon (:func:`pbm.rtd.pooled_rtd`) and the steady hold-up per axial slice
+   (:func:`pbm.simulate.simulate`), against the DEM's values and 95 % intervals.
+
+The DEM's targets come from a results summary (``target``, default the run's own): a
+fresh run too short for its own pooled RTD is judged against a complete run of the same
+deck.
+
+Reproduce (a run directory with its dumps, ``runs/<key>``)::
+
+    pbmdem dem post --preset validation --dumps 'runs/<key>/dumps/dump.*.txt' --out dem.h5
+    pbmdem study phases --results dem.h5 --grids 10x1,10x10 --ks 1,2,3
+
+and for NX = 20 the same post-processing with ``[dem.tables] nx = 20`` in a ``--config``
+file, then ``--grids 20x1``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coupling.cache import try_load_entry
+from coupling.errors import ConfigError
+from coupling.jsonable import write_json
+from coupling.tables import make_table
+from dem import phases
+from dem.post import DemResults
+from pbm.rtd import pooled_rtd
+from pbm.simulate import simulate
+from workflows.config import Config
+from workflows.pipeline.stages import config_of, pbm_config_for
+
+
+@dataclass(frozen=True)
+class Interval:
+    value: float
+    low: float
+    high: float
+
+    def inside(self, x: float) -> bool:
+        return bool(self.low <= x <= self.high)
+
+
+@dataclass(frozen=True)
+class DemTarget:
+    """The DEM's pooled RTD (mean [s], variance [s^2]), its entry window and horizon [s],
+    the steady hold-up per axial slice and in total [particles], each with its 95 %
+    interval; ``source`` says which results they come from."""
+
+    mean_s: Interval
+    variance_s2: Interval
+    entry_window_s: tuple[float, float]
+    horizon_s: float
+    holdup_by_slice: tuple[Interval, ...]
+    holdup: Interval
+    steady_time_s: float
+    source: str
+
+
+def _interval(d: dict) -> Interval:
+    return Interval(float(d["value"]), float(d["low"]), float(d["high"]))
+
+
+def dem_target(summary: dict[str, Any], source: str) -> DemTarget:
+    """:class:`DemTarget` from a DEM results summary (raises KeyError without a pooled RTD)."""
+    pooled, steady = summary["pooled_rtd"], summary["steady"]
+    by_slice = steady["holdup_by_slice"]
+    return DemTarget(
+        mean_s=_interval(pooled["mean_residence_time_s"]), variance_s2=_interval(pooled["rtd_variance_s2"]),
+        entry_window_s=tuple(float(v) for v in pooled["entry_window_s"]), horizon_s=float(pooled["horizon_s"]),
+        holdup_by_slice=tuple(Interval(v, lo, hi) for v, lo, hi in zip(by_slice["value"], by_slice["low"],
+                                                                       by_slice["high"])),
+        holdup=_interval(steady["holdup"]), steady_time_s=float(summary["steady_state_time_s"]), source=source)
+
+
+@dataclass(frozen=True)
+class ModelResult:
+    """One (grid, K): the fit, its held-out score, its CK test and its PBM's numbers.
+
+    ``slice_error``: PBM / DEM - 1 per axial slice; ``timescales_s``: the three longest
+    implied timescales; ``start_spread``: best minus worst final log-likelihood over the
+    starts [nats]; ``entry``: entry-phase distribution (rows A, B), phases slowest first."""
+
+    grid: tuple[int, int]
+    n_phases: int
+    n_parameters: int
+    log_likelihood_per_step: float
+    held_out_per_step: float
+    ck_max_z: float
+    ck_max_abs_error: float
+    ck_passed: bool
+    mean_s: float
+    variance_s2: float
+    recovered_fraction: float
+    holdup: float
+    slice_error: tuple[float, ...]
+    timescales_s: tuple[float, ...]
+    fit_wall_s: float
+    iterations: int
+    converged: bool
+    start_spread: float
+    entry: tuple[tuple[float, ...], ...]
+
+    def worst_slice_error(self) -> float:
+        return float(max(self.slice_error, key=abs))
+
+
+@dataclass(frozen=True)
+class PhaseStudy:
+    target: DemTarget
+    results: tuple[ModelResult, ...]
+    fit_window_s: tuple[float, float]
+    n_particles: int
+    n_steps: int
+    dem_wall_time_s: float
+
+
+def phase_table(model, length_m: float, diameter_m: float, t_end_s: float, window_s: float = 5.0):
+    """A time-invariant table on the model's grid that carries only the phase model (its
+    velocities are never read in mode "phases")."""
+    return make_table(np.arange(0.0, t_end_s, window_s), np.linspace(0.0, length_m, model.nx + 1),
+                      np.linspace(-diameter_m / 2, diameter_m / 2, model.ny + 1), 0.0, 0.0, 0.0, 0.0,
+                      window_s=window_s).replace(phases=model)
+
+
+def pbm_numbers(model, config: Config, target: DemTarget) -> dict[str, Any]:
+    """The PBM (mode "phases") on ``model``: pooled RTD over the target's entry window and
+    horizon, steady hold-up per slice (mean after the target's steady time)."""
+    g = config.dem.geometry
+    t_end = target.entry_window_s[1] + target.horizon_s + 5.0
+    table = phase_table(model, float(g.length_m), float(g.diameter_m), t_end)
+    pbm_config = pbm_config_for(config, table, None).model_copy(update={"rates": "phases", "duration_s": t_end})
+    rtd = pooled_rtd(table, pbm_config, target.entry_window_s, target.horizon_s)
+    result = simulate(table, pbm_config)
+    steady = result.times > target.steady_time_s
+    by_slice = result.counts[steady].sum(axis=(1, 3)).mean(axis=0)
+    return {"mean_s": rtd.mean_s, "variance_s2": rtd.variance_s2, "recovered_fraction": rtd.recovered_fraction,
+            "by_slice": by_slice, "holdup": float(by_slice.sum())}
+
+
+def evaluate(sequences, config: Config, target: DemTarget, grid: tuple[int, int], k: int, fit_window, starts: int,
+             max_iterations: int, seed: int = 0, residents: bool = True) -> ModelResult:
+    """One row of the study (module docstring). ``residents``: fit also to the moves of
+    the particles already inside when the window opens (:func:`dem.phases.prepare`); the
+    held-out particles are only those that enter in the second half."""
+    t0, t1 = fit_window
+    data = phases.prepare(sequences, (t0, t1), grid, residents=residents)
+    wall0 = time.perf_counter()
+    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations)
+    wall = time.perf_counter() - wall0
+    middle = 0.5 * (t0 + t1)
+    train = phases.prepare(sequences, (t0, middle), grid, residents=residents)
+    test = phases.prepare(sequences, (middle, t1), grid)
+    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations)
+    ck = fit.chapman_kolmogorov(data)
+    pbm = pbm_numbers(fit.transport, config, target)
+    # slice hold-ups: the DEM's are on 10 slices; a coarser or finer PBM grid is compared
+    # after summing onto the coarser of the two
+    dem_slices = np.array([s.value for s in target.holdup_by_slice])
+    pbm_slices = pbm["by_slice"]
+    n = min(dem_slices.size, pbm_slices.size)
+    dem_c = dem_slices.reshape(n, -1).sum(axis=1)
+    pbm_c = pbm_slices.reshape(n, -1).sum(axis=1)
+    lls = fit.start_log_likelihoods
+    return ModelResult(
+        grid=grid, n_phases=k, n_parameters=fit.n_parameters(),
+        log_likelihood_per_step=fit.log_likelihood / data.n_steps,
+        held_out_per_step=held.score(test) / test.n_steps,
+        ck_max_z=ck.max_z(), ck_max_abs_error=ck.max_abs_error(), ck_passed=ck.passed,
+        mean_s=pbm["mean_s"], variance_s2=pbm["variance_s2"], recovered_fraction=pbm["recovered_fraction"],
+        holdup=pbm["holdup"], slice_error=tuple(float(v) for v in pbm_c / dem_c - 1.0),
+        timescales_s=tuple(float(v) for v in fit.implied_timescales(3)), fit_wall_s=wall,
+        iterations=fit.iterations, converged=fit.converged, start_spread=float(max(lls) - min(lls)),
+        entry=tuple(tuple(float(v) for v in row) for row in fit.entry_distribution()))
+
+
+def phase_study(results: str | Path, target: str | Path | None = None, grids=((10, 10), (10, 1)), ks=(1, 2, 3),
+        starts: int = 3, max_iterations: int = 200, fit_window_s: tuple[float, float] | None = None,
+        target_override: DemTarget | None = None, residents: bool = True, log=print) -> PhaseStudy:
+    """The study on the DEM results file ``results`` (with sequences), judged against the
+    DEM results ``target`` (default the same file) or ``target_override``. The fit window
+    defaults to (the target's steady-state time, the last dump]."""
+    entry, reason = try_load_entry(Path(results))
+    if entry is None:
+        raise ConfigError(f"results {results}: {reason}")
+    dem = DemResults.from_cache_entry(entry)
+    if dem.sequences is None:
+        raise ConfigError(f"results {results} hold no compartment sequences: post-process the run's dumps again "
+                         "with this version (pbmdem dem post)")
+    config = config_of(entry)
+    if target_override is None:
+        target_entry = entry if target is None else try_load_entry(Path(target))[0]
+        goal = dem_target(target_entry.summary, str(target or results))
+    else:
+        goal = target_override
+    seq = dem.sequences
+    last = float(seq.snapshot_t[-1])
+    window = fit_window_s or (goal.steady_time_s, last)
+    window = (float(window[0]), min(float(window[1]), last))  # a run still going ends at its last dump
+    data = phases.prepare(seq, window, residents=residents)
+    out = []
+    for grid in grids:
+        for k in ks:
+            row = evaluate(seq, config, goal, tuple(grid), k, window, starts, max_iterations, residents=residents)
+            log(f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
+                f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
+                f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s")
+            out.append(row)
+    return PhaseStudy(goal, tuple(out), tuple(window), data.n_particles, data.n_steps,
+                      float(entry.provenance.get("wall_time_s", float("nan"))))
+
+
+def markdown(study: PhaseStudy) -> str:
+    """The study as a markdown table (✓ inside the DEM's 95 % interval)."""
+    g = study.target
+
+    def mark(ok: bool) -> str:
+        return "✓" if ok else "✗"
+
+    lines = [f"DEM ({g.source}): mean {g.mean_s.value:.2f} s [{g.mean_s.low:.2f}, {g.mean_s.high:.2f}], variance "
+             f"{g.variance_s2.value:.0f} s² [{g.variance_s2.low:.0f}, {g.variance_s2.high:.0f}], hold-up "
+             f"{g.holdup.value:.0f} [{g.holdup.low:.0f}, {g.holdup.high:.0f}]; fit window {study.fit_window_s[0]:.1f}-"
+             f"{study.fit_window_s[1]:.1f} s, {study.n_particles} particles, {study.n_steps} particle-steps",
+             "",
+             "| grid | K | mean [s] | variance [s²] | hold-up | worst slice | held-out ll/step | CK max z | fit [s] |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in study.results:
+        lines.append(f"| {r.grid[0]}×{r.grid[1]} | {r.n_phases} | {r.mean_s:.2f} {mark(g.mean_s.inside(r.mean_s))} | "
+                     f"{r.variance_s2:.0f} {mark(g.variance_s2.inside(r.variance_s2))} | "
+                     f"{r.holdup:.0f} {mark(g.holdup.inside(r.holdup))} | {r.worst_slice_error():+.1%} | "
+                     f"{r.held_out_per_step:.4f} | {r.ck_max_z:.1f} {mark(r.ck_passed)} | {r.fit_wall_s:.0f} |")
+    return "\n".join(lines)
+
+
+def record(study: PhaseStudy) -> dict[str, Any]:
+    """The study as ``phases.json`` holds it."""
+    return asdict(study)
+
+
+# ----------------------------------------------------------------------------- continuous vs discrete time
+@dataclass(frozen=True)
+class TimeComparison:
+    """Continuous-time generator vs discrete-time chain at the dump interval, same data,
+    grid and K: log-likelihoods per particle-step and free parameters of each; the RTD
+    (mean [s], variance [s^2], within the target's horizon) of the continuous model's PBM,
+    of the discrete chain itself (exact at the dump interval, exit at the mid-interval) and
+    of the PBM on the discrete chain's projected logarithm (what it becomes as a generator)."""
+
+    grid: tuple[int, int]
+    n_phases: int
+    continuous_ll_per_step: float
+    continuous_parameters: int
+    discrete_ll_per_step: float
+    discrete_parameters: int
+    continuous_rtd: tuple[float, float]
+    discrete_rtd: tuple[float, float]
+    projected_rtd: tuple[float, float]
+    continuous_wall_s: float
+    discrete_wall_s: float
+
+
+def discrete_rtd(transition: np.ndarray, start: np.ndarray, interval_s: float, horizon_s: float) -> tuple[float, float]:
+    """Mean and variance of the time to absorption of the chain ``transition`` from the
+    distribution ``start`` over its transient states, truncated at ``horizon_s``."""
+    v = np.append(start, 0.0)
+    absorbed = [0.0]
+    for _ in range(int(round(horizon_s / interval_s))):
+        v = v @ transition
+        absorbed.append(v[-1])
+    density = np.diff(absorbed)
+    t = (np.arange(density.size) + 0.5) * interval_s
+    total = density.sum()
+    mean = float(density @ t / total)
+    return mean, float(density @ (t - mean) ** 2 / total)
+
+
+def compare_time(results: str | Path, target: DemTarget, grid=(10, 1), k: int = 2,
+                 fit_window_s: tuple[float, float] | None = None, max_iterations: int = 200) -> TimeComparison:
+    """:class:`TimeComparison` on the DEM results ``results`` (with sequences)."""
+    from pbm.model import feed_distribution
+
+    entry, reason = try_load_entry(Path(results))
+    if entry is None:
+        raise ConfigError(f"results {results}: {reason}")
+    dem = DemResults.from_cache_entry(entry)
+    config = config_of(entry)
+    last = float(dem.sequences.snapshot_t[-1])
+    window = fit_window_s or (target.steady_time_s, last)
+    window = (float(window[0]), min(float(window[1]), last))
+    data = phases.prepare(dem.sequences, window, tuple(grid), residents=True)
+    wall0 = time.perf_counter()
+    cont = phases.fit(data, k, starts=1, max_iterations=max_iterations)
+    wall1 = time.perf_counter()
+    disc = phases.fit_discrete(data, k, cont.transport, max_iterations=max_iterations)
+    wall2 = time.perf_counter()
+    projected = phases.generator_from_transition(disc, data.nx, data.ny)
+    g = config.dem.geometry
+    t_end = target.entry_window_s[1] + target.horizon_s + 5.0
+    table = phase_table(projected, float(g.length_m), float(g.diameter_m), t_end)
+    pbm_config = pbm_config_for(config, table, None).model_copy(update={"rates": "phases", "duration_s": t_end})
+    start_cont = pbm_numbers(cont.transport, config, target)
+    start_proj = pbm_numbers(projected, config, target)
+    # the discrete chain from the same inlet, in its own entry phases
+    feed_d = feed_distribution(table, pbm_config.feed_weights_a, pbm_config.feed_weights_b, "phases").mean(axis=1)
+    return TimeComparison(
+        grid=tuple(grid), n_phases=k,
+        continuous_ll_per_step=cont.log_likelihood / data.n_steps, continuous_parameters=cont.n_parameters(),
+        discrete_ll_per_step=disc.log_likelihood / data.n_steps, discrete_parameters=disc.n_parameters,
+        continuous_rtd=(start_cont["mean_s"], start_cont["variance_s2"]),
+        discrete_rtd=discrete_rtd(disc.transition, feed_d, data.interval_s, target.horizon_s),
+        projected_rtd=(start_proj["mean_s"], start_proj["variance_s2"]),
+        continuous_wall_s=wall1 - wall0, discrete_wall_s=wall2 - wall1)
+
+
+def timescales_over_lags(results: str | Path, grid=(10, 1), lags=(1, 2, 5, 10), n_phases: int = 1,
+                         fit_window_s: tuple[float, float] | None = None, count: int = 3,
+                         steady_time_s: float | None = None) -> dict[int, tuple[float, ...]]:
+    """The ``count`` longest implied timescales [s] of the K = ``n_phases`` chain fitted at
+    each lag (in dumps), the MSM test of Markovianity: a Markovian chain's are the same at
+    every lag, a chain on states that forget too much speeds up (shorter timescales) at
+    short lags. Returns lag -> timescales."""
+    entry, reason = try_load_entry(Path(results))
+    if entry is None:
+        raise ConfigError(f"results {results}: {reason}")
+    seq = DemResults.from_cache_entry(entry).sequences
+    t0 = steady_time_s if steady_time_s is not None else float(entry.summary.get("steady_state_time_s"))
+    window = fit_window_s or (t0, float(seq.snapshot_t[-1]))
+    out = {}
+    for lag in lags:
+        data = phases.prepare(seq, window, tuple(grid), lag=int(lag))
+        model = phases.fit(data, n_phases, starts=1)
+        out[int(lag)] = tuple(float(v) for v in model.implied_timescales(count))
+    return out
+
+
+HELP = "hidden-phase transport chains fitted to a DEM run's compartment sequences, and their PBMs against the DEM"
+
+
+def _grids(text: str) -> tuple[tuple[int, int], ...]:
+    try:
+        grids = tuple(tuple(int(v) for v in g.lower().split("x")) for g in text.split(","))
+    except ValueError:
+        grids = ()
+    if not grids or any(len(g) != 2 or min(g) < 1 for g in grids):
+        raise ConfigError(f"--grids {text!r}: expected comma-separated NXxNY, e.g. 10x1,10x10")
+    return grids
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--results", required=True, help="DEM results file with compartment sequences (dem-*.h5)")
+    parser.add_argument("--target", default=None, help="DEM results whose pooled RTD and hold-up judge the models "
+                                                       "(default: --results)")
+    parser.add_argument("--grids", default="10x10,10x1", help="comma-separated NXxNY coarsenings (default %(default)s)")
+    parser.add_argument("--ks", default="1,2,3", help="numbers of phases (default %(default)s)")
+    parser.add_argument("--starts", type=int, default=3, help="EM starts per fit (default 3)")
+    parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
+
+
+def run(args) -> int:
+    try:
+        ks = tuple(int(k) for k in args.ks.split(","))
+    except ValueError:
+        raise ConfigError(f"--ks {args.ks!r}: expected comma-separated whole numbers, e.g. 1,2,3") from None
+    if not ks or min(ks) < 1 or args.starts < 1:
+        raise ConfigError(f"--ks {args.ks!r} and --starts {args.starts}: all must be >= 1")
+    study = phase_study(args.results, args.target, _grids(args.grids), ks, starts=args.starts)
+    print(markdown(study))
+    print(f"wrote {write_json(Path(args.out) / 'phases.json', record(study))}")
+    return 0
