@@ -111,8 +111,9 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
                 sub = frames.create_group(name)
                 sub.attrs["columns"] = json.dumps([str(c) for c in frame.columns])
                 for column in frame.columns:
-                    sub.create_dataset(str(column), data=frame[column].to_numpy(),
-                                       **_compressed(frame[column].to_numpy()))
+                    sub.create_dataset(
+                        str(column), data=frame[column].to_numpy(), **_compressed(frame[column].to_numpy())
+                    )
             arrays = group.create_group("arrays")
             for name, values in entry.arrays.items():
                 arrays.create_dataset(name, data=np.asarray(values), **_compressed(values))
@@ -139,7 +140,9 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
                 raise CacheError(f"{path} is not a pbmdem cache file (format {h5.attrs.get('format')!r})")
             version = int(h5.attrs.get("format_version", -1))
             if version != CACHE_FORMAT_VERSION:
-                raise CacheError(f"{path} has cache format_version {version}; this version reads {CACHE_FORMAT_VERSION}")
+                raise CacheError(
+                    f"{path} has cache format_version {version}; this version reads {CACHE_FORMAT_VERSION}"
+                )
             if not bool(h5.attrs.get("complete", False)):
                 raise CacheError(f"{path} is incomplete (never finished writing)")
             stored_digest = h5.attrs.get(DIGEST_ATTR)
@@ -149,8 +152,10 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
                 stored_digest = stored_digest.decode("ascii")
             actual = file_digest(h5)
             if stored_digest != actual:
-                raise CacheError(f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} "
-                                 "digest; regenerate it")
+                raise CacheError(
+                    f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} "
+                    "digest; regenerate it"
+                )
             stored_key = str(h5.attrs.get("key"))
             if key is not None and stored_key != key:
                 raise CacheError(f"{path} holds results for inputs {stored_key}, not {key}")

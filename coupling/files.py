@@ -32,8 +32,17 @@ import numpy as np
 
 from coupling.errors import OutputError, PbmDemError, os_reason
 
-__all__ = ["DIGEST_ATTR", "FORMAT_ATTR", "h5_digest", "input_directory", "open_verified_h5", "output_directory_path",
-           "refuse_output_over_inputs", "regular_file", "resolved"]
+__all__ = [
+    "DIGEST_ATTR",
+    "FORMAT_ATTR",
+    "h5_digest",
+    "input_directory",
+    "open_verified_h5",
+    "output_directory_path",
+    "refuse_output_over_inputs",
+    "regular_file",
+    "resolved",
+]
 
 #: Root attribute holding the SHA-256 of the file's canonical content (:func:`h5_digest`).
 DIGEST_ATTR = "sha256"
@@ -44,8 +53,13 @@ OUR_FORMATS = ("pbmdem-cache", "pbmdem-table")
 
 
 def _kind(mode: int) -> str:
-    for test, name in ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory")):
+    for test, name in (
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISDIR, "a directory"),
+    ):
         if test(mode):
             return name
     return "not a regular file"
@@ -57,7 +71,9 @@ def resolved(path: str | os.PathLike, what: str, error: type[Exception] = PbmDem
     try:
         return Path(path).resolve()
     except RuntimeError as exc:  # Python 3.11: "Symlink loop from '...'"
-        raise error(f"{what} {path} is a symlink loop ({exc}); give a path that leads to a real file or directory") from None
+        raise error(
+            f"{what} {path} is a symlink loop ({exc}); give a path that leads to a real file or directory"
+        ) from None
     except OSError as exc:
         raise error(f"{what} {path}: {os_reason(exc)}") from None
 
@@ -117,8 +133,9 @@ def output_directory_path(path: str | os.PathLike, what: str, error: type[Except
                 raise error(f"{what} {path}: {probe} is a symlink loop; give a real directory") from None
             raise error(f"{what} {path}: {os_reason(exc)}") from None
         if not stat.S_ISDIR(mode):
-            raise error(f"{what} {path}: {probe} is {_kind(mode) if not stat.S_ISREG(mode) else 'a file'}, "
-                        "not a directory")
+            raise error(
+                f"{what} {path}: {probe} is {_kind(mode) if not stat.S_ISREG(mode) else 'a file'}, not a directory"
+            )
         break
     return path
 
@@ -130,8 +147,12 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def refuse_output_over_inputs(out: str | os.PathLike, inputs: Iterable[str | os.PathLike | None], what: str = "output",
-                              error: type[Exception] = OutputError) -> Path:
+def refuse_output_over_inputs(
+    out: str | os.PathLike,
+    inputs: Iterable[str | os.PathLike | None],
+    what: str = "output",
+    error: type[Exception] = OutputError,
+) -> Path:
     """``out`` unless it names one of ``inputs`` (after following symlinks, or the same
     file through a hard link), or a directory holding one of them when ``out`` is a
     directory to be cleared. Raises ``error`` naming both, before anything is written.
@@ -142,8 +163,10 @@ def refuse_output_over_inputs(out: str | os.PathLike, inputs: Iterable[str | os.
             continue
         source = resolved(item, "input", error)
         if source == out_path or (out_path.exists() and source.exists() and _same_file(source, out_path)):
-            raise error(f"{what} {out} is one of this command's inputs ({item}); writing it would destroy the "
-                        "input: give another output path")
+            raise error(
+                f"{what} {out} is one of this command's inputs ({item}); writing it would destroy the "
+                "input: give another output path"
+            )
     return out_path
 
 
@@ -219,18 +242,22 @@ def verify_digest(h5, path: str | os.PathLike, error: type[Exception] = PbmDemEr
         fmt = h5.attrs.get(FORMAT_ATTR)
         fmt = fmt.decode(errors="replace") if isinstance(fmt, bytes) else fmt
         if required or fmt in OUR_FORMATS:
-            raise error(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed, or "
-                        "the digest was removed); regenerate the file")
+            raise error(
+                f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed, or "
+                "the digest was removed); regenerate the file"
+            )
         return False
     if digest != h5_digest(h5):
-        raise error(f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} digest; "
-                    "regenerate the file")
+        raise error(
+            f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} digest; regenerate the file"
+        )
     return True
 
 
 @contextmanager
-def open_verified_h5(path: str | os.PathLike, what: str, error: type[Exception] = PbmDemError,
-                     digest_required: bool = False) -> Iterator[Any]:
+def open_verified_h5(
+    path: str | os.PathLike, what: str, error: type[Exception] = PbmDemError, digest_required: bool = False
+) -> Iterator[Any]:
     """The one way this project opens an HDF5 file for reading: ``path`` checked
     (:func:`regular_file`), opened, and its digest verified (:func:`verify_digest`) before
     the block sees it. Any failure of h5py (a damaged or foreign file raises OSError,
@@ -248,7 +275,9 @@ def open_verified_h5(path: str | os.PathLike, what: str, error: type[Exception] 
         except PbmDemError:
             raise
         except Exception as exc:  # noqa: BLE001 - a damaged file surfaces as many types
-            raise error(f"{path} is corrupt or unreadable: {type(exc).__name__}: {' '.join(str(exc).split())}") from None
+            raise error(
+                f"{path} is corrupt or unreadable: {type(exc).__name__}: {' '.join(str(exc).split())}"
+            ) from None
         yield h5
 
 

@@ -16,7 +16,8 @@ the bad argument and what would be valid.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -68,8 +69,9 @@ def time_blocks(times, block_s: float, origin: float = 0.0) -> np.ndarray:
     return np.floor((t - float(origin)) / float(block_s)).astype(np.int64)
 
 
-def block_bootstrap(statistic: Callable[[np.ndarray], object], data_blocks, n_boot: int = 2000,
-                    level: float = 0.95, seed=0) -> Interval:
+def block_bootstrap(
+    statistic: Callable[[np.ndarray], object], data_blocks, n_boot: int = 2000, level: float = 0.95, seed=0
+) -> Interval:
     """Block-bootstrap percentile interval of ``statistic``.
 
     ``data_blocks``: one block label per data item (any sortable values, e.g. from
@@ -91,8 +93,9 @@ def block_bootstrap(statistic: Callable[[np.ndarray], object], data_blocks, n_bo
     n_boot = _check_count("n_boot", n_boot)
     labels = np.asarray(data_blocks)
     if labels.ndim != 1 or labels.size == 0:
-        raise ValueError(f"data_blocks must be a non-empty 1-D array of one block label per item, got shape "
-                         f"{labels.shape}")
+        raise ValueError(
+            f"data_blocks must be a non-empty 1-D array of one block label per item, got shape {labels.shape}"
+        )
     # items sorted by block: a block is then one contiguous run of indices into `order`
     order = np.argsort(labels, kind="stable")
     _, starts, lengths = np.unique(labels[order], return_index=True, return_counts=True)
@@ -114,8 +117,9 @@ def block_bootstrap(statistic: Callable[[np.ndarray], object], data_blocks, n_bo
     return Interval(estimate[()], low[()], high[()])
 
 
-def overlap_noise_band(density, bin_s: float, n_particles: int, draws: int = 1000, level: float = 0.95,
-                       seed=0) -> NoiseBand:
+def overlap_noise_band(
+    density, bin_s: float, n_particles: int, draws: int = 1000, level: float = 0.95, seed=0
+) -> NoiseBand:
     """The noise ceiling of an RTD overlap: what a sample of ``n_particles`` drawn from
     ``density`` itself scores against ``density``.
 

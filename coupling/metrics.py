@@ -49,8 +49,16 @@ EMPTY_BELOW = 1.0
 #: Columns of a CQA time series, both sides: time [s] at the end of each sampling interval;
 #: outflow of A and B over the interval [1/s]; C_A over the interval; RSD across the last
 #: slice and across all compartments at that time; particles of A and B held at that time.
-TIMESERIES_COLUMNS = ("t_s", "outflow_A_per_s", "outflow_B_per_s", "C_A", "rsd_outlet", "rsd_blender",
-                      "holdup_A", "holdup_B")
+TIMESERIES_COLUMNS = (
+    "t_s",
+    "outflow_A_per_s",
+    "outflow_B_per_s",
+    "C_A",
+    "rsd_outlet",
+    "rsd_blender",
+    "holdup_A",
+    "holdup_B",
+)
 
 
 def _fractions(counts_a, counts_b, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -135,8 +143,9 @@ class SteadyStateRule:
         # window means from a sliding view, so a NaN (no data yet) spoils only its windows
         means = np.lib.stride_tricks.sliding_window_view(holdup, w).mean(axis=1)
         recent, before = means[w:], means[:-w]
-        change[2 * w - 1 :] = np.divide(np.abs(recent - before), recent, out=np.full(recent.size, np.nan),
-                                        where=recent > 0)
+        change[2 * w - 1 :] = np.divide(
+            np.abs(recent - before), recent, out=np.full(recent.size, np.nan), where=recent > 0
+        )
         return change
 
     def time(self, times, holdup) -> float | None:
@@ -175,8 +184,7 @@ def lacey_index(counts_a, counts_b, axis: int = 0) -> np.ndarray:
     p = np.divide(np.where(occupied, a, 0.0).sum(axis=0), pooled_n, out=np.zeros(m.shape), where=pooled_n > 0)
     n_bar = np.divide(pooled_n, m, out=np.zeros(m.shape), where=m > 0)
     c_bar = np.divide(np.where(occupied, frac, 0.0).sum(axis=0), m, out=np.zeros(m.shape), where=m > 0)
-    s2 = np.divide(np.where(occupied, (frac - c_bar) ** 2, 0.0).sum(axis=0), m, out=np.zeros(m.shape),
-                   where=m > 0)
+    s2 = np.divide(np.where(occupied, (frac - c_bar) ** 2, 0.0).sum(axis=0), m, out=np.zeros(m.shape), where=m > 0)
     sigma0 = p * (1 - p)
     sigma_r = np.divide(sigma0, n_bar, out=np.zeros(m.shape), where=m > 0)
     denominator = sigma0 - sigma_r
@@ -197,16 +205,20 @@ def _sampled_mean(metric, fraction_a, totals, draws: int, seed) -> np.ndarray:
     try:
         frac, tot = np.broadcast_arrays(np.asarray(fraction_a, dtype=float), np.asarray(totals, dtype=float))
     except ValueError:
-        raise ValueError(f"fraction_a (shape {np.shape(fraction_a)}) and totals (shape {np.shape(totals)}) must "
-                         "broadcast to one shape (..., n_compartments)") from None
+        raise ValueError(
+            f"fraction_a (shape {np.shape(fraction_a)}) and totals (shape {np.shape(totals)}) must "
+            "broadcast to one shape (..., n_compartments)"
+        ) from None
     if frac.ndim == 0:
         raise ValueError("fraction_a and totals must have at least one axis (the compartments), got scalars")
     if not np.all(np.isfinite(tot) & (tot >= 0)):
         raise ValueError("totals must be finite particle numbers >= 0")
     occupied = tot >= EMPTY_BELOW
     if not np.all(~occupied | ((frac >= 0) & (frac <= 1))):
-        raise ValueError("fraction_a must lie in [0, 1] in every compartment holding at least "
-                         f"{EMPTY_BELOW:g} particle (NaN is accepted only in empty ones)")
+        raise ValueError(
+            "fraction_a must lie in [0, 1] in every compartment holding at least "
+            f"{EMPTY_BELOW:g} particle (NaN is accepted only in empty ones)"
+        )
     # the DEM counts whole particles: a compartment expected to hold n particles is sampled
     # with round(n) of them, and one expected to hold less than EMPTY_BELOW stays empty,
     # exactly as rsd would leave it out
@@ -294,8 +306,10 @@ def rtd_pooled(entry_t, exit_t, entry_window, horizon_s: float) -> PooledRtd:
     entry = np.asarray(entry_t, dtype=float)
     exit_ = np.asarray(exit_t, dtype=float)
     if entry.ndim != 1 or entry.shape != exit_.shape:
-        raise ValueError(f"entry_t and exit_t must be 1-D arrays of one value per particle, got shapes "
-                         f"{entry.shape} and {exit_.shape}")
+        raise ValueError(
+            f"entry_t and exit_t must be 1-D arrays of one value per particle, got shapes "
+            f"{entry.shape} and {exit_.shape}"
+        )
     if not np.all(np.isfinite(entry)):
         raise ValueError("entry_t must be finite for every particle")
     try:
@@ -309,8 +323,7 @@ def rtd_pooled(entry_t, exit_t, entry_window, horizon_s: float) -> PooledRtd:
         raise ValueError(f"horizon_s must be a finite number of seconds > 0, got {horizon_s}")
     tau = exit_ - entry
     if np.any(tau < 0):
-        raise ValueError(f"exit_t must not precede entry_t; {int(np.sum(tau < 0))} particle(s) leave before "
-                         "they enter")
+        raise ValueError(f"exit_t must not precede entry_t; {int(np.sum(tau < 0))} particle(s) leave before they enter")
     entered = (entry > t0) & (entry <= t1)
     # NaN (never left) compares False, so it is never recovered
     recovered = entered & (tau <= horizon)
@@ -356,13 +369,15 @@ def rtd_density(residence_times, bin_s: float, horizon_s: float, weights=None) -
     edges = rtd_bin_edges(bin_s, horizon_s)
     tau = np.asarray(residence_times, dtype=float).ravel()
     if not np.all((tau >= 0) & (tau <= edges[-1])):
-        raise ValueError(f"residence_times must lie in [0, horizon_s] = [0, {edges[-1]}] s; censor them with "
-                         "rtd_pooled first")
+        raise ValueError(
+            f"residence_times must lie in [0, horizon_s] = [0, {edges[-1]}] s; censor them with rtd_pooled first"
+        )
     if weights is not None:
         w = np.asarray(weights, dtype=float).ravel()
         if w.shape != tau.shape or not np.all(np.isfinite(w) & (w >= 0)):
-            raise ValueError(f"weights must be {tau.size} finite values >= 0, one per residence time, got "
-                             f"shape {w.shape}")
+            raise ValueError(
+                f"weights must be {tau.size} finite values >= 0, one per residence time, got shape {w.shape}"
+            )
     else:
         w = None
     mass, _ = np.histogram(tau, bins=edges, weights=w)
@@ -382,8 +397,7 @@ def rtd_overlap(density_1, density_2, bin_s: float) -> float:
     e1 = np.asarray(density_1, dtype=float)
     e2 = np.asarray(density_2, dtype=float)
     if e1.ndim != 1 or e1.shape != e2.shape:
-        raise ValueError(f"density_1 and density_2 must be 1-D on the same bins, got shapes {e1.shape} and "
-                         f"{e2.shape}")
+        raise ValueError(f"density_1 and density_2 must be 1-D on the same bins, got shapes {e1.shape} and {e2.shape}")
     if not (math.isfinite(bin_s) and bin_s > 0):
         raise ValueError(f"bin_s must be a finite number of seconds > 0, got {bin_s}")
     if np.any(e1 < 0) or np.any(e2 < 0):
@@ -431,8 +445,11 @@ def residence_moments(amount: float, recovered: float, m1: float, m2: float) -> 
     fraction = float(recovered / amount) if amount > 0 else 0.0
     nan = float("nan")
     if not (math.isfinite(fraction) and fraction > MIN_RECOVERED_FRACTION):
-        return {"recovered_fraction": max(fraction, 0.0) if math.isfinite(fraction) else nan, "mean_s": nan,
-                "variance_s2": nan}
+        return {
+            "recovered_fraction": max(fraction, 0.0) if math.isfinite(fraction) else nan,
+            "mean_s": nan,
+            "variance_s2": nan,
+        }
     mean = float(m1 / recovered)
     variance = float(m2 / recovered - mean**2)
     if not (math.isfinite(mean) and mean >= 0):

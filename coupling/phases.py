@@ -94,8 +94,10 @@ def validate(model: PhaseTransport) -> None:
     for name, values in (("phase rates", rates), ("phase switching", switching), ("entry-phase distribution", entry)):
         bad = ~np.isfinite(values) | (values < 0)
         if bad.any():
-            raise TableError(f"{name} hold {float(values[bad][0])!r} at index {tuple(int(v) for v in np.argwhere(bad)[0])}; "
-                             "expected finite values >= 0")
+            raise TableError(
+                f"{name} hold {float(values[bad][0])!r} at index {tuple(int(v) for v in np.argwhere(bad)[0])}; "
+                "expected finite values >= 0"
+            )
     sums = entry.sum(axis=1)
     if np.any(np.abs(sums - 1.0) > 1e-6):
         raise TableError(f"entry-phase distribution rows sum to {sums.tolist()}; each must sum to 1")
@@ -110,8 +112,12 @@ def transitions(nx: int, ny: int, n_phases: int) -> dict[str, tuple[np.ndarray, 
     c = i * ny + j
     s = nx * ny
     k = n_phases
-    steps = {"x_pos": (np.ones(c.size, bool), None), "x_neg": (i > 0, -ny), "y_pos": (j < ny - 1, 1),
-             "y_neg": (j > 0, -1)}
+    steps = {
+        "x_pos": (np.ones(c.size, bool), None),
+        "x_neg": (i > 0, -ny),
+        "y_pos": (j < ny - 1, 1),
+        "y_neg": (j > 0, -1),
+    }
     out = {}
     for h in range(k):
         for key, (ok, step) in steps.items():
@@ -144,8 +150,15 @@ def generator(rates: np.ndarray, switching: np.ndarray) -> np.ndarray:
     return q
 
 
-def from_move_rates(values: dict[str, np.ndarray], nx: int, ny: int, n_phases: int, entry: np.ndarray,
-                    interval_s: float = float("nan"), attrs: dict[str, Any] | None = None) -> PhaseTransport:
+def from_move_rates(
+    values: dict[str, np.ndarray],
+    nx: int,
+    ny: int,
+    n_phases: int,
+    entry: np.ndarray,
+    interval_s: float = float("nan"),
+    attrs: dict[str, Any] | None = None,
+) -> PhaseTransport:
     """A :class:`PhaseTransport` from one rate per move of :func:`transitions` (``values``
     maps each of its keys to the rates of its moves, in its order)."""
     k = n_phases
@@ -153,8 +166,11 @@ def from_move_rates(values: dict[str, np.ndarray], nx: int, ny: int, n_phases: i
     switching = np.zeros((k, k, nx, ny))
     for name, (_src, _dst, comp) in transitions(nx, ny, k).items():
         parts = name.split("/")
-        target = (switching[int(parts[1]), int(parts[2])] if parts[0] == "switch"
-                  else rates[int(parts[1]), DIRECTIONS.index(parts[0])])
+        target = (
+            switching[int(parts[1]), int(parts[2])]
+            if parts[0] == "switch"
+            else rates[int(parts[1]), DIRECTIONS.index(parts[0])]
+        )
         target.reshape(-1)[comp] = values[name]
     entry = np.asarray(entry, dtype=float)
     if entry.ndim == 1:
@@ -175,7 +191,14 @@ def to_arrays(model: PhaseTransport) -> dict[str, np.ndarray]:
     return {"phase_rates": model.rates, "phase_switching": model.switching, "phase_entry": model.entry}
 
 
-def from_arrays(arrays: dict[str, np.ndarray], interval_s: float, attrs: dict[str, Any] | None = None) -> PhaseTransport:
+def from_arrays(
+    arrays: dict[str, np.ndarray], interval_s: float, attrs: dict[str, Any] | None = None
+) -> PhaseTransport:
     """The inverse of :func:`to_arrays`."""
-    return PhaseTransport(np.asarray(arrays["phase_rates"], float), np.asarray(arrays["phase_switching"], float),
-                          np.asarray(arrays["phase_entry"], float), float(interval_s), dict(attrs or {}))
+    return PhaseTransport(
+        np.asarray(arrays["phase_rates"], float),
+        np.asarray(arrays["phase_switching"], float),
+        np.asarray(arrays["phase_entry"], float),
+        float(interval_s),
+        dict(attrs or {}),
+    )

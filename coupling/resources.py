@@ -91,14 +91,14 @@ def require_memory(estimate_bytes: float, what: str, fix: str, available: float 
     if not estimate_bytes <= MEMORY_FRACTION * available:
         raise ResourceLimitError(
             f"{what} needs about {format_bytes(estimate_bytes)} of memory; this machine has "
-            f"{format_bytes(available)} available (at most {MEMORY_FRACTION:.0%} of it is used): {fix}")
+            f"{format_bytes(available)} available (at most {MEMORY_FRACTION:.0%} of it is used): {fix}"
+        )
 
 
 def require_time(estimate_s: float, limit_s: float, what: str, fix: str) -> None:
     """Raise ResourceLimitError when ``estimate_s`` exceeds ``limit_s``: one line with both."""
     if not estimate_s <= limit_s:
-        raise ResourceLimitError(
-            f"{what} would take about {_duration(estimate_s)} (limit {_duration(limit_s)}): {fix}")
+        raise ResourceLimitError(f"{what} would take about {_duration(estimate_s)} (limit {_duration(limit_s)}): {fix}")
 
 
 def _duration(seconds: float) -> str:

@@ -187,7 +187,7 @@ class VelocityTable:
         """Index of the window in force at ``time_s`` (the last one beyond the table's end)."""
         return int(np.clip(np.searchsorted(self.t, time_s, side="right") - 1, 0, self.n_windows - 1))
 
-    def replace(self, **changes: Any) -> "VelocityTable":
+    def replace(self, **changes: Any) -> VelocityTable:
         """A copy with some fields changed, validated again."""
         return replace(self, **changes)
 
@@ -199,7 +199,9 @@ def _validate(table: VelocityTable) -> None:
     if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
         raise TableError(f"dataset 't' must be finite and strictly increasing, got {t[:6]}...")
     if np.abs(t).max() > MAX_TIME_S:
-        raise TableError(f"dataset 't' holds {t[np.argmax(np.abs(t))]:.6g} s; window times within {MAX_TIME_S:g} s are valid")
+        raise TableError(
+            f"dataset 't' holds {t[np.argmax(np.abs(t))]:.6g} s; window times within {MAX_TIME_S:g} s are valid"
+        )
     if not (np.isfinite(table.window_s) and 0 < table.window_s <= MAX_TIME_S):
         raise TableError(f"attribute 'window_s' must be > 0 s (and at most {MAX_TIME_S:g} s), got {table.window_s}")
     if table.min_samples < 1:
@@ -211,13 +213,19 @@ def _validate(table: VelocityTable) -> None:
         if not np.all(np.isfinite(edges)) or np.any(np.diff(edges) <= 0):
             raise TableError(f"dataset '{name}' must be finite and strictly increasing, got {edges}")
         if np.abs(edges).max() > MAX_EDGE_M:
-            raise TableError(f"dataset '{name}' holds {edges[np.argmax(np.abs(edges))]:.6g} m; compartment edges "
-                             f"within {MAX_EDGE_M:g} m are valid")
+            raise TableError(
+                f"dataset '{name}' holds {edges[np.argmax(np.abs(edges))]:.6g} m; compartment edges "
+                f"within {MAX_EDGE_M:g} m are valid"
+            )
     shape = (t.size, table.x_edges.size - 1, table.y_edges.size - 1)
     for name in FIELD_NAMES:
         _check_field(name, getattr(table, name), shape, nan_allowed=False)
-        _check_bound(name, getattr(table, name), MAX_SPEED_M_S if name in VELOCITY_NAMES else MAX_COUNT,
-                     "m/s" if name in VELOCITY_NAMES else "")
+        _check_bound(
+            name,
+            getattr(table, name),
+            MAX_SPEED_M_S if name in VELOCITY_NAMES else MAX_COUNT,
+            "m/s" if name in VELOCITY_NAMES else "",
+        )
     present = [name for name in RATE_NAMES if getattr(table, name) is not None]
     if present and len(present) < len(RATE_NAMES):
         missing = [name for name in RATE_NAMES if name not in present]
@@ -230,8 +238,9 @@ def _validate(table: VelocityTable) -> None:
         _check_field(name, getattr(table, name), shape, nan_allowed=True)
         _check_bound(name, getattr(table, name), MAX_RATE_PER_S, "/s")
     if table.phases is not None and (table.phases.nx, table.phases.ny) != shape[1:]:
-        raise TableError(f"the phase model's grid {table.phases.nx}x{table.phases.ny} differs from the table's "
-                         f"{shape[1]}x{shape[2]}")
+        raise TableError(
+            f"the phase model's grid {table.phases.nx}x{table.phases.ny} differs from the table's {shape[1]}x{shape[2]}"
+        )
 
 
 def _check_bound(name: str, values: np.ndarray, bound: float, unit: str) -> None:
@@ -242,7 +251,8 @@ def _check_bound(name: str, values: np.ndarray, bound: float, unit: str) -> None
         k, i, j = np.argwhere(over)[0]
         raise TableError(
             f"dataset '{name}' holds {values[k, i, j]:.6g}{' ' + unit if unit else ''} in window {k}, compartment "
-            f"({i}, {j}); values up to {bound:g}{' ' + unit if unit else ''} are physical (coupling.tables bounds)")
+            f"({i}, {j}); values up to {bound:g}{' ' + unit if unit else ''} are physical (coupling.tables bounds)"
+        )
 
 
 def check_motion(table: VelocityTable, source: str = "") -> None:
@@ -253,12 +263,16 @@ def check_motion(table: VelocityTable, source: str = "") -> None:
     where = f" in {source}" if source else ""
     valid = table.valid
     if not valid.any():
-        raise TableError(f"no compartment-window has min_samples = {table.min_samples} samples{where}: "
-                         "the table carries no velocity information")
+        raise TableError(
+            f"no compartment-window has min_samples = {table.min_samples} samples{where}: "
+            "the table carries no velocity information"
+        )
     moving = any(np.any(getattr(table, name)[valid] > 0) for name in VELOCITY_NAMES)
     if not moving:
-        raise TableError(f"every velocity is 0 in all {int(valid.sum())} compartment-windows with samples{where}: "
-                         "a table of a moving blender needs some velocities > 0")
+        raise TableError(
+            f"every velocity is 0 in all {int(valid.sum())} compartment-windows with samples{where}: "
+            "a table of a moving blender needs some velocities > 0"
+        )
 
 
 def _check_field(name: str, values: np.ndarray, shape: tuple[int, ...], nan_allowed: bool) -> None:
@@ -274,8 +288,7 @@ def _check_field(name: str, values: np.ndarray, shape: tuple[int, ...], nan_allo
     if np.any(values < 0):
         k, i, j = np.argwhere(values < 0)[0]
         raise TableError(
-            f"dataset '{name}' must be >= 0 everywhere; window {k}, compartment ({i}, {j}) "
-            f"holds {values[k, i, j]}"
+            f"dataset '{name}' must be >= 0 everywhere; window {k}, compartment ({i}, {j}) holds {values[k, i, j]}"
         )
 
 
@@ -333,8 +346,10 @@ def make_table(
         window_s=window_s,
         min_samples=min_samples,
         attrs=dict(attrs or {}),
-        **{name: None if value is None else full(value, np.nan)
-           for name, value in zip(RATE_NAMES, (rate_x_pos, rate_x_neg, rate_y_pos, rate_y_neg))},
+        **{
+            name: None if value is None else full(value, np.nan)
+            for name, value in zip(RATE_NAMES, (rate_x_pos, rate_x_neg, rate_y_pos, rate_y_neg))
+        },
     )
 
 
@@ -367,8 +382,10 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     if version is None:
         raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
     if isinstance(version, (bool, np.bool_)) or not isinstance(version, (int, np.integer)):
-        raise TableError(f"attribute 'schema_version' = {_attr_python(version)!r} ({type(version).__name__}){where} is not an "
-                         f"integer; valid versions: {READABLE_VERSIONS}")
+        raise TableError(
+            f"attribute 'schema_version' = {_attr_python(version)!r} ({type(version).__name__}){where} is not an "
+            f"integer; valid versions: {READABLE_VERSIONS}"
+        )
     if int(version) not in READABLE_VERSIONS:
         raise TableError(
             f"unknown velocity-table schema_version {int(version)}{where}; this version reads {READABLE_VERSIONS}"
@@ -376,7 +393,9 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     arrays = {}
     for name in ("t", "x_edges", "y_edges", *FIELD_NAMES):
         if name not in group:
-            raise TableError(f"dataset '{name}' is missing{where}; a velocity table needs {('t', 'x_edges', 'y_edges', *FIELD_NAMES)}")
+            raise TableError(
+                f"dataset '{name}' is missing{where}; a velocity table needs {('t', 'x_edges', 'y_edges', *FIELD_NAMES)}"
+            )
         arrays[name] = group[name][()]
     # Version 1 predates the rates; in version 2 they are optional, and VelocityTable
     # refuses a partial set by name.
@@ -391,8 +410,10 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
     min_samples = group.attrs["min_samples"]
     if isinstance(min_samples, (bool, np.bool_)) or not isinstance(min_samples, (int, np.integer)):
-        raise TableError(f"attribute 'min_samples' = {_attr_python(min_samples)!r}{where} is not an integer; "
-                         "an integer >= 1 is needed")
+        raise TableError(
+            f"attribute 'min_samples' = {_attr_python(min_samples)!r}{where} is not an integer; "
+            "an integer >= 1 is needed"
+        )
     try:
         table = VelocityTable(
             **arrays,
@@ -413,8 +434,11 @@ def _phases_from_group(sub: h5py.Group, where: str) -> PhaseTransport:
         raise TableError(f"dataset(s) {missing} of the '{PHASES_GROUP}' subgroup are missing{where}")
     attrs = _attr_python(sub.attrs.get("attrs", "{}"))  # JSON text -> dict
     try:
-        return phase_model.from_arrays({name: sub[name][()] for name in names}, float(sub.attrs.get("interval_s", np.nan)),
-                                       attrs if isinstance(attrs, dict) else {})
+        return phase_model.from_arrays(
+            {name: sub[name][()] for name in names},
+            float(sub.attrs.get("interval_s", np.nan)),
+            attrs if isinstance(attrs, dict) else {},
+        )
     except TableError as exc:
         raise TableError(f"{exc}{where}") from None
 

@@ -54,8 +54,11 @@ def estimate_cost(
 ) -> CostEstimate:
     """Estimate the cost of running ``config`` on ``cores`` cores."""
     check_positive_finite(particles_held, "particles_held (the hold-up, --holdup)", "particles")
-    check_positive_finite(particle_steps_per_core_s, "particle_steps_per_core_s (the throughput, --throughput)",
-                          "particle-steps per second per core")
+    check_positive_finite(
+        particle_steps_per_core_s,
+        "particle_steps_per_core_s (the throughput, --throughput)",
+        "particle-steps per second per core",
+    )
     if isinstance(cores, bool) or int(cores) != cores or cores < 1:
         raise ConfigError(f"the number of cores (--np) must be an integer >= 1, got {cores!r}")
     if not (math.isfinite(parallel_efficiency) and 0 < parallel_efficiency <= 1):

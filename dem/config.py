@@ -74,17 +74,21 @@ class GeometryConfig(_Section):
     feed_height_m: float = Field(0.025, description="z of the feed zones' centre [m]")
     feed_depth_m: float = Field(0.012, gt=0, description="vertical extent of each feed zone [m]")
     mesh_resolution_m: float = Field(
-        0.04, gt=0, description="target triangle edge of curved/long surfaces [m] (coarse: moving triangles cost per step)"
+        0.04,
+        gt=0,
+        description="target triangle edge of curved/long surfaces [m] (coarse: moving triangles cost per step)",
     )
     box_margin_m: float = Field(0.005, gt=0, description="simulation box clearance around the barrel [m]")
     inlet_margin_m: float | None = Field(
-        None, gt=0, description="simulation box extent upstream of the inlet wall [m]; None = box_margin_m. "
+        None,
+        gt=0,
+        description="simulation box extent upstream of the inlet wall [m]; None = box_margin_m. "
         "Under MPI the deck cuts the box along x into equal slabs: a longer margin moves the cut between 2 ranks "
-        "toward the feed end, which holds most of the particles"
+        "toward the feed end, which holds most of the particles",
     )
 
     @model_validator(mode="after")
-    def _check(self) -> "GeometryConfig":
+    def _check(self) -> GeometryConfig:
         radius = self.diameter_m / 2
         if self.shaft_radius_m + self.blade_tip_clearance_m >= radius:
             raise ValueError(
@@ -135,7 +139,7 @@ class ParticleConfig(_Section):
     density_kg_m3: float = Field(1500.0, gt=0)
 
     @model_validator(mode="after")
-    def _check(self) -> "ParticleConfig":
+    def _check(self) -> ParticleConfig:
         if self.diameter_m - 3 * self.diameter_sd_m <= 0:
             raise ValueError(
                 f"diameter_sd_m ({self.diameter_sd_m}) is too wide for diameter_m ({self.diameter_m}): "
@@ -186,11 +190,12 @@ class OperationConfig(_Section):
     impeller_rpm: float = Field(250.0, gt=0)
     duration_s: float = Field(260.0, gt=0)
     step_time_s: float | None = Field(
-        None, gt=0, description="feeder A's rate is multiplied by step_factor_a from this time on (None: steady feed)")
+        None, gt=0, description="feeder A's rate is multiplied by step_factor_a from this time on (None: steady feed)"
+    )
     step_factor_a: float = Field(1.0, gt=0)
 
     @model_validator(mode="after")
-    def _step(self) -> "OperationConfig":
+    def _step(self) -> OperationConfig:
         if self.step_time_s is None:
             if self.step_factor_a != 1.0:
                 raise ValueError(f"step_factor_a = {self.step_factor_a} needs step_time_s (when the step happens)")
@@ -198,9 +203,12 @@ class OperationConfig(_Section):
         if not self.step_factor_a > 1.0:
             raise ValueError(
                 f"step_factor_a = {self.step_factor_a}: a feed step raises feeder A's rate (a second feeder of A "
-                "starts at step_time_s), so it must be > 1")
+                "starts at step_time_s), so it must be > 1"
+            )
         if not self.step_time_s < self.duration_s:
-            raise ValueError(f"step_time_s = {self.step_time_s} s must lie before the end, duration_s = {self.duration_s} s")
+            raise ValueError(
+                f"step_time_s = {self.step_time_s} s must lie before the end, duration_s = {self.duration_s} s"
+            )
         return self
 
     @property
@@ -226,7 +234,7 @@ class NumericsConfig(_Section):
     seed: int = Field(15485863, gt=10000, description="a prime > 10000 (LIGGGHTS requirement)")
 
     @model_validator(mode="after")
-    def _check(self) -> "NumericsConfig":
+    def _check(self) -> NumericsConfig:
         if self.timestep_rayleigh_fraction > MAX_STABLE_RAYLEIGH_FRACTION:
             raise ValueError(
                 f"timestep_rayleigh_fraction {self.timestep_rayleigh_fraction} is above the stable limit "
@@ -259,9 +267,9 @@ class RunConfig(_Section):
         try:
             words = shlex.split(liggghts)
         except ValueError as exc:
-            raise ValueError(f"is not a valid command line ({exc}); e.g. \"liggghts\"") from None
+            raise ValueError(f'is not a valid command line ({exc}); e.g. "liggghts"') from None
         if not words:
-            raise ValueError("is empty; the LIGGGHTS command is needed, e.g. \"liggghts\" or \"/opt/bin/lmp_auto\"")
+            raise ValueError('is empty; the LIGGGHTS command is needed, e.g. "liggghts" or "/opt/bin/lmp_auto"')
         return liggghts
 
 
@@ -274,7 +282,7 @@ def check_launcher(launcher: str) -> str:
     only the field ``{np}`` (no conversion or format spec), balanced braces (``{{``/``}}`` for
     literal ones), and a command line that shlex can split once filled in. Raises
     ValueError saying what is wrong and what is valid."""
-    valid = "the only field is {np} (the number of MPI ranks), e.g. \"mpirun -np {np}\" or \"srun\""
+    valid = 'the only field is {np} (the number of MPI ranks), e.g. "mpirun -np {np}" or "srun"'
     try:
         parts = list(string.Formatter().parse(launcher))
     except ValueError as exc:
@@ -285,8 +293,10 @@ def check_launcher(launcher: str) -> str:
         if name not in LAUNCHER_FIELDS:
             raise ValueError(f"uses the unknown field {{{name}}}; {valid}")
         if spec or conversion:
-            raise ValueError(f"field {{{name}{'!' + conversion if conversion else ''}{':' + spec if spec else ''}}} "
-                             f"has a conversion or format spec; write it as plain {{{name}}}")
+            raise ValueError(
+                f"field {{{name}{'!' + conversion if conversion else ''}{':' + spec if spec else ''}}} "
+                f"has a conversion or format spec; write it as plain {{{name}}}"
+            )
     try:
         shlex.split(launcher.format(np=1))
     except ValueError as exc:
@@ -316,7 +326,7 @@ class DemConfig(_Section):
     tables: TablesConfig = TablesConfig()
 
     @model_validator(mode="after")
-    def _check(self) -> "DemConfig":
+    def _check(self) -> DemConfig:
         g, p = self.geometry, self.particles
         if g.blade_tip_clearance_m <= p.max_diameter_m:
             raise ValueError(
@@ -340,4 +350,3 @@ class DemConfig(_Section):
     @property
     def timestep_s(self) -> float:
         return self.numerics.timestep_rayleigh_fraction * self.rayleigh_time_s
-

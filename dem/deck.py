@@ -256,9 +256,15 @@ def deck_parameters(config: DemConfig) -> dict:
     if config.operation.step_time_s is not None:
         # half a batch after a batch of the first feeder, so that the two never insert on one step
         start = round(config.operation.step_time_s / dt) + insert_every // 2
-        step = {"feed_step": {"start_step": start, "start_s": start * dt,
-                              "extra_rate_a_per_s": (config.operation.step_factor_a - 1) * config.operation.feed_rate_a_per_s}}
-    return {**step,
+        step = {
+            "feed_step": {
+                "start_step": start,
+                "start_s": start * dt,
+                "extra_rate_a_per_s": (config.operation.step_factor_a - 1) * config.operation.feed_rate_a_per_s,
+            }
+        }
+    return {
+        **step,
         "timestep_s": dt,
         "rayleigh_time_s": config.rayleigh_time_s,
         "timestep_rayleigh_fraction": dt / config.rayleigh_time_s,
@@ -299,11 +305,14 @@ def _seeds(seed: int, n_classes: int) -> dict:
     the second feeder of A of a feed step."""
     n = n_classes
     primes = _primes_from(seed, 2 * n + 7)
-    return {"templates": {"A": primes[:n], "B": primes[n : 2 * n]},
-            "distribution": {"A": primes[2 * n], "B": primes[2 * n + 1]},
-            "insertion": {"A": primes[2 * n + 2], "B": primes[2 * n + 3]},
-            "reference_distribution": primes[2 * n + 4], "reference_insertion": primes[2 * n + 5],
-            "step_insertion": primes[2 * n + 6]}
+    return {
+        "templates": {"A": primes[:n], "B": primes[n : 2 * n]},
+        "distribution": {"A": primes[2 * n], "B": primes[2 * n + 1]},
+        "insertion": {"A": primes[2 * n + 2], "B": primes[2 * n + 3]},
+        "reference_distribution": primes[2 * n + 4],
+        "reference_insertion": primes[2 * n + 5],
+        "step_insertion": primes[2 * n + 6],
+    }
 
 
 def _resumed_step(resume_from: str | None) -> int:
@@ -317,15 +326,29 @@ def _resumed_step(resume_from: str | None) -> int:
 
 
 def _setup_lines(domain: Box) -> list[str]:
-    return ["atom_style      granular", "atom_modify     map array", "boundary        f f f", "newton          off",
-            "communicate     single vel yes", "units           si", "processors      * 1 1", "",
-            f"region          domain block {_box_args(domain)} units box", "create_box      3 domain"]
+    return [
+        "atom_style      granular",
+        "atom_modify     map array",
+        "boundary        f f f",
+        "newton          off",
+        "communicate     single vel yes",
+        "units           si",
+        "processors      * 1 1",
+        "",
+        f"region          domain block {_box_args(domain)} units box",
+        "create_box      3 domain",
+    ]
 
 
 def _resume_setup_lines(resume_from: str) -> list[str]:
-    return [f"# resume: state (particles, step, mesh positions, counters) from {resume_from}",
-            "atom_modify     map array", "communicate     single vel yes", "processors      * 1 1",
-            f"read_restart    {resume_from}", "newton          off"]
+    return [
+        f"# resume: state (particles, step, mesh positions, counters) from {resume_from}",
+        "atom_modify     map array",
+        "communicate     single vel yes",
+        "processors      * 1 1",
+        f"read_restart    {resume_from}",
+        "newton          off",
+    ]
 
 
 def _neighbour_lines(config: DemConfig) -> list[str]:
@@ -336,9 +359,14 @@ def _neighbour_lines(config: DemConfig) -> list[str]:
 def _material_lines(config: DemConfig) -> list[str]:
     p, s, c = config.particles, config.steel, config.contact
     e_p, e_s = p.youngs_modulus_pa, s.youngs_modulus_pa
-    mu = {(1, 1): c.friction_particle_particle, (1, 2): c.friction_particle_particle,
-          (2, 2): c.friction_particle_particle, (1, 3): c.friction_particle_wall,
-          (2, 3): c.friction_particle_wall, (3, 3): c.friction_particle_wall}
+    mu = {
+        (1, 1): c.friction_particle_particle,
+        (1, 2): c.friction_particle_particle,
+        (2, 2): c.friction_particle_particle,
+        (1, 3): c.friction_particle_wall,
+        (2, 3): c.friction_particle_wall,
+        (3, 3): c.friction_particle_wall,
+    }
 
     def pair_matrix(f) -> str:
         return " ".join(_g(f(min(i, j), max(i, j))) for i in (1, 2, 3) for j in (1, 2, 3))
@@ -357,8 +385,12 @@ def _material_lines(config: DemConfig) -> list[str]:
 
 def _contact_lines(dt: float) -> list[str]:
     """Pair style, timestep and gravity."""
-    return [f"pair_style      gran {_CONTACT_MODEL}", "pair_coeff      * *", f"timestep        {_g(dt)}",
-            "fix gravi all gravity 9.81 vector 0.0 0.0 -1.0"]
+    return [
+        f"pair_style      gran {_CONTACT_MODEL}",
+        "pair_coeff      * *",
+        f"timestep        {_g(dt)}",
+        "fix gravi all gravity 9.81 vector 0.0 0.0 -1.0",
+    ]
 
 
 def _steel_wall(name: str, primitive: str) -> str:
@@ -368,8 +400,11 @@ def _steel_wall(name: str, primitive: str) -> str:
 def _template_lines(config: DemConfig, comp: str, diameters: np.ndarray, seeds: list[int]) -> list[str]:
     """One ``particletemplate/sphere`` per size class of component ``comp`` (``pt<comp><k>``)."""
     density = _g(config.particles.density_kg_m3)
-    return [f"fix pt{comp}{k} all particletemplate/sphere {seeds[k]} atom_type {ATOM_TYPES[comp]} density constant "
-            f"{density} radius constant {_g(d / 2)}" for k, d in enumerate(diameters)]
+    return [
+        f"fix pt{comp}{k} all particletemplate/sphere {seeds[k]} atom_type {ATOM_TYPES[comp]} density constant "
+        f"{density} radius constant {_g(d / 2)}"
+        for k, d in enumerate(diameters)
+    ]
 
 
 def _distribution_line(name: str, seed: int, templates: list[str], weights: np.ndarray) -> str:
@@ -379,9 +414,10 @@ def _distribution_line(name: str, seed: int, templates: list[str], weights: np.n
 
 def _integration_lines(thermo_every: int) -> list[str]:
     """Integration and the timestep check, run on every thermo step."""
-    return ["fix integr all nve/sphere",
-            f"fix ts all check/timestep/gran {thermo_every} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} "
-            f"{_g(HERTZ_WARN_FRACTION)}"]
+    return [
+        "fix integr all nve/sphere",
+        f"fix ts all check/timestep/gran {thermo_every} {_g(MAX_STABLE_RAYLEIGH_FRACTION)} {_g(HERTZ_WARN_FRACTION)}",
+    ]
 
 
 def _thermo_lines(columns: str, every: int) -> list[str]:
@@ -406,8 +442,8 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None, dumps: bo
         "# Generated by dem.deck.build_deck; do not edit in place during a run.",
         f"# particles: d = {_g(p.diameter_m)} m (SD {_g(p.diameter_sd_m)} m, {n_cls} classes); feed "
         f"{_g(op.feed_rate_total_per_s)} /s (A share {_g(op.feed_fraction_a)}); {_g(op.impeller_rpm)} rpm; "
-        f"{_g(op.duration_s)} s" + (f"; feeder A x{_g(op.step_factor_a)} from {_g(op.step_time_s)} s"
-                                     if op.step_time_s is not None else ""),
+        f"{_g(op.duration_s)} s"
+        + (f"; feeder A x{_g(op.step_factor_a)} from {_g(op.step_time_s)} s" if op.step_time_s is not None else ""),
         f"# atom types: 1 = A, 2 = B, 3 = steel. Thermo columns: {' '.join(THERMO_COLUMNS)}",
         "",
     ]
@@ -422,41 +458,56 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None, dumps: bo
     add(f"fix weir all mesh/surface file {MESH_FILES['weir']} type 3")
     add(f"fix walls all wall/gran {_CONTACT_MODEL} mesh n_meshes 2 meshes impeller weir")
     add(f"fix discharge all mesh/surface/planar file {MESH_FILES['discharge']} type 3")
-    add(f"fix rotor all move/mesh mesh impeller rotate origin 0. 0. 0. axis 1. 0. 0. period {_g(info['impeller_period_s'])}")
+    add(
+        f"fix rotor all move/mesh mesh impeller rotate origin 0. 0. 0. axis 1. 0. 0. period {_g(info['impeller_period_s'])}"
+    )
     add("")
-    add(f"# size distribution: normal, d = {_g(p.diameter_m)} m, SD {_g(p.diameter_sd_m)} m, discretised into "
-        f"{n_cls} number-weighted classes")
+    add(
+        f"# size distribution: normal, d = {_g(p.diameter_m)} m, SD {_g(p.diameter_sd_m)} m, discretised into "
+        f"{n_cls} number-weighted classes"
+    )
     if resume_from is None:
         add("group           gA type 1")
         add("group           gB type 2")
     for comp in ("A", "B"):
         L += _template_lines(config, comp, diam, seeds["templates"][comp])
-        add(_distribution_line(f"pdd{comp}", seeds["distribution"][comp], [f"pt{comp}{k}" for k in range(n_cls)],
-                               weights))
+        add(
+            _distribution_line(
+                f"pdd{comp}", seeds["distribution"][comp], [f"pt{comp}{k}" for k in range(n_cls)], weights
+            )
+        )
     add("")
     add("# feeders: A on +y, B on -y, above the first compartment, upstream of the first blade")
     rates = {"A": op.feed_rate_a_per_s, "B": op.feed_rate_b_per_s}
     for comp in ("A", "B"):
         add(f"region          feed{comp} block {_box_args(geo.feed_zones[comp])} units box")
-        add(f"fix ins{comp} g{comp} insert/rate/region seed {seeds['insertion'][comp]} distributiontemplate pdd{comp} "
+        add(
+            f"fix ins{comp} g{comp} insert/rate/region seed {seeds['insertion'][comp]} distributiontemplate pdd{comp} "
             f"nparticles INF particlerate {_g(rates[comp])} insert_every {info['insert_every_steps']} "
-            f"overlapcheck yes all_in yes vel constant 0. 0. {_g(-FEED_VELOCITY_M_S)} region feed{comp} ntry_mc 10000")
+            f"overlapcheck yes all_in yes vel constant 0. 0. {_g(-FEED_VELOCITY_M_S)} region feed{comp} ntry_mc 10000"
+        )
     step = info.get("feed_step")
     if step:
-        add(f"# feed step: a second feeder of A adds {_g(step['extra_rate_a_per_s'])} /s from step {step['start_step']}")
+        add(
+            f"# feed step: a second feeder of A adds {_g(step['extra_rate_a_per_s'])} /s from step {step['start_step']}"
+        )
         # 'start' must lie after the current step; a run resumed past it restores the fix's own state
         start = f" start {step['start_step']}" if _resumed_step(resume_from) < step["start_step"] else ""
-        add(f"fix {STEP_FEEDER} gA insert/rate/region seed {seeds['step_insertion']} distributiontemplate pddA "
+        add(
+            f"fix {STEP_FEEDER} gA insert/rate/region seed {seeds['step_insertion']} distributiontemplate pddA "
             f"nparticles INF particlerate {_g(step['extra_rate_a_per_s'])} insert_every {info['insert_every_steps']}"
             f"{start} overlapcheck yes all_in yes vel constant 0. 0. {_g(-FEED_VELOCITY_M_S)} region feedA "
-            "ntry_mc 10000")
+            "ntry_mc 10000"
+        )
     add("")
     add("# outlet: count and delete particles whose centre crosses the face past the weir, per component")
     for comp in ("A", "B"):
         # a resumed run appends: 'file' would truncate the discharges recorded before the restart
         mode = "file" if resume_from is None else "append"
-        add(f"fix out{comp} g{comp} massflow/mesh mesh discharge vec_side 1. 0. 0. count once delete_atoms yes "
-            f"{mode} {MASSFLOW_FILES[comp]} writeTime screen no")
+        add(
+            f"fix out{comp} g{comp} massflow/mesh mesh discharge vec_side 1. 0. 0. count once delete_atoms yes "
+            f"{mode} {MASSFLOW_FILES[comp]} writeTime screen no"
+        )
     L += ["", *_integration_lines(info["thermo_every_steps"]), ""]
     add("# output: simulated time from the step count (thermo 'time' restarts at 0 after read_restart)")
     add(f"variable        simtime equal step*{_g(dt)}")
@@ -465,7 +516,8 @@ def _deck_text(config: DemConfig, info: dict, resume_from: str | None, dumps: bo
             expr = f"{expr}+f_{STEP_FEEDER}[1]"
         add(f"variable        {name} equal {expr}")
     cols = " ".join(
-        c_.lower() if c_ in ("Step", "Atoms") else f"f_{c_}" if c_.startswith("ts[") else f"v_{c_}" for c_ in THERMO_COLUMNS
+        c_.lower() if c_ in ("Step", "Atoms") else f"f_{c_}" if c_.startswith("ts[") else f"v_{c_}"
+        for c_ in THERMO_COLUMNS
     )
     L += _thermo_lines(cols, info["thermo_every_steps"])
     if dumps:
@@ -544,8 +596,14 @@ def build_drum_deck(config: DemConfig, particles: int, steps: int, fill_s: float
         f"at Froude number {_g(DRUM_FROUDE)} (wall speed {_g(speed)} m/s), then {steps} measured steps "
         "(the last Loop time).",
         "",
-        *_setup_lines(simulation_box(g)), "", *_neighbour_lines(config), "", *_material_lines(config), "",
-        *_contact_lines(dt), "",
+        *_setup_lines(simulation_box(g)),
+        "",
+        *_neighbour_lines(config),
+        "",
+        *_material_lines(config),
+        "",
+        *_contact_lines(dt),
+        "",
         "# the drum: the blender's barrel spinning about x (shear y = tangential wall speed), closed at both ends",
         _steel_wall("barrel", f"xcylinder {_g(g.radius_m)} 0. 0. shear y {_g(speed)}"),
         _steel_wall("inletwall", "xplane 0.0"),
@@ -553,14 +611,18 @@ def build_drum_deck(config: DemConfig, particles: int, steps: int, fill_s: float
         "",
         *_template_lines(config, "A", diam, seeds["templates"]["A"]),
         *_template_lines(config, "B", diam, seeds["templates"]["B"]),
-        _distribution_line("pdddrum", seeds["reference_distribution"], templates, np.concatenate([weights, weights]) / 2),
+        _distribution_line(
+            "pdddrum", seeds["reference_distribution"], templates, np.concatenate([weights, weights]) / 2
+        ),
         f"region          fill cylinder x 0 0 {_g(g.radius_m)} 0 {_g(g.length_m)} units box",
         f"fix ins all insert/pack seed {seeds['reference_insertion']} distributiontemplate pdddrum insert_every "
         f"{max(1, round(DRUM_FILL_BATCH_S / dt))} overlapcheck yes all_in yes particles_in_region {particles} "
         "region fill ntry_mc 10000",
         "",
-        *_integration_lines(thermo_every), "",
-        *_thermo_lines("step atoms ke", thermo_every), "",
+        *_integration_lines(thermo_every),
+        "",
+        *_thermo_lines("step atoms ke", thermo_every),
+        "",
         f"# fill: top the drum up to {particles} particles every {_g(DRUM_FILL_BATCH_S)} s while it turns, then stop inserting",
         f"run             {fill_steps}",
         "unfix           ins",

@@ -189,7 +189,9 @@ def _snapshots_of_files(files: list[Path], threads: int, checked) -> Iterator[tu
             while pending or next_index <= last:
                 while next_index <= last and len(pending) < threads:
                     path = files[next_index]
-                    pending.append((path, next_index == last, pool.submit(_load_single_file, path, next_index == last, checked)))
+                    pending.append(
+                        (path, next_index == last, pool.submit(_load_single_file, path, next_index == last, checked))
+                    )
                     next_index += 1
                 path, allow, future = pending.popleft()
                 loaded = future.result()
@@ -277,7 +279,9 @@ def _iter_file(path: Path, allow_truncated: bool, warn=None, checked=None) -> It
                             f"{path}: line {_line_of(buf, pos)}: snapshot cut short ({exc}) in a file "
                             "that is not the last of the sequence"
                         ) from None
-                    warn(f"{path}: last snapshot (from line {_line_of(buf, pos)}) is cut short ({exc}); dropped (killed run?)")
+                    warn(
+                        f"{path}: last snapshot (from line {_line_of(buf, pos)}) is cut short ({exc}); dropped (killed run?)"
+                    )
                     return
                 yield snap
         finally:
@@ -302,8 +306,9 @@ def _parse_single(buf, size: int, path: Path, checked=None) -> Snapshot | None:
     if natoms == 0:
         return None
     try:
-        frame = pd.read_csv(path, sep=" ", header=None, skiprows=header_lines, dtype=np.float64, engine="c",
-                            low_memory=False)  # one snapshot: one chunk, no chunk concatenation
+        frame = pd.read_csv(
+            path, sep=" ", header=None, skiprows=header_lines, dtype=np.float64, engine="c", low_memory=False
+        )  # one snapshot: one chunk, no chunk concatenation
     except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
         return None
     values = _checked_values(frame.to_numpy(), natoms, columns, checked, box)
@@ -338,8 +343,9 @@ def _position_range(box: np.ndarray, axis: int) -> tuple[float, float]:
     return lo - (hi - lo), hi + (hi - lo)
 
 
-def _checked_values(values: np.ndarray, natoms: int, columns: tuple[str, ...], checked,
-                    box: np.ndarray) -> np.ndarray | None:
+def _checked_values(
+    values: np.ndarray, natoms: int, columns: tuple[str, ...], checked, box: np.ndarray
+) -> np.ndarray | None:
     """The (natoms, ncols) values, or None if their shape is wrong or a value fails a check
     (:func:`_field_problem` then names it)."""
     ncols = len(columns)
@@ -400,7 +406,8 @@ def _refuse_duplicate_ids(values: np.ndarray, columns: tuple[str, ...], path: Pa
     second, first = int(seconds[k]), int(order[same[k]])
     raise DumpFormatError(
         f"{path}: line {first_line + second}: snapshot at step {step} lists atom id {int(ids[second])} twice "
-        f"(lines {first_line + first} and {first_line + second}); every id must be unique within a snapshot")
+        f"(lines {first_line + first} and {first_line + second}); every id must be unique within a snapshot"
+    )
 
 
 def _field_problem(name: str, text: bytes, checked, box: np.ndarray) -> str | None:
@@ -419,14 +426,18 @@ def _field_problem(name: str, text: bytes, checked, box: np.ndarray) -> str | No
     if bound is not None and not (1 <= value <= bound and value == math.floor(value)):
         return f"column {name!r}: {shown!r} is not a valid {name}; an integer in [1, {int(bound)}] is needed"
     if name in _VELOCITY_COLUMNS and math.isfinite(value) and abs(value) > MAX_SPEED_M_S:
-        return (f"column {name!r}: {shown!r} m/s is not a particle velocity of a blender; |{name}| up to "
-                f"{MAX_SPEED_M_S:g} m/s is accepted")
+        return (
+            f"column {name!r}: {shown!r} m/s is not a particle velocity of a blender; |{name}| up to "
+            f"{MAX_SPEED_M_S:g} m/s is accepted"
+        )
     axis = _POSITION_AXES.get(name)
     if axis is not None and math.isfinite(value):
         low, high = _position_range(box, axis)
         if not low <= value <= high:
-            return (f"column {name!r}: {shown!r} lies far outside the box [{box[axis][0]:.6g}, {box[axis][1]:.6g}]; "
-                    f"positions within one box length of it, [{low:.6g}, {high:.6g}], are accepted")
+            return (
+                f"column {name!r}: {shown!r} lies far outside the box [{box[axis][0]:.6g}, {box[axis][1]:.6g}]; "
+                f"positions within one box length of it, [{low:.6g}, {high:.6g}], are accepted"
+            )
     return None
 
 
@@ -482,8 +493,11 @@ def _parse_header(buf, pos: int, size: int, path: Path):
             values = []
         if len(values) != per_line or not all(math.isfinite(v) for v in values) or not values[0] < values[1]:
             layout = "'lo hi tilt'" if triclinic else "'lo hi'"
-            raise fail(pos, f"box bounds of axis {'xyz'[axis]} must be {layout}: {per_line} finite numbers "
-                            f"with lo < hi, found {_shown(line)}")
+            raise fail(
+                pos,
+                f"box bounds of axis {'xyz'[axis]} must be {layout}: {per_line} finite numbers "
+                f"with lo < hi, found {_shown(line)}",
+            )
         box[axis] = values[:2]
         pos = nxt
     line, nxt = _read_line(buf, pos, size, path)
@@ -492,8 +506,11 @@ def _parse_header(buf, pos: int, size: int, path: Path):
     try:
         columns = tuple(line[len(b"ITEM: ATOMS") :].decode("ascii").split())
     except UnicodeDecodeError as exc:
-        raise fail(pos, f"column names must be ASCII; byte {line[len(b'ITEM: ATOMS') + exc.start]:#04x} at "
-                        f"character {len(b'ITEM: ATOMS') + exc.start + 1} of {_shown(line)} is not") from None
+        raise fail(
+            pos,
+            f"column names must be ASCII; byte {line[len(b'ITEM: ATOMS') + exc.start]:#04x} at "
+            f"character {len(b'ITEM: ATOMS') + exc.start + 1} of {_shown(line)} is not",
+        ) from None
     if not columns or len(set(columns)) != len(columns):
         raise fail(pos, f"ITEM: ATOMS header must name distinct columns, got {columns}")
     return step, natoms, box, columns, nxt, 9
@@ -512,8 +529,17 @@ def _parse_snapshot(buf, pos: int, size: int, path: Path, checked=None) -> tuple
     return Snapshot(step=step, columns=columns, data=data, box=box, source=str(path)), end
 
 
-def _parse_block(block: bytes, natoms: int, columns: tuple[str, ...], path: Path, buf, body_start: int,
-                 at_eof: bool, checked=None, box=None) -> np.ndarray:
+def _parse_block(
+    block: bytes,
+    natoms: int,
+    columns: tuple[str, ...],
+    path: Path,
+    buf,
+    body_start: int,
+    at_eof: bool,
+    checked=None,
+    box=None,
+) -> np.ndarray:
     ncols = len(columns)
     if natoms == 0:
         if block.strip():
@@ -541,13 +567,15 @@ def _parse_block(block: bytes, natoms: int, columns: tuple[str, ...], path: Path
         raise _locate_bad_line(block, columns, path, buf, body_start, str(exc), checked, box) from None
     values = _checked_values(frame.to_numpy(), natoms, columns, checked, box)
     if values is None:
-        raise _locate_bad_line(block, columns, path, buf, body_start, f"expected {natoms} lines of {ncols} numbers",
-                               checked, box)
+        raise _locate_bad_line(
+            block, columns, path, buf, body_start, f"expected {natoms} lines of {ncols} numbers", checked, box
+        )
     return values
 
 
-def _locate_bad_line(block: bytes, columns: tuple[str, ...], path: Path, buf, body_start: int, why: str,
-                     checked=None, box=None) -> DumpFormatError:
+def _locate_bad_line(
+    block: bytes, columns: tuple[str, ...], path: Path, buf, body_start: int, why: str, checked=None, box=None
+) -> DumpFormatError:
     """Slow path, only on error: the first atom line that is not ``len(columns)`` valid numbers."""
     first = _line_of(buf, body_start)
     ncols = len(columns)
@@ -564,8 +592,10 @@ def _locate_bad_line(block: bytes, columns: tuple[str, ...], path: Path, buf, bo
                 return DumpFormatError(f"{path}: line {first + offset}: {problem}")
         # pandas splits on single spaces: two in a row make an empty field
         if b"  " in line.strip() or b"\t" in line:
-            return DumpFormatError(f"{path}: line {first + offset}: fields must be separated by single spaces, "
-                                   f"found {line[:80].decode(errors='replace')!r}")
+            return DumpFormatError(
+                f"{path}: line {first + offset}: fields must be separated by single spaces, "
+                f"found {line[:80].decode(errors='replace')!r}"
+            )
     return DumpFormatError(f"{path}: line {first}: malformed atom block ({why})")
 
 
@@ -584,7 +614,9 @@ def format_snapshot(
         f"ITEM: TIMESTEP\n{int(step)}\nITEM: NUMBER OF ATOMS\n{data.shape[0]}\n"
         "ITEM: BOX BOUNDS ff ff ff\n"
         + "".join(f"{lo:.6g} {hi:.6g}\n" for lo, hi in box)
-        + "ITEM: ATOMS " + " ".join(columns) + " \n"
+        + "ITEM: ATOMS "
+        + " ".join(columns)
+        + " \n"
     )
     fmt = " ".join("%d" if c in ("id", "type") else "%.9g" for c in columns) + " "
     out = io.StringIO()

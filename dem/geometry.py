@@ -251,7 +251,12 @@ def blade_meshes(g: GeometryConfig) -> TriMesh:
             e_c = math.cos(p) * np.array([1.0, 0.0, 0.0]) - sign * math.sin(p) * e_t
             centre = np.array([st.x_m, 0.0, 0.0])
             base = len(pts)
-            for r, c in ((r_root, -half_chord), (r_root, half_chord), (r_tip_mid, half_chord), (r_tip_mid, -half_chord)):
+            for r, c in (
+                (r_root, -half_chord),
+                (r_root, half_chord),
+                (r_tip_mid, half_chord),
+                (r_tip_mid, -half_chord),
+            ):
                 pts.append(centre + r * e_r + c * e_c)
             tris += [[base, base + 1, base + 2], [base, base + 2, base + 3]]
     return TriMesh("blades", np.round(np.array(pts), COORD_DECIMALS), np.array(tris, dtype=np.int64))
@@ -314,7 +319,9 @@ def inlet_wall_mesh(g: GeometryConfig) -> TriMesh:
     """Inlet end disc, for viewing only (the deck uses the primitive plane x = 0)."""
     n_theta = _n_around(g, g.radius_m)
     theta = np.linspace(0, 2 * np.pi, n_theta, endpoint=False)
-    pts = np.concatenate([[[0.0, 0.0, 0.0]], np.stack([0 * theta, g.radius_m * np.cos(theta), g.radius_m * np.sin(theta)], 1)])
+    pts = np.concatenate(
+        [[[0.0, 0.0, 0.0]], np.stack([0 * theta, g.radius_m * np.cos(theta), g.radius_m * np.sin(theta)], 1)]
+    )
     tris = np.array([[0, 1 + k, 1 + (k + 1) % n_theta] for k in range(n_theta)], dtype=np.int64)
     return TriMesh("inlet_wall", pts, tris)
 
@@ -367,7 +374,9 @@ def check_mesh(mesh: TriMesh, box: Box) -> None:
     scale = max(float(np.ptp(mesh.points, axis=0).max()), 1e-12)
     bad = np.flatnonzero(area <= 1e-12 * scale**2)
     if bad.size:
-        raise GeometryError(f"mesh {mesh.name!r}: triangle {bad[0]} is degenerate (area {area[bad[0]]:.3g} m2; must be > 0)")
+        raise GeometryError(
+            f"mesh {mesh.name!r}: triangle {bad[0]} is degenerate (area {area[bad[0]]:.3g} m2; must be > 0)"
+        )
     angles = triangle_angles_deg(mesh)
     worst = int(np.nanargmin(angles.min(axis=1)))
     if angles[worst].min() < MIN_TRIANGLE_ANGLE_DEG:
@@ -412,8 +421,18 @@ def _box_radial_range(b: Box) -> tuple[float, float]:
 def validate_geometry(config: DemConfig) -> None:
     """Every geometric precondition of a runnable deck; raises :class:`GeometryError`."""
     g, p = config.geometry, config.particles
-    for name in ("length_m", "diameter_m", "shaft_radius_m", "blade_chord_m", "blade_tip_clearance_m",
-                 "weir_height_m", "outlet_length_m", "mesh_resolution_m", "box_margin_m", "discharge_offset_m"):
+    for name in (
+        "length_m",
+        "diameter_m",
+        "shaft_radius_m",
+        "blade_chord_m",
+        "blade_tip_clearance_m",
+        "weir_height_m",
+        "outlet_length_m",
+        "mesh_resolution_m",
+        "box_margin_m",
+        "discharge_offset_m",
+    ):
         value = getattr(g, name)
         if not value > 0:
             raise GeometryError(f"geometry.{name} = {value}: must be > 0")

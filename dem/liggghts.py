@@ -32,8 +32,15 @@ from pathlib import Path
 from coupling.errors import SolverNotFoundError, SolverRunError
 from dem.deck import MAIN_DECK
 
-__all__ = ["INSTALL_HINT", "SolverResult", "launch_command", "liggghts_version", "run_solver", "solver_command",
-           "text_tail"]
+__all__ = [
+    "INSTALL_HINT",
+    "SolverResult",
+    "launch_command",
+    "liggghts_version",
+    "run_solver",
+    "solver_command",
+    "text_tail",
+]
 
 INSTALL_HINT = "install it with `apt-get install liggghts openmpi-bin` (or `make setup`)"
 
@@ -55,11 +62,15 @@ def check_tmpdir(environ=None) -> None:
         probe = parent
     if not os.path.isdir(probe):
         why = f"is not a directory ({probe} is a file)" if probe != tmpdir else "is not a directory"
-        raise SolverRunError(f"TMPDIR={tmpdir} {why}: Open MPI creates its session directory there and LIGGGHTS "
-                             "cannot start; set TMPDIR to a writable directory (or unset it for /tmp)")
+        raise SolverRunError(
+            f"TMPDIR={tmpdir} {why}: Open MPI creates its session directory there and LIGGGHTS "
+            "cannot start; set TMPDIR to a writable directory (or unset it for /tmp)"
+        )
     if not os.access(probe, os.W_OK | os.X_OK):
-        raise SolverRunError(f"TMPDIR={tmpdir} is not writable: Open MPI creates its session directory there and "
-                             "LIGGGHTS cannot start; set TMPDIR to a writable directory (or unset it for /tmp)")
+        raise SolverRunError(
+            f"TMPDIR={tmpdir} is not writable: Open MPI creates its session directory there and "
+            "LIGGGHTS cannot start; set TMPDIR to a writable directory (or unset it for /tmp)"
+        )
 
 
 def _mpi_session_failure(output: str) -> str | None:
@@ -84,15 +95,23 @@ def liggghts_version(liggghts: str = "liggghts") -> str:
     check_tmpdir()
     try:
         # -log none: otherwise `liggghts -h` leaves a log.liggghts in the caller's directory
-        out = subprocess.run([*exe, "-log", "none", "-h"], capture_output=True, text=True, errors="replace",
-                             timeout=60, stdin=subprocess.DEVNULL)
+        out = subprocess.run(
+            [*exe, "-log", "none", "-h"],
+            capture_output=True,
+            text=True,
+            errors="replace",
+            timeout=60,
+            stdin=subprocess.DEVNULL,
+        )
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise SolverNotFoundError(f"cannot run {liggghts!r} -h: {exc}; {INSTALL_HINT}") from exc
     match = re.search(r"LIGGGHTS \(Version ([^)]*)\)", out.stdout + out.stderr)
     session = None if match else _mpi_session_failure(out.stdout + out.stderr)
     if session is not None:
-        raise SolverRunError(f"LIGGGHTS is installed but could not start: Open MPI could not create {session}; "
-                             "set TMPDIR to a writable directory")
+        raise SolverRunError(
+            f"LIGGGHTS is installed but could not start: Open MPI could not create {session}; "
+            "set TMPDIR to a writable directory"
+        )
     if not match:
         raise SolverNotFoundError(f"{liggghts!r} -h did not print a LIGGGHTS version banner; {INSTALL_HINT}")
     return match.group(1).strip()
@@ -190,9 +209,17 @@ def run_solver(
     proc = None
     try:
         with open(output_file, "a" if append else "w", buffering=1) as out:
-            proc = subprocess.Popen(list(command), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, text=True, errors="replace", bufsize=1,
-                                    start_new_session=True)
+            proc = subprocess.Popen(
+                list(command),
+                cwd=cwd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                text=True,
+                errors="replace",
+                bufsize=1,
+                start_new_session=True,
+            )
             if on_start is not None:
                 on_start(proc.pid)
             returncode = _stream(proc, out, on_line, errors, t0, timeout_s, error_grace_s)
@@ -204,8 +231,11 @@ def run_solver(
         if proc is not None and proc.stdout is not None:
             proc.stdout.close()
     if returncode is None:
-        raise SolverRunError(f"LIGGGHTS ran longer than the {timeout_s:.0f} s allowed: stopped", run_dir=cwd,
-                             log_tail=text_tail(output_file))
+        raise SolverRunError(
+            f"LIGGGHTS ran longer than the {timeout_s:.0f} s allowed: stopped",
+            run_dir=cwd,
+            log_tail=text_tail(output_file),
+        )
     wall = time.monotonic() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

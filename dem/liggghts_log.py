@@ -150,14 +150,17 @@ def loop_details(text: str) -> dict:
     if not starts:
         return {}
     out: dict = {"sections_s": {}}
-    for line in text[starts[-1]:].splitlines()[1:]:
+    for line in text[starts[-1] :].splitlines()[1:]:
         if line.startswith("Loop time of") or line.split()[:1] == ["Step"]:
             break
         section = _SECTION_RE.match(line)
         if section:
             out["sections_s"][section.group(1)] = float(section.group(2))
-        for key, label in (("neighbours_per_particle", "Ave neighs/atom ="), ("neighbour_builds", "Neighbor list builds ="),
-                           ("dangerous_builds", "Dangerous builds =")):
+        for key, label in (
+            ("neighbours_per_particle", "Ave neighs/atom ="),
+            ("neighbour_builds", "Neighbor list builds ="),
+            ("dangerous_builds", "Dangerous builds ="),
+        ):
             if line.startswith(label):
                 out[key] = float(line.split("=")[1])
     return out

@@ -166,8 +166,13 @@ def coarsen(states: np.ndarray, nx: int, ny: int, to_nx: int, to_ny: int) -> np.
     return np.where(states == s, to_nx * to_ny, np.where(states < 0, -1, coarse)).astype(np.int16)
 
 
-def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | None = None,
-            grid: tuple[int, int] | None = None, lag: int = 1, residents: bool = False) -> PhaseData:
+def prepare(
+    sequences: CompartmentSequences,
+    entered_s: tuple[float, float] | None = None,
+    grid: tuple[int, int] | None = None,
+    lag: int = 1,
+    residents: bool = False,
+) -> PhaseData:
     """The sequences of the particles first seen in ``entered_s`` = (t0, t1] [s] (default
     all), on ``grid`` = (NX, NY) (default the sequences' own; a coarser grid must divide
     it), observed every ``lag`` dumps (a particle discharged in between is seen discharged
@@ -186,8 +191,10 @@ def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | No
         chosen = (entry_t > t0 + tol) & (entry_t <= t1 + tol)
     index = np.flatnonzero(chosen)
     if not index.size:
-        raise ValueError(f"no particle entered in {entered_s} s (sequences span {entry_t.min() if entry_t.size else 'nothing'}"
-                         f"..{entry_t.max() if entry_t.size else ''} s)")
+        raise ValueError(
+            f"no particle entered in {entered_s} s (sequences span {entry_t.min() if entry_t.size else 'nothing'}"
+            f"..{entry_t.max() if entry_t.size else ''} s)"
+        )
     obs = sequences.padded(index)
     group = np.where(sequences.component[index] == FEEDERS[1], 1, 0)
     start = sequences.start[index].astype(np.int64)
@@ -195,8 +202,9 @@ def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | No
         old_obs, old_start, old_cells = _residents(sequences, entered_s[0])
         width = max(obs.shape[1], old_obs.shape[1])
         obs = np.concatenate([_widen(obs, width), _widen(old_obs, width)])
-        group = np.concatenate([group, 2 + coarsen(old_cells, sequences.nx, sequences.ny, *(grid or (sequences.nx,
-                                                                                                     sequences.ny)))])
+        group = np.concatenate(
+            [group, 2 + coarsen(old_cells, sequences.nx, sequences.ny, *(grid or (sequences.nx, sequences.ny)))]
+        )
         start = np.concatenate([start, old_start])
     nx, ny = grid or (sequences.nx, sequences.ny)
     if (nx, ny) != (sequences.nx, sequences.ny):
@@ -208,17 +216,27 @@ def prepare(sequences: CompartmentSequences, entered_s: tuple[float, float] | No
     obs, lengths = obs[order], lengths[order]
     active = np.searchsorted(-lengths, -np.arange(obs.shape[1]), side="left")  # rows with length > t
     # with a lag, dump indices count observations: start and last dump in units of the lag
-    return PhaseData(obs=obs, lengths=lengths, active=active, group=group[order].astype(np.int64),
-                     start=start[order] // lag,
-                     last_dump=int(sequences.snapshot_t.size - 1) // lag,
-                     nx=int(nx), ny=int(ny), interval_s=float(sequences.interval_s) * lag,
-                     flat=obs[obs >= 0].astype(np.int64),
-                     offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64))
+    return PhaseData(
+        obs=obs,
+        lengths=lengths,
+        active=active,
+        group=group[order].astype(np.int64),
+        start=start[order] // lag,
+        last_dump=int(sequences.snapshot_t.size - 1) // lag,
+        nx=int(nx),
+        ny=int(ny),
+        interval_s=float(sequences.interval_s) * lag,
+        flat=obs[obs >= 0].astype(np.int64),
+        offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+    )
 
 
 def _widen(obs: np.ndarray, width: int) -> np.ndarray:
-    return obs if obs.shape[1] == width else np.concatenate(
-        [obs, np.full((obs.shape[0], width - obs.shape[1]), -1, obs.dtype)], axis=1)
+    return (
+        obs
+        if obs.shape[1] == width
+        else np.concatenate([obs, np.full((obs.shape[0], width - obs.shape[1]), -1, obs.dtype)], axis=1)
+    )
 
 
 def _residents(sequences: CompartmentSequences, t0_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -277,8 +295,9 @@ def _blocks(p: np.ndarray, n_cells: int, k: int) -> np.ndarray:
     return out
 
 
-def forward_backward(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
-                     backward: bool = True, compiled: bool | None = None) -> Expectations:
+def forward_backward(
+    p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int, backward: bool = True, compiled: bool | None = None
+) -> Expectations:
     """Forward-backward on every sequence of ``data`` for the transition matrix ``p``
     (S*K+1, S*K+1) over one dump interval and ``entry`` (2, K). With ``backward`` False
     only the log-likelihood is computed (counts and entry are zeros). ``compiled``: use
@@ -302,8 +321,10 @@ def forward_backward(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
         c = a.sum(axis=1)
         if np.any(c <= 0):
             bad = int(np.flatnonzero(c <= 0)[0])
-            raise FloatingPointError(f"a move {int(obs[bad, t - 1])} -> {int(obs[bad, t])} has probability 0 under the "
-                                     "model (a jump the nearest-neighbour pattern cannot make within a dump interval?)")
+            raise FloatingPointError(
+                f"a move {int(obs[bad, t - 1])} -> {int(obs[bad, t])} has probability 0 under the "
+                "model (a jump the nearest-neighbour pattern cannot make within a dump interval?)"
+            )
         a /= c[:, None]
         log_likelihood += float(np.log(c).sum())
         alphas.append(a)
@@ -405,15 +426,19 @@ def _fb_kernel_python(blocks, entry, flat, offsets, feeder, backward):
 _fb_kernel = numba.njit(cache=True, nogil=True)(_fb_kernel_python) if numba is not None else None
 
 
-def _forward_backward_compiled(p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int,
-                               backward: bool) -> Expectations:
+def _forward_backward_compiled(
+    p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int, backward: bool
+) -> Expectations:
     s = data.n_cells
     blocks = _blocks(p, s, k)
-    log_likelihood, counts4, entry_sums = _fb_kernel(blocks, np.ascontiguousarray(entry, dtype=np.float64),
-                                                     data.flat, data.offsets, data.group, backward)
+    log_likelihood, counts4, entry_sums = _fb_kernel(
+        blocks, np.ascontiguousarray(entry, dtype=np.float64), data.flat, data.offsets, data.group, backward
+    )
     if not np.isfinite(log_likelihood):
-        raise FloatingPointError("a move has probability 0 under the model (a jump the nearest-neighbour pattern "
-                                 "cannot make within a dump interval?)")
+        raise FloatingPointError(
+            "a move has probability 0 under the model (a jump the nearest-neighbour pattern "
+            "cannot make within a dump interval?)"
+        )
     m = s * k + 1
     counts = np.zeros((m, m))
     counts[: s * k, : s * k] = counts4[:, :, :s, :].reshape(s * k, s * k)
@@ -503,7 +528,7 @@ class PhaseFit:
         """(2, K): probability of entering in each phase, feed A and feed B."""
         return self.transport.entry
 
-    def initial_distribution(self, data: "PhaseData") -> np.ndarray:
+    def initial_distribution(self, data: PhaseData) -> np.ndarray:
         """(2 + S, K): :func:`initial_distribution` of this model for ``data``."""
         return initial_distribution(self.transport, data)
 
@@ -516,8 +541,9 @@ class PhaseFit:
         """Log-likelihood [nats] of ``data`` (e.g. held out) under this model."""
         check_grid(self.transport, data)
         p = expm(self.generator() * data.interval_s)
-        return forward_backward(p, initial_distribution(self.transport, data), data, self.n_phases,
-                                backward=False).log_likelihood
+        return forward_backward(
+            p, initial_distribution(self.transport, data), data, self.n_phases, backward=False
+        ).log_likelihood
 
     def implied_timescales(self, count: int = 5) -> np.ndarray:
         """The ``count`` longest relaxation times [s] of the chain, -1/Re(lambda) over the
@@ -535,8 +561,9 @@ class PhaseFit:
         in the entry phases [particles per (particle/s)]."""
         return steady_occupancy(self.transport, first_compartments(data))
 
-    def chapman_kolmogorov(self, data: PhaseData, lags: tuple[int, ...] = (10, 20, 50, 100),
-                           z_limit: float = 4.0) -> CkTest:
+    def chapman_kolmogorov(
+        self, data: PhaseData, lags: tuple[int, ...] = (10, 20, 50, 100), z_limit: float = 4.0
+    ) -> CkTest:
         """:class:`CkTest` at ``lags`` (in dumps) on ``data``'s particle-dumps."""
         return chapman_kolmogorov(self.transport, data, lags, z_limit)
 
@@ -559,8 +586,9 @@ def initial_distribution(model: PhaseTransport, data: PhaseData) -> np.ndarray:
 def first_compartments(data: PhaseData) -> np.ndarray:
     """(2, S): how many particles of each feeder were first seen in each compartment."""
     first = data.obs[:, 0].astype(np.int64)
-    return np.stack([np.bincount(first[data.group == f], minlength=data.n_cells)[: data.n_cells]
-                     for f in (0, 1)]).astype(float)
+    return np.stack(
+        [np.bincount(first[data.group == f], minlength=data.n_cells)[: data.n_cells] for f in (0, 1)]
+    ).astype(float)
 
 
 def steady_occupancy(model: PhaseTransport, entering: np.ndarray) -> np.ndarray:
@@ -605,10 +633,9 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
         # every start point (row, t) in a compartment, with its outcome
         rows, ts = np.nonzero((obs >= 0) & (obs < s))
         ahead = ts + lag
-        followed = (data.start[rows] + ahead <= data.last_dump)
+        followed = data.start[rows] + ahead <= data.last_dump
         in_range = ahead < lengths[rows]
-        outcome = np.where(in_range, obs[rows, np.minimum(ahead, obs.shape[1] - 1)],
-                           np.where(discharged[rows], s, -1))
+        outcome = np.where(in_range, obs[rows, np.minimum(ahead, obs.shape[1] - 1)], np.where(discharged[rows], s, -1))
         use = followed & (outcome >= 0)
         rows, cells, outcome = rows[use], obs[rows[use], ts[use]].astype(np.int64), outcome[use].astype(np.int64)
         start_slice, end_slice = slice_of[cells], slice_of[outcome]
@@ -619,8 +646,8 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
             starts[n, i] = total
             if not total:
                 continue
-            weights = cell_counts[i * ny:(i + 1) * ny]
-            predicted[n, i] = weights @ from_cell[i * ny:(i + 1) * ny] / weights.sum()
+            weights = cell_counts[i * ny : (i + 1) * ny]
+            predicted[n, i] = weights @ from_cell[i * ny : (i + 1) * ny] / weights.sum()
             hits = np.zeros((obs.shape[0], nx + 1))
             np.add.at(hits, (rows[in_i], end_slice[in_i]), 1.0)
             per_particle = np.bincount(rows[in_i], minlength=obs.shape[0]).astype(float)
@@ -629,8 +656,9 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
             observed[n, i] = fraction
             residual = hits - per_particle[:, None] * fraction[None, :]
             error[n, i] = np.sqrt((residual**2).sum(axis=0)) / total
-    return CkTest(np.asarray(lags, float) * data.interval_s, observed, predicted, error, starts, particles,
-                  float(z_limit))
+    return CkTest(
+        np.asarray(lags, float) * data.interval_s, observed, predicted, error, starts, particles, float(z_limit)
+    )
 
 
 # ----------------------------------------------------------------------------- the fit
@@ -642,8 +670,10 @@ def _moves(nx: int, ny: int, k: int):
 def _move_rates(model: PhaseTransport) -> dict[str, np.ndarray]:
     """The rate of every move of :func:`coupling.phases.transitions`, read off ``model``."""
     q = model.generator()
-    return {name: q[src, dst] for name, (src, dst, _c) in
-            phase_model.transitions(model.nx, model.ny, model.n_phases).items()}
+    return {
+        name: q[src, dst]
+        for name, (src, dst, _c) in phase_model.transitions(model.nx, model.ny, model.n_phases).items()
+    }
 
 
 def _initial(base: PhaseTransport, k: int, rng: np.random.Generator | None) -> PhaseTransport:
@@ -670,12 +700,17 @@ def _ordered(model: PhaseTransport, occupancy: np.ndarray) -> tuple[PhaseTranspo
     """``model`` with its phases sorted by :func:`coupling.phases.mobility`, slowest first,
     and ``occupancy`` (K, NX, NY) sorted alike."""
     order = np.argsort(phase_model.mobility(model.rates, occupancy), kind="stable")
-    return (PhaseTransport(model.rates[order], model.switching[order][:, order], model.entry[:, order],
-                           model.interval_s, model.attrs), occupancy[order])
+    return (
+        PhaseTransport(
+            model.rates[order], model.switching[order][:, order], model.entry[:, order], model.interval_s, model.attrs
+        ),
+        occupancy[order],
+    )
 
 
-def _ctmc_em_steps(counts: np.ndarray, moves: dict, start: dict[str, np.ndarray], interval_s: float,
-                   steps: int) -> np.ndarray:
+def _ctmc_em_steps(
+    counts: np.ndarray, moves: dict, start: dict[str, np.ndarray], interval_s: float, steps: int
+) -> np.ndarray:
     """``steps`` EM updates of the rates of a chain observed at ``counts`` (expected
     transitions per interval): each move's rate becomes its expected number of jumps over
     the expected time spent in its source state, both read off the gradient of
@@ -701,8 +736,9 @@ def _ctmc_em_steps(counts: np.ndarray, moves: dict, start: dict[str, np.ndarray]
     return rates
 
 
-def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float, m_step_iterations: int,
-        m_step: str = "em") -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
+def _em(
+    model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float, m_step_iterations: int, m_step: str = "em"
+) -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
     """EM from ``model`` (module docstring); returns the model, its log-likelihood, the
     iterations, whether it converged and the expected time per (compartment, phase)."""
     nx, ny, k, interval = data.nx, data.ny, model.n_phases, data.interval_s
@@ -712,7 +748,7 @@ def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float,
     dwell = np.zeros(nx * ny * k)
     iteration = 0
     initial = initial_distribution(model, data)
-    for iteration in range(1, max_iterations + 1):
+    for iteration in range(1, max_iterations + 1):  # noqa: B007 -- the count is reported after the loop
         p = expm(model.generator() * interval)
         expected = forward_backward(p, initial, data, k)
         # the likelihood is that of the model before this M-step
@@ -739,9 +775,17 @@ def _em(model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float,
 
 
 @single_threaded_blas()
-def fit(data: PhaseData, n_phases: int, starts: int = 3, seed: int = 0, max_iterations: int = 200,
-        tol: float = 1e-6, m_step_iterations: int = 20, base: PhaseTransport | None = None,
-        m_step: str = "em") -> PhaseFit:
+def fit(
+    data: PhaseData,
+    n_phases: int,
+    starts: int = 3,
+    seed: int = 0,
+    max_iterations: int = 200,
+    tol: float = 1e-6,
+    m_step_iterations: int = 20,
+    base: PhaseTransport | None = None,
+    m_step: str = "em",
+) -> PhaseFit:
     """Fit the K = ``n_phases`` chain to ``data`` by EM from ``starts`` starts (module
     docstring); stop when the log-likelihood gains less than ``tol`` nats per
     particle-step, or after ``max_iterations``. ``base``: the one-phase fit to start from
@@ -763,12 +807,30 @@ def fit(data: PhaseData, n_phases: int, starts: int = 3, seed: int = 0, max_iter
     model, log_likelihood, iterations, converged, dwell = best
     occupancy = dwell.reshape(data.nx, data.ny, n_phases).transpose(2, 0, 1)
     model, occupancy = _ordered(model, occupancy)
-    model = PhaseTransport(model.rates, model.switching, model.entry, model.interval_s,
-                           {"method": "EM (forward-backward on the phases, dem.rates M-step)",
-                            "n_particles": data.n_particles, "n_steps": data.n_steps,
-                            "log_likelihood": log_likelihood, "grid": [data.nx, data.ny]})
-    return PhaseFit(model, log_likelihood, data.n_particles, data.n_steps, iterations, converged,
-                    tuple(float(r[1]) for r in results), time.perf_counter() - wall0, occupancy)
+    model = PhaseTransport(
+        model.rates,
+        model.switching,
+        model.entry,
+        model.interval_s,
+        {
+            "method": "EM (forward-backward on the phases, dem.rates M-step)",
+            "n_particles": data.n_particles,
+            "n_steps": data.n_steps,
+            "log_likelihood": log_likelihood,
+            "grid": [data.nx, data.ny],
+        },
+    )
+    return PhaseFit(
+        model,
+        log_likelihood,
+        data.n_particles,
+        data.n_steps,
+        iterations,
+        converged,
+        tuple(float(r[1]) for r in results),
+        time.perf_counter() - wall0,
+        occupancy,
+    )
 
 
 @single_threaded_blas()
@@ -783,13 +845,20 @@ def one_phase(data: PhaseData, max_iterations: int = 2000) -> PhaseTransport:
     start_moves = {f"{key}/0": start[key].ravel()[moves[f"{key}/0"][2]] for key in rate_fit.RATE_KEYS}
     values, _fit = rate_fit.fit_pattern(counts, moves, start_moves, data.interval_s, max_iterations)
     split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
-    return phase_model.from_move_rates(dict(zip(moves, np.split(values, split))), nx, ny, 1, np.ones(1),
-                                       data.interval_s)
+    return phase_model.from_move_rates(
+        dict(zip(moves, np.split(values, split))), nx, ny, 1, np.ones(1), data.interval_s
+    )
 
 
 # ----------------------------------------------------------------------------- synthetic data
-def simulate_sequences(model: PhaseTransport, entering: np.ndarray, n_particles: int, n_dumps: int,
-                       rng: np.random.Generator, entry_every: int = 1) -> CompartmentSequences:
+def simulate_sequences(
+    model: PhaseTransport,
+    entering: np.ndarray,
+    n_particles: int,
+    n_dumps: int,
+    rng: np.random.Generator,
+    entry_every: int = 1,
+) -> CompartmentSequences:
     """Sequences of ``n_particles`` particles of the chain ``model`` observed every
     ``model.interval_s`` (exact: each step draws from expm(Q interval)), for tests with a
     known answer. Particle p enters at dump p // (``n_particles`` / (n_dumps / entry_every))...
@@ -821,15 +890,27 @@ def simulate_sequences(model: PhaseTransport, entering: np.ndarray, n_particles:
             rows = state[stepping]
             state[stepping] = (u[:, None] > cdf[rows]).sum(axis=1)
         recorded = start <= t
-        just_out = recorded & (state == s * k) & (obs[:, t - 1] < s) & (obs[:, t - 1] >= 0) if t else np.zeros(n_particles, bool)
+        just_out = (
+            recorded & (state == s * k) & (obs[:, t - 1] < s) & (obs[:, t - 1] >= 0)
+            if t
+            else np.zeros(n_particles, bool)
+        )
         obs[inside & (state < s * k), t] = (state[inside & (state < s * k)] // k).astype(np.int16)
         obs[just_out, t] = s
-    return sequences_from_padded(obs, start, feeder + 1, np.arange(n_dumps) * model.interval_s, model.interval_s,
-                                 model.nx, model.ny)
+    return sequences_from_padded(
+        obs, start, feeder + 1, np.arange(n_dumps) * model.interval_s, model.interval_s, model.nx, model.ny
+    )
 
 
-def sequences_from_padded(obs: np.ndarray, start: np.ndarray, component: np.ndarray, snapshot_t: np.ndarray,
-                          interval_s: float, nx: int, ny: int) -> CompartmentSequences:
+def sequences_from_padded(
+    obs: np.ndarray,
+    start: np.ndarray,
+    component: np.ndarray,
+    snapshot_t: np.ndarray,
+    interval_s: float,
+    nx: int,
+    ny: int,
+) -> CompartmentSequences:
     """:class:`CompartmentSequences` from a (P, T) matrix of states at absolute dumps (-1:
     not in the record), each row one contiguous sequence starting at ``start``."""
     rows, cols = np.nonzero(obs >= 0)
@@ -842,11 +923,18 @@ def sequences_from_padded(obs: np.ndarray, start: np.ndarray, component: np.ndar
     present = np.unique(rows)
     particle_of_run = np.searchsorted(present, rows[starts])
     offsets = np.searchsorted(particle_of_run, np.arange(present.size + 1)).astype(np.int64)
-    return CompartmentSequences(ids=present.astype(np.int64) + 1, component=np.asarray(component)[present].astype(np.int8),
-                                start=np.asarray(start)[present].astype(np.int32), run_offsets=offsets,
-                                run_state=state[starts].astype(np.int16),
-                                run_length=np.diff(np.append(starts, rows.size)).astype(np.int32),
-                                snapshot_t=np.asarray(snapshot_t, float), interval_s=float(interval_s), nx=nx, ny=ny)
+    return CompartmentSequences(
+        ids=present.astype(np.int64) + 1,
+        component=np.asarray(component)[present].astype(np.int8),
+        start=np.asarray(start)[present].astype(np.int32),
+        run_offsets=offsets,
+        run_state=state[starts].astype(np.int16),
+        run_length=np.diff(np.append(starts, rows.size)).astype(np.int32),
+        snapshot_t=np.asarray(snapshot_t, float),
+        interval_s=float(interval_s),
+        nx=nx,
+        ny=ny,
+    )
 
 
 # ----------------------------------------------------------------------------- discrete time
@@ -866,8 +954,9 @@ class DiscretePhaseFit:
 
 
 @single_threaded_blas()
-def fit_discrete(data: PhaseData, n_phases: int, start: PhaseTransport, max_iterations: int = 200,
-                 tol: float = 1e-6) -> DiscretePhaseFit:
+def fit_discrete(
+    data: PhaseData, n_phases: int, start: PhaseTransport, max_iterations: int = 200, tol: float = 1e-6
+) -> DiscretePhaseFit:
     """Baum-Welch of the discrete-time chain at the dump interval (closed-form M-step:
     expected transitions over their row sums), started from ``start``'s expm(Q interval)
     restricted to the allowed entries."""
@@ -882,7 +971,7 @@ def fit_discrete(data: PhaseData, n_phases: int, start: PhaseTransport, max_iter
     t_matrix /= t_matrix.sum(axis=1, keepdims=True)
     initial = initial_distribution(start, data)
     previous, iteration = -math.inf, 0
-    for iteration in range(1, max_iterations + 1):
+    for iteration in range(1, max_iterations + 1):  # noqa: B007 -- the count is reported after the loop
         expected = forward_backward(t_matrix, initial, data, k)
         if (expected.log_likelihood - previous) / max(data.n_steps, 1) < tol:
             previous = expected.log_likelihood
@@ -910,10 +999,18 @@ def generator_from_transition(fit_d: DiscretePhaseFit, nx: int, ny: int) -> Phas
 
     k = fit_d.entry.shape[1]
     log_t = np.real(logm(fit_d.transition)) / fit_d.interval_s
-    values = {name: np.clip(log_t[src, dst], 0.0, None)
-              for name, (src, dst, _c) in phase_model.transitions(nx, ny, k).items()}
-    return phase_model.from_move_rates(values, nx, ny, k, fit_d.entry, fit_d.interval_s,
-                                       {"method": "discrete-time Baum-Welch, projected matrix logarithm"})
+    values = {
+        name: np.clip(log_t[src, dst], 0.0, None) for name, (src, dst, _c) in phase_model.transitions(nx, ny, k).items()
+    }
+    return phase_model.from_move_rates(
+        values,
+        nx,
+        ny,
+        k,
+        fit_d.entry,
+        fit_d.interval_s,
+        {"method": "discrete-time Baum-Welch, projected matrix logarithm"},
+    )
 
 
 # ----------------------------------------------------------------------------- into the table
@@ -925,8 +1022,15 @@ def steady_window(sequences: CompartmentSequences, steady_time_s: float | None) 
     return float(steady_time_s), float(sequences.snapshot_t[-1])
 
 
-def table_with_phases(table, sequences: CompartmentSequences, steady_time_s: float | None, n_phases: int = 2,
-                      starts: int = 3, seed: int = 0, max_iterations: int = 200):
+def table_with_phases(
+    table,
+    sequences: CompartmentSequences,
+    steady_time_s: float | None,
+    n_phases: int = 2,
+    starts: int = 3,
+    seed: int = 0,
+    max_iterations: int = 200,
+):
     """``table`` (a :class:`coupling.tables.VelocityTable` on the sequences' grid) carrying
     the K = ``n_phases`` model fitted to the particles first seen after ``steady_time_s``:
     a schema-3 table that ``pbm`` runs with ``rates = "phases"``. Returns (table, fit)."""

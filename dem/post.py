@@ -90,7 +90,6 @@ __all__ = ["DemResults", "postprocess"]
 SEQUENCE_PREFIX = "sequences_"
 
 
-
 @dataclass
 class DemResults:
     """Everything the DEM side reports.
@@ -126,19 +125,28 @@ class DemResults:
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
-        arrays = {"rsd_by_slice": self.rsd_by_slice, "rsd_by_slice_floor": self.rsd_by_slice_floor,
-                  "residence_times_s": self.residence_times_s, "transitions": self.transitions}
+        arrays = {
+            "rsd_by_slice": self.rsd_by_slice,
+            "rsd_by_slice_floor": self.rsd_by_slice_floor,
+            "residence_times_s": self.residence_times_s,
+            "transitions": self.transitions,
+        }
         if self.sequences is not None:
             arrays.update(self.sequences.to_arrays(SEQUENCE_PREFIX))
         return CacheEntry(self.table, self.summary.record(), frames, arrays, provenance)
 
     @classmethod
-    def from_cache_entry(cls, entry: CacheEntry) -> "DemResults":
+    def from_cache_entry(cls, entry: CacheEntry) -> DemResults:
         arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
         sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
         plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
-        return cls(table=entry.table, summary=DemSummary.from_record(entry.summary), **entry.frames, **plain,
-                   sequences=sequences)
+        return cls(
+            table=entry.table,
+            summary=DemSummary.from_record(entry.summary),
+            **entry.frames,
+            **plain,
+            sequences=sequences,
+        )
 
 
 def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:
@@ -152,7 +160,8 @@ def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:
         raise ConfigError(
             f"tables.window_s = {window:g} s is longer than the dumps, which end at t = {float(snapshot_t[-1]):.6g} s "
             f"({snapshot_t.size} snapshots from t = {float(snapshot_t[0]):.6g} s): a velocity window needs dumps over its "
-            f"whole length; choose tables.window_s <= {float(snapshot_t[-1]):.6g} s or give the dumps of a longer run")
+            f"whole length; choose tables.window_s <= {float(snapshot_t[-1]):.6g} s or give the dumps of a longer run"
+        )
 
 
 # ----------------------------------------------------------------------------- 2. table
@@ -171,17 +180,32 @@ def velocity_table(acc: Accumulation, config: DemConfig, attrs: dict[str, Any]) 
     row = {name: total[:, n] for n, name in enumerate(SUM_ROWS)}
     shape = (n_windows, nx, ny)
     samples = row["n_samples"]
-    means = {name: np.where(samples > 0, row[name] / np.maximum(samples, 1), 0.0).reshape(shape)
-             for name in VELOCITY_NAMES}
-    per_snapshot = {name: np.where(snapshots[:, None] > 0, row[name] / np.maximum(snapshots, 1)[:, None], 0.0)
-                    .reshape(shape) for name in ("count_A", "count_B")}
-    attrs = {"source": "DEM (LIGGGHTS) dumps, dem.post.postprocess", **attrs,
-             "timestep_s": float(config.timestep_s), "n_snapshots": int(acc.snapshot_t.size),
-             "snapshots_per_window": snapshots.astype(int).tolist()}
+    means = {
+        name: np.where(samples > 0, row[name] / np.maximum(samples, 1), 0.0).reshape(shape) for name in VELOCITY_NAMES
+    }
+    per_snapshot = {
+        name: np.where(snapshots[:, None] > 0, row[name] / np.maximum(snapshots, 1)[:, None], 0.0).reshape(shape)
+        for name in ("count_A", "count_B")
+    }
+    attrs = {
+        "source": "DEM (LIGGGHTS) dumps, dem.post.postprocess",
+        **attrs,
+        "timestep_s": float(config.timestep_s),
+        "n_snapshots": int(acc.snapshot_t.size),
+        "snapshots_per_window": snapshots.astype(int).tolist(),
+    }
     x_edges, y_edges = grid_edges(float(g.length_m), float(g.diameter_m), nx, ny)
-    return VelocityTable(t=np.arange(n_windows) * window, x_edges=x_edges, y_edges=y_edges, **means, **per_snapshot,
-                         n_samples=samples.reshape(shape).astype(np.int64), window_s=window,
-                         min_samples=int(tables.min_samples), attrs=attrs)
+    return VelocityTable(
+        t=np.arange(n_windows) * window,
+        x_edges=x_edges,
+        y_edges=y_edges,
+        **means,
+        **per_snapshot,
+        n_samples=samples.reshape(shape).astype(np.int64),
+        window_s=window,
+        min_samples=int(tables.min_samples),
+        attrs=attrs,
+    )
 
 
 # ----------------------------------------------------------------------------- 4. time series
@@ -207,20 +231,22 @@ def cqa_timeseries(acc: Accumulation, exits: Exits, config: DemConfig) -> pd.Dat
     counts[pick < 0] = np.nan  # before the first dump: unknown
     a, b = counts[:, 0], counts[:, 1]
     flat_a, flat_b = a.reshape(n_int, -1), b.reshape(n_int, -1)
-    return pd.DataFrame({
-        "t_s": t_s,
-        "outflow_A_per_s": out_a / interval,
-        "outflow_B_per_s": out_b / interval,
-        "outflow_per_s": out_all / interval,
-        "inflow_per_s": inflow / interval,
-        "C_A": outflow_fraction_a(out_a, out_b),
-        "rsd_outlet": rsd(a[:, -1, :], b[:, -1, :], axis=1),
-        "rsd_outlet_floor": random_mixture_rsd(a[:, -1, :], b[:, -1, :], axis=1),
-        "rsd_blender": rsd(flat_a, flat_b, axis=1),
-        "rsd_blender_floor": random_mixture_rsd(flat_a, flat_b, axis=1),
-        "holdup_A": flat_a.sum(axis=1),
-        "holdup_B": flat_b.sum(axis=1),
-    })
+    return pd.DataFrame(
+        {
+            "t_s": t_s,
+            "outflow_A_per_s": out_a / interval,
+            "outflow_B_per_s": out_b / interval,
+            "outflow_per_s": out_all / interval,
+            "inflow_per_s": inflow / interval,
+            "C_A": outflow_fraction_a(out_a, out_b),
+            "rsd_outlet": rsd(a[:, -1, :], b[:, -1, :], axis=1),
+            "rsd_outlet_floor": random_mixture_rsd(a[:, -1, :], b[:, -1, :], axis=1),
+            "rsd_blender": rsd(flat_a, flat_b, axis=1),
+            "rsd_blender_floor": random_mixture_rsd(flat_a, flat_b, axis=1),
+            "holdup_A": flat_a.sum(axis=1),
+            "holdup_B": flat_b.sum(axis=1),
+        }
+    )
 
 
 def steady_means(timeseries: pd.DataFrame, steady_time_s: float | None) -> tuple[float, float]:
@@ -278,7 +304,10 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
     if lost or inserted - held - discharged:
         warnings.append(f"accounting: inserted {inserted} != held {held} + discharged {discharged} (lost {lost})")
     out: dict[str, Any] = {
-        "inserted": inserted, "held": held, "discharged": discharged, "lost": lost,
+        "inserted": inserted,
+        "held": held,
+        "discharged": discharged,
+        "lost": lost,
         "accounting_mismatch": inserted - held - discharged,
         "exits_seen_past_weir": int((exits.how == EXIT_PAST_WEIR).sum()),
         "exits_from_massflow": int((exits.how == EXIT_MASSFLOW).sum()),
@@ -292,16 +321,20 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
     if exits.massflow_discharged_by_last_dump is not None:
         out["discharge_crosscheck_diff"] = (discharged - pending) - exits.massflow_discharged_by_last_dump
         if out["discharge_crosscheck_diff"]:
-            warnings.append(f"discharge cross-check: {discharged - pending} deleted particles in the dumps vs "
-                            f"{exits.massflow_discharged_by_last_dump} in the solver's massflow files up to the last dump")
+            warnings.append(
+                f"discharge cross-check: {discharged - pending} deleted particles in the dumps vs "
+                f"{exits.massflow_discharged_by_last_dump} in the solver's massflow files up to the last dump"
+            )
     counters = dict(solver_counters or {})
     for key, value in counters.items():
         out[f"solver_{key}"] = value
     counters_step = counters.get("step")
     comparable = counters_step is None or int(counters_step) == acc.last_step
     if not comparable:
-        warnings.append(f"solver thermo counters are at step {int(counters_step)}, the last dump at step "
-                        f"{acc.last_step}: not compared (the deck's end step is not a multiple of the dump interval)")
+        warnings.append(
+            f"solver thermo counters are at step {int(counters_step)}, the last dump at step "
+            f"{acc.last_step}: not compared (the deck's end step is not a multiple of the dump interval)"
+        )
     if counters.get("discharged") is not None and comparable:
         out["solver_discharge_diff"] = (discharged - pending) - counters["discharged"]
     if counters.get("inserted") is not None and comparable:
@@ -312,16 +345,22 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
         out["dumps_particles_last"] = int(acc.last_ids.size)
         out["solver_atoms_diff"] = int(acc.last_ids.size) - int(counters["atoms"])
         if out["solver_atoms_diff"]:
-            warnings.append(f"the last dump lists {acc.last_ids.size} particles, the solver's thermo {int(counters['atoms'])} "
-                            f"at the same step (difference {out['solver_atoms_diff']:+d})")
+            warnings.append(
+                f"the last dump lists {acc.last_ids.size} particles, the solver's thermo {int(counters['atoms'])} "
+                f"at the same step (difference {out['solver_atoms_diff']:+d})"
+            )
     out["positions_outside_vessel"] = int(log.outside_vessel)
     if log.outside_vessel:
-        warnings.append(f"{log.outside_vessel} particle-snapshots lie outside the vessel (beyond a wall by more than "
-                        "the largest particle diameter): counted as they are")
+        warnings.append(
+            f"{log.outside_vessel} particle-snapshots lie outside the vessel (beyond a wall by more than "
+            "the largest particle diameter): counted as they are"
+        )
     out["ids_seen_after_discharge"] = int(exits.seen_after_discharge)
     if exits.seen_after_discharge:
-        warnings.append(f"{exits.seen_after_discharge} particles are still in the dumps after the time of their "
-                        "discharge record (ID reuse, or dumps and discharge files of different runs?)")
+        warnings.append(
+            f"{exits.seen_after_discharge} particles are still in the dumps after the time of their "
+            "discharge record (ID reuse, or dumps and discharge files of different runs?)"
+        )
     out["ids_reappeared"] = int(acc.reappeared)
     return out, warnings
 
@@ -335,14 +374,16 @@ def particle_records(acc: Accumulation, exits: Exits) -> pd.DataFrame:
     log = acc.particles
     ids = np.flatnonzero(log.seen)
     exited = exits.exited[ids]
-    return pd.DataFrame({
-        "id": ids.astype(np.int64),
-        "component": log.kind[ids].astype(np.int8),
-        "entry_t_s": log.first_t[ids],
-        "entry_y_m": log.first_y[ids],
-        "exit_t_s": np.where(exited, exits.time[ids], np.nan),
-        "exit_cell": np.where(exited, log.last_cell[ids], -1).astype(np.int32),
-    })
+    return pd.DataFrame(
+        {
+            "id": ids.astype(np.int64),
+            "component": log.kind[ids].astype(np.int8),
+            "entry_t_s": log.first_t[ids],
+            "entry_y_m": log.first_y[ids],
+            "exit_t_s": np.where(exited, exits.time[ids], np.nan),
+            "exit_cell": np.where(exited, log.last_cell[ids], -1).astype(np.int32),
+        }
+    )
 
 
 # ----------------------------------------------------------------------------- 9. rates
@@ -359,9 +400,14 @@ def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tup
     fits = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
     if not fits.any_finite:
         return table, counts
-    attrs = {**table.attrs, "rates_interval_s": float(acc.transition_interval_s), "rates_capped": int(fits.capped),
-             "rates_unconverged_windows": [int(k) for k in fits.unconverged], "rates_finite": fits.finite,
-             "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)"}
+    attrs = {
+        **table.attrs,
+        "rates_interval_s": float(acc.transition_interval_s),
+        "rates_capped": int(fits.capped),
+        "rates_unconverged_windows": [int(k) for k in fits.unconverged],
+        "rates_finite": fits.finite,
+        "rates_method": "maximum likelihood of the discretely observed nearest-neighbour chain (dem.rates)",
+    }
     return table.replace(**fits.rates, attrs=attrs), counts
 
 
@@ -425,22 +471,30 @@ def postprocess(
     little = steady_stats.get("little_mean_residence_time_s", {}).get("value", float("nan"))
     pooled = pooled_rtd(records, steady_time, float(acc.snapshot_t[-1]), little, block_s)
     if acc.irregular_gaps:
-        warnings.append(f"{acc.irregular_gaps} pairs of consecutive dumps are not {acc.transition_interval_s:g} s "
-                        "apart: their particle moves are left out of the measured rates")
+        warnings.append(
+            f"{acc.irregular_gaps} pairs of consecutive dumps are not {acc.transition_interval_s:g} s "
+            "apart: their particle moves are left out of the measured rates"
+        )
 
     notes: list[str] = []
     if acc.other_types:
-        notes.append(f"atom types {sorted(acc.other_types)} are neither A {types_a} nor B {types_b}; counted in neither")
+        notes.append(
+            f"atom types {sorted(acc.other_types)} are neither A {types_a} nor B {types_b}; counted in neither"
+        )
     if acc.reappeared:
         notes.append(f"{acc.reappeared} particle-snapshots reappeared after vanishing from the dumps (ID reuse?)")
     if not np.isfinite(tag_time):
         notes.append("steady state not detected: no RTD (tag window undefined)")
     elif not recovered_ok:
-        notes.append(f"RTD: only {recovered:.1%} of the {n_tagged} tagged particles were recovered "
-                     "(the paper requires >= 95 %); run longer")
+        notes.append(
+            f"RTD: only {recovered:.1%} of the {n_tagged} tagged particles were recovered "
+            "(the paper requires >= 95 %); run longer"
+        )
     if pooled.get("n_entered") and not pooled["recovered_ok"]:
-        notes.append(f"pooled RTD: only {pooled['recovered_fraction']['value']:.1%} of "
-                     f"{pooled['n_entered']} particles recovered within the horizon")
+        notes.append(
+            f"pooled RTD: only {pooled['recovered_fraction']['value']:.1%} of "
+            f"{pooled['n_entered']} particles recovered within the horizon"
+        )
     last_a, last_b = acc.snapshot_counts[-1]
     summary: dict[str, Any] = {
         "mean_residence_time_s": float(residence.mean()) if residence.size else float("nan"),
@@ -467,9 +521,23 @@ def postprocess(
         "pooled_rtd": pooled,
         "warnings": notes + warnings,
     }
-    holdup = pd.DataFrame({"t_s": acc.snapshot_t, "holdup_A": acc.snapshot_counts[:, 0].sum(axis=(1, 2)),
-                           "holdup_B": acc.snapshot_counts[:, 1].sum(axis=(1, 2))})
-    return DemResults(table=table, timeseries=timeseries, holdup=holdup,
-                      rsd_by_slice=rsd(last_a, last_b, axis=1), rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
-                      rtd=rtd, residence_times_s=residence, particles=records, transitions=transitions,
-                      summary=DemSummary.from_record(summary), sequences=sequences)
+    holdup = pd.DataFrame(
+        {
+            "t_s": acc.snapshot_t,
+            "holdup_A": acc.snapshot_counts[:, 0].sum(axis=(1, 2)),
+            "holdup_B": acc.snapshot_counts[:, 1].sum(axis=(1, 2)),
+        }
+    )
+    return DemResults(
+        table=table,
+        timeseries=timeseries,
+        holdup=holdup,
+        rsd_by_slice=rsd(last_a, last_b, axis=1),
+        rsd_by_slice_floor=random_mixture_rsd(last_a, last_b, axis=1),
+        rtd=rtd,
+        residence_times_s=residence,
+        particles=records,
+        transitions=transitions,
+        summary=DemSummary.from_record(summary),
+        sequences=sequences,
+    )

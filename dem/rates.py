@@ -212,8 +212,15 @@ class _Objective:
     their observations, and L-BFGS-B needs several times more iterations.
     """
 
-    def __init__(self, counts: np.ndarray, interval_s: float, start: np.ndarray, free: np.ndarray,
-                 src: np.ndarray, dst: np.ndarray):
+    def __init__(
+        self,
+        counts: np.ndarray,
+        interval_s: float,
+        start: np.ndarray,
+        free: np.ndarray,
+        src: np.ndarray,
+        dst: np.ndarray,
+    ):
         self.counts = counts
         self.interval_s = interval_s
         self.n = counts.shape[0]
@@ -258,9 +265,14 @@ class PatternFit:
     converged: bool
 
 
-def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
-                start: dict[str, np.ndarray], interval_s: float, max_iterations: int = 500,
-                max_rate_x_interval: float = MAX_RATE_X_INTERVAL) -> tuple[np.ndarray, PatternFit]:
+def fit_pattern(
+    counts: np.ndarray,
+    transitions: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    start: dict[str, np.ndarray],
+    interval_s: float,
+    max_iterations: int = 500,
+    max_rate_x_interval: float = MAX_RATE_X_INTERVAL,
+) -> tuple[np.ndarray, PatternFit]:
     """The maximum-likelihood core of :func:`fit_rates` for any pattern of allowed moves.
 
     ``counts``: (S+1, S+1) checked counts with row S zeroed; ``transitions``: direction ->
@@ -290,15 +302,24 @@ def fit_pattern(counts: np.ndarray, transitions: dict[str, tuple[np.ndarray, np.
     objective = _Objective(counts, interval_s, first, free, src, dst)
     w = objective.weight
     options = {"maxiter": max_iterations, "ftol": 1e-10, "gtol": 1e-6, "maxcor": 20}
-    result = minimize(objective, first[free] * w, jac=True, method="L-BFGS-B", bounds=list(zip(lo * w, hi * w)),
-                      options=options)
-    return objective.all_rates(result.x), PatternFit(-result.fun / objective.scale, int(result.nit),
-                                                      bool(result.success))
+    result = minimize(
+        objective, first[free] * w, jac=True, method="L-BFGS-B", bounds=list(zip(lo * w, hi * w)), options=options
+    )
+    return objective.all_rates(result.x), PatternFit(
+        -result.fun / objective.scale, int(result.nit), bool(result.success)
+    )
 
 
-def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
-              initial: dict[str, np.ndarray] | None = None, max_iterations: int = 500,
-              max_rate_x_interval: float = MAX_RATE_X_INTERVAL) -> RateFit:
+def fit_rates(
+    counts,
+    nx: int,
+    ny: int,
+    interval_s: float,
+    min_observations: int = 100,
+    initial: dict[str, np.ndarray] | None = None,
+    max_iterations: int = 500,
+    max_rate_x_interval: float = MAX_RATE_X_INTERVAL,
+) -> RateFit:
     """Maximum-likelihood nearest-neighbour rates of one window's transition counts.
 
     ``counts``: (S+1, S+1) numbers of observed dump-to-dump transitions (row S ignored).
@@ -333,13 +354,18 @@ def fit_rates(counts, nx: int, ny: int, interval_s: float, min_observations: int
     offset = 0
     for key, (k_src, _, comp) in transitions.items():
         r = np.zeros(s)
-        r[comp] = rates[offset:offset + k_src.size]
+        r[comp] = rates[offset : offset + k_src.size]
         offset += k_src.size
         r[~reported] = np.nan
         report[key] = r.reshape(nx, ny)
-    return RateFit(**report, n_observations=n_obs.reshape(nx, ny), log_likelihood=result.log_likelihood,
-                   iterations=result.iterations, converged=result.converged,
-                   cap_per_s=max_rate_x_interval / interval_s)
+    return RateFit(
+        **report,
+        n_observations=n_obs.reshape(nx, ny),
+        log_likelihood=result.log_likelihood,
+        iterations=result.iterations,
+        converged=result.converged,
+        cap_per_s=max_rate_x_interval / interval_s,
+    )
 
 
 @dataclass(frozen=True)
@@ -365,8 +391,15 @@ class WindowFits:
 
 
 @single_threaded_blas()
-def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: int = 100,
-                max_iterations: int = 500, max_rate_x_interval: float = MAX_RATE_X_INTERVAL) -> WindowFits:
+def fit_windows(
+    counts,
+    nx: int,
+    ny: int,
+    interval_s: float,
+    min_observations: int = 100,
+    max_iterations: int = 500,
+    max_rate_x_interval: float = MAX_RATE_X_INTERVAL,
+) -> WindowFits:
     """:func:`fit_rates` for each window of ``counts`` (K, S+1, S+1), each warm-started from
     the previous window's fit."""
     _check_grid(nx, ny)
@@ -375,8 +408,16 @@ def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: i
     capped, unconverged = 0, []
     previous = None
     for k, window in enumerate(counts):
-        fit = fit_rates(window, nx, ny, interval_s, min_observations=min_observations, initial=previous,
-                        max_iterations=max_iterations, max_rate_x_interval=max_rate_x_interval)
+        fit = fit_rates(
+            window,
+            nx,
+            ny,
+            interval_s,
+            min_observations=min_observations,
+            initial=previous,
+            max_iterations=max_iterations,
+            max_rate_x_interval=max_rate_x_interval,
+        )
         if not fit.converged:
             unconverged.append(k)
         for key in RATE_KEYS:
@@ -388,8 +429,9 @@ def fit_windows(counts, nx: int, ny: int, interval_s: float, min_observations: i
     return WindowFits(rates, capped, tuple(unconverged))
 
 
-def simulate_observations(q: np.ndarray, start_counts, n_steps: int, interval_s: float,
-                          rng: np.random.Generator) -> np.ndarray:
+def simulate_observations(
+    q: np.ndarray, start_counts, n_steps: int, interval_s: float, rng: np.random.Generator
+) -> np.ndarray:
     """Transition counts (S+1, S+1) of particles following the chain with generator ``q``,
     observed every ``interval_s`` for ``n_steps`` intervals, starting from ``start_counts``
     (integer number of particles per state, length S+1 or S). Exact: each particle's next

@@ -62,8 +62,12 @@ def _render_pyvista(meshes: dict[str, TriMesh], path: Path, size: tuple[int, int
     try:
         for name, m in meshes.items():
             faces = np.hstack([np.full((len(m.triangles), 1), 3), m.triangles]).ravel()
-            plotter.add_mesh(pv.PolyData(m.points, faces), color=COLOURS.get(name, "#777777"),
-                             opacity=OPACITY.get(name, 1.0), show_edges=name == "impeller")
+            plotter.add_mesh(
+                pv.PolyData(m.points, faces),
+                color=COLOURS.get(name, "#777777"),
+                opacity=OPACITY.get(name, 1.0),
+                show_edges=name == "impeller",
+            )
         plotter.set_background("white")
         plotter.camera_position = [(0.45, -0.35, 0.30), (0.165, 0.0, 0.0), (0.0, 0.0, 1.0)]
         img = plotter.screenshot(str(path), return_img=True)
@@ -80,8 +84,11 @@ def _render_matplotlib(meshes: dict[str, TriMesh], path: Path, size: tuple[int, 
     fig = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)
     ax = fig.add_subplot(projection="3d")
     for name, m in meshes.items():
-        ax.add_collection3d(Poly3DCollection(m.corners, facecolor=COLOURS.get(name, "#777777"),
-                                             alpha=OPACITY.get(name, 0.9), edgecolor="none"))
+        ax.add_collection3d(
+            Poly3DCollection(
+                m.corners, facecolor=COLOURS.get(name, "#777777"), alpha=OPACITY.get(name, 0.9), edgecolor="none"
+            )
+        )
     pts = np.concatenate([m.points for m in meshes.values()])
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ax.set_xlim(lo[0], hi[0]), ax.set_ylim(lo[1], hi[1]), ax.set_zlim(lo[2], hi[2])
@@ -102,7 +109,9 @@ def _render_pyvista_isolated(meshes: dict[str, TriMesh], path: Path, size: tuple
         np.savez(npz, **arrays)
         proc = subprocess.run(
             [sys.executable, "-m", "dem.render", str(npz), str(path), str(size[0]), str(size[1])],
-            capture_output=True, text=True, timeout=300,
+            capture_output=True,
+            text=True,
+            timeout=300,
         )
         if proc.returncode != 0 or not path.is_file():
             raise RuntimeError(f"pyvista renderer failed (exit {proc.returncode}): {proc.stderr[-500:]}")
@@ -114,8 +123,9 @@ def _load_npz(npz: Path) -> dict[str, TriMesh]:
     return {n: TriMesh(n, data[f"{n}__points"], data[f"{n}__triangles"]) for n in names}
 
 
-def render_geometry(config: DemConfig, path: str | Path, size: tuple[int, int] = (1200, 700),
-                    backend: str = "auto") -> str:
+def render_geometry(
+    config: DemConfig, path: str | Path, size: tuple[int, int] = (1200, 700), backend: str = "auto"
+) -> str:
     """Render the blender (impeller, weir, discharge face, barrel, feed zones) to a PNG.
 
     ``backend`` is ``"auto"``, ``"pyvista"`` or ``"matplotlib"``; returns the one used.

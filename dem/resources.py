@@ -73,17 +73,25 @@ def _fit_limit_s() -> float:
         return MAX_RATE_FIT_S
 
 
-def check_postprocess_resources(config: DemConfig, n_snapshots: int | None = None,
-                                available_bytes: float | None = None) -> PostprocessCost:
+def check_postprocess_resources(
+    config: DemConfig, n_snapshots: int | None = None, available_bytes: float | None = None
+) -> PostprocessCost:
     """Refuse (ResourceLimitError, one line with the estimate) a grid whose post-processing
     would not fit in memory or whose measured-rate fit would not finish; else the estimate."""
     cost = postprocess_cost(config, n_snapshots)
     nx, ny = int(config.tables.nx), int(config.tables.ny)
     grid = f"tables.nx x tables.ny = {nx} x {ny} ({nx * ny} compartments) over {cost.n_windows} velocity windows"
-    require_memory(cost.memory_bytes, f"post-processing with {grid}",
-                   f"the transition counts alone are {format_bytes(cost.transition_bytes)}; use a coarser grid",
-                   available=available_bytes)
-    require_time(cost.fit_seconds, _fit_limit_s(), f"the measured-rate fit of {grid}",
-                 f"{FIT_SECONDS_10X10:g} s per window at 10 x 10, x ((S+1)/101)^3 for S compartments; use a coarser "
-                 "grid (or raise PBMDEM_MAX_RATE_FIT_HOURS)")
+    require_memory(
+        cost.memory_bytes,
+        f"post-processing with {grid}",
+        f"the transition counts alone are {format_bytes(cost.transition_bytes)}; use a coarser grid",
+        available=available_bytes,
+    )
+    require_time(
+        cost.fit_seconds,
+        _fit_limit_s(),
+        f"the measured-rate fit of {grid}",
+        f"{FIT_SECONDS_10X10:g} s per window at 10 x 10, x ((S+1)/101)^3 for S compartments; use a coarser "
+        "grid (or raise PBMDEM_MAX_RATE_FIT_HOURS)",
+    )
     return cost

@@ -62,8 +62,19 @@ from dem.config import DemConfig
 from dem.liggghts import liggghts_version, run_solver, solver_command, text_tail
 from dem.liggghts_log import ThermoParser
 
-__all__ = ["RunInputs", "RunRecord", "diagnose_stale_status", "last_thermo_step", "prepare_run", "read_status",
-           "run_dem", "run_key", "liggghts_version", "solver_command", "solver_counters"]
+__all__ = [
+    "RunInputs",
+    "RunRecord",
+    "diagnose_stale_status",
+    "last_thermo_step",
+    "prepare_run",
+    "read_status",
+    "run_dem",
+    "run_key",
+    "liggghts_version",
+    "solver_command",
+    "solver_counters",
+]
 
 STATUS_FILE = "status.json"
 SOLVER_OUT = "solver.out"
@@ -203,8 +214,11 @@ def run_dem(
     command = solver_command(config.run, nprocs, deck.RESUME_DECK if resume else deck.MAIN_DECK)
     if status and status.get("state") == "running":
         state, why = _liveness(status)
-        hint = ("; if it is no longer running there, continue it with --resume (resume=True)" if state == "unknown"
-                else "; wait for it, or stop it first")
+        hint = (
+            "; if it is no longer running there, continue it with --resume (resume=True)"
+            if state == "unknown"
+            else "; wait for it, or stop it first"
+        )
         raise SolverRunError(f"run {key} is already running ({why}){hint}", run_dir=run_dir)
     if fresh and run_dir.exists():
         shutil.rmtree(run_dir)
@@ -224,9 +238,16 @@ def run_dem(
     deck.write_deck(run_files, run_dir)
 
     started = _now()
-    base = {"key": key, "deck_hash": inputs.deck_hash, "liggghts_version": inputs.liggghts_version,
-            "command": command, "np": nprocs, "started": started, "resumed_from": resumed_from,
-            "previous": status if resume else None}
+    base = {
+        "key": key,
+        "deck_hash": inputs.deck_hash,
+        "liggghts_version": inputs.liggghts_version,
+        "command": command,
+        "np": nprocs,
+        "started": started,
+        "resumed_from": resumed_from,
+        "previous": status if resume else None,
+    }
     _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid())})
     if resume:
         with open(run_dir / SOLVER_OUT, "a") as out:
@@ -243,24 +264,39 @@ def run_dem(
             bar.update(parser.step * dt, parser.atoms, parser.discharged)
 
     def solver_started(pid: int) -> None:
-        _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid()),
-                                "solver_pid": pid, "solver_start_ticks": _start_ticks(pid)})
+        _write_status(
+            run_dir,
+            {
+                **base,
+                "state": "running",
+                **_process_identity(os.getpid()),
+                "solver_pid": pid,
+                "solver_start_ticks": _start_ticks(pid),
+            },
+        )
 
     # wall time accumulates over the attempts of a resumed run
     prior_wall = float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0
     t0 = time.monotonic()
     try:
         with _terminate_as_interrupt():
-            result = run_solver(command, run_dir, SOLVER_OUT, append=resume, on_start=solver_started,
-                                on_line=follow)
+            result = run_solver(command, run_dir, SOLVER_OUT, append=resume, on_start=solver_started, on_line=follow)
     except StopRun as stop:
         # asked for by the caller (it has what it needs): the run is kept, marked as stopped
         # early so that it is never taken for a complete one; --resume continues it
         bar.close()
-        _write_status(run_dir, {**base, "finished": _now(), "wall_time_s": prior_wall + time.monotonic() - t0,
-                                "state": STOPPED, "stop_reason": stop.reason,
-                                "stopped_at_s": None if parser.step is None else parser.step * dt,
-                                "solver_counters": parser.counters()})
+        _write_status(
+            run_dir,
+            {
+                **base,
+                "finished": _now(),
+                "wall_time_s": prior_wall + time.monotonic() - t0,
+                "state": STOPPED,
+                "stop_reason": stop.reason,
+                "stopped_at_s": None if parser.step is None else parser.step * dt,
+                "solver_counters": parser.counters(),
+            },
+        )
         return _record_from_status(run_dir, read_status(run_dir) or {}, reused=False)
     except BaseException as exc:
         bar.close()
@@ -277,8 +313,12 @@ def run_dem(
     elif problem is None and (parser.step is None or parser.step * dt < duration - 2 * dt - 1e-9):
         reached = "no thermo output" if parser.step is None else f"t = {parser.step * dt:.3f} s"
         problem = f"LIGGGHTS stopped before the end time {duration} s ({reached})"
-    final = {**base, "finished": _now(), "wall_time_s": prior_wall + result.wall_s,
-             "solver_counters": parser.counters()}
+    final = {
+        **base,
+        "finished": _now(),
+        "wall_time_s": prior_wall + result.wall_s,
+        "solver_counters": parser.counters(),
+    }
     if problem:
         _write_status(run_dir, {**final, "state": "crashed", "error": problem})
         log_path = run_dir / deck.LOG_FILE if (run_dir / deck.LOG_FILE).exists() else run_dir / SOLVER_OUT
@@ -322,11 +362,12 @@ def _refuse_to_discard(run_dir: Path, key: str, status: dict[str, Any] | None) -
         raise SolverRunError(
             f"run {key} stopped ({state}) with {len(dumps)} dumps and {len(restarts)} restart files in {run_dir}; "
             "continue it with --resume (resume=True) or discard it and start again with --fresh (fresh=True)",
-            run_dir=run_dir)
+            run_dir=run_dir,
+        )
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def _write_status(run_dir: Path, data: dict[str, Any]) -> None:
@@ -390,7 +431,7 @@ def _thermo_logs(run_dir: Path) -> list[tuple[int, int]]:
         mtime = (run_dir / SOLVER_OUT).stat().st_mtime_ns
     except OSError:
         return out
-    step = _last_step_of_lines(text[text.rfind(RESUME_MARKER) + 1 if RESUME_MARKER in text else 0:].splitlines())
+    step = _last_step_of_lines(text[text.rfind(RESUME_MARKER) + 1 if RESUME_MARKER in text else 0 :].splitlines())
     if step >= 0:
         out.append((mtime, step))
     return out
@@ -458,7 +499,7 @@ def _set_aside_massflow(run_dir: Path, restart_step: int, dt: float) -> None:
     limit = restart_step * dt + 0.5 * dt
     for comp, name in deck.MASSFLOW_FILES.items():
         for path in sorted(run_dir.glob(deck.MASSFLOW_GLOBS[comp])):
-            suffix = path.name[len(name):]
+            suffix = path.name[len(name) :]
             if suffix and not (suffix[:1] == "." and suffix[1:].isdigit()):
                 continue  # not the solver's own file nor a rank's: set aside by an earlier resume
             kept = []
@@ -478,10 +519,17 @@ def _set_aside_massflow(run_dir: Path, restart_step: int, dt: float) -> None:
 
 def _record_from_status(run_dir: Path, status: dict[str, Any], reused: bool) -> RunRecord:
     return RunRecord(
-        key=status.get("key", run_dir.name), run_dir=run_dir, state=status.get("state", "unknown"), reused=reused,
-        wall_time_s=status.get("wall_time_s"), liggghts_version=status.get("liggghts_version", ""),
-        started=status.get("started"), finished=status.get("finished"), command=list(status.get("command", [])),
-        np=int(status.get("np", 1)), resumed_from=status.get("resumed_from"),
+        key=status.get("key", run_dir.name),
+        run_dir=run_dir,
+        state=status.get("state", "unknown"),
+        reused=reused,
+        wall_time_s=status.get("wall_time_s"),
+        liggghts_version=status.get("liggghts_version", ""),
+        started=status.get("started"),
+        finished=status.get("finished"),
+        command=list(status.get("command", [])),
+        np=int(status.get("np", 1)),
+        resumed_from=status.get("resumed_from"),
         solver_counters=dict(status.get("solver_counters") or {}),
     )
 
@@ -569,8 +617,9 @@ def _alive(status: dict[str, Any]) -> bool:
     return _liveness(status)[0] != "dead"
 
 
-def diagnose_stale_status(run_dir: str | os.PathLike, status: dict[str, Any] | None,
-                          resume: bool = False) -> dict[str, Any] | None:
+def diagnose_stale_status(
+    run_dir: str | os.PathLike, status: dict[str, Any] | None, resume: bool = False
+) -> dict[str, Any] | None:
     """A "running" status whose processes are gone (SIGKILL, a node failure, a closed
     terminal before SIGHUP was handled) is rewritten as ``crashed`` with the reason, so that
     a plain rerun names it and ``--resume`` continues it; any other status is returned as
@@ -582,8 +631,10 @@ def diagnose_stale_status(run_dir: str | os.PathLike, status: dict[str, Any] | N
     state, why = _liveness(status)
     if state == "alive" or (state == "unknown" and not resume):
         return status
-    reason = (f"killed without a trace ({why}: SIGKILL, a node failure or a lost terminal); "
-              "its restart files can be continued with --resume")
+    reason = (
+        f"killed without a trace ({why}: SIGKILL, a node failure or a lost terminal); "
+        "its restart files can be continued with --resume"
+    )
     stale = {**status, "state": "crashed", "error": reason, "diagnosed": _now()}
     _write_status(Path(run_dir), stale)
     return stale
@@ -597,8 +648,13 @@ class _Progress:
         if enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=round(total_s, 3), initial=round(start_s, 3), unit="s sim", dynamic_ncols=True,
-                            bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}{postfix}]")
+            self.bar = tqdm(
+                total=round(total_s, 3),
+                initial=round(start_s, 3),
+                unit="s sim",
+                dynamic_ncols=True,
+                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}{postfix}]",
+            )
 
     def update(self, t_s: float, held, discharged) -> None:
         if self.bar is None:

@@ -56,8 +56,13 @@ def _blocks(times: np.ndarray, start: float, block_s: float) -> np.ndarray:
     return np.floor((times - start) / block_s).astype(np.int64)
 
 
-def steady_quantities(snapshot_t: np.ndarray, snapshot_counts: np.ndarray, timeseries: pd.DataFrame,
-                      steady_time_s: float | None, block_s: float) -> dict[str, Any]:
+def steady_quantities(
+    snapshot_t: np.ndarray,
+    snapshot_counts: np.ndarray,
+    timeseries: pd.DataFrame,
+    steady_time_s: float | None,
+    block_s: float,
+) -> dict[str, Any]:
     """The quantities of the module docstring, or {} when there is no steady state or fewer
     than two blocks of it (no interval can be had)."""
     if steady_time_s is None or not math.isfinite(steady_time_s):
@@ -77,6 +82,7 @@ def steady_quantities(snapshot_t: np.ndarray, snapshot_counts: np.ndarray, times
     n_blocks = int(max(snap_block.max(), int_block.max())) + 1
     if n_blocks < 2:
         return {}
+
     # Per-block sums: one bootstrap item per block, so that statistics mixing dumps and
     # sampling intervals (Little's law) resample the same blocks on both.
     def per_block(values: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -106,9 +112,18 @@ def steady_quantities(snapshot_t: np.ndarray, snapshot_counts: np.ndarray, times
         slices = ratio(sums["slices"], sums["snapshots"], idx)
         outflow = ratio(sums["outflow"], sums["intervals"], idx)
         holdup = slices.sum()
-        return np.concatenate([[holdup, outflow, holdup / outflow if outflow > 0 else np.nan,
-                                ratio(sums["rsd"], sums["rsd_n"], idx), ratio(sums["lacey"], sums["lacey_n"], idx)],
-                               slices])
+        return np.concatenate(
+            [
+                [
+                    holdup,
+                    outflow,
+                    holdup / outflow if outflow > 0 else np.nan,
+                    ratio(sums["rsd"], sums["rsd_n"], idx),
+                    ratio(sums["lacey"], sums["lacey_n"], idx),
+                ],
+                slices,
+            ]
+        )
 
     est, low, high = block_bootstrap(stat, blocks, n_boot=N_BOOT, level=LEVEL)
     out_a = float(timeseries["outflow_A_per_s"].to_numpy()[late].sum())
@@ -117,7 +132,7 @@ def steady_quantities(snapshot_t: np.ndarray, snapshot_counts: np.ndarray, times
     k, n = out_a * interval_s, (out_a + out_b) * interval_s
     names = ("holdup", "outflow_per_s", "little_mean_residence_time_s", "rsd_outlet", "lacey_outlet")
     out = {name: _entry(est[i], (low[i], high[i])) for i, name in enumerate(names)}
-    out["holdup_by_slice"] = _entry(est[len(names):], (low[len(names):], high[len(names):]))
+    out["holdup_by_slice"] = _entry(est[len(names) :], (low[len(names) :], high[len(names) :]))
     out["C_A"] = _entry(k / n if n else np.nan, binomial_interval(k, n, LEVEL) if n else (np.nan, np.nan))
     out["outlet_totals"] = (a[:, -1, :] + b[:, -1, :]).mean(axis=0).tolist()
     out["blocks"] = n_blocks
@@ -130,8 +145,9 @@ def horizon(little_mean_s: float, bin_s: float = RTD_BIN_S) -> float:
     return math.ceil(HORIZON_RESIDENCE_TIMES * little_mean_s / bin_s) * bin_s
 
 
-def pooled_rtd(records: pd.DataFrame, steady_time_s: float | None, t_end_s: float, little_mean_s: float,
-               block_s: float) -> dict[str, Any]:
+def pooled_rtd(
+    records: pd.DataFrame, steady_time_s: float | None, t_end_s: float, little_mean_s: float, block_s: float
+) -> dict[str, Any]:
     """The pooled RTD of the per-particle ``records`` (columns entry_t_s, exit_t_s) with
     block-bootstrap intervals of its mean, variance and recovered fraction; {} when the run
     leaves no entry window (too short for its horizon after the steady state)."""
@@ -140,9 +156,13 @@ def pooled_rtd(records: pd.DataFrame, steady_time_s: float | None, t_end_s: floa
     h = horizon(little_mean_s)
     window = (float(steady_time_s), float(t_end_s) - h)
     if window[1] - window[0] < 2 * block_s:
-        return {"horizon_s": h, "entry_window_s": list(window), "n_entered": 0,
-                "note": f"no pooled RTD: the entry window ({window[0]:g}, {window[1]:g}] s after the steady state "
-                        f"and before t_end - H (H = {h:g} s) is shorter than two {block_s:g}-s blocks"}
+        return {
+            "horizon_s": h,
+            "entry_window_s": list(window),
+            "n_entered": 0,
+            "note": f"no pooled RTD: the entry window ({window[0]:g}, {window[1]:g}] s after the steady state "
+            f"and before t_end - H (H = {h:g} s) is shorter than two {block_s:g}-s blocks",
+        }
     entry = records["entry_t_s"].to_numpy(float)
     exit_ = records["exit_t_s"].to_numpy(float)
     pooled = rtd_pooled(entry, exit_, window, h)

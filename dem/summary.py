@@ -59,30 +59,53 @@ class PooledRtdSummary:
     def from_record(cls, record: Mapping[str, Any] | None) -> PooledRtdSummary | None:
         if not record or "horizon_s" not in record:
             return None
-        return cls(float(record["horizon_s"]), tuple(record["entry_window_s"]), int(record.get("n_entered", 0)),
-                   int(record.get("n_recovered", 0)), bool(record.get("recovered_ok", False)),
-                   Estimate.from_record(record.get("mean_residence_time_s")),
-                   Estimate.from_record(record.get("rtd_variance_s2")),
-                   Estimate.from_record(record.get("recovered_fraction")), record.get("bin_s"), record.get("note"))
+        return cls(
+            float(record["horizon_s"]),
+            tuple(record["entry_window_s"]),
+            int(record.get("n_entered", 0)),
+            int(record.get("n_recovered", 0)),
+            bool(record.get("recovered_ok", False)),
+            Estimate.from_record(record.get("mean_residence_time_s")),
+            Estimate.from_record(record.get("rtd_variance_s2")),
+            Estimate.from_record(record.get("recovered_fraction")),
+            record.get("bin_s"),
+            record.get("note"),
+        )
 
     def record(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"horizon_s": self.horizon_s, "entry_window_s": list(self.entry_window_s),
-                               "n_entered": self.n_entered}
+        out: dict[str, Any] = {
+            "horizon_s": self.horizon_s,
+            "entry_window_s": list(self.entry_window_s),
+            "n_entered": self.n_entered,
+        }
         if self.note is not None:
             out["note"] = self.note
         if self.has_tracers:
-            out.update({"n_recovered": self.n_recovered, "recovered_ok": self.recovered_ok,
-                        "mean_residence_time_s": self.mean_residence_time_s.record(),
-                        "rtd_variance_s2": self.rtd_variance_s2.record(),
-                        "recovered_fraction": self.recovered_fraction.record(), "bin_s": self.bin_s})
+            out.update(
+                {
+                    "n_recovered": self.n_recovered,
+                    "recovered_ok": self.recovered_ok,
+                    "mean_residence_time_s": self.mean_residence_time_s.record(),
+                    "rtd_variance_s2": self.rtd_variance_s2.record(),
+                    "recovered_fraction": self.recovered_fraction.record(),
+                    "bin_s": self.bin_s,
+                }
+            )
         return out
 
 
 #: the particle accounting's keys (:func:`dem.post.accounting`), kept together in ``accounting``:
 #: these, and every key with one of :data:`ACCOUNTING_PREFIXES` (the solver's counters and
 #: their differences, the discharge files', the dumps')
-ACCOUNTING_KEYS = ("inserted", "held", "discharged", "lost", "accounting_mismatch", "discharged_pending_deletion",
-                   "discharge_crosscheck_diff")
+ACCOUNTING_KEYS = (
+    "inserted",
+    "held",
+    "discharged",
+    "lost",
+    "accounting_mismatch",
+    "discharged_pending_deletion",
+    "discharge_crosscheck_diff",
+)
 ACCOUNTING_PREFIXES = ("solver_", "massflow_", "exits_", "dumps_")
 
 
@@ -138,20 +161,32 @@ class DemSummary:
     def from_record(cls, record: Mapping[str, Any]) -> DemSummary:
         known = {f.name for f in fields(cls)} - {"steady", "pooled_rtd", "warnings", "accounting", "extra"}
         scalars = {k: record[k] for k in known if k in record}
-        return cls(**scalars, steady=dict(record.get("steady") or {}),
-                   pooled_rtd=PooledRtdSummary.from_record(record.get("pooled_rtd")),
-                   warnings=tuple(record.get("warnings") or ()),
-                   accounting={k: v for k, v in record.items() if k not in known and is_accounting(k)},
-                   extra={k: v for k, v in record.items()
-                          if k not in known and not is_accounting(k) and k not in ("steady", "pooled_rtd", "warnings")})
+        return cls(
+            **scalars,
+            steady=dict(record.get("steady") or {}),
+            pooled_rtd=PooledRtdSummary.from_record(record.get("pooled_rtd")),
+            warnings=tuple(record.get("warnings") or ()),
+            accounting={k: v for k, v in record.items() if k not in known and is_accounting(k)},
+            extra={
+                k: v
+                for k, v in record.items()
+                if k not in known and not is_accounting(k) and k not in ("steady", "pooled_rtd", "warnings")
+            },
+        )
 
     def record(self) -> dict[str, Any]:
         """The dict the cache and ``summary.json`` hold (keys as post-processing writes them)."""
-        known = [f.name for f in fields(self) if f.name not in ("steady", "pooled_rtd", "warnings", "accounting",
-                                                                  "extra")]
+        known = [
+            f.name for f in fields(self) if f.name not in ("steady", "pooled_rtd", "warnings", "accounting", "extra")
+        ]
         out = {name: getattr(self, name) for name in known}
         out.update(self.accounting)
-        out.update({"steady": dict(self.steady), "pooled_rtd": None if self.pooled_rtd is None else
-                    self.pooled_rtd.record(), "warnings": list(self.warnings)})
+        out.update(
+            {
+                "steady": dict(self.steady),
+                "pooled_rtd": None if self.pooled_rtd is None else self.pooled_rtd.record(),
+                "warnings": list(self.warnings),
+            }
+        )
         out.update(self.extra)
         return out

@@ -136,8 +136,9 @@ class Accumulation:
     visits: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
-def snapshot_sums(cell: np.ndarray, vx: np.ndarray, vy: np.ndarray, is_a: np.ndarray, is_b: np.ndarray,
-                  ncell: int) -> np.ndarray:
+def snapshot_sums(
+    cell: np.ndarray, vx: np.ndarray, vy: np.ndarray, is_a: np.ndarray, is_b: np.ndarray, ncell: int
+) -> np.ndarray:
     """One snapshot's sums per compartment, rows in :data:`SUM_ROWS` order: the velocity
     parts max(+-v, 0) [m/s] of every particle inside (``cell``: its compartment), the
     number of particles, and of A and of B. Their window means are the velocity table."""
@@ -153,8 +154,9 @@ def snapshot_sums(cell: np.ndarray, vx: np.ndarray, vy: np.ndarray, is_a: np.nda
     return np.stack([rows[name].astype(float) for name in SUM_ROWS])
 
 
-def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int],
-               record_sequences: bool = False) -> Accumulation:
+def accumulate(
+    dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int], record_sequences: bool = False
+) -> Accumulation:
     """Stream every snapshot once into an :class:`Accumulation`; with ``record_sequences``
     also keep every particle's state at every dump (:attr:`Accumulation.visits`)."""
     g, tables = config.geometry, config.tables
@@ -182,7 +184,8 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
             raise DumpFormatError(
                 f"{snap.source}: snapshot at step {snap.step} is at t = {t:.6g} s (timestep {dt:.6g} s), beyond "
                 f"{MAX_SAMPLING_INTERVALS} sampling intervals ({max_t:.6g} s); a corrupted step, or a timestep "
-                "that is not the run's")
+                "that is not the run's"
+            )
         last_step = snap.step
         ids = snap["id"].astype(np.int64)
         ptype = snap["type"].astype(np.int64)
@@ -196,7 +199,8 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
                     f"{snap.source}: snapshot at step {snap.step}, atom {row + 1} (column 'id'): particle id {top} "
                     f"is implausible; with {n_seen} particles seen before and {ids.size} in this snapshot, ids up "
                     f"to {bound} ({ID_FACTOR} x particles + {ID_HEADROOM}) are accepted (LIGGGHTS numbers "
-                    "particles 1, 2, 3, ...)")
+                    "particles 1, 2, 3, ...)"
+                )
             log.ensure(top)
         log.outside_vessel += int(np.count_nonzero(outside_vessel(x, y, snap["z"] if "z" in snap else None, config)))
         is_a, is_b = np.isin(ptype, types_a), np.isin(ptype, types_b)
@@ -259,8 +263,21 @@ def accumulate(dump_paths, config: DemConfig, types_a: Sequence[int], types_b: S
         counts.append(sums[COMPONENT_ROWS].reshape(2, nx, ny).copy())  # the window sums grow in place
     if not times:
         raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
-    return Accumulation(log, window_sums, transitions, interval, irregular, window_snapshots, np.asarray(times),
-                        np.stack(counts), prev_ids, last_step, reappeared, other_types, visits)
+    return Accumulation(
+        log,
+        window_sums,
+        transitions,
+        interval,
+        irregular,
+        window_snapshots,
+        np.asarray(times),
+        np.stack(counts),
+        prev_ids,
+        last_step,
+        reappeared,
+        other_types,
+        visits,
+    )
 
 
 @dataclass
@@ -437,14 +454,18 @@ class CompartmentSequences:
         return out
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str = "sequences_") -> "CompartmentSequences | None":
+    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str = "sequences_") -> CompartmentSequences | None:
         """The inverse of :meth:`to_arrays`; None when ``arrays`` holds no sequences (results
         made before they were recorded)."""
         if prefix + "ids" not in arrays:
             return None
         nx, ny = (int(v) for v in np.asarray(arrays[prefix + "grid"]))
-        return cls(**{name: np.asarray(arrays[prefix + name]) for name in cls.ARRAYS},
-                   interval_s=float(np.asarray(arrays[prefix + "interval_s"])), nx=nx, ny=ny)
+        return cls(
+            **{name: np.asarray(arrays[prefix + name]) for name in cls.ARRAYS},
+            interval_s=float(np.asarray(arrays[prefix + "interval_s"])),
+            nx=nx,
+            ny=ny,
+        )
 
 
 def compartment_sequences(acc: Accumulation, exits: Exits, nx: int, ny: int) -> CompartmentSequences:
@@ -482,8 +503,12 @@ def compartment_sequences(acc: Accumulation, exits: Exits, nx: int, ny: int) -> 
     # Deleted by the solver between dumps and counted as discharged: absorbed at the next
     # dump, if the kept sequence reaches the particle's last sight (and that dump exists).
     pid = ids[last]
-    deleted = (exits.exited[pid] & (state[last] < n_cells) & (snap[last] == acc.particles.last_snapshot[pid])
-               & (snap[last] + 1 < len(acc.visits)))
+    deleted = (
+        exits.exited[pid]
+        & (state[last] < n_cells)
+        & (snap[last] == acc.particles.last_snapshot[pid])
+        & (snap[last] + 1 < len(acc.visits))
+    )
     ids = np.insert(ids, last[deleted] + 1, pid[deleted])
     snap = np.insert(snap, last[deleted] + 1, snap[last[deleted]] + 1)
     state = np.insert(state, last[deleted] + 1, np.int16(n_cells))
@@ -497,8 +522,15 @@ def compartment_sequences(acc: Accumulation, exits: Exits, nx: int, ny: int) -> 
     particle_of_run = np.cumsum(new)[starts] - 1
     n_particles = int(new.sum())
     run_offsets = np.searchsorted(particle_of_run, np.arange(n_particles + 1)).astype(np.int64)
-    return CompartmentSequences(ids=ids[new].astype(np.int64), component=acc.particles.kind[ids[new]].astype(np.int8),
-                                start=snap[new].astype(np.int32),
-                                run_offsets=run_offsets, run_state=state[starts].astype(np.int16),
-                                run_length=run_length, snapshot_t=np.asarray(acc.snapshot_t, float),
-                                interval_s=float(acc.transition_interval_s), nx=int(nx), ny=int(ny))
+    return CompartmentSequences(
+        ids=ids[new].astype(np.int64),
+        component=acc.particles.kind[ids[new]].astype(np.int8),
+        start=snap[new].astype(np.int32),
+        run_offsets=run_offsets,
+        run_state=state[starts].astype(np.int16),
+        run_length=run_length,
+        snapshot_t=np.asarray(acc.snapshot_t, float),
+        interval_s=float(acc.transition_interval_s),
+        nx=int(nx),
+        ny=int(ny),
+    )

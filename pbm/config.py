@@ -37,9 +37,12 @@ class PbmConfig(BaseModel):
     noise_sigma: float = Field(0.0, ge=0, allow_inf_nan=False, description="relative SD of the feed-rate noise factor")
     noise_interval_s: float = Field(1.0, gt=0, allow_inf_nan=False)
     feed_step_s: float | None = Field(
-        None, ge=0, allow_inf_nan=False,
+        None,
+        ge=0,
+        allow_inf_nan=False,
         description="feeder A's rate is multiplied by feed_step_factor_a from this time on; a multiple of "
-        "noise_interval_s (the feed is piecewise constant over those intervals). None = no step")
+        "noise_interval_s (the feed is piecewise constant over those intervals). None = no step",
+    )
     feed_step_factor_a: float = Field(1.0, ge=0, allow_inf_nan=False)
     seed: int = Field(12345, ge=0)
     rtd_pulse_s: float | None = Field(
@@ -71,13 +74,15 @@ class PbmConfig(BaseModel):
         return weights
 
     @model_validator(mode="after")
-    def _step_on_the_feed_grid(self) -> "PbmConfig":
+    def _step_on_the_feed_grid(self) -> PbmConfig:
         if self.feed_step_s is None:
             if self.feed_step_factor_a != 1.0:
                 raise ValueError(f"feed_step_factor_a = {self.feed_step_factor_a} needs feed_step_s (when it happens)")
             return self
         intervals = self.feed_step_s / self.noise_interval_s
         if abs(intervals - round(intervals)) > 1e-9 * max(1.0, intervals):
-            raise ValueError(f"feed_step_s = {self.feed_step_s} s must be a multiple of noise_interval_s = "
-                             f"{self.noise_interval_s} s, e.g. {round(intervals) * self.noise_interval_s:g} s")
+            raise ValueError(
+                f"feed_step_s = {self.feed_step_s} s must be a multiple of noise_interval_s = "
+                f"{self.noise_interval_s} s, e.g. {round(intervals) * self.noise_interval_s:g} s"
+            )
         return self

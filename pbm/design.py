@@ -68,7 +68,9 @@ class DesignSpec(BaseModel):
     rsd_max: float | None = Field(None, gt=0, description="largest relative SD of the outlet C_A")
     noise_sigma: float = Field(0.0, ge=0, description="relative SD of the noisy feeder's rate")
     noise_tau_s: float = Field(0.0, ge=0, description="correlation time of the feeder noise [s] (0: white)")
-    noise_band_hz: float = Field(0.5, gt=0, description="the feeder noise's bandwidth [Hz] (0.5: a rate set every second)")
+    noise_band_hz: float = Field(
+        0.5, gt=0, description="the feeder noise's bandwidth [Hz] (0.5: a rate set every second)"
+    )
     noise_feeder: Literal["A", "B"] = "A"
     mrt_min_s: float | None = Field(None, gt=0, description="shortest acceptable mean residence time [s]")
     mrt_max_s: float | None = Field(None, gt=0, description="longest acceptable mean residence time [s]")
@@ -78,7 +80,7 @@ class DesignSpec(BaseModel):
     length_factor_max: float = Field(LENGTH_FACTOR_LIMITS[1], gt=0)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "DesignSpec":
+    def _consistent(self) -> DesignSpec:
         composition = self.ca_tolerance is not None or self.rsd_max is not None
         if not composition and self.mrt_min_s is None and self.mrt_max_s is None:
             raise ValueError("give at least one criterion: ca_tolerance, rsd_max, mrt_min_s or mrt_max_s")
@@ -93,7 +95,8 @@ class DesignSpec(BaseModel):
             raise ValueError(
                 f"length factors {self.length_factor_min}..{self.length_factor_max} must satisfy "
                 f"{lo} <= min < max <= {hi}: the rescaling is not trusted beyond that (a DEM run of that blender is "
-                "needed)")
+                "needed)"
+            )
         return self
 
     @property
@@ -168,9 +171,16 @@ class Evaluation:
         return all(m >= 0 for m in self.margins.values())
 
     def to_dict(self) -> dict[str, Any]:
-        return {"rpm": self.rpm, "length_factor": self.length_factor,
-                "mean_residence_time_s": self.mean_residence_time_s, "ca_sd": self.ca_sd, "ca_rsd": self.ca_rsd,
-                "vrr": self.vrr, "margins": dict(self.margins), "feasible": self.feasible}
+        return {
+            "rpm": self.rpm,
+            "length_factor": self.length_factor,
+            "mean_residence_time_s": self.mean_residence_time_s,
+            "ca_sd": self.ca_sd,
+            "ca_rsd": self.ca_rsd,
+            "vrr": self.vrr,
+            "margins": dict(self.margins),
+            "feasible": self.feasible,
+        }
 
 
 @single_threaded_blas()
@@ -240,14 +250,24 @@ class DesignResult:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "spec": self.spec.model_dump(), "library_rpm": list(self.library_rpm), "library_length_m": self.length_m,
-            "best": None if self.best is None else {**self.best.to_dict(),
-                                                    "length_m": self.best.length_factor * self.length_m},
+            "spec": self.spec.model_dump(),
+            "library_rpm": list(self.library_rpm),
+            "library_length_m": self.length_m,
+            "best": None
+            if self.best is None
+            else {**self.best.to_dict(), "length_m": self.best.length_factor * self.length_m},
             "rpm_ranges_at_library_length": [list(r) for r in self.rpm_ranges],
-            "speeds": [{"rpm": r.rpm, "length_factor_lo": r.length_factor_lo, "length_factor_hi": r.length_factor_hi,
-                        "length_m_lo": None if r.length_factor_lo is None else r.length_factor_lo * self.length_m,
-                        "length_m_hi": None if r.length_factor_hi is None else r.length_factor_hi * self.length_m,
-                        "at_lo": None if r.at_lo is None else r.at_lo.to_dict()} for r in self.rows],
+            "speeds": [
+                {
+                    "rpm": r.rpm,
+                    "length_factor_lo": r.length_factor_lo,
+                    "length_factor_hi": r.length_factor_hi,
+                    "length_m_lo": None if r.length_factor_lo is None else r.length_factor_lo * self.length_m,
+                    "length_m_hi": None if r.length_factor_hi is None else r.length_factor_hi * self.length_m,
+                    "at_lo": None if r.at_lo is None else r.at_lo.to_dict(),
+                }
+                for r in self.rows
+            ],
             "notes": list(self.notes),
         }
 
@@ -261,8 +281,10 @@ def speed_grid(library: TableLibrary, spec: DesignSpec) -> np.ndarray:
     hi = hi_lib if spec.rpm_max is None else spec.rpm_max
     if lo < lo_lib - 1e-9 or hi > hi_lib + 1e-9:
         covered = f"{lo_lib:g} rpm only" if lo_lib == hi_lib else f"{lo_lib:g}..{hi_lib:g} rpm"
-        raise ConfigError(f"impeller speeds {lo:g}..{hi:g} rpm leave the table library, which covers {covered}: "
-                          "a DEM run at the missing speed is needed (no extrapolation)")
+        raise ConfigError(
+            f"impeller speeds {lo:g}..{hi:g} rpm leave the table library, which covers {covered}: "
+            "a DEM run at the missing speed is needed (no extrapolation)"
+        )
     knots = np.array([v for v, _ in library.points])
     grid = [lo, hi, *knots[(knots > lo) & (knots < hi)]]
     for a, b in zip(knots[:-1], knots[1:]):
@@ -289,6 +311,7 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
         def margin(f: float) -> float:
             m = evaluate(library, spec, rpm, f).margins
             return min(m[k] for k in kinds)
+
         if margin(outside) * margin(inside) > 0:  # not the margin that failed: keep the scanned point
             return inside
         return _feasible_root(margin, outside, inside)
@@ -304,8 +327,12 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     return SpeedRow(rpm, float(lo), float(hi), evaluate(library, spec, rpm, lo), scanned)
 
 
-def speed_ranges(library: TableLibrary, spec: DesignSpec, speeds, length_factor: float = 1.0,
-                 ) -> list[tuple[float, float]]:
+def speed_ranges(
+    library: TableLibrary,
+    spec: DesignSpec,
+    speeds,
+    length_factor: float = 1.0,
+) -> list[tuple[float, float]]:
     """The speed intervals in which the blender ``length_factor`` x the library's meets
     ``spec``: the feasible stretches of ``speeds``, each open edge refined between its grid
     speeds by root finding on the smallest margin."""
@@ -353,13 +380,17 @@ def design(library: TableLibrary, spec: DesignSpec) -> DesignResult:
     if not ranges:
         notes.append(f"the library's own {library.length_m:g}-m blender meets the spec at none of the speeds searched")
     if not feasible:
-        notes.append(f"no blender of {spec.length_factor_min:g}-{spec.length_factor_max:g} x {library.length_m:g} m "
-                     "at these speeds meets the spec")
+        notes.append(
+            f"no blender of {spec.length_factor_min:g}-{spec.length_factor_max:g} x {library.length_m:g} m "
+            "at these speeds meets the spec"
+        )
         return DesignResult(spec, library_rpm, library.length_m, rows, None, ranges, notes)
     best = min(feasible, key=lambda r: r.length_factor_lo).at_lo
     if math.isclose(best.length_factor, spec.length_factor_min, rel_tol=1e-9):
-        notes.append(f"the smallest length searched ({spec.length_factor_min:g} x) already meets the spec: a shorter "
-                     "blender may too, but the rescaling is not trusted below it")
+        notes.append(
+            f"the smallest length searched ({spec.length_factor_min:g} x) already meets the spec: a shorter "
+            "blender may too, but the rescaling is not trusted below it"
+        )
     if len(feasible) < len(rows):
         notes.append("no length meets the spec at " + ", ".join(f"{r.rpm:g}" for r in rows if not r.feasible) + " rpm")
     return DesignResult(spec, library_rpm, library.length_m, rows, best, ranges, notes)

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
-from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table
 from pbm.resources import check_ensemble_memory
@@ -74,8 +74,9 @@ def _bands(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @single_threaded_blas()
-def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma: float | None = None,
-                   members: int = 100) -> EnsembleResult:
+def noise_ensemble(
+    table: VelocityTable, config: PbmConfig | None = None, sigma: float | None = None, members: int = 100
+) -> EnsembleResult:
     """Run ``members`` feed-noise realisations at once; return mean and 5-95 % bands.
 
     ``sigma`` (default ``config.noise_sigma``) is the relative SD of the feed-rate factor
@@ -131,11 +132,20 @@ def noise_ensemble(table: VelocityTable, config: PbmConfig | None = None, sigma:
     rsd_stats = _bands(rsd_members)
     slice_stats = _bands(slice_members)
     return EnsembleResult(
-        sigma=sigma, members=members, times=out_times,
-        C_A_mean=ca_stats[0], C_A_p05=ca_stats[1], C_A_p95=ca_stats[2],
-        rsd_outlet_mean=rsd_stats[0], rsd_outlet_p05=rsd_stats[1], rsd_outlet_p95=rsd_stats[2],
-        rsd_by_slice_mean=slice_stats[0], rsd_by_slice_p05=slice_stats[1], rsd_by_slice_p95=slice_stats[2],
-        C_A_members=c_a_members, rsd_outlet_members=rsd_members,
+        sigma=sigma,
+        members=members,
+        times=out_times,
+        C_A_mean=ca_stats[0],
+        C_A_p05=ca_stats[1],
+        C_A_p95=ca_stats[2],
+        rsd_outlet_mean=rsd_stats[0],
+        rsd_outlet_p05=rsd_stats[1],
+        rsd_outlet_p95=rsd_stats[2],
+        rsd_by_slice_mean=slice_stats[0],
+        rsd_by_slice_p05=slice_stats[1],
+        rsd_by_slice_p95=slice_stats[2],
+        C_A_members=c_a_members,
+        rsd_outlet_members=rsd_members,
     )
 
 
@@ -154,7 +164,7 @@ def _by_columns(props, times, feed_key, out_index, n_out, rates, factors, nx, ny
     rsd_out = np.empty((n_out, distinct))
     last_discharged = np.zeros(2 * distinct)
     z = np.zeros((props.n_states, 2 * distinct))
-    for b, z in march(props, times, z, feed_rates, feed_key):
+    for b, z in march(props, times, z, feed_rates, feed_key):  # noqa: B020 -- march returns each step's new state
         k = out_index[b]
         if k < 0:
             continue
@@ -187,7 +197,7 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     outlet = np.empty((n_out, ny, 2 * n_int))
     discharged = np.empty((n_out, 2 * n_int))
     z = np.zeros((props.n_states, 2 * n_int))
-    for b, z in march(props, times, z, unit_feed, feed_key):
+    for b, z in march(props, times, z, unit_feed, feed_key):  # noqa: B020 -- march returns each step's new state
         k = out_index[b]
         if k >= 0:
             outlet[k] = z[n - ny : n]
@@ -217,22 +227,25 @@ def _combine(outlet, discharged, final, n_int, nx, ny, chunk, fed_a, fed_b):
         block = outlet[k0:k1]
         live = (np.any(block != 0, axis=(0, 1)) | np.any(discharged[k0:k1] != 0, axis=0)).reshape(2, n_int).any(axis=0)
         used = int(np.flatnonzero(live).max()) + 1 if live.any() else 1
-        cells = [(block[:, :, s * n_int:s * n_int + used].reshape(-1, used) @ fed[s][:used]).reshape(k1 - k0, ny, -1)
-                 for s in (0, 1)]
+        cells = [
+            (block[:, :, s * n_int : s * n_int + used].reshape(-1, used) @ fed[s][:used]).reshape(k1 - k0, ny, -1)
+            for s in (0, 1)
+        ]
         rsd_out[k0:k1] = rsd(cells[0], cells[1], axis=1)
-        out = [discharged[k0:k1, s * n_int:s * n_int + used] @ fed[s][:used] for s in (0, 1)]
+        out = [discharged[k0:k1, s * n_int : s * n_int + used] @ fed[s][:used] for s in (0, 1)]
         for k in range(k1 - k0):
             inc = [out[s][k] - last[s] for s in (0, 1)]
             last = [out[0][k], out[1][k]]
             c_a[k0 + k] = outflow_fraction_a(inc[0], inc[1])
-    state = [(final[:, s * n_int:(s + 1) * n_int] @ fed[s]).reshape(nx, ny, -1) for s in (0, 1)]
+    state = [(final[:, s * n_int : (s + 1) * n_int] @ fed[s]).reshape(nx, ny, -1) for s in (0, 1)]
     return c_a, rsd_out, rsd(state[0], state[1], axis=1)
 
 
 PAPER_SIGMAS = (0.0, 0.05, 0.1, 0.2, 0.3)
 
 
-def noise_study(table: VelocityTable, config: PbmConfig | None = None, sigmas=PAPER_SIGMAS,
-                members: int = 200) -> dict[float, EnsembleResult]:
+def noise_study(
+    table: VelocityTable, config: PbmConfig | None = None, sigmas=PAPER_SIGMAS, members: int = 200
+) -> dict[float, EnsembleResult]:
     """The paper's Figs 5-6 study: one :func:`noise_ensemble` per sigma (default 0-0.3)."""
     return {float(s): noise_ensemble(table, config, sigma=s, members=members) for s in sigmas}

@@ -76,8 +76,9 @@ class StationarySystem:
         return self.feed[:, FEEDERS.index(feeder)]
 
 
-def stationary_system(table: VelocityTable, config: PbmConfig | None = None, window: int | None = None,
-                      t_start_s: float = 0.0) -> StationarySystem:
+def stationary_system(
+    table: VelocityTable, config: PbmConfig | None = None, window: int | None = None, t_start_s: float = 0.0
+) -> StationarySystem:
     """The time-invariant system of window ``window`` of ``table``, or (``window`` None) of
     the mean generator over the windows that start at or after ``t_start_s`` [s].
 
@@ -113,8 +114,14 @@ def stationary_system(table: VelocityTable, config: PbmConfig | None = None, win
     )
 
 
-def transfer_function(table: VelocityTable, config: PbmConfig | None, frequencies_hz, window: int | None = None,
-                      feeder: str = "A", t_start_s: float = 0.0) -> np.ndarray:
+def transfer_function(
+    table: VelocityTable,
+    config: PbmConfig | None,
+    frequencies_hz,
+    window: int | None = None,
+    feeder: str = "A",
+    t_start_s: float = 0.0,
+) -> np.ndarray:
     """H(i 2 pi f) from ``feeder``'s rate to its outlet flux, at ``frequencies_hz`` [Hz, >= 0].
 
     The system is :func:`stationary_system` (``window``, else the mean generator over the
@@ -148,7 +155,8 @@ def system_response(system: StationarySystem, frequencies_hz, feeder: str = "A")
         if np.min(np.abs(pivots)) <= 1e-13 * max(1.0, np.abs(diagonal).max()):
             raise TableError(
                 f"sI - G is singular at {freqs.ravel()[k]} Hz for windows {system.windows.tolist()}: some "
-                "compartment never drains to the outlet")
+                "compartment never drains to the outlet"
+            )
         np.fill_diagonal(shifted, pivots)
         out[k] = left @ solve_triangular(shifted, rhs, check_finite=False)
     return out.reshape(freqs.shape)
@@ -263,9 +271,16 @@ def vrr_spectrum(frequencies_hz, H, spectrum) -> float:
     return float(np.trapezoid(s, freqs) / np.trapezoid(s * np.abs(h) ** 2, freqs))
 
 
-def vrr_noise(table: VelocityTable, config: PbmConfig | None, tau_s: float, f_max_hz: float | None = None,
-              feeder: str = "A", window: int | None = None, t_start_s: float = 0.0,
-              n_frequencies: int = 2001) -> float:
+def vrr_noise(
+    table: VelocityTable,
+    config: PbmConfig | None,
+    tau_s: float,
+    f_max_hz: float | None = None,
+    feeder: str = "A",
+    window: int | None = None,
+    t_start_s: float = 0.0,
+    n_frequencies: int = 2001,
+) -> float:
     """VRR of first-order noise of correlation time ``tau_s`` [s] on ``feeder``, band-limited
     to [0, ``f_max_hz``] (default the Nyquist frequency 1 / (2 config.noise_interval_s)),
     through the PBM's stationary system (:func:`transfer_function`)."""
@@ -329,8 +344,14 @@ def sinusoid_response(system: StationarySystem, frequencies_hz, feeder: str = "A
     return out.reshape(freqs.shape)
 
 
-def sampled_ca_sd(system: StationarySystem, feed_rates, sigma: float, noise_interval_s: float,
-                  output_interval_s: float, n_frequencies: int = 4001) -> float:
+def sampled_ca_sd(
+    system: StationarySystem,
+    feed_rates,
+    sigma: float,
+    noise_interval_s: float,
+    output_interval_s: float,
+    n_frequencies: int = 4001,
+) -> float:
     """Standard deviation of the outlet C_A, sampled as the flux-weighted mean over each
     output interval, when both feeders' rates are multiplied by independent factors
     N(1, sigma) redrawn every ``noise_interval_s`` (the PBM's noise ensemble), to first
@@ -350,8 +371,11 @@ def sampled_ca_sd(system: StationarySystem, feed_rates, sigma: float, noise_inte
     rates = np.asarray(feed_rates, dtype=float)
     if rates.shape != (2,) or not np.all(np.isfinite(rates)) or np.any(rates < 0) or not rates.sum() > 0:
         raise ConfigError(f"feed_rates must be the two rates (A, B) >= 0 with a positive sum, got {feed_rates!r}")
-    for name, value in (("sigma", sigma), ("noise_interval_s", noise_interval_s),
-                        ("output_interval_s", output_interval_s)):
+    for name, value in (
+        ("sigma", sigma),
+        ("noise_interval_s", noise_interval_s),
+        ("output_interval_s", output_interval_s),
+    ):
         if not (math.isfinite(value) and value > 0):
             raise ConfigError(f"{name} must be a finite number > 0, got {value}")
     c = rates[0] / rates.sum()

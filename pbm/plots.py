@@ -86,8 +86,7 @@ def plot_rtd(result: PbmResult, ax: Axes | None = None, label: str = "PBM") -> A
     mean = result.summary.get("mean_residence_time_s")
     if mean is not None and np.isfinite(mean):
         ax.axvline(mean, color="grey", ls=":", label=f"mean {mean:.1f} s")
-    ax.set(xlabel="residence time [s]", ylabel="E(t) [1/s]",
-           title=f"RTD (pulse at {result.rtd_pulse_s:g} s)")
+    ax.set(xlabel="residence time [s]", ylabel="E(t) [1/s]", title=f"RTD (pulse at {result.rtd_pulse_s:g} s)")
     ax.legend()
     return ax
 
@@ -125,11 +124,20 @@ def plot_ensemble(ensembles: dict, quantity: str = "C_A", ax: Axes | None = None
     ax = _axes(ax)
     for sigma, ens in sorted(ensembles.items()):
         mean = getattr(ens, f"{quantity}_mean")
-        line, = ax.plot(ens.times, mean, label=f"sigma = {sigma:g}")
-        ax.fill_between(ens.times, getattr(ens, f"{quantity}_p05"), getattr(ens, f"{quantity}_p95"),
-                        color=line.get_color(), alpha=0.2, lw=0)
-    ax.set(xlabel="time [s]", ylabel="C_A [-]" if quantity == "C_A" else "RSD at the outlet [-]",
-           title=f"Feed noise: mean and 5-95 % band ({next(iter(ensembles.values())).members} members)")
+        (line,) = ax.plot(ens.times, mean, label=f"sigma = {sigma:g}")
+        ax.fill_between(
+            ens.times,
+            getattr(ens, f"{quantity}_p05"),
+            getattr(ens, f"{quantity}_p95"),
+            color=line.get_color(),
+            alpha=0.2,
+            lw=0,
+        )
+    ax.set(
+        xlabel="time [s]",
+        ylabel="C_A [-]" if quantity == "C_A" else "RSD at the outlet [-]",
+        title=f"Feed noise: mean and 5-95 % band ({next(iter(ensembles.values())).members} members)",
+    )
     if quantity == "rsd_outlet":
         ax.set_yscale("log")
     ax.legend()
@@ -141,7 +149,9 @@ def plot_rsd_by_slice_family(results: dict, ax: Axes | None = None) -> Axes:
     (paper Figs 3(b), 4(b)); x is the slice number 1..NX of each run."""
     ax = _axes(ax)
     for label, result in results.items():
-        ax.plot(np.arange(1, result.rsd_by_slice_final.size + 1), result.rsd_by_slice_final, marker="o", label=str(label))
+        ax.plot(
+            np.arange(1, result.rsd_by_slice_final.size + 1), result.rsd_by_slice_final, marker="o", label=str(label)
+        )
     ax.set(xlabel="axial compartment (1 = inlet)", ylabel="RSD [-]", title="RSD(x) at the end time", yscale="log")
     ax.legend()
     return ax

@@ -35,9 +35,13 @@ def pbm_bytes(nx: int, ny: int, n_windows: int) -> float:
 def check_pbm_memory(nx: int, ny: int, n_windows: int, available_bytes: float | None = None) -> float:
     """Refuse (ResourceLimitError) a PBM on a grid the machine cannot hold; the estimate."""
     estimate = pbm_bytes(nx, ny, n_windows)
-    require_memory(estimate, f"the PBM on {nx} x {ny} compartments over {n_windows} velocity windows",
-                   f"one dense {nx * ny + 3} x {nx * ny + 3} operator is {format_bytes(8.0 * (nx * ny + 3) ** 2)}; "
-                   "use a coarser grid", available=available_bytes)
+    require_memory(
+        estimate,
+        f"the PBM on {nx} x {ny} compartments over {n_windows} velocity windows",
+        f"one dense {nx * ny + 3} x {nx * ny + 3} operator is {format_bytes(8.0 * (nx * ny + 3) ** 2)}; "
+        "use a coarser grid",
+        available=available_bytes,
+    )
     return estimate
 
 
@@ -51,15 +55,24 @@ def ensemble_bytes(members: int, t_end_s: float, noise_interval_s: float, output
     return 2 * 8.0 * int(members) * (4 * n_noise + 6 * n_out + 2 * int(nx))
 
 
-def check_ensemble_memory(members: int, t_end_s: float, noise_interval_s: float, output_interval_s: float,
-                          nx: int, available_bytes: float | None = None) -> float:
+def check_ensemble_memory(
+    members: int,
+    t_end_s: float,
+    noise_interval_s: float,
+    output_interval_s: float,
+    nx: int,
+    available_bytes: float | None = None,
+) -> float:
     """Refuse a member count that is not an integer >= 1 (ConfigError) or that the machine
     cannot hold (ResourceLimitError, with the estimate and the largest count that fits);
     else the estimate [bytes]."""
     if isinstance(members, bool) or not isinstance(members, int) and not float(members).is_integer() or members < 1:
         raise ConfigError(f"the number of noise members must be an integer >= 1, got {members!r}")
-    for name, value in (("t_end_s", t_end_s), ("noise_interval_s", noise_interval_s),
-                        ("output_interval_s", output_interval_s)):
+    for name, value in (
+        ("t_end_s", t_end_s),
+        ("noise_interval_s", noise_interval_s),
+        ("output_interval_s", output_interval_s),
+    ):
         if not (math.isfinite(value) and value > 0):
             raise ConfigError(f"{name} must be a finite number > 0, got {value}")
     estimate = ensemble_bytes(int(members), t_end_s, noise_interval_s, output_interval_s, nx)
@@ -68,6 +81,10 @@ def check_ensemble_memory(members: int, t_end_s: float, noise_interval_s: float,
 
     available = available_memory_bytes() if available_bytes is None else float(available_bytes)
     fits = int(MEMORY_FRACTION * available // per_member)
-    require_memory(estimate, f"a feed-noise ensemble of {int(members)} members over {t_end_s:g} s",
-                   f"{format_bytes(per_member)} per member: at most {fits} members fit", available=available)
+    require_memory(
+        estimate,
+        f"a feed-noise ensemble of {int(members)} members over {t_end_s:g} s",
+        f"{format_bytes(per_member)} per member: at most {fits} members fit",
+        available=available,
+    )
     return estimate

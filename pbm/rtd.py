@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.metrics import residence_moments
 from coupling.tables import VelocityTable
-from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import feed_distribution, filled_table, n_populations
 from pbm.simulate import BDF_ATOL_PARTICLES, check_run, recovered_moments, tracer_pulse
@@ -124,8 +124,17 @@ def pooled_rtd(
     rows = np.empty((times.size, 4, n_pulses))
     z0 = np.zeros((m, n_pulses))
     rows[0] = _tracked_rows(z0 + injections.get(0, 0.0), n)
-    for b, z in march(props, times, z0, lambda _key: no_feed, np.zeros(times.size - 1, int), injections,
-                      method=config.method, rtol=config.bdf_rtol, atol=BDF_ATOL_PARTICLES):
+    for b, z in march(
+        props,
+        times,
+        z0,
+        lambda _key: no_feed,
+        np.zeros(times.size - 1, int),
+        injections,
+        method=config.method,
+        rtol=config.bdf_rtol,
+        atol=BDF_ATOL_PARTICLES,
+    ):
         rows[b] = _tracked_rows(z, n)
 
     pulse_index = np.arange(n_pulses)[:, None]

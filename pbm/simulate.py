@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, residence_moments, rsd
 from coupling.tables import VelocityTable
-from coupling.blas import single_threaded_blas
 from pbm.config import PbmConfig
 from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases, n_populations
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
@@ -70,8 +70,16 @@ class PbmResult:
 
     def timeseries(self) -> pd.DataFrame:
         """The CQA series in :data:`coupling.metrics.TIMESERIES_COLUMNS`."""
-        values = (self.times, self.outflow_A, self.outflow_B, self.C_A, self.rsd_outlet, self.rsd_blender,
-                  self.holdup_A, self.holdup_B)
+        values = (
+            self.times,
+            self.outflow_A,
+            self.outflow_B,
+            self.C_A,
+            self.rsd_outlet,
+            self.rsd_blender,
+            self.holdup_A,
+            self.holdup_B,
+        )
         return pd.DataFrame(dict(zip(TIMESERIES_COLUMNS, values)))
 
     def rtd(self) -> pd.DataFrame:
@@ -195,8 +203,9 @@ def simulate(
     tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)
 
     def run(t_start, columns, pulse_at, record):
-        return _run_columns(props, config, t_start, t_end, columns, z0_for(columns), factors, rates, record, pulse_at,
-                            tracer_vector)
+        return _run_columns(
+            props, config, t_start, t_end, columns, z0_for(columns), factors, rates, record, pulse_at, tracer_vector
+        )
 
     def z0_for(columns):
         z = np.zeros((m, len(columns)))
@@ -227,11 +236,15 @@ def simulate(
     rtd_E = np.diff(tracer_at_bins) / (tracer_amount * config.rtd_bin_s)
     rtd_t = config.rtd_bin_s * (np.arange(rtd_E.size) + 0.5)
     final_tracer = tracer_rec[-1, :, 0]
-    moments = rtd_moments(tracer_amount, final_tracer[:n].sum(), final_tracer[n + 1], final_tracer[n + 2],
-                          t_end - pulse)
+    moments = rtd_moments(
+        tracer_amount, final_tracer[:n].sum(), final_tracer[n + 1], final_tracer[n + 2], t_end - pulse
+    )
 
-    counts = (collapse_phases(main_z[:, :n, :2], k_phases, axis=1)
-              .transpose(0, 2, 1).reshape(out_times.size, 2, table.nx, table.ny))
+    counts = (
+        collapse_phases(main_z[:, :n, :2], k_phases, axis=1)
+        .transpose(0, 2, 1)
+        .reshape(out_times.size, 2, table.nx, table.ny)
+    )
     discharged = main_z[:, n, :2]
     increments = np.diff(np.vstack([np.zeros(2), discharged]), axis=0)
     fed = np.stack([cumulative_feed(out_times, rates[s], factors[:, s], config.noise_interval_s) for s in (0, 1)], 1)
@@ -373,7 +386,7 @@ def _run_columns(props, config, t_start, t_end, columns, z0, factors, rates, rec
     extra = [] if pulse_at is None else [[pulse_at]]
     times = breakpoints(t_start, t_end, record_times, *switch_sets, *extra)
     mids = 0.5 * (times[:-1] + times[1:])
-    feed_key = (np.floor(mids / config.noise_interval_s).astype(int) if noise or step else np.zeros(mids.size, int))
+    feed_key = np.floor(mids / config.noise_interval_s).astype(int) if noise or step else np.zeros(mids.size, int)
     feed_key = np.clip(feed_key, 0, factors.shape[0] - 1)
     c = len(columns)
     injections = {}
@@ -392,8 +405,17 @@ def _run_columns(props, config, t_start, t_end, columns, z0, factors, rates, rec
 
     out = np.empty((times.size, props.n_states, c))
     out[0] = z0 + injections.get(0, 0.0)
-    for b, z in march(props, times, z0, feed_rates, feed_key, injections, method=config.method,
-                      rtol=config.bdf_rtol, atol=BDF_ATOL_PARTICLES):
+    for b, z in march(
+        props,
+        times,
+        z0,
+        feed_rates,
+        feed_key,
+        injections,
+        method=config.method,
+        rtol=config.bdf_rtol,
+        atol=BDF_ATOL_PARTICLES,
+    ):
         out[b] = z
     return times, out
 

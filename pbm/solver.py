@@ -36,16 +36,33 @@ TIME_TOLERANCE_S = 1e-9
 # Bader, Blanes & Casas (2019), "Computing the matrix exponential with an optimized Taylor
 # polynomial approximation", Mathematics 7, 1174: the degree-18 Taylor polynomial in 5
 # matrix products. Row i holds the coefficients of B_i over (I, X, X^2, X^3, X^6).
-_T18 = np.array([
-    [0.0, -1.00365581030144618291e-01, -8.02924648241156932449e-03, -8.92138498045729985177e-04, 0.0],
-    [0.0, 3.97849749499645077844e-01, 1.36783778460411720168e00, 4.98289622525382669416e-01,
-     -6.37898194594723280150e-04],
-    [-1.09676396052962061844e01, 1.68015813878906206114e00, 5.71779846478865511061e-02,
-     -6.98210122488052056106e-03, 3.34975017086070470649e-05],
-    [-9.04316832390810593223e-02, -6.76404519071381882256e-02, 6.75961301770459654925e-02,
-     2.95552570429315521194e-02, -1.39180257516060693404e-05],
-    [0.0, 0.0, -9.23364619367118555360e-02, -1.69364939002081722752e-02, -1.40086798182036094347e-05],
-])
+_T18 = np.array(
+    [
+        [0.0, -1.00365581030144618291e-01, -8.02924648241156932449e-03, -8.92138498045729985177e-04, 0.0],
+        [
+            0.0,
+            3.97849749499645077844e-01,
+            1.36783778460411720168e00,
+            4.98289622525382669416e-01,
+            -6.37898194594723280150e-04,
+        ],
+        [
+            -1.09676396052962061844e01,
+            1.68015813878906206114e00,
+            5.71779846478865511061e-02,
+            -6.98210122488052056106e-03,
+            3.34975017086070470649e-05,
+        ],
+        [
+            -9.04316832390810593223e-02,
+            -6.76404519071381882256e-02,
+            6.75961301770459654925e-02,
+            2.95552570429315521194e-02,
+            -1.39180257516060693404e-05,
+        ],
+        [0.0, 0.0, -9.23364619367118555360e-02, -1.69364939002081722752e-02, -1.40086798182036094347e-05],
+    ]
+)
 # 1-norm below which T18 has a backward error below double-precision unit roundoff.
 _THETA18 = 1.090863719290036
 # Windows whose dense generators are built in one vectorised call (bounds the memory).
@@ -264,8 +281,14 @@ def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol,
         local[n:] = 0.0
         t0 = times[s]
         sol = solve_ivp(
-            rhs, (t0, times[e]), local.T.ravel(), method="BDF", t_eval=times[s + 1 : e + 1],
-            jac=jac, rtol=rtol, atol=atol,
+            rhs,
+            (t0, times[e]),
+            local.T.ravel(),
+            method="BDF",
+            t_eval=times[s + 1 : e + 1],
+            jac=jac,
+            rtol=rtol,
+            atol=atol,
         )
         if not sol.success:
             raise SolverError(f"BDF failed between t = {t0:.6g} s and {times[e]:.6g} s: {sol.message}")

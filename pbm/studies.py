@@ -27,10 +27,15 @@ def scale_blender(table: VelocityTable, length_factor: float = 1.0, diameter_fac
     attrs["geometry_scaling"] = {"length_factor": float(length_factor), "diameter_factor": float(diameter_factor)}
     rates = {}
     if table.has_rates:  # measured rates are per compartment: the same speeds over longer cells
-        rates = {"rate_x_pos": table.rate_x_pos / length_factor, "rate_x_neg": table.rate_x_neg / length_factor,
-                 "rate_y_pos": table.rate_y_pos / diameter_factor, "rate_y_neg": table.rate_y_neg / diameter_factor}
-    return table.replace(x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs,
-                         **rates)
+        rates = {
+            "rate_x_pos": table.rate_x_pos / length_factor,
+            "rate_x_neg": table.rate_x_neg / length_factor,
+            "rate_y_pos": table.rate_y_pos / diameter_factor,
+            "rate_y_neg": table.rate_y_neg / diameter_factor,
+        }
+    return table.replace(
+        x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs, **rates
+    )
 
 
 def scale_speed(table: VelocityTable, factor: float) -> VelocityTable:
@@ -57,19 +62,28 @@ def interpolate_tables(points, at: float) -> VelocityTable:
     if len(points) < 2 or len(set(values)) != len(values):
         raise ConfigError(f"a table library needs >= 2 tables at distinct values, got values {values}")
     if not (values[0] <= at <= values[-1]):
-        raise ConfigError(f"{at:g} lies outside the table library's range {values[0]:g}..{values[-1]:g}: "
-                          "a run there is needed (no extrapolation)")
+        raise ConfigError(
+            f"{at:g} lies outside the table library's range {values[0]:g}..{values[-1]:g}: "
+            "a run there is needed (no extrapolation)"
+        )
     hi = int(np.clip(np.searchsorted(values, at, side="left"), 1, len(points) - 1))
     (v0, t0), (v1, t1) = points[hi - 1], points[hi]
-    same = (t1.t.shape == t0.t.shape and np.allclose(t1.t, t0.t) and t1.window_s == t0.window_s
-            and t1.x_edges.shape == t0.x_edges.shape and np.allclose(t1.x_edges, t0.x_edges)
-            and t1.y_edges.shape == t0.y_edges.shape and np.allclose(t1.y_edges, t0.y_edges))
+    same = (
+        t1.t.shape == t0.t.shape
+        and np.allclose(t1.t, t0.t)
+        and t1.window_s == t0.window_s
+        and t1.x_edges.shape == t0.x_edges.shape
+        and np.allclose(t1.x_edges, t0.x_edges)
+        and t1.y_edges.shape == t0.y_edges.shape
+        and np.allclose(t1.y_edges, t0.y_edges)
+    )
     if not same:
         raise ConfigError(f"the tables at {v0:g} and {v1:g} differ in grid or windows; a library needs one layout")
     w = (at - v0) / (v1 - v0)
     a, b = fill_missing_velocities(t0)[0], fill_missing_velocities(t1)[0]
-    fields = {name: (1 - w) * getattr(a, name) + w * getattr(b, name)
-              for name in (*VELOCITY_NAMES, "count_A", "count_B")}
+    fields = {
+        name: (1 - w) * getattr(a, name) + w * getattr(b, name) for name in (*VELOCITY_NAMES, "count_A", "count_B")
+    }
     fields["n_samples"] = np.maximum(1, np.rint((1 - w) * a.n_samples + w * b.n_samples)).astype(np.int64)
     rates = {name: None for name in RATE_NAMES}
     if a.has_rates and b.has_rates:
@@ -86,7 +100,9 @@ def _overlap(old_edges: np.ndarray, new_edges: np.ndarray) -> np.ndarray:
     return np.clip(hi - lo, 0.0, None)
 
 
-def regrid(table: VelocityTable, nx: int | None = None, ny: int | None = None, x_edges=None, y_edges=None) -> VelocityTable:
+def regrid(
+    table: VelocityTable, nx: int | None = None, ny: int | None = None, x_edges=None, y_edges=None
+) -> VelocityTable:
     """The same flow on a finer or coarser compartment grid over the same vessel.
 
     New edges are ``x_edges`` / ``y_edges`` if given, else ``nx`` / ``ny`` uniform
@@ -134,8 +150,14 @@ def regrid(table: VelocityTable, nx: int | None = None, ny: int | None = None, x
     attrs = dict(table.attrs)
     attrs["regridded_from"] = [table.nx, table.ny]
     return table.replace(
-        x_edges=new_x, y_edges=new_y, count_A=move(table.count_A), count_B=move(table.count_B),
-        n_samples=n_samples, min_samples=1, attrs=attrs, **new_fields,
+        x_edges=new_x,
+        y_edges=new_y,
+        count_A=move(table.count_A),
+        count_B=move(table.count_B),
+        n_samples=n_samples,
+        min_samples=1,
+        attrs=attrs,
+        **new_fields,
     )
 
 
@@ -159,15 +181,21 @@ def _new_edges(old: np.ndarray, count, edges, axis: str) -> np.ndarray:
     return np.linspace(old[0], old[-1], int(count) + 1)
 
 
-def geometry_study(table: VelocityTable, config=None, length_factors=(0.75, 1.0, 1.25),
-                   diameter_factors=(0.75, 1.0, 1.25), rtd_pulse_s: float | None = None,
-                   steady: SteadyStateRule = SteadyStateRule()) -> dict:
+def geometry_study(
+    table: VelocityTable,
+    config=None,
+    length_factors=(0.75, 1.0, 1.25),
+    diameter_factors=(0.75, 1.0, 1.25),
+    rtd_pulse_s: float | None = None,
+    steady: SteadyStateRule = SteadyStateRule(),
+) -> dict:
     """Paper Figs 3-4: the same velocities in longer/shorter and wider/narrower blenders.
 
     Returns ``{"length": {factor: PbmResult}, "diameter": {factor: PbmResult}}``, each run
     by :func:`pbm.simulate.simulate` on :func:`scale_blender`'s table (the other dimension
     kept). Plot with :func:`pbm.plots.plot_rsd_time_family` / ``plot_rsd_by_slice_family``.
     """
+
     def run(length_factor: float = 1.0, diameter_factor: float = 1.0):
         scaled = scale_blender(table, length_factor=length_factor, diameter_factor=diameter_factor)
         return simulate(scaled, config, rtd_pulse_s, steady=steady)
@@ -178,8 +206,15 @@ def geometry_study(table: VelocityTable, config=None, length_factors=(0.75, 1.0,
     }
 
 
-def grid_study(table: VelocityTable, config=None, grids=((5, 5), (10, 10), (20, 20)),
-               rtd_pulse_s: float | None = None, steady: SteadyStateRule = SteadyStateRule()) -> dict:
+def grid_study(
+    table: VelocityTable,
+    config=None,
+    grids=((5, 5), (10, 10), (20, 20)),
+    rtd_pulse_s: float | None = None,
+    steady: SteadyStateRule = SteadyStateRule(),
+) -> dict:
     """The paper's compartment-number study: ``{(nx, ny): PbmResult}`` on :func:`regrid`'s tables."""
-    return {(int(nx), int(ny)): simulate(regrid(table, nx=nx, ny=ny), config, rtd_pulse_s, steady=steady)
-            for nx, ny in grids}
+    return {
+        (int(nx), int(ny)): simulate(regrid(table, nx=nx, ny=ny), config, rtd_pulse_s, steady=steady)
+        for nx, ny in grids
+    }

@@ -25,8 +25,17 @@ def _integer(name: str, value, low: int, high: int | None = None) -> int:
     return int(value)
 
 
-def check_synthetic_arguments(nx, ny, n_windows, window_s, length_m=0.330, diameter_m=0.100, seed=2013,
-                              min_samples=20, available_bytes: float | None = None) -> None:
+def check_synthetic_arguments(
+    nx,
+    ny,
+    n_windows,
+    window_s,
+    length_m=0.330,
+    diameter_m=0.100,
+    seed=2013,
+    min_samples=20,
+    available_bytes: float | None = None,
+) -> None:
     """Refuse, naming the argument and what is valid, what :func:`synthetic_table` cannot
     make: grid and window counts that are not integers >= 1, or whose table would not fit in
     memory (``--windows 1e8``: 10^8 x 100 compartments x 11 arrays); a window that is not a
@@ -38,14 +47,23 @@ def check_synthetic_arguments(nx, ny, n_windows, window_s, length_m=0.330, diame
     _integer("seed", seed, 0, 2**63 - 1)
     _integer("min_samples", min_samples, 1)
     for name, value in (("window_s", window_s), ("length_m", length_m), ("diameter_m", diameter_m)):
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not (
-                math.isfinite(value) and value > 0):
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float, np.number))
+            or not (math.isfinite(value) and value > 0)
+        ):
             raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
     if n_windows * float(window_s) > MAX_TIME_S:
-        raise ConfigError(f"{n_windows} windows of {window_s:g} s run to {n_windows * float(window_s):.3g} s; "
-                          f"a table's times must stay within {MAX_TIME_S:g} s")
-    require_memory(table_bytes(nx, ny, n_windows) * 3, f"a synthetic table of {n_windows} windows x {nx} x {ny} "
-                   "compartments", "use fewer windows or a coarser grid", available=available_bytes)
+        raise ConfigError(
+            f"{n_windows} windows of {window_s:g} s run to {n_windows * float(window_s):.3g} s; "
+            f"a table's times must stay within {MAX_TIME_S:g} s"
+        )
+    require_memory(
+        table_bytes(nx, ny, n_windows) * 3,
+        f"a synthetic table of {n_windows} windows x {nx} x {ny} compartments",
+        "use fewer windows or a coarser grid",
+        available=available_bytes,
+    )
 
 
 def synthetic_table(
@@ -76,8 +94,7 @@ def synthetic_table(
     reached = 2 + 2 * np.arange(n_windows)
     n_samples[np.arange(nx)[None, :] >= reached[:, None]] = 0
     y_centres = (np.arange(ny) + 0.5) / ny - 0.5
-    share_a = np.broadcast_to(0.5 + 0.4 * np.sign(y_centres) * np.exp(-np.arange(n_windows) / 4)[:, None, None],
-                              shape)
+    share_a = np.broadcast_to(0.5 + 0.4 * np.sign(y_centres) * np.exp(-np.arange(n_windows) / 4)[:, None, None], shape)
     per_snapshot = n_samples / 50.0
     return make_table(
         t=t,

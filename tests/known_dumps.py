@@ -21,7 +21,6 @@ L, D = 0.330, 0.100
 DUMP_S, END_S = 0.5, 30.0
 
 
-
 COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
 
 
@@ -70,8 +69,19 @@ def write_synthetic(directory, cfg, vanish_unseen=False, lose_id=None, end_s=END
             else:
                 x = L * (age + 0.25) / res
             i = min(int(x / (L / 4)), 3)
-            rows.append((pid, ptype, x, 0.02 if ptype == 1 else -0.02, 0.0,
-                         0.1 * (i + 1), 0.02 if ptype == 1 else -0.03, 0.0, 0.003))
+            rows.append(
+                (
+                    pid,
+                    ptype,
+                    x,
+                    0.02 if ptype == 1 else -0.02,
+                    0.0,
+                    0.1 * (i + 1),
+                    0.02 if ptype == 1 else -0.03,
+                    0.0,
+                    0.003,
+                )
+            )
         step = int(round(t / dt))
         (directory / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, np.array(rows).reshape(-1, 9)))
     for pid, (ptype, entry) in particles.items():

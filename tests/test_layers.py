@@ -24,8 +24,17 @@ FORBIDDEN = {
     "workflows": set(),
 }
 #: workflows' rooms by floor; a room may import rooms on its floor or below.
-FLOORS = {"config": 0, "shipped": 1, "pipeline": 2, "analysis": 3, "report": 4, "products": 5,
-          "studies": 6, "bench": 6, "cli": 7}
+FLOORS = {
+    "config": 0,
+    "shipped": 1,
+    "pipeline": 2,
+    "analysis": 3,
+    "report": 4,
+    "products": 5,
+    "studies": 6,
+    "bench": 6,
+    "cli": 7,
+}
 #: rooms nobody but the command line may import
 LEAVES = {"studies", "bench"}
 
@@ -40,7 +49,7 @@ def imports(path: Path) -> set[tuple[int, str]]:
             found.add((node.lineno, node.module))
             found.update((node.lineno, f"{node.module}.{alias.name}") for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level > 0:
-            parts = path.relative_to(ROOT).with_suffix("").parts[:-node.level]
+            parts = path.relative_to(ROOT).with_suffix("").parts[: -node.level]
             found.add((node.lineno, ".".join((*parts, node.module or ""))))
     return found
 
@@ -61,14 +70,21 @@ def room(module: str) -> str | None:
 def test_imports_run_one_way(package):
     files = sorted((ROOT / package).rglob("*.py"))
     assert files, f"no sources under {package}/"
-    wrong = [f"{path.relative_to(ROOT)}:{line} imports {target}"
-             for path in files for line, target in sorted(imported_packages(path)) if target in FORBIDDEN[package]]
+    wrong = [
+        f"{path.relative_to(ROOT)}:{line} imports {target}"
+        for path in files
+        for line, target in sorted(imported_packages(path))
+        if target in FORBIDDEN[package]
+    ]
     assert not wrong, "imports against the direction workflows -> {dem, pbm} -> coupling:\n" + "\n".join(wrong)
 
 
 def test_every_workflows_module_has_a_floor():
-    loose = [str(p.relative_to(ROOT)) for p in (ROOT / "workflows").rglob("*.py")
-             if p.name != "__init__.py" and room(".".join(p.relative_to(ROOT).with_suffix("").parts)) is None]
+    loose = [
+        str(p.relative_to(ROOT))
+        for p in (ROOT / "workflows").rglob("*.py")
+        if p.name != "__init__.py" and room(".".join(p.relative_to(ROOT).with_suffix("").parts)) is None
+    ]
     assert not loose, f"modules of workflows/ in no room of {sorted(FLOORS)}: {loose}"
 
 
@@ -85,14 +101,19 @@ def test_workflows_floors_run_one_way():
             if there in LEAVES and here != "cli":
                 wrong.append(f"{path.relative_to(ROOT)}:{line} ({here}) imports {module}: only the CLI may")
             elif FLOORS[there] > FLOORS[here]:
-                wrong.append(f"{path.relative_to(ROOT)}:{line} ({here}, floor {FLOORS[here]}) imports {module} "
-                             f"({there}, floor {FLOORS[there]})")
+                wrong.append(
+                    f"{path.relative_to(ROOT)}:{line} ({here}, floor {FLOORS[here]}) imports {module} "
+                    f"({there}, floor {FLOORS[there]})"
+                )
     assert not wrong, "imports up the floors of workflows/:\n" + "\n".join(wrong)
 
 
 def test_only_the_cli_runs_as_a_program():
-    mains = [str(p.relative_to(ROOT)) for p in (ROOT / "workflows").rglob("*.py")
-             if "__main__" in p.read_text() and p.parent.name != "cli"]
+    mains = [
+        str(p.relative_to(ROOT))
+        for p in (ROOT / "workflows").rglob("*.py")
+        if "__main__" in p.read_text() and p.parent.name != "cli"
+    ]
     assert not mains, f"__main__ outside workflows/cli/: {mains}"
 
 

@@ -47,8 +47,9 @@ class Config(BaseModel):
         if isinstance(value, dict):
             for key, item in value.items():
                 if isinstance(item, (bool, str)):
-                    raise ValueError(f"steady_state.{key} = {_shown(item)} ({_type_name(item)}): "
-                                     f"{_TYPE_ERRORS['float_type']}")
+                    raise ValueError(
+                        f"steady_state.{key} = {_shown(item)} ({_type_name(item)}): {_TYPE_ERRORS['float_type']}"
+                    )
         return value
 
     def to_dict(self) -> dict[str, Any]:
@@ -236,7 +237,8 @@ def _type_name(value: Any) -> str:
     if isinstance(value, bool):
         return "a boolean"
     return {int: "an integer", float: "a float", str: "text", list: "a list", dict: "a table"}.get(
-        type(value), type(value).__name__)
+        type(value), type(value).__name__
+    )
 
 
 def _shown(value: Any) -> str:

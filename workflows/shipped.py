@@ -38,8 +38,10 @@ PAPER_SCALE_THERMO = PAPER_SCALE_DIR / "thermo.csv"
 def _same_vessel(reference: DemConfig, other: DemConfig) -> bool:
     """Whether ``other`` is ``reference``'s vessel: neither the blade clearance nor the
     empty box upstream of the inlet changes it."""
-    keep = {"blade_tip_clearance_m": reference.geometry.blade_tip_clearance_m,
-            "inlet_margin_m": reference.geometry.inlet_margin_m}
+    keep = {
+        "blade_tip_clearance_m": reference.geometry.blade_tip_clearance_m,
+        "inlet_margin_m": reference.geometry.inlet_margin_m,
+    }
     return reference.geometry == other.geometry.model_copy(update=keep)
 
 
@@ -56,11 +58,16 @@ def reference_holdup(dem_config: DemConfig, directory: Path = REFERENCE_DIR) -> 
             continue
         held = float(entry.summary["holdup_final"])
         scale = (ref.particles.diameter_m / dem_config.particles.diameter_m) ** 3
-        return held * scale, f"{held:.0f} particles of {ref.particles.diameter_m * 1000:g} mm in {path.name}, x {scale:.3g}"
+        return (
+            held * scale,
+            f"{held:.0f} particles of {ref.particles.diameter_m * 1000:g} mm in {path.name}, x {scale:.3g}",
+        )
     raise LookupError("no shipped reference run of the same blender to scale the hold-up from; pass --holdup")
 
 
-def measured_throughput(dem_config: DemConfig, summary_file: Path = PAPER_SCALE_SUMMARY) -> tuple[float, str, int] | None:
+def measured_throughput(
+    dem_config: DemConfig, summary_file: Path = PAPER_SCALE_SUMMARY
+) -> tuple[float, str, int] | None:
     """The paper-scale probe's per-core throughput when ``dem_config`` uses the probe's
     particles (same diameter and spread) in the same vessel, with a line naming its source
     and the number of ranks it was measured on; else None."""
@@ -75,5 +82,11 @@ def measured_throughput(dem_config: DemConfig, summary_file: Path = PAPER_SCALE_
     if probe.particles != dem_config.particles or not _same_vessel(probe, dem_config):
         return None
     t = summary["throughput"]
-    return rate, (f"measured at paper scale ({summary_file.name}: {summary['np']} ranks, "
-                  f"{t['late_particles_mean']:.0f} particles held, {summary['simulated_s']:.0f} s simulated)"), int(summary["np"])
+    return (
+        rate,
+        (
+            f"measured at paper scale ({summary_file.name}: {summary['np']} ranks, "
+            f"{t['late_particles_mean']:.0f} particles held, {summary['simulated_s']:.0f} s simulated)"
+        ),
+        int(summary["np"]),
+    )

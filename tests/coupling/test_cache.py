@@ -20,7 +20,7 @@ def results(tmp_path_factory):
 
 
 def provenance(key="k1"):
-    return {"key": key, "liggghts_version": "LIGGGHTS-PUBLIC 3.8.0", "config_toml": "name = \"x\"\n", "wall_time_s": 12.5}
+    return {"key": key, "liggghts_version": "LIGGGHTS-PUBLIC 3.8.0", "config_toml": 'name = "x"\n', "wall_time_s": 12.5}
 
 
 def save(path, results, key="k1"):
@@ -112,8 +112,13 @@ def test_parts_are_generic(tmp_path, results):
     """Any side's results travel as named frames and arrays; NaN and infinity survive."""
     import pandas as pd
 
-    entry = CacheEntry(results.table, {"a": float("nan"), "b": [1, float("inf")], "c": None},
-                       {"f": pd.DataFrame({"x": [1.0, 2.0], "n": [1, 2]})}, {"v": np.arange(3)}, {"key": "g"})
+    entry = CacheEntry(
+        results.table,
+        {"a": float("nan"), "b": [1, float("inf")], "c": None},
+        {"f": pd.DataFrame({"x": [1.0, 2.0], "n": [1, 2]})},
+        {"v": np.arange(3)},
+        {"key": "g"},
+    )
     back = load_entry(save_entry(tmp_path / "g.h5", entry), key="g")
     assert np.isnan(back.summary["a"]) and back.summary["b"] == [1, float("inf")] and back.summary["c"] is None
     assert list(back.frames["f"].columns) == ["x", "n"] and back.frames["f"]["n"].tolist() == [1, 2]

@@ -30,7 +30,12 @@ def entry(tmp_path_factory):
     cfg = config()
     write_synthetic(directory, cfg)
     results = postprocess(str(directory / "dump.*.txt"), cfg, provenance={"input_hash": "abc"})
-    prov = {"key": "k1", "liggghts_version": "LIGGGHTS-PUBLIC 3.8.0", "config_toml": 'name = "x"\n', "wall_time_s": 12.5}
+    prov = {
+        "key": "k1",
+        "liggghts_version": "LIGGGHTS-PUBLIC 3.8.0",
+        "config_toml": 'name = "x"\n',
+        "wall_time_s": 12.5,
+    }
     return results.to_cache_entry(prov)
 
 
@@ -48,7 +53,9 @@ def differences(a, b) -> list[str]:
         return diff + ["frame or array names"]
     for name in a.frames:
         fa, fb = a.frames[name], b.frames[name]
-        if list(fa.columns) != list(fb.columns) or not all(_equal(fa[c].to_numpy(), fb[c].to_numpy()) for c in fa.columns):
+        if list(fa.columns) != list(fb.columns) or not all(
+            _equal(fa[c].to_numpy(), fb[c].to_numpy()) for c in fa.columns
+        ):
             diff.append(f"frame {name}")
     diff += [f"array {n}" for n in a.arrays if not _equal(a.arrays[n], b.arrays[n])]
     # the JSON text compares NaN as equal to NaN, which == on dicts does not
@@ -206,7 +213,9 @@ def test_randomly_damaged_table_files_raise_table_error_only(tmp_path, entry):
         read_table(directory)
 
 
-if __name__ == "__main__":  # python tests/coupling/test_cache_corruption.py: the same damage with and without the digest
+if (
+    __name__ == "__main__"
+):  # python tests/coupling/test_cache_corruption.py: the same damage with and without the digest
     import tempfile
     from unittest import mock
 
@@ -218,8 +227,11 @@ if __name__ == "__main__":  # python tests/coupling/test_cache_corruption.py: th
         results = postprocess(str(Path(tmp) / "dump.*.txt"), cfg, provenance={"input_hash": "abc"})
         sample = results.to_cache_entry({"key": "k1", "config_toml": 'name = "x"\n'})
         for label, check in (("digest checked", None), ("digest not checked", "off")):
-            with mock.patch.object(coupling.cache, "file_digest",
-                                   (lambda h5: h5.attrs.get(DIGEST_ATTR, "unchecked")) if check else coupling.cache.file_digest):
+            with mock.patch.object(
+                coupling.cache,
+                "file_digest",
+                (lambda h5: h5.attrs.get(DIGEST_ATTR, "unchecked")) if check else coupling.cache.file_digest,
+            ):
                 outcomes, changed, crashed = damaged_loads(sample, Path(tmp))
             print(f"{label:20s} {outcomes}, loaded changed data: {len(changed)}, other exceptions: {len(crashed)}")
 
@@ -285,19 +297,24 @@ def _foreign_table(path, entry, **changes):
     return path
 
 
-@pytest.mark.parametrize(("changes", "message"), [
-    ({"vx_pos": lambda v: v * 1e300}, r"dataset 'vx_pos' holds .*e\+29\d m/s .*values up to 100 m/s are physical"),
-    ({"vy_neg": lambda v: v + 150.0}, "dataset 'vy_neg' holds 15"),
-    ({name: (lambda v: v * 0) for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg")},
-     "every velocity is 0 in all .* compartment-windows with samples"),
-    ({"schema_version": 2.5}, r"'schema_version' = .*2\.5.* is not an integer; valid versions: \(1, 2, 3\)"),
-    ({"schema_version": "2"}, "'schema_version' = '2' .*is not an integer"),
-    ({"schema_version": True}, "is not an integer"),
-    ({"min_samples": 2.5}, "'min_samples' = 2.5 .*is not an integer"),
-    ({"count_A": lambda v: v + 1e17}, "dataset 'count_A' holds 1e\\+17"),
-    ({"x_edges": lambda v: v * 1e6}, "compartment edges within 1000 m"),
-    ({"t": lambda v: v + 1e12}, "window times within 1e\\+09 s"),
-])
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"vx_pos": lambda v: v * 1e300}, r"dataset 'vx_pos' holds .*e\+29\d m/s .*values up to 100 m/s are physical"),
+        ({"vy_neg": lambda v: v + 150.0}, "dataset 'vy_neg' holds 15"),
+        (
+            {name: (lambda v: v * 0) for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg")},
+            "every velocity is 0 in all .* compartment-windows with samples",
+        ),
+        ({"schema_version": 2.5}, r"'schema_version' = .*2\.5.* is not an integer; valid versions: \(1, 2, 3\)"),
+        ({"schema_version": "2"}, "'schema_version' = '2' .*is not an integer"),
+        ({"schema_version": True}, "is not an integer"),
+        ({"min_samples": 2.5}, "'min_samples' = 2.5 .*is not an integer"),
+        ({"count_A": lambda v: v + 1e17}, "dataset 'count_A' holds 1e\\+17"),
+        ({"x_edges": lambda v: v * 1e6}, "compartment edges within 1000 m"),
+        ({"t": lambda v: v + 1e12}, "window times within 1e\\+09 s"),
+    ],
+)
 def test_absurd_table_values_are_refused_by_name(tmp_path, entry, changes, message):
     path = _foreign_table(tmp_path / "t.h5", entry, **changes)
     with pytest.raises(TableError, match=message) as info:

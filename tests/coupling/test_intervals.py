@@ -80,13 +80,16 @@ def test_block_bootstrap_vector_statistic_and_determinism():
     assert np.all(wider.high - wider.low > result.high - result.low)
 
 
-@pytest.mark.parametrize("kwargs, word", [
-    ({"data_blocks": np.zeros(5)}, "two distinct blocks"),
-    ({"data_blocks": np.zeros((2, 2))}, "data_blocks"),
-    ({"data_blocks": []}, "data_blocks"),
-    ({"data_blocks": [0, 1], "n_boot": 0}, "n_boot"),
-    ({"data_blocks": [0, 1], "level": 95}, "level"),
-])
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        ({"data_blocks": np.zeros(5)}, "two distinct blocks"),
+        ({"data_blocks": np.zeros((2, 2))}, "data_blocks"),
+        ({"data_blocks": []}, "data_blocks"),
+        ({"data_blocks": [0, 1], "n_boot": 0}, "n_boot"),
+        ({"data_blocks": [0, 1], "level": 95}, "level"),
+    ],
+)
 def test_block_bootstrap_refuses_bad_arguments(kwargs, word):
     with pytest.raises(ValueError, match=word):
         block_bootstrap(lambda idx: 0.0, **kwargs)
@@ -128,8 +131,12 @@ def test_overlap_noise_band_tends_to_one_and_matches_a_direct_sample():
 def test_overlap_noise_band_is_deterministic_and_checks_arguments():
     e = _exponential_density()
     assert overlap_noise_band(e, 1.0, 100, seed=5) == overlap_noise_band(e, 1.0, 100, seed=5)
-    for kwargs, word in [({"n_particles": 0}, "n_particles"), ({"draws": 0}, "draws"),
-                         ({"level": 0.0}, "level"), ({"bin_s": -1.0}, "bin_s")]:
+    for kwargs, word in [
+        ({"n_particles": 0}, "n_particles"),
+        ({"draws": 0}, "draws"),
+        ({"level": 0.0}, "level"),
+        ({"bin_s": -1.0}, "bin_s"),
+    ]:
         args = {"density": e, "bin_s": 1.0, "n_particles": 100, **kwargs}
         with pytest.raises(ValueError, match=word):
             overlap_noise_band(**args)

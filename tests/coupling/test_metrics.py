@@ -34,7 +34,8 @@ def test_rsd_sample_statistic_and_empty_compartments():
     # fewer than EMPTY_BELOW (one) particle expected counts as empty
     assert EMPTY_BELOW == 1.0
     assert rsd(np.array([0.3, 1.0, 3.0]), np.array([0.0, 3.0, 1.0])) == pytest.approx(
-        np.std([0.25, 0.75], ddof=1) / 0.5)
+        np.std([0.25, 0.75], ddof=1) / 0.5
+    )
 
 
 def test_rsd_along_an_axis_equals_one_call_per_row(rng):
@@ -99,8 +100,16 @@ def test_dem_and_pbm_give_the_same_cqas_for_the_same_counts(tmp_path):
 
     cfg = DemConfig(tables=TablesConfig(nx=2, ny=2, window_s=1.0, sample_interval_s=1.0, min_samples=1))
     # slice 1 (x > L/2): 3 A + 1 B at j = 0, 1 A + 1 B at j = 1; slice 0: 2 A at j = 1
-    rows = [(1, 1, 0.2, -0.02), (2, 1, 0.2, -0.02), (3, 1, 0.2, -0.02), (4, 2, 0.2, -0.02),
-            (5, 1, 0.2, 0.02), (6, 2, 0.2, 0.02), (7, 1, 0.05, 0.02), (8, 1, 0.05, 0.02)]
+    rows = [
+        (1, 1, 0.2, -0.02),
+        (2, 1, 0.2, -0.02),
+        (3, 1, 0.2, -0.02),
+        (4, 2, 0.2, -0.02),
+        (5, 1, 0.2, 0.02),
+        (6, 2, 0.2, 0.02),
+        (7, 1, 0.05, 0.02),
+        (8, 1, 0.05, 0.02),
+    ]
     data = np.array([(i, t, x, y, 0, 0, 0, 0, 0.003) for i, t, x, y in rows], dtype=float)
     step = int(round(1.0 / cfg.timestep_s))
     columns = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
@@ -112,8 +121,9 @@ def test_dem_and_pbm_give_the_same_cqas_for_the_same_counts(tmp_path):
     counts[1, 1] = [1, 1]
     counts[0, 0, 1] = 2
     table = make_table([0.0], [0, 0.165, 0.33], [-0.05, 0, 0.05], 0, 0, 0, 0)
-    pbm = simulate(table, PbmConfig(feed_rate_a_per_s=0, feed_rate_b_per_s=0, duration_s=1.0),
-                   initial_counts=counts).summary
+    pbm = simulate(
+        table, PbmConfig(feed_rate_a_per_s=0, feed_rate_b_per_s=0, duration_s=1.0), initial_counts=counts
+    ).summary
     assert pbm["final_rsd_outlet"] == pytest.approx(dem.final_rsd_outlet)
     assert pbm["final_rsd_blender"] == pytest.approx(dem.final_rsd_blender)
 
@@ -175,14 +185,17 @@ def test_sampled_rsd_shapes_determinism_and_empty_rule():
     assert sampled_lacey([1.0, 1.0, 0.0, 0.0], 10, draws=5) == pytest.approx(0.0)
 
 
-@pytest.mark.parametrize("kwargs, word", [
-    ({"fraction_a": [0.5, 1.5], "totals": [5, 5]}, "fraction_a"),
-    ({"fraction_a": [0.5, np.nan], "totals": [5, 5]}, "fraction_a"),
-    ({"fraction_a": [0.5, 0.5], "totals": [5, -1]}, "totals"),
-    ({"fraction_a": [0.5, 0.5, 0.5], "totals": [5, 5]}, "broadcast"),
-    ({"fraction_a": 0.5, "totals": 5}, "compartments"),
-    ({"fraction_a": [0.5, 0.5], "totals": [5, 5], "draws": 0}, "draws"),
-])
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        ({"fraction_a": [0.5, 1.5], "totals": [5, 5]}, "fraction_a"),
+        ({"fraction_a": [0.5, np.nan], "totals": [5, 5]}, "fraction_a"),
+        ({"fraction_a": [0.5, 0.5], "totals": [5, -1]}, "totals"),
+        ({"fraction_a": [0.5, 0.5, 0.5], "totals": [5, 5]}, "broadcast"),
+        ({"fraction_a": 0.5, "totals": 5}, "compartments"),
+        ({"fraction_a": [0.5, 0.5], "totals": [5, 5], "draws": 0}, "draws"),
+    ],
+)
 def test_sampled_rsd_refuses_bad_arguments(kwargs, word):
     with pytest.raises(ValueError, match=word):
         sampled_rsd(**kwargs)
@@ -226,14 +239,17 @@ def test_pooled_rtd_edge_cases():
     assert list(rtd.residence_s) == [10.0] and list(rtd.entry_s) == [6.0]
 
 
-@pytest.mark.parametrize("args, word", [
-    (([0.0, 1.0], [2.0], (0, 1), 5.0), "entry_t and exit_t"),
-    (([np.nan], [2.0], (0, 1), 5.0), "entry_t"),
-    (([1.0], [0.5], (0, 1), 5.0), "exit_t"),
-    (([1.0], [2.0], (1, 1), 5.0), "entry_window"),
-    (([1.0], [2.0], 3.0, 5.0), "entry_window"),
-    (([1.0], [2.0], (0, 1), 0.0), "horizon_s"),
-])
+@pytest.mark.parametrize(
+    "args, word",
+    [
+        (([0.0, 1.0], [2.0], (0, 1), 5.0), "entry_t and exit_t"),
+        (([np.nan], [2.0], (0, 1), 5.0), "entry_t"),
+        (([1.0], [0.5], (0, 1), 5.0), "exit_t"),
+        (([1.0], [2.0], (1, 1), 5.0), "entry_window"),
+        (([1.0], [2.0], 3.0, 5.0), "entry_window"),
+        (([1.0], [2.0], (0, 1), 0.0), "horizon_s"),
+    ],
+)
 def test_pooled_rtd_refuses_bad_arguments(args, word):
     with pytest.raises(ValueError, match=word):
         rtd_pooled(*args)
@@ -252,13 +268,16 @@ def test_rtd_density_is_normalised_on_whole_bins():
     assert np.allclose(rtd_bin_edges(0.5, 2.0), [0, 0.5, 1, 1.5, 2])
 
 
-@pytest.mark.parametrize("args, kwargs, word", [
-    (([1.0], 1.0, 2.5), {}, "whole number of bins"),
-    (([1.0], 0.0, 2.0), {}, "bin_s"),
-    (([1.0], 1.0, -2.0), {}, "horizon_s"),
-    (([3.0], 1.0, 2.0), {}, "residence_times"),
-    (([1.0], 1.0, 2.0), {"weights": [1.0, 2.0]}, "weights"),
-])
+@pytest.mark.parametrize(
+    "args, kwargs, word",
+    [
+        (([1.0], 1.0, 2.5), {}, "whole number of bins"),
+        (([1.0], 0.0, 2.0), {}, "bin_s"),
+        (([1.0], 1.0, -2.0), {}, "horizon_s"),
+        (([3.0], 1.0, 2.0), {}, "residence_times"),
+        (([1.0], 1.0, 2.0), {"weights": [1.0, 2.0]}, "weights"),
+    ],
+)
 def test_rtd_density_refuses_bad_arguments(args, kwargs, word):
     with pytest.raises(ValueError, match=word):
         rtd_density(*args, **kwargs)
@@ -282,14 +301,17 @@ def test_rtd_overlap_limits():
 # --- Wilson interval -------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("k, n, low, high", [
-    # Newcombe (1998), Stat. Med. 17:857, Table I, method 3 (Wilson score, no correction)
-    (81, 263, 0.2553, 0.3662),
-    (15, 148, 0.0624, 0.1605),
-    (0, 20, 0.0, 0.1611),
-    (1, 29, 0.0061, 0.1718),
-    (5, 10, 0.2366, 0.7634),
-])
+@pytest.mark.parametrize(
+    "k, n, low, high",
+    [
+        # Newcombe (1998), Stat. Med. 17:857, Table I, method 3 (Wilson score, no correction)
+        (81, 263, 0.2553, 0.3662),
+        (15, 148, 0.0624, 0.1605),
+        (0, 20, 0.0, 0.1611),
+        (1, 29, 0.0061, 0.1718),
+        (5, 10, 0.2366, 0.7634),
+    ],
+)
 def test_wilson_interval_known_values(k, n, low, high):
     lo, hi = binomial_interval(k, n)
     assert lo == pytest.approx(low, abs=1e-4) and hi == pytest.approx(high, abs=1e-4)

@@ -178,6 +178,17 @@ def test_rates_of_the_wrong_shape_are_refused_by_name(rng):
 
 
 def test_make_table_broadcasts_rates(rng):
-    table = make_table(t=[0.0, 5.0], x_edges=[0, 0.1, 0.2], y_edges=[-0.05, 0.05], vx_pos=0.01, vx_neg=0, vy_pos=0,
-                       vy_neg=0, rate_x_pos=0.1, rate_x_neg=np.nan, rate_y_pos=0, rate_y_neg=0)
+    table = make_table(
+        t=[0.0, 5.0],
+        x_edges=[0, 0.1, 0.2],
+        y_edges=[-0.05, 0.05],
+        vx_pos=0.01,
+        vx_neg=0,
+        vy_pos=0,
+        vy_neg=0,
+        rate_x_pos=0.1,
+        rate_x_neg=np.nan,
+        rate_y_pos=0,
+        rate_y_neg=0,
+    )
     assert table.rate_x_pos.shape == (2, 2, 1) and np.isnan(table.rate_x_neg).all()

@@ -59,7 +59,7 @@ def test_deck_is_deterministic_and_hash_tracks_content():
 
 def _fix_values(deck: str, name: str) -> list[float]:
     line = next(ln for ln in deck.splitlines() if f" {name} " in ln and ln.startswith("fix"))
-    return [float(v) for v in line.split()[-9 if "peratomtypepair" in line else -3:]]
+    return [float(v) for v in line.split()[-9 if "peratomtypepair" in line else -3 :]]
 
 
 def test_table_1_values():
@@ -91,7 +91,9 @@ def test_feed_rates_and_split():
     assert float(rates["A"]) == pytest.approx(995.0) and float(rates["B"]) == pytest.approx(995.0)
     assert "particletemplate/sphere" in deck and "atom_type 1" in deck and "atom_type 2" in deck
     uneven = dem.model_copy(update={"operation": dem.operation.model_copy(update={"feed_fraction_a": 0.25})})
-    rates = dict(re.findall(r"fix ins([AB]) g\1 insert/rate/region .* particlerate (\S+)", build_deck(uneven)[MAIN_DECK]))
+    rates = dict(
+        re.findall(r"fix ins([AB]) g\1 insert/rate/region .* particlerate (\S+)", build_deck(uneven)[MAIN_DECK])
+    )
     assert float(rates["A"]) == pytest.approx(497.5) and float(rates["B"]) == pytest.approx(1492.5)
 
 
@@ -120,7 +122,10 @@ def test_one_template_when_sd_is_zero():
 def test_deck_text_size_distribution_matches_target(name):
     dem = load_preset(name).dem
     deck = build_deck(dem)[MAIN_DECK]
-    radii = {m[0]: float(m[1]) for m in re.findall(r"fix (ptA\d+) all particletemplate/sphere .* radius constant (\S+)", deck)}
+    radii = {
+        m[0]: float(m[1])
+        for m in re.findall(r"fix (ptA\d+) all particletemplate/sphere .* radius constant (\S+)", deck)
+    }
     line = next(ln for ln in deck.splitlines() if "pddA all particledistribution" in ln).split()
     pairs = line[6:]
     d = np.array([2 * radii[pairs[i]] for i in range(0, len(pairs), 2)])
@@ -149,9 +154,7 @@ def test_resume_deck_reads_restart_and_keeps_steps_continuous():
 def test_thermo_header_is_the_documented_one():
     deck = build_deck(load_preset("smoke").dem)[MAIN_DECK]
     line = next(ln for ln in deck.splitlines() if ln.startswith("thermo_style"))
-    assert [c.capitalize() if c in ("step", "atoms") else c[2:] for c in line.split()[2:]] == list(
-        THERMO_COLUMNS
-    )
+    assert [c.capitalize() if c in ("step", "atoms") else c[2:] for c in line.split()[2:]] == list(THERMO_COLUMNS)
 
 
 def test_deck_without_dumps_differs_only_by_the_dump_command():
@@ -162,7 +165,8 @@ def test_deck_without_dumps_differs_only_by_the_dump_command():
         kept = [line for line in with_dumps[name].splitlines() if not line.startswith("dump ")]
         assert without[name].splitlines() == kept and len(kept) == len(with_dumps[name].splitlines()) - 1
     assert {k: v for k, v in without.items() if k not in (MAIN_DECK, RESUME_DECK)} == {
-        k: v for k, v in with_dumps.items() if k not in (MAIN_DECK, RESUME_DECK)}
+        k: v for k, v in with_dumps.items() if k not in (MAIN_DECK, RESUME_DECK)
+    }
 
 
 @pytest.mark.parametrize(
@@ -248,23 +252,29 @@ def test_liggghts_smoke_inserts_and_restart_resumes(tmp_path):
     """A short smoke run: particles inserted at the configured rate, a restart written, and
     the resume deck continues from it with continuous steps."""
     dem = load_preset("smoke").dem
-    dem = dem.model_copy(update={
-        "operation": dem.operation.model_copy(update={"duration_s": 1.0}),
-        "numerics": dem.numerics.model_copy(update={"restart_interval_s": 0.5}),
-    })
+    dem = dem.model_copy(
+        update={
+            "operation": dem.operation.model_copy(update={"duration_s": 1.0}),
+            "numerics": dem.numerics.model_copy(update={"restart_interval_s": 0.5}),
+        }
+    )
     info = deck_parameters(dem)
     restart_step = info["restart_every_steps"]
     files = build_deck(dem, resume_from=f"restart/restart.{restart_step}.bin")
     write_deck(files, tmp_path)
     out = _run_liggghts(tmp_path, MAIN_DECK)
-    rows = [ln.split() for ln in out.splitlines() if re.match(r"^\s+\d+\s", ln) and len(ln.split()) == len(THERMO_COLUMNS)]
+    rows = [
+        ln.split() for ln in out.splitlines() if re.match(r"^\s+\d+\s", ln) and len(ln.split()) == len(THERMO_COLUMNS)
+    ]
     last = dict(zip(THERMO_COLUMNS, map(float, rows[-1])))
     expected = dem.operation.feed_rate_total_per_s * 1.0
     inserted = last["insA"] + last["insB"]
     assert abs(inserted - expected) <= 0.15 * expected + 4
     assert (tmp_path / f"restart/restart.{restart_step}.bin").exists()
     out2 = _run_liggghts(tmp_path, RESUME_DECK, log="log.resume.liggghts")
-    rows2 = [ln.split() for ln in out2.splitlines() if re.match(r"^\s+\d+\s", ln) and len(ln.split()) == len(THERMO_COLUMNS)]
+    rows2 = [
+        ln.split() for ln in out2.splitlines() if re.match(r"^\s+\d+\s", ln) and len(ln.split()) == len(THERMO_COLUMNS)
+    ]
     assert int(rows2[0][0]) == restart_step and int(rows2[-1][0]) == info["end_step"]
     assert float(rows2[-1][1]) == pytest.approx(1.0, abs=2 * info["timestep_s"])
     for fname in MASSFLOW_FILES.values():

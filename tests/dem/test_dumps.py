@@ -29,7 +29,11 @@ def test_per_snapshot_files_natural_order_and_values(tmp_path, rng):
         expected[step] = data
         (tmp_path / f"dump.{step}.txt").write_bytes(format_snapshot(step, COLUMNS, data))
     assert [p.name for p in dump_paths(str(tmp_path / "dump.*.txt"))] == [
-        "dump.0.txt", "dump.900.txt", "dump.1000.txt", "dump.10000.txt"]
+        "dump.0.txt",
+        "dump.900.txt",
+        "dump.1000.txt",
+        "dump.10000.txt",
+    ]
     snaps = list(iter_snapshots(str(tmp_path / "dump.*.txt")))
     assert [s.step for s in snaps] == [0, 900, 1000, 10000]
     for snap in snaps:
@@ -118,7 +122,9 @@ def test_missing_field_names_the_line(tmp_path, rng):
 
 def test_bad_header_and_extra_lines(tmp_path, rng):
     path = tmp_path / "bad.txt"
-    path.write_text(format_snapshot(0, COLUMNS, _data(rng, 2)).decode().replace("NUMBER OF ATOMS", "NUMBER OF PARTICLES"))
+    path.write_text(
+        format_snapshot(0, COLUMNS, _data(rng, 2)).decode().replace("NUMBER OF ATOMS", "NUMBER OF PARTICLES")
+    )
     with pytest.raises(DumpFormatError, match=r"bad\.txt: line 3: expected 'ITEM: NUMBER OF ATOMS'"):
         read_snapshot_file(path)
     text = format_snapshot(0, COLUMNS, _data(rng, 2)).decode().replace("ATOMS\n2\n", "ATOMS\n1\n")
@@ -177,8 +183,11 @@ def test_real_dump_truncated_by_a_kill(tmp_path):
         assert [s.step for s in iter_snapshots(str(tmp_path / "dump.*.txt"))] == [21200, 23320]
 
 
-def _one_snapshot(tmp_path, name="bad.txt", rows=((1, 1, 0.1, 0.0, 0.0, 0.1, 0.0, 0.0, 0.003),
-                                                  (2, 2, 0.2, 0.01, 0.0, 0.2, 0.0, 0.0, 0.003))):
+def _one_snapshot(
+    tmp_path,
+    name="bad.txt",
+    rows=((1, 1, 0.1, 0.0, 0.0, 0.1, 0.0, 0.0, 0.003), (2, 2, 0.2, 0.01, 0.0, 0.2, 0.0, 0.0, 0.003)),
+):
     path = tmp_path / name
     path.write_bytes(format_snapshot(7, COLUMNS, np.array(rows, dtype=float)))
     return path
@@ -220,8 +229,9 @@ def test_inf_in_a_column_nobody_uses_is_read(tmp_path):
         read_snapshot_file(path)  # no columns named: every column must be finite
 
 
-@pytest.mark.parametrize("line", [b"-0.005", b"0.35 -0.005", b"0.1 0.1", b"-0.005 inf", b"nan 0.35",
-                                  b"-0.005 0.35 0.0", b"a b", b""])
+@pytest.mark.parametrize(
+    "line", [b"-0.005", b"0.35 -0.005", b"0.1 0.1", b"-0.005 inf", b"nan 0.35", b"-0.005 0.35 0.0", b"a b", b""]
+)
 def test_box_bounds_need_two_finite_numbers_lo_below_hi(tmp_path, line):
     path = _one_snapshot(tmp_path)
     _replace_line(path, 6, line)
@@ -241,8 +251,10 @@ def test_triclinic_box_bounds_are_read(tmp_path):
         read_snapshot_file(path)
 
 
-@pytest.mark.parametrize("column, value", [("id", b"-3"), ("id", b"0"), ("id", b"1.5"), ("id", b"1e20"),
-                                           ("type", b"0"), ("type", b"2.5"), ("type", b"3e9")])
+@pytest.mark.parametrize(
+    "column, value",
+    [("id", b"-3"), ("id", b"0"), ("id", b"1.5"), ("id", b"1e20"), ("type", b"0"), ("type", b"2.5"), ("type", b"3e9")],
+)
 def test_ids_and_types_must_be_positive_integers(tmp_path, column, value):
     path = _one_snapshot(tmp_path)
     fields = path.read_bytes().split(b"\n")[9].split(b" ")

@@ -27,20 +27,67 @@ N_VARIANTS = 2000
 SEED = 20261123
 HEADER_LINES = 9
 
-SUBSTITUTES = [b"0", b"7", b"9", b"-", b".", b"e", b"E", b"+", b"x", b"a", b" ", b"\n", b"\t", b"\r",
-               b"inf", b"-inf", b"nan", b"NaN", b"Infinity", b"\xff", b"\x80", b"\xc3", b"\xe2\x82", b"\x00",
-               b"9e12", b"1e308", b"1e400", b"-1", b"0.5"]
+SUBSTITUTES = [
+    b"0",
+    b"7",
+    b"9",
+    b"-",
+    b".",
+    b"e",
+    b"E",
+    b"+",
+    b"x",
+    b"a",
+    b" ",
+    b"\n",
+    b"\t",
+    b"\r",
+    b"inf",
+    b"-inf",
+    b"nan",
+    b"NaN",
+    b"Infinity",
+    b"\xff",
+    b"\x80",
+    b"\xc3",
+    b"\xe2\x82",
+    b"\x00",
+    b"9e12",
+    b"1e308",
+    b"1e400",
+    b"-1",
+    b"0.5",
+]
 HEADER_EDITS = [
     # (header line index, replacement)
-    (1, b"-5"), (1, b"1e3"), (1, b"99999999999999999999"), (1, b"\xff\xfe"),
-    (3, b"0"), (3, b"-1"), (3, b"1000000000000"), (3, b"72"), (3, b"74"),
-    (4, b"ITEM: BOX BOUNDS xy xz yz ff ff ff"), (4, b"ITEM: BOX BOUNDS \xff\xfe ff"),
-    (5, b"-0.005"), (5, b"0.35 -0.005"), (5, b"-0.005 inf"), (5, b"nan 0.35"), (5, b"-0.005 0.35 0.0"),
-    (6, b""), (6, b"0.1 0.1"), (7, b"-0.055 0.055 0.01 7"), (7, b"a b"),
-    (8, b"ITEM: ATOMS id type x y z vx vy vz"), (8, b"ITEM: ATOMS id id x y z vx vy vz radius"),
-    (8, b"ITEM: ATOMS id type x y z vx vy"), (8, b"ITEM: ATOMS id type x \xff z vx vy vz radius"),
-    (8, b"ITEM: ATOMS"), (8, b"ITEM: ATOMS type id x y z vx vy vz radius extra"),
-    (0, b"ITEM: TIMESTEPS"), (2, b"ITEM: NUMBER OF ATOMS \xc3"),
+    (1, b"-5"),
+    (1, b"1e3"),
+    (1, b"99999999999999999999"),
+    (1, b"\xff\xfe"),
+    (3, b"0"),
+    (3, b"-1"),
+    (3, b"1000000000000"),
+    (3, b"72"),
+    (3, b"74"),
+    (4, b"ITEM: BOX BOUNDS xy xz yz ff ff ff"),
+    (4, b"ITEM: BOX BOUNDS \xff\xfe ff"),
+    (5, b"-0.005"),
+    (5, b"0.35 -0.005"),
+    (5, b"-0.005 inf"),
+    (5, b"nan 0.35"),
+    (5, b"-0.005 0.35 0.0"),
+    (6, b""),
+    (6, b"0.1 0.1"),
+    (7, b"-0.055 0.055 0.01 7"),
+    (7, b"a b"),
+    (8, b"ITEM: ATOMS id type x y z vx vy vz"),
+    (8, b"ITEM: ATOMS id id x y z vx vy vz radius"),
+    (8, b"ITEM: ATOMS id type x y z vx vy"),
+    (8, b"ITEM: ATOMS id type x \xff z vx vy vz radius"),
+    (8, b"ITEM: ATOMS"),
+    (8, b"ITEM: ATOMS type id x y z vx vy vz radius extra"),
+    (0, b"ITEM: TIMESTEPS"),
+    (2, b"ITEM: NUMBER OF ATOMS \xc3"),
 ]
 
 
@@ -52,8 +99,7 @@ def config():
 
 def mutate(data: bytes, rng: random.Random) -> tuple[str, bytes]:
     """One corrupted copy of ``data`` and the name of the corruption."""
-    kind = rng.choice(["flip", "flip", "sub", "sub", "sub", "truncate", "dup", "delete", "header", "header",
-                       "multi"])
+    kind = rng.choice(["flip", "flip", "sub", "sub", "sub", "truncate", "dup", "delete", "header", "header", "multi"])
     buf = bytearray(data)
     if kind == "flip":
         for _ in range(rng.randint(1, 3)):
@@ -81,8 +127,9 @@ def mutate(data: bytes, rng: random.Random) -> tuple[str, bytes]:
         lines = bytes(buf).split(b"\n")
         at = rng.randrange(HEADER_LINES, len(lines) - 1)
         fields = lines[at].split(b" ")
-        fields[rng.randrange(len(fields) - 1)] = rng.choice([b"inf", b"-inf", b"nan", b"9e12", b"-3", b"1.5",
-                                                              b"0", b"1e300", b"2147483648"])
+        fields[rng.randrange(len(fields) - 1)] = rng.choice(
+            [b"inf", b"-inf", b"nan", b"9e12", b"-3", b"1.5", b"0", b"1e300", b"2147483648"]
+        )
         lines[at] = b" ".join(fields)
         buf = bytearray(b"\n".join(lines))
     return kind, bytes(buf)
@@ -95,7 +142,7 @@ def run_variant(index: int, directory: Path, cfg: DemConfig) -> str:
     which = rng.randrange(len(originals))
     kind, corrupted = mutate(originals[which], rng)
     paths = []
-    for k, original in enumerate(originals):
+    for k, _original in enumerate(originals):
         if k == which:
             path = directory / f"variant.{k}.txt"
             path.write_bytes(corrupted)
@@ -157,8 +204,11 @@ def test_duplicate_atom_ids_are_refused_naming_file_step_and_id(tmp_path, varian
     paths[which] = tmp_path / SMOKE[which].name
     paths[which].write_bytes(_with_duplicates(data, rows))
     step = int(data.split(b"\n")[1])
-    with pytest.raises(DumpFormatError, match=rf"{SMOKE[which].name}: line \d+: snapshot at step {step} lists atom id "
-                                              rf"\d+ twice \(lines \d+ and \d+\)") as info:
+    with pytest.raises(
+        DumpFormatError,
+        match=rf"{SMOKE[which].name}: line \d+: snapshot at step {step} lists atom id "
+        rf"\d+ twice \(lines \d+ and \d+\)",
+    ) as info:
         postprocess(paths, config())
     assert "\n" not in str(info.value)
 
@@ -186,7 +236,9 @@ def _dump_files(directory: Path, snapshots) -> None:
     dt = config().timestep_s
     for t, rows in snapshots:
         step = int(round(t / dt))
-        (directory / f"dump.{step}.txt").write_bytes(format_snapshot(step, columns, np.array(rows, float).reshape(-1, 9)))
+        (directory / f"dump.{step}.txt").write_bytes(
+            format_snapshot(step, columns, np.array(rows, float).reshape(-1, 9))
+        )
 
 
 def test_positions_outside_the_vessel_and_ids_after_discharge_are_counted(tmp_path):
@@ -197,8 +249,12 @@ def test_positions_outside_the_vessel_and_ids_after_discharge_are_counted(tmp_pa
     outside = (3, 1, 0.1, 0.0, 0.08, 0.1, 0, 0, 0.003)  # r = 80 mm in a 50 mm barrel
     _dump_files(tmp_path, [(t, rows([outside] if t < 1.0 else [])) for t in np.arange(0.0, 5.01, 0.5)])
     (tmp_path / "discharge_A.txt").write_text("# id time\n2 2.0\n")  # id 2 is in every dump, to 5 s
-    res = postprocess(str(tmp_path / "dump.*.txt"), config(), massflow_dir=tmp_path,
-                      solver_counters={"atoms": 3, "step": int(round(5.0 / config().timestep_s))})
+    res = postprocess(
+        str(tmp_path / "dump.*.txt"),
+        config(),
+        massflow_dir=tmp_path,
+        solver_counters={"atoms": 3, "step": int(round(5.0 / config().timestep_s))},
+    )
     s = res.summary.record()  # the stored record: accounting keys and the new counts, by name
     assert s["positions_outside_vessel"] == 2  # id 3 at t = 0 and 0.5 s
     assert s["ids_seen_after_discharge"] == 1
@@ -215,23 +271,31 @@ def test_windows_longer_than_the_dumps_and_a_missing_massflow_dir_are_refused(tm
     row = [(1, 1, 0.1, 0.0, -0.02, 0.1, 0, 0, 0.003)]
     _dump_files(tmp_path, [(t, row) for t in np.arange(0.5, 3.01, 0.5)])
     long = DemConfig(tables=TablesConfig(nx=4, ny=2, window_s=100.0, sample_interval_s=1.0, min_samples=1))
-    with pytest.raises(ConfigError, match=r"tables\.window_s = 100 s is longer than the dumps, which end at t = 3 s.*"
-                                          r"choose tables\.window_s <= 3 s"):
+    with pytest.raises(
+        ConfigError,
+        match=r"tables\.window_s = 100 s is longer than the dumps, which end at t = 3 s.*"
+        r"choose tables\.window_s <= 3 s",
+    ):
         postprocess(str(tmp_path / "dump.*.txt"), long)
     with pytest.raises(ConfigError, match=r"massflow directory .*nowhere does not exist"):
         postprocess(str(tmp_path / "dump.*.txt"), config(), massflow_dir=tmp_path / "nowhere")
 
 
-@pytest.mark.parametrize(("nx", "message"), [
-    (100_000, r"needs about .*TiB of memory; this machine has"),
-    (200, r"measured-rate fit of tables\.nx x tables\.ny = 200 x 10 .*would take about .*limit 4\.0 h"),
-])
+@pytest.mark.parametrize(
+    ("nx", "message"),
+    [
+        (100_000, r"needs about .*TiB of memory; this machine has"),
+        (200, r"measured-rate fit of tables\.nx x tables\.ny = 200 x 10 .*would take about .*limit 4\.0 h"),
+    ],
+)
 def test_grids_that_cannot_be_held_or_fitted_are_refused_before_reading(tmp_path, nx, message):
     from coupling.errors import ResourceLimitError
     from dem.config import OperationConfig
 
-    big = DemConfig(operation=OperationConfig(duration_s=40.0),
-                    tables=TablesConfig(nx=nx, ny=10, window_s=5.0, sample_interval_s=1.0, min_samples=1))
+    big = DemConfig(
+        operation=OperationConfig(duration_s=40.0),
+        tables=TablesConfig(nx=nx, ny=10, window_s=5.0, sample_interval_s=1.0, min_samples=1),
+    )
     with pytest.raises(ResourceLimitError, match=message) as info:
         postprocess(str(tmp_path / "no-dumps-needed.*.txt"), big)
     assert "\n" not in str(info.value)

@@ -60,8 +60,9 @@ def test_blades_alternate_and_sit_between_feed_and_weir():
 def test_forward_blade_leading_face_pushes_towards_outlet():
     # One F paddle at azimuth 0 (pointing +y): it moves along +z under positive rotation
     # about +x; the normal of its leading face must have a +x component.
-    g = GeometryConfig(blade_stations=1, first_blade_x_m=0.1, last_blade_x_m=0.1, blades_per_station=1,
-                       blade_pattern="F")
+    g = GeometryConfig(
+        blade_stations=1, first_blade_x_m=0.1, last_blade_x_m=0.1, blades_per_station=1, blade_pattern="F"
+    )
     c = blade_meshes(g).corners[0]
     n = np.cross(c[1] - c[0], c[2] - c[0])
     n = n if n[2] > 0 else -n  # leading face: the side moving into the powder (+z here)
@@ -84,8 +85,9 @@ def test_stl_round_trip(tmp_path):
         assert path.read_text().startswith("solid")
         back = read_stl(path)
         assert len(back.triangles) == len(mesh.triangles)
-        np.testing.assert_allclose(np.sort(back.corners.reshape(-1, 3), axis=0),
-                                   np.sort(mesh.corners.reshape(-1, 3), axis=0), atol=1e-9)
+        np.testing.assert_allclose(
+            np.sort(back.corners.reshape(-1, 3), axis=0), np.sort(mesh.corners.reshape(-1, 3), axis=0), atol=1e-9
+        )
         check_mesh(back, geo.box)
         assert stl_text(mesh) == path.read_text()
 

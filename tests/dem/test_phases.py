@@ -54,8 +54,7 @@ def exact_rtd_moments(model: PhaseTransport, entry_cells: np.ndarray, feeder_sha
     """Mean [s] and variance [s^2] of the time to absorption from the entry distribution
     (no truncation): from the fundamental matrix, m1 = v T 1, m2 = 2 v T^2 1, T = (-Q_tt)^-1."""
     k, s = model.n_phases, model.n_cells
-    v = sum(share * (entry_cells[f][:, None] * model.entry[f][None, :]).ravel()
-            for f, share in enumerate(feeder_share))
+    v = sum(share * (entry_cells[f][:, None] * model.entry[f][None, :]).ravel() for f, share in enumerate(feeder_share))
     v = v / v.sum()
     q = model.generator()[:-1, :-1]
     t1 = np.linalg.solve(-q, np.ones(s * k))
@@ -100,7 +99,7 @@ def test_padded_and_run_length_decoding_agree(synthetic_two_phase):
     chosen = np.arange(0, sequences.n_particles, 37)
     padded = sequences.padded(chosen)
     for row, states in zip(padded, sequences.states(chosen)):
-        assert np.array_equal(row[: states.size], states) and np.all(row[states.size:] == -1)
+        assert np.array_equal(row[: states.size], states) and np.all(row[states.size :] == -1)
 
 
 # ----------------------------------------------------------------------------- estimator
@@ -170,8 +169,12 @@ def test_chapman_kolmogorov_tells_markovian_from_hidden_phases(synthetic_two_pha
     assert not one_on_two.chapman_kolmogorov(data).passed
     assert fit_two.chapman_kolmogorov(data).passed
     # a chain that is Markovian on the compartments: its own K = 1 fit passes
-    markov = PhaseTransport(truth.rates[:1] * 0 + np.array([2.0, 1.2, 0, 0])[None, :, None, None],
-                            np.zeros((1, 1, NX, 1)), np.ones((2, 1)), INTERVAL)
+    markov = PhaseTransport(
+        truth.rates[:1] * 0 + np.array([2.0, 1.2, 0, 0])[None, :, None, None],
+        np.zeros((1, 1, NX, 1)),
+        np.ones((2, 1)),
+        INTERVAL,
+    )
     markov_data = phases.prepare(phases.simulate_sequences(markov, inlet(), 6000, 2400, np.random.default_rng(3)))
     test = phases.fit(markov_data, 1).chapman_kolmogorov(markov_data)
     assert test.passed and test.max_abs_error() < 0.02
@@ -191,8 +194,9 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="n_phases = 0"):
         phases.fit(data, 0)
     with pytest.raises(ValueError, match="no particle entered"):
-        phases.prepare(phases.simulate_sequences(two_phase_model(), inlet(), 50, 100, np.random.default_rng(0)),
-                       (1e3, 2e3))
+        phases.prepare(
+            phases.simulate_sequences(two_phase_model(), inlet(), 50, 100, np.random.default_rng(0)), (1e3, 2e3)
+        )
     with pytest.raises(ValueError, match="does not divide"):
         phases.coarsen(np.zeros(3, np.int16), 10, 10, 3, 1)
 
@@ -212,8 +216,16 @@ def test_phase_model_validation_names_the_field():
 
 def table_with(model: PhaseTransport | None, ny: int = 1, rates=None):
     rates = rates or {}
-    return make_table(np.arange(0.0, 200.0, 5.0), np.linspace(0, 0.33, NX + 1), np.linspace(-0.05, 0.05, ny + 1),
-                      0.01, 0.01, 0.0, 0.0, **rates).replace(phases=model)
+    return make_table(
+        np.arange(0.0, 200.0, 5.0),
+        np.linspace(0, 0.33, NX + 1),
+        np.linspace(-0.05, 0.05, ny + 1),
+        0.01,
+        0.01,
+        0.0,
+        0.0,
+        **rates,
+    ).replace(phases=model)
 
 
 def test_schema_3_round_trip_and_schema_2_unchanged(tmp_path):
@@ -253,8 +265,13 @@ def test_pbm_one_phase_equals_measured():
         cfg = PbmConfig(rates=mode, feed_rate_a_per_s=40.0, feed_rate_b_per_s=40.0)
         res = simulate(table, cfg)
         rtd = pooled_rtd(table, cfg, (30.0, 60.0), 100.0)
-        out[mode] = (res.summary["mean_residence_time_s"], res.summary["rtd_variance_s2"], res.counts[-1],
-                     rtd.mean_s, rtd.variance_s2)
+        out[mode] = (
+            res.summary["mean_residence_time_s"],
+            res.summary["rtd_variance_s2"],
+            res.counts[-1],
+            rtd.mean_s,
+            rtd.variance_s2,
+        )
     for a, b in zip(out["measured"], out["phases"]):
         np.testing.assert_allclose(a, b, rtol=1e-9)
 

@@ -150,18 +150,22 @@ def test_massflow_file_gives_exit_times_and_crosscheck(tmp_path):
     truth = write_synthetic(tmp_path, cfg, vanish_unseen=True, lose_id=33)
     # the solver's per-particle file: deleted 0.2 s before the dump that misses them
     lines = ["# ID time  diameter x y z u v w  (ex ey ez, color)"]
-    for pid, (ptype, entry, exit_s) in sorted(truth.items()):
+    for pid, (_ptype, _entry, exit_s) in sorted(truth.items()):
         if pid != 33 and np.isfinite(exit_s):
             lines.append(f"{pid}  {exit_s - 0.2:.4g}  0.003 0.331 0 0 0.1 0 0")
     half = len(lines) // 2
     (tmp_path / "discharge_A.txt.0").write_text("\n".join(lines[:half]) + "\n")
     (tmp_path / "discharge_A.txt.1").write_text("\n".join(lines[:1] + lines[half:]) + "\n")
-    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1})
+    res = postprocess(
+        str(tmp_path / "dump.*.txt"), cfg, STEADY, massflow_dir=tmp_path, solver_counters={"discharged": len(lines) - 1}
+    )
     s = res.summary
     assert s.accounting["massflow_discharged"] == len(lines) - 1
     assert s.accounting["exits_from_massflow"] == len(lines) - 1
     assert s.accounting["discharge_crosscheck_diff"] == 0 and s.accounting["solver_discharge_diff"] == 0
-    assert s.accounting["lost"] == 1 and s.accounting["accounting_mismatch"] == 1  # particle 33 left through a wall at 10 s
+    assert (
+        s.accounting["lost"] == 1 and s.accounting["accounting_mismatch"] == 1
+    )  # particle 33 left through a wall at 10 s
     assert any("accounting" in w for w in s.warnings)
     # exit times come from the file (0.2 s before the dump that misses them): 3.8 and 5.8 s
     assert s.mean_residence_time_s == pytest.approx(4.8, rel=1e-4)
@@ -189,8 +193,11 @@ def test_massflow_parts_of_a_resumed_run(tmp_path):
     cfg = config()
     truth = write_synthetic(tmp_path, cfg, vanish_unseen=True)
     header = "# ID time  diameter x y z u v w  (ex ey ez, color)"
-    rows = {pid: f"{pid}  {exit_s - 0.2:.4g}  0.003 0.331 0 0 0.1 0 0" for pid, (_, _, exit_s) in truth.items()
-            if np.isfinite(exit_s)}
+    rows = {
+        pid: f"{pid}  {exit_s - 0.2:.4g}  0.003 0.331 0 0 0.1 0 0"
+        for pid, (_, _, exit_s) in truth.items()
+        if np.isfinite(exit_s)
+    }
     early = [r for pid, r in rows.items() if truth[pid][2] <= 15.0]
     late = [r for pid, r in rows.items() if truth[pid][2] >= 14.0]  # 14-15 s listed in both parts
     (tmp_path / "discharge_A.txt.upto300000").write_text("\n".join([header, *early]) + "\n")

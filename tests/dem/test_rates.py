@@ -22,9 +22,9 @@ DT = 0.1
 
 
 def _relative_errors(estimate, truth, mask):
-    return np.concatenate([
-        np.abs(estimate[k] - truth[k])[mask & (truth[k] > 0)] / truth[k][mask & (truth[k] > 0)] for k in RATE_KEYS
-    ])
+    return np.concatenate(
+        [np.abs(estimate[k] - truth[k])[mask & (truth[k] > 0)] / truth[k][mask & (truth[k] > 0)] for k in RATE_KEYS]
+    )
 
 
 def _observe(truth, nx, ny, particles, steps, rng):
@@ -70,7 +70,9 @@ def test_likelihood_gradient_matches_finite_differences(rng):
     for _ in range(5):
         direction = rng.standard_normal((n, n))
         h = 1e-6
-        fd = (log_likelihood(q + h * direction, counts, DT)[0] - log_likelihood(q - h * direction, counts, DT)[0]) / (2 * h)
+        fd = (log_likelihood(q + h * direction, counts, DT)[0] - log_likelihood(q - h * direction, counts, DT)[0]) / (
+            2 * h
+        )
         assert np.sum(grad * direction) == pytest.approx(fd, rel=1e-6)
 
 

@@ -36,8 +36,13 @@ def smoke(smoke_runs_root):
     config = load_preset("smoke")
     assert config.dem.run.np == 2  # the preset runs under mpirun -np 2
     record = run_dem(prepare_run(config.dem), runs_root=root, progress=False)
-    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
-                          solver_counters=record.solver_counters)
+    results = postprocess(
+        record.dump_glob,
+        config.dem,
+        config.steady_state,
+        massflow_dir=record.massflow_dir,
+        solver_counters=record.solver_counters,
+    )
     return config, root, record, results
 
 
@@ -59,7 +64,9 @@ def test_smoke_run_completes_under_mpi(smoke):
 def test_smoke_accounting_and_crosscheck(smoke):
     _, _, record, results = smoke
     s = results.summary
-    assert s.accounting["inserted"] > 0 and s.accounting["discharged"] > 0, "smoke preset: particles must reach the outlet"
+    assert s.accounting["inserted"] > 0 and s.accounting["discharged"] > 0, (
+        "smoke preset: particles must reach the outlet"
+    )
     assert s.accounting["lost"] == 0, s.warnings
     assert s.accounting["accounting_mismatch"] == 0  # inserted = held + discharged
     assert s.accounting["massflow_unseen_in_dumps"] == 0
@@ -181,8 +188,13 @@ def test_interrupt_then_resume(tmp_path):
     """Ctrl-C after the first restart file: the solver group is terminated, the run marked
     interrupted; --resume continues from the restart and the result is complete and sound."""
     # 1-s velocity windows: 2 s of dumps cannot cover a 5-s window (refused by the post-processing)
-    config = variant(load_preset("smoke"), operation={"duration_s": 2.0}, numerics={"restart_interval_s": 0.5},
-                     run={"np": 1}, tables={"window_s": 1.0})
+    config = variant(
+        load_preset("smoke"),
+        operation={"duration_s": 2.0},
+        numerics={"restart_interval_s": 0.5},
+        run={"np": 1},
+        tables={"window_s": 1.0},
+    )
     seen = {}
 
     def interrupt_after_restart(line):
@@ -215,8 +227,13 @@ def test_interrupt_then_resume(tmp_path):
     assert sorted(p.name for p in run_dir.rglob("*") if p.is_file()) == kept
     record = run_dem(inputs, runs_root=tmp_path, resume=True, progress=False)
     assert record.state == "completed" and record.resumed_from.startswith("restart/")
-    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
-                          solver_counters=record.solver_counters)
+    results = postprocess(
+        record.dump_glob,
+        config.dem,
+        config.steady_state,
+        massflow_dir=record.massflow_dir,
+        solver_counters=record.solver_counters,
+    )
     s = results.summary
     assert s.t_end_s == pytest.approx(2.0, abs=1e-3)
     assert s.accounting["lost"] == 0 and s.accounting["accounting_mismatch"] == 0
@@ -236,12 +253,19 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
 
     config = variant(load_preset("smoke"), operation={"duration_s": 3.0}, numerics={"restart_interval_s": 0.5})
     (tmp_path / "config.toml").write_text(__import__("workflows.config", fromlist=["dump_toml"]).dump_toml(config))
-    script = ("import sys; from dem.run import prepare_run, run_dem; from workflows.config import load_config; "
-              "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)")
+    script = (
+        "import sys; from dem.run import prepare_run, run_dem; from workflows.config import load_config; "
+        "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)"
+    )
     log = tmp_path / "child.err"
-    with open(log, "w") as err, subprocess.Popen(
+    with (
+        open(log, "w") as err,
+        subprocess.Popen(
             [sys.executable, "-c", script, str(tmp_path / "config.toml"), str(tmp_path / "runs")],
-            cwd=Path(__file__).resolve().parents[2], stderr=err) as child:
+            cwd=Path(__file__).resolve().parents[2],
+            stderr=err,
+        ) as child,
+    ):
         deadline = time.monotonic() + 300
         run_dir = None
         while time.monotonic() < deadline and child.poll() is None:
@@ -292,8 +316,9 @@ def test_thermo_counters_are_the_decks_named_columns():
 
 def test_solver_output_errors_and_exit_status(tmp_path):
     seen = []
-    result = run_solver(["sh", "-c", "echo Step Atoms; echo 'ERROR: Illegal fix'; exit 3"], tmp_path, "out.txt",
-                        on_line=seen.append)
+    result = run_solver(
+        ["sh", "-c", "echo Step Atoms; echo 'ERROR: Illegal fix'; exit 3"], tmp_path, "out.txt", on_line=seen.append
+    )
     assert result.returncode == 3 and result.error_lines == ["ERROR: Illegal fix"]
     assert result.failure == "LIGGGHTS reported an error: ERROR: Illegal fix"
     assert result.output == "Step Atoms\nERROR: Illegal fix\n" == "".join(seen)
@@ -304,8 +329,9 @@ def test_solver_output_errors_and_exit_status(tmp_path):
 
 def test_solver_hanging_after_an_error_is_stopped(tmp_path):
     t0 = time.monotonic()
-    result = run_solver(["sh", "-c", "echo 'ERROR on proc 1: boom'; exec sleep 60"], tmp_path, "out.txt",
-                        error_grace_s=1.0)
+    result = run_solver(
+        ["sh", "-c", "echo 'ERROR on proc 1: boom'; exec sleep 60"], tmp_path, "out.txt", error_grace_s=1.0
+    )
     assert time.monotonic() - t0 < 30 and result.returncode != 0 and result.error_lines
 
 
@@ -318,8 +344,9 @@ def test_timeout_and_interrupt_stop_every_process_of_the_session(tmp_path):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        run_solver(["sh", "-c", "sleep 60 & echo $! > child.pid; echo started; wait"], tmp_path, "out.txt",
-                   on_line=interrupt)
+        run_solver(
+            ["sh", "-c", "sleep 60 & echo $! > child.pid; echo started; wait"], tmp_path, "out.txt", on_line=interrupt
+        )
     assert not _solver_alive((tmp_path / "child.pid").read_text())
 
 
@@ -358,13 +385,16 @@ def test_stale_running_status_is_diagnosed_and_resumable(tmp_path):
     """kill -9 / SIGHUP of `dem run`: the status stays "running". A plain rerun names what
     happened and points to --resume (not "already running", not a loop); the restart at
     step 2000 is complete by log.liggghts (step 2500) although solver.out stopped at 1500."""
-    from dem.run import can_resume, _restart_files
+    from dem.run import _restart_files, can_resume
 
     inputs = prepare_run(load_preset("smoke").dem)
     run_dir = _killed_run(tmp_path, inputs, solver_out_rows=[500, 1000, 1500], log_rows=[500, 1000, 1500, 2000, 2500])
     assert [p.name for p in _restart_files(run_dir)] == ["restart.2000.bin"]
-    with pytest.raises(SolverRunError, match=r"stopped \(crashed: killed without a trace \(its processes \(pid \d+, "
-                                             r"solver pid \d+\) no longer exist.*continue it with --resume"):
+    with pytest.raises(
+        SolverRunError,
+        match=r"stopped \(crashed: killed without a trace \(its processes \(pid \d+, "
+        r"solver pid \d+\) no longer exist.*continue it with --resume",
+    ):
         run_dem(inputs, runs_root=tmp_path, progress=False)
     status = read_status(run_dir)
     assert status["state"] == "crashed" and "killed without a trace" in status["error"]
@@ -401,7 +431,10 @@ def test_unusable_tmpdir_is_named_not_taken_for_a_missing_solver(tmp_path, monke
 
     afile = tmp_path / "afile"
     afile.write_text("")
-    for value, message in ((str(afile), "is not a directory"), (str(afile / "sub"), r"is not a directory \(.*afile is a file\)")):
+    for value, message in (
+        (str(afile), "is not a directory"),
+        (str(afile / "sub"), r"is not a directory \(.*afile is a file\)"),
+    ):
         monkeypatch.setenv("TMPDIR", value)
         with pytest.raises(SolverRunError, match=f"TMPDIR={value} {message}.*set TMPDIR to a writable directory"):
             liggghts_version()
@@ -409,13 +442,16 @@ def test_unusable_tmpdir_is_named_not_taken_for_a_missing_solver(tmp_path, monke
     check_tmpdir({})
 
 
-@pytest.mark.parametrize(("holdup", "throughput", "message"), [
-    (float("nan"), 1e6, r"particles_held \(the hold-up, --holdup\) must be a finite number"),
-    (float("inf"), 1e6, r"particles_held \(the hold-up, --holdup\) must be a finite number"),
-    (1000.0, float("nan"), r"particle_steps_per_core_s \(the throughput, --throughput\) must be a finite number"),
-    (1000.0, float("inf"), r"particle_steps_per_core_s \(the throughput, --throughput\) must be a finite number"),
-    (1000.0, -1.0, r"throughput\) must be .* in \(0, 1e\+15\], got -1"),
-])
+@pytest.mark.parametrize(
+    ("holdup", "throughput", "message"),
+    [
+        (float("nan"), 1e6, r"particles_held \(the hold-up, --holdup\) must be a finite number"),
+        (float("inf"), 1e6, r"particles_held \(the hold-up, --holdup\) must be a finite number"),
+        (1000.0, float("nan"), r"particle_steps_per_core_s \(the throughput, --throughput\) must be a finite number"),
+        (1000.0, float("inf"), r"particle_steps_per_core_s \(the throughput, --throughput\) must be a finite number"),
+        (1000.0, -1.0, r"throughput\) must be .* in \(0, 1e\+15\], got -1"),
+    ],
+)
 def test_cluster_estimate_refuses_non_finite_inputs(holdup, throughput, message):
     from coupling.errors import ConfigError
     from dem.cluster import estimate_cost
@@ -434,14 +470,22 @@ def test_killed_by_any_signal_then_rerun_and_resume(tmp_path, sig):
     import subprocess
     import sys
 
-    config = variant(load_preset("smoke"), operation={"duration_s": 2.0}, numerics={"restart_interval_s": 0.5},
-                     run={"np": 1})
+    config = variant(
+        load_preset("smoke"), operation={"duration_s": 2.0}, numerics={"restart_interval_s": 0.5}, run={"np": 1}
+    )
     (tmp_path / "config.toml").write_text(__import__("workflows.config", fromlist=["dump_toml"]).dump_toml(config))
-    script = ("import sys; from dem.run import prepare_run, run_dem; from workflows.config import load_config; "
-              "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)")
-    with open(tmp_path / "child.err", "w") as err, subprocess.Popen(
+    script = (
+        "import sys; from dem.run import prepare_run, run_dem; from workflows.config import load_config; "
+        "run_dem(prepare_run(load_config(sys.argv[1]).dem), runs_root=sys.argv[2], progress=False)"
+    )
+    with (
+        open(tmp_path / "child.err", "w") as err,
+        subprocess.Popen(
             [sys.executable, "-c", script, str(tmp_path / "config.toml"), str(tmp_path / "runs")],
-            cwd=Path(__file__).resolve().parents[2], stderr=err) as child:
+            cwd=Path(__file__).resolve().parents[2],
+            stderr=err,
+        ) as child,
+    ):
         from dem.run import _restart_files
 
         deadline, run_dir = time.monotonic() + 300, None
@@ -480,6 +524,8 @@ def test_restart_rewritten_by_a_killed_resume_is_not_vouched_for_by_an_older_log
     os.utime(run_dir / "log.liggghts.attempt1", (old, old))
     os.utime(run_dir / "restart" / "restart.4000.bin", (old - 10, old - 10))
     (run_dir / "restart" / "restart.4500.bin").write_bytes(b"\0" * 10)  # the truncated rewrite
-    (run_dir / "solver.out").write_text(THERMO_HEADER + "4000 0.1 10 5 5 0 0 0.2 0.01\n5000 0.1 10 5 5 0 0 0.2 0.01\n"
-                                        "\n# --- resumed from restart/restart.4000.bin at x ---\n")
+    (run_dir / "solver.out").write_text(
+        THERMO_HEADER + "4000 0.1 10 5 5 0 0 0.2 0.01\n5000 0.1 10 5 5 0 0 0.2 0.01\n"
+        "\n# --- resumed from restart/restart.4000.bin at x ---\n"
+    )
     assert [p.name for p in _restart_files(run_dir)] == ["restart.4000.bin"]

@@ -38,8 +38,25 @@ def test_cli_slurm_writes_deck_and_script(tmp_path, capsys):
     from workflows.cli.main import main
 
     out = tmp_path / "job"
-    assert main(["dem", "slurm", "--preset", "paper", "--np", "16", "--holdup", "40000", "--throughput", "4e6",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "dem",
+                "slurm",
+                "--preset",
+                "paper",
+                "--np",
+                "16",
+                "--holdup",
+                "40000",
+                "--throughput",
+                "4e6",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert (out / "in.blender").is_file() and (out / "meshes" / "impeller.stl").is_file()
     script = (out / "job.slurm").read_text()
@@ -66,8 +83,9 @@ def slurm_cluster(tmp_path_factory):
     import subprocess
     import time
 
-    missing = [p for p in ("munge", "munged", "slurmctld", "slurmd", "sbatch", "squeue", "scontrol")
-               if shutil.which(p) is None]
+    missing = [
+        p for p in ("munge", "munged", "slurmctld", "slurmd", "sbatch", "squeue", "scontrol") if shutil.which(p) is None
+    ]
     if missing:
         pytest.fail(f"not installed: {', '.join(missing)} (make setup installs slurm-wlm and munge)")
     if os.geteuid() != 0:
@@ -77,18 +95,38 @@ def slurm_cluster(tmp_path_factory):
         (root / sub).mkdir()
     host = socket.gethostname()
     conf = root / "slurm.conf"
-    conf.write_text("\n".join([
-        "ClusterName=pbmdemtest", f"SlurmctldHost={host}", "AuthType=auth/munge", "CredType=cred/munge",
-        "ProctrackType=proctrack/linuxproc", "TaskPlugin=task/none", "ReturnToService=2", "SlurmUser=root",
-        "SlurmdUser=root", "SchedulerType=sched/backfill", "SelectType=select/cons_tres",
-        "SelectTypeParameters=CR_Core", "JobAcctGatherType=jobacct_gather/none",
-        "AccountingStorageType=accounting_storage/none", "MpiDefault=none",
-        f"SlurmctldPort={_free_port()}", f"SlurmdPort={_free_port()}",
-        f"SlurmctldPidFile={root}/slurmctld.pid", f"SlurmdPidFile={root}/slurmd.pid",
-        f"SlurmdSpoolDir={root}/spool", f"StateSaveLocation={root}/state",
-        f"SlurmctldLogFile={root}/log/slurmctld.log", f"SlurmdLogFile={root}/log/slurmd.log",
-        f"NodeName={host} CPUs={os.cpu_count()} State=UNKNOWN",
-        "PartitionName=test Nodes=ALL Default=YES MaxTime=INFINITE State=UP", ""]))
+    conf.write_text(
+        "\n".join(
+            [
+                "ClusterName=pbmdemtest",
+                f"SlurmctldHost={host}",
+                "AuthType=auth/munge",
+                "CredType=cred/munge",
+                "ProctrackType=proctrack/linuxproc",
+                "TaskPlugin=task/none",
+                "ReturnToService=2",
+                "SlurmUser=root",
+                "SlurmdUser=root",
+                "SchedulerType=sched/backfill",
+                "SelectType=select/cons_tres",
+                "SelectTypeParameters=CR_Core",
+                "JobAcctGatherType=jobacct_gather/none",
+                "AccountingStorageType=accounting_storage/none",
+                "MpiDefault=none",
+                f"SlurmctldPort={_free_port()}",
+                f"SlurmdPort={_free_port()}",
+                f"SlurmctldPidFile={root}/slurmctld.pid",
+                f"SlurmdPidFile={root}/slurmd.pid",
+                f"SlurmdSpoolDir={root}/spool",
+                f"StateSaveLocation={root}/state",
+                f"SlurmctldLogFile={root}/log/slurmctld.log",
+                f"SlurmdLogFile={root}/log/slurmd.log",
+                f"NodeName={host} CPUs={os.cpu_count()} State=UNKNOWN",
+                "PartitionName=test Nodes=ALL Default=YES MaxTime=INFINITE State=UP",
+                "",
+            ]
+        )
+    )
     env = {**os.environ, "SLURM_CONF": str(conf)}
     if subprocess.run(["munge", "-n"], capture_output=True).returncode != 0:
         os.makedirs("/run/munge", exist_ok=True)
@@ -129,10 +167,37 @@ def test_the_batch_script_runs_under_slurm(slurm_cluster, tmp_path, capsys):
     config_file = tmp_path / "tiny.toml"
     config_file.write_text(dump_toml(config_from_dict(data)))
     run = tmp_path / "run"
-    assert main(["dem", "slurm", "--config", str(config_file), "--np", "2", "--out", str(run),
-                 "--holdup", "500", "--throughput", "3e6"]) == 0
-    job = subprocess.run(["sbatch", "--parsable", "job.slurm"], cwd=run, env=slurm_cluster, capture_output=True,
-                         text=True, check=True).stdout.strip().split(";")[0]
+    assert (
+        main(
+            [
+                "dem",
+                "slurm",
+                "--config",
+                str(config_file),
+                "--np",
+                "2",
+                "--out",
+                str(run),
+                "--holdup",
+                "500",
+                "--throughput",
+                "3e6",
+            ]
+        )
+        == 0
+    )
+    job = (
+        subprocess.run(
+            ["sbatch", "--parsable", "job.slurm"],
+            cwd=run,
+            env=slurm_cluster,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        .stdout.strip()
+        .split(";")[0]
+    )
     deadline = time.monotonic() + 600
     while time.monotonic() < deadline:
         queued = subprocess.run(["squeue", "-h", "-j", job], env=slurm_cluster, capture_output=True, text=True).stdout
@@ -144,8 +209,21 @@ def test_the_batch_script_runs_under_slurm(slurm_cluster, tmp_path, capsys):
     assert "JobState=COMPLETED" in shown and "ExitCode=0:0" in shown, shown + output
     assert "Loop time of" in output and "on 2 procs" in output
     capsys.readouterr()
-    assert main(["dem", "post", "--config", str(config_file), "--dumps", str(run / "dumps" / "dump.*.txt"),
-                 "--out", str(tmp_path / "r.h5")]) == 0
+    assert (
+        main(
+            [
+                "dem",
+                "post",
+                "--config",
+                str(config_file),
+                "--dumps",
+                str(run / "dumps" / "dump.*.txt"),
+                "--out",
+                str(tmp_path / "r.h5"),
+            ]
+        )
+        == 0
+    )
     summary = load_entry(tmp_path / "r.h5").summary
     assert summary["t_end_s"] == pytest.approx(2.0, abs=0.1) and summary["lost"] == 0
     assert summary["inserted"] > 50

@@ -21,8 +21,16 @@ CONFIG = PbmConfig(feed_weights_a=[1.0], feed_weights_b=[1.0])
 
 
 def tanks(n: int, v: float, windows: int = 3):
-    return make_table(t=5.0 * np.arange(windows), x_edges=np.linspace(0, L, n + 1), y_edges=[-0.05, 0.05],
-                      vx_pos=v, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0, window_s=5.0)
+    return make_table(
+        t=5.0 * np.arange(windows),
+        x_edges=np.linspace(0, L, n + 1),
+        y_edges=[-0.05, 0.05],
+        vx_pos=v,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        window_s=5.0,
+    )
 
 
 def library(points) -> TableLibrary:
@@ -68,7 +76,7 @@ def test_speed_library_gives_the_analytic_feasible_region():
     assert result.best.rpm == 100.0
     assert result.best.length_factor == pytest.approx(20.0 * c * 100 / L, rel=1e-4)
     # the library's own blender: L / (c rpm) in [20, 30] s <=> rpm in [L / (30 c), L / (20 c)]
-    (lo, hi), = result.rpm_ranges
+    ((lo, hi),) = result.rpm_ranges
     assert lo == pytest.approx(L / (30 * c), rel=1e-4)
     assert hi == pytest.approx(L / (20 * c), rel=1e-4)
     assert all(min(evaluate(lib, result.spec, rpm, 1.0).margins.values()) >= 0 for rpm in (lo, hi))

@@ -32,8 +32,12 @@ def chain(n_tanks, rates_per_s, ny=1):
     rates = np.atleast_1d(np.asarray(rates_per_s, dtype=float))
     dx = LENGTH_M / n_tanks
     return make_table(
-        t=5.0 * np.arange(rates.size), x_edges=np.linspace(0, LENGTH_M, n_tanks + 1),
-        y_edges=np.linspace(-0.05, 0.05, ny + 1), vx_pos=(rates * dx)[:, None, None], vx_neg=0.0, vy_pos=0.0,
+        t=5.0 * np.arange(rates.size),
+        x_edges=np.linspace(0, LENGTH_M, n_tanks + 1),
+        y_edges=np.linspace(-0.05, 0.05, ny + 1),
+        vx_pos=(rates * dx)[:, None, None],
+        vx_neg=0.0,
+        vy_pos=0.0,
         vy_neg=0.0,
     )
 
@@ -54,8 +58,15 @@ def test_chain_transfer_function_magnitude_and_phase_exact():
 def test_both_feeders_and_transverse_mixing_keep_throughput_one():
     # Faster axial flow on the y > 0 side: with uniform axial rates the axial progress
     # would not depend on y, and A and B would leave alike whatever the transverse flow.
-    table = make_table(t=[0.0], x_edges=np.linspace(0, LENGTH_M, 5), y_edges=np.linspace(-0.05, 0.05, 4),
-                       vx_pos=np.array([0.02, 0.03, 0.05]), vx_neg=0.01, vy_pos=0.02, vy_neg=0.05)
+    table = make_table(
+        t=[0.0],
+        x_edges=np.linspace(0, LENGTH_M, 5),
+        y_edges=np.linspace(-0.05, 0.05, 4),
+        vx_pos=np.array([0.02, 0.03, 0.05]),
+        vx_neg=0.01,
+        vy_pos=0.02,
+        vy_neg=0.05,
+    )
     for feeder in ("A", "B"):
         assert transfer_function(table, None, 0.0, feeder=feeder) == pytest.approx(1.0, abs=1e-12)
     ha, hb = (transfer_function(table, None, [0.05], feeder=f) for f in ("A", "B"))
@@ -67,8 +78,7 @@ def test_mean_generator_of_windows_and_single_window():
     np.testing.assert_allclose(transfer_function(table, None, FREQS), tanks(FREQS, 4, 2.0), rtol=1e-10)
     np.testing.assert_allclose(transfer_function(table, None, FREQS, window=1), tanks(FREQS, 4, 3.0), rtol=1e-10)
     # Windows starting at or after 5 s: rates 3 and 2, mean 2.5.
-    np.testing.assert_allclose(transfer_function(table, None, FREQS, t_start_s=5.0), tanks(FREQS, 4, 2.5),
-                               rtol=1e-10)
+    np.testing.assert_allclose(transfer_function(table, None, FREQS, t_start_s=5.0), tanks(FREQS, 4, 2.5), rtol=1e-10)
 
 
 def test_vrr_of_sinusoid_is_inverse_squared_gain():
@@ -122,12 +132,20 @@ def test_vrr_spectrum_from_rtd_matches_generator_vrr():
     t = np.arange(0.005, 150.0, 0.01)
     h_rtd = transfer_function_from_rtd(t, gamma.pdf(t, n, scale=1 / k), freqs)
     assert vrr_spectrum(freqs, h_rtd, noise_spectrum(freqs, 2.0)) == pytest.approx(
-        vrr_noise(chain(n, k), None, 2.0, 0.5, n_frequencies=801), rel=0.01)
+        vrr_noise(chain(n, k), None, 2.0, 0.5, n_frequencies=801), rel=0.01
+    )
 
 
 def test_time_domain_check_matches_transfer_function():
-    table = make_table(t=[0.0], x_edges=np.linspace(0, LENGTH_M, 6), y_edges=np.linspace(-0.05, 0.05, 3),
-                       vx_pos=0.04, vx_neg=0.015, vy_pos=0.03, vy_neg=0.01)
+    table = make_table(
+        t=[0.0],
+        x_edges=np.linspace(0, LENGTH_M, 6),
+        y_edges=np.linspace(-0.05, 0.05, 3),
+        vx_pos=0.04,
+        vx_neg=0.015,
+        vy_pos=0.03,
+        vy_neg=0.01,
+    )
     system = stationary_system(table)
     f = np.array([0.01, 0.05, 0.2])
     for feeder in ("A", "B"):

@@ -14,9 +14,15 @@ def table_with_samples(n_samples, values=None, t=None, min_samples=5):
     k, nx, ny = n_samples.shape
     values = np.arange(k * nx * ny, dtype=float).reshape(k, nx, ny) + 1.0 if values is None else values
     return make_table(
-        t=np.arange(k) * 5.0 if t is None else t, x_edges=np.linspace(0, 0.3, nx + 1),
-        y_edges=np.linspace(-0.05, 0.05, ny + 1), vx_pos=values, vx_neg=2 * values, vy_pos=3 * values,
-        vy_neg=4 * values, n_samples=n_samples, min_samples=min_samples,
+        t=np.arange(k) * 5.0 if t is None else t,
+        x_edges=np.linspace(0, 0.3, nx + 1),
+        y_edges=np.linspace(-0.05, 0.05, ny + 1),
+        vx_pos=values,
+        vx_neg=2 * values,
+        vy_pos=3 * values,
+        vy_neg=4 * values,
+        n_samples=n_samples,
+        min_samples=min_samples,
     )
 
 
@@ -84,8 +90,17 @@ def test_missing_outlet_velocity_is_not_read_as_zero():
     ns[:, -1, :] = 0
     vx = np.full((1, nx, ny), 0.03)
     vx[:, -1, :] = 0.0
-    table = make_table(t=[0.0], x_edges=np.linspace(0, 0.33, nx + 1), y_edges=np.linspace(-0.05, 0.05, ny + 1),
-                       vx_pos=vx, vx_neg=0.0, vy_pos=0.1, vy_neg=0.1, n_samples=ns, min_samples=10)
+    table = make_table(
+        t=[0.0],
+        x_edges=np.linspace(0, 0.33, nx + 1),
+        y_edges=np.linspace(-0.05, 0.05, ny + 1),
+        vx_pos=vx,
+        vx_neg=0.0,
+        vy_pos=0.1,
+        vy_neg=0.1,
+        n_samples=ns,
+        min_samples=10,
+    )
     result = simulate(table, PbmConfig(duration_s=120.0))
     assert result.summary["filled_compartment_windows"] == ny
     assert result.summary["steady_outflow_per_s"] == pytest.approx(1990.0, rel=1e-3)
@@ -100,8 +115,9 @@ def test_default_feed_weights_split_the_diameter():
 
 
 def test_feed_distribution_custom_weights_and_length_check():
-    table = make_table(t=[0.0], x_edges=[0, 0.1, 0.2], y_edges=[-0.05, 0, 0.05], vx_pos=0.01, vx_neg=0, vy_pos=0,
-                       vy_neg=0)
+    table = make_table(
+        t=[0.0], x_edges=[0, 0.1, 0.2], y_edges=[-0.05, 0, 0.05], vx_pos=0.01, vx_neg=0, vy_pos=0, vy_neg=0
+    )
     feed = feed_distribution(table, [1.0, 3.0], None)
     np.testing.assert_allclose(feed[:, 0], [0.25, 0.75, 0, 0])
     np.testing.assert_allclose(feed[:, 1], [1.0, 0, 0, 0])
@@ -111,14 +127,17 @@ def test_feed_distribution_custom_weights_and_length_check():
 
 def test_scale_blender_length_doubles_plug_residence_time():
     nx, v = 4, 0.03
-    table = make_table(t=[0.0], x_edges=np.linspace(0, 0.33, nx + 1), y_edges=[-0.05, 0.05], vx_pos=v, vx_neg=0,
-                       vy_pos=0, vy_neg=0)
+    table = make_table(
+        t=[0.0], x_edges=np.linspace(0, 0.33, nx + 1), y_edges=[-0.05, 0.05], vx_pos=v, vx_neg=0, vy_pos=0, vy_neg=0
+    )
     long = scale_blender(table, length_factor=2.0)
     np.testing.assert_allclose(long.x_edges, 2 * table.x_edges)
     base = simulate(table, PbmConfig(duration_s=200.0), rtd_pulse_s=0.0).summary["mean_residence_time_s"]
     doubled = simulate(long, PbmConfig(duration_s=200.0), rtd_pulse_s=0.0).summary["mean_residence_time_s"]
     k = v / (0.33 / nx)
-    assert base == pytest.approx(nx / k * gamma.cdf(200, nx + 1, scale=1 / k) / gamma.cdf(200, nx, scale=1 / k), rel=1e-9)
+    assert base == pytest.approx(
+        nx / k * gamma.cdf(200, nx + 1, scale=1 / k) / gamma.cdf(200, nx, scale=1 / k), rel=1e-9
+    )
     assert doubled == pytest.approx(2 * base, rel=1e-6)
     wide = scale_blender(table, diameter_factor=1.5)
     np.testing.assert_allclose(wide.y_edges, 1.5 * table.y_edges)
@@ -128,8 +147,15 @@ def test_scale_blender_length_doubles_plug_residence_time():
 
 def test_regrid_is_conservative_and_particle_weighted():
     table = make_table(
-        t=[0.0], x_edges=[0.0, 0.1, 0.2], y_edges=[-0.05, 0.05], vx_pos=np.array([[[1.0], [2.0]]]),
-        vx_neg=0.0, vy_pos=0.0, vy_neg=0.0, count_A=np.array([[[1.0], [2.0]]]), count_B=np.array([[[0.0], [1.0]]]),
+        t=[0.0],
+        x_edges=[0.0, 0.1, 0.2],
+        y_edges=[-0.05, 0.05],
+        vx_pos=np.array([[[1.0], [2.0]]]),
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        count_A=np.array([[[1.0], [2.0]]]),
+        count_B=np.array([[[0.0], [1.0]]]),
         n_samples=np.array([[[10], [30]]]),
     )
     coarse = regrid(table, nx=1)
@@ -139,8 +165,15 @@ def test_regrid_is_conservative_and_particle_weighted():
     assert fine.count_A.sum() + fine.count_B.sum() == pytest.approx(4.0)
     np.testing.assert_allclose(fine.vx_pos[0, :, 0], [1, 1, 2, 2])
     # Uniform velocities stay uniform on any grid; the same grid is the identity.
-    uniform = make_table(t=[0.0, 5.0], x_edges=np.linspace(0, 0.33, 11), y_edges=np.linspace(-0.05, 0.05, 11),
-                         vx_pos=0.03, vx_neg=0.01, vy_pos=0.2, vy_neg=0.1)
+    uniform = make_table(
+        t=[0.0, 5.0],
+        x_edges=np.linspace(0, 0.33, 11),
+        y_edges=np.linspace(-0.05, 0.05, 11),
+        vx_pos=0.03,
+        vx_neg=0.01,
+        vy_pos=0.2,
+        vy_neg=0.1,
+    )
     for nx, ny in ((5, 5), (20, 7), (10, 10)):
         g = regrid(uniform, nx=nx, ny=ny)
         assert g.nx == nx and g.ny == ny

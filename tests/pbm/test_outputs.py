@@ -62,8 +62,9 @@ def test_settings_the_table_cannot_satisfy_raise_config_error(small_table):
 def test_bad_tables_raise_table_error(tmp_path):
     with pytest.raises(TableError, match="vx_pos"):
         make_table(t=[0.0], x_edges=[0, 1], y_edges=[0, 1], vx_pos=-1.0, vx_neg=0, vy_pos=0, vy_neg=0)
-    empty = make_table(t=[0.0], x_edges=[0, 1], y_edges=[-1, 1], vx_pos=1.0, vx_neg=0, vy_pos=0, vy_neg=0,
-                       n_samples=0, min_samples=1)
+    empty = make_table(
+        t=[0.0], x_edges=[0, 1], y_edges=[-1, 1], vx_pos=1.0, vx_neg=0, vy_pos=0, vy_neg=0, n_samples=0, min_samples=1
+    )
     with pytest.raises(TableError, match="no compartment-window"):
         simulate(empty)
 
@@ -89,14 +90,31 @@ def test_write_outputs_files_and_columns(small_table, tmp_path):
     paths = write_outputs(result, tmp_path / "out")
     with open(paths["timeseries"]) as fh:
         rows = list(csv.reader(fh))
-    assert rows[0] == ["t_s", "outflow_A_per_s", "outflow_B_per_s", "C_A", "rsd_outlet", "rsd_blender", "holdup_A",
-                       "holdup_B"]
+    assert rows[0] == [
+        "t_s",
+        "outflow_A_per_s",
+        "outflow_B_per_s",
+        "C_A",
+        "rsd_outlet",
+        "rsd_blender",
+        "holdup_A",
+        "holdup_B",
+    ]
     assert len(rows) == 31 and float(rows[1][0]) == 1.0
     with open(paths["rtd"]) as fh:
         assert next(csv.reader(fh)) == ["t_s", "E_per_s"]
     summary = json.loads(paths["summary"].read_text())
-    for key in ("mean_residence_time_s", "rtd_variance_s2", "rtd_recovered_fraction", "steady_outflow_per_s",
-                "steady_C_A", "final_rsd_outlet", "final_rsd_by_slice", "holdup_final", "wall_time_s"):
+    for key in (
+        "mean_residence_time_s",
+        "rtd_variance_s2",
+        "rtd_recovered_fraction",
+        "steady_outflow_per_s",
+        "steady_C_A",
+        "final_rsd_outlet",
+        "final_rsd_by_slice",
+        "holdup_final",
+        "wall_time_s",
+    ):
         assert key in summary
     assert len(summary["final_rsd_by_slice"]) == 5
     for name in FIGURES:
@@ -107,8 +125,24 @@ def test_cli_synth_then_run(tmp_path, capsys):
     table_path = tmp_path / "t.h5"
     assert main(["pbm", "synth", "--out", str(table_path), "--nx", "4", "--ny", "4", "--windows", "4"]) == 0
     out = tmp_path / "run"
-    assert main(["pbm", "run", "--tables", str(table_path), "--preset", "smoke", "--rtd-pulse", "2",
-                 "--out", str(out), "--no-figures"]) == 0
+    assert (
+        main(
+            [
+                "pbm",
+                "run",
+                "--tables",
+                str(table_path),
+                "--preset",
+                "smoke",
+                "--rtd-pulse",
+                "2",
+                "--out",
+                str(out),
+                "--no-figures",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["rtd_pulse_s"] == 2.0 and summary["rtd_pulse_rule"] == "given"
     # The smoke preset's feed reaches the PBM.
@@ -127,11 +161,27 @@ def test_cli_runs_both_rate_modes(tmp_path, capsys):
     rates = {name: table.vx_pos / table.dx[:, None] for name in ("rate_x_pos", "rate_x_neg")}
     rates.update({name: table.vy_pos / table.dy[None, :] for name in ("rate_y_pos", "rate_y_neg")})
     write_table(tmp_path / "t.h5", table.replace(**rates))
-    assert main(["pbm", "run", "--tables", str(tmp_path / "t.h5"), "--rates", "both", "--out", str(tmp_path / "o"),
-                 "--no-figures"]) == 0
+    assert (
+        main(
+            [
+                "pbm",
+                "run",
+                "--tables",
+                str(tmp_path / "t.h5"),
+                "--rates",
+                "both",
+                "--out",
+                str(tmp_path / "o"),
+                "--no-figures",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "(velocity rates)" in out and "(measured rates)" in out
-    assert (tmp_path / "o" / "velocity" / "summary.json").exists() and (tmp_path / "o" / "measured" / "summary.json").exists()
+    assert (tmp_path / "o" / "velocity" / "summary.json").exists() and (
+        tmp_path / "o" / "measured" / "summary.json"
+    ).exists()
 
 
 def test_cli_errors_exit_2_with_a_message(tmp_path, capsys):
@@ -154,8 +204,12 @@ def test_studies_run_and_plot(small_table, tmp_path):
     grids = grid_study(small_table, config, grids=((3, 2), (10, 8)), rtd_pulse_s=0.0)
     assert grids[(10, 8)].rsd_by_slice_final.shape == (10,)
     ens = noise_study(small_table, config, sigmas=(0.0, 0.2), members=3)
-    for ax in (plot_ensemble(ens, "C_A"), plot_ensemble(ens, "rsd_outlet"), plot_rsd_by_slice_family(geo["length"]),
-               plot_rsd_time_family(grids)):
+    for ax in (
+        plot_ensemble(ens, "C_A"),
+        plot_ensemble(ens, "rsd_outlet"),
+        plot_rsd_by_slice_family(geo["length"]),
+        plot_rsd_time_family(grids),
+    ):
         ax.figure.savefig(tmp_path / "f.png")
     with pytest.raises(ValueError, match="quantity must be"):
         plot_ensemble(ens, "holdup")
@@ -173,4 +227,6 @@ def test_bench_main_writes_json(tmp_path, capsys):
     assert "speed-up vs BDF" in out and "products alone" in out
     profile = report["profile"]
     assert profile["exponentials"] == 52 and profile["dense_products"] >= 5 * 52
-    assert 0 < profile["stages_s"]["operators (Propagators.prepare: matrix exponentials, threaded)"] <= profile["total_s"]
+    assert (
+        0 < profile["stages_s"]["operators (Propagators.prepare: matrix exponentials, threaded)"] <= profile["total_s"]
+    )

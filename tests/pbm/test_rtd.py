@@ -20,8 +20,12 @@ from pbm.rtd import pooled_rtd
 def with_rates_from_velocities(table, **overrides):
     """The table with measured rates equal to v/dx and v/dy (what eq. 4 would use)."""
     dx, dy = table.dx[:, None], table.dy[None, :]
-    rates = dict(rate_x_pos=table.vx_pos / dx, rate_x_neg=table.vx_neg / dx, rate_y_pos=table.vy_pos / dy,
-                 rate_y_neg=table.vy_neg / dy)
+    rates = dict(
+        rate_x_pos=table.vx_pos / dx,
+        rate_x_neg=table.vx_neg / dx,
+        rate_y_pos=table.vy_pos / dy,
+        rate_y_neg=table.vy_neg / dy,
+    )
     rates.update({name: np.full(table.vx_pos.shape, value) for name, value in overrides.items()})
     return table.replace(**rates)
 
@@ -29,9 +33,20 @@ def with_rates_from_velocities(table, **overrides):
 def chain(nx, rate, windows=1, window_s=5.0):
     """NX compartments in a row, forward moves only, at ``rate`` [1/s] measured; the
     velocities say nothing moves, so only the measured mode can see the flow."""
-    return make_table(t=window_s * np.arange(windows), x_edges=np.linspace(0, 0.33, nx + 1), y_edges=[-0.05, 0.05],
-                      vx_pos=0.0, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0, window_s=window_s,
-                      rate_x_pos=rate, rate_x_neg=0.0, rate_y_pos=0.0, rate_y_neg=0.0)
+    return make_table(
+        t=window_s * np.arange(windows),
+        x_edges=np.linspace(0, 0.33, nx + 1),
+        y_edges=[-0.05, 0.05],
+        vx_pos=0.0,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        window_s=window_s,
+        rate_x_pos=rate,
+        rate_x_neg=0.0,
+        rate_y_pos=0.0,
+        rate_y_neg=0.0,
+    )
 
 
 def test_measured_rates_equal_to_v_over_dx_give_the_velocity_results_exactly():
@@ -48,8 +63,9 @@ def test_measured_rates_equal_to_v_over_dx_give_the_velocity_results_exactly():
 
 
 def test_measured_mode_reads_the_rates_closes_the_walls_and_leaves_the_table_alone():
-    table = with_rates_from_velocities(synthetic_table(nx=4, ny=3, n_windows=2, seed=5), rate_y_pos=0.7,
-                                       rate_x_neg=0.2, rate_y_neg=0.3)
+    table = with_rates_from_velocities(
+        synthetic_table(nx=4, ny=3, n_windows=2, seed=5), rate_y_pos=0.7, rate_x_neg=0.2, rate_y_neg=0.3
+    )
     r = transfer_rates(table, 0, "measured")
     np.testing.assert_array_equal(r["up"][:, :-1], 0.7)
     assert not r["up"][:, -1].any() and not r["down"][:, 0].any() and not r["backward"][0].any()
@@ -73,8 +89,10 @@ def test_tanks_in_series_from_measured_rates_have_the_erlang_moments():
     assert s["mean_residence_time_s"] == pytest.approx(nx / k, rel=1e-9)
     assert s["rtd_variance_s2"] == pytest.approx(nx / k**2, rel=1e-8)
     # The velocity mode on the same table sees still powder: nothing leaves.
-    assert simulate(chain(nx, k), PbmConfig(duration_s=duration), rtd_pulse_s=pulse).summary[
-        "rtd_recovered_fraction"] == 0.0
+    assert (
+        simulate(chain(nx, k), PbmConfig(duration_s=duration), rtd_pulse_s=pulse).summary["rtd_recovered_fraction"]
+        == 0.0
+    )
 
 
 def test_unmeasured_rates_are_filled_by_the_velocity_rule():
@@ -83,8 +101,16 @@ def test_unmeasured_rates_are_filled_by_the_velocity_rule():
     rates = {name: rng.uniform(0.1, 1.0, shape) for name in RATE_NAMES}
     rates["rate_x_pos"][1, 0, 0] = np.nan  # windows 0 and 2 equally near: the earlier one
     rates["rate_y_neg"][:, 2, 1] = np.nan  # never measured: mean of its slice's measured
-    table = make_table(t=5.0 * np.arange(4), x_edges=[0, 0.1, 0.2, 0.3], y_edges=[-0.05, 0, 0.05], vx_pos=0.01,
-                       vx_neg=0, vy_pos=0, vy_neg=0, **rates)
+    table = make_table(
+        t=5.0 * np.arange(4),
+        x_edges=[0, 0.1, 0.2, 0.3],
+        y_edges=[-0.05, 0, 0.05],
+        vx_pos=0.01,
+        vx_neg=0,
+        vy_pos=0,
+        vy_neg=0,
+        **rates,
+    )
     filled, mask = fill_missing_rates(table)
     assert filled.rate_x_pos[1, 0, 0] == table.rate_x_pos[0, 0, 0]
     np.testing.assert_array_equal(filled.rate_y_neg[:, 2, 1], table.rate_y_neg[:, 2, 0])
@@ -121,8 +147,9 @@ def test_pooled_rtd_of_a_stationary_table_is_the_single_pulse_rtd_truncated_at_t
     assert pooled.recovered_fraction == pytest.approx(s["rtd_recovered_fraction"], rel=1e-9)
     assert pooled.mean_s == pytest.approx(s["mean_residence_time_s"], rel=1e-9)
     assert pooled.variance_s2 == pytest.approx(s["rtd_variance_s2"], rel=1e-8)
-    assert np.sum(pooled.density_per_s * np.diff(pooled.bin_edges)) == pytest.approx(pooled.recovered_fraction,
-                                                                                         rel=1e-12)
+    assert np.sum(pooled.density_per_s * np.diff(pooled.bin_edges)) == pytest.approx(
+        pooled.recovered_fraction, rel=1e-12
+    )
 
 
 @pytest.mark.parametrize("rates", ["velocity", "measured"])
@@ -149,10 +176,10 @@ def test_pooled_rtd_of_a_time_varying_table_averages_the_pulse_responses_at_thei
     config = PbmConfig(feed_rate_a_per_s=300.0, feed_rate_b_per_s=100.0)
     pooled = pooled_rtd(table, config, entry_window=(12.0, 15.0), horizon_s=horizon, pulse_interval_s=1.5)
     assert pooled.n_pulses == 2
-    singles = [simulate(table, config.model_copy(update={"duration_s": s + horizon}), rtd_pulse_s=s)
-               for s in (12.75, 14.25)]
-    np.testing.assert_allclose(pooled.density_per_s, np.mean([r.rtd_E for r in singles], axis=0), rtol=1e-9,
-                               atol=1e-13)
+    singles = [
+        simulate(table, config.model_copy(update={"duration_s": s + horizon}), rtd_pulse_s=s) for s in (12.75, 14.25)
+    ]
+    np.testing.assert_allclose(pooled.density_per_s, np.mean([r.rtd_E for r in singles], axis=0), rtol=1e-9, atol=1e-13)
     weights = np.array([r.summary["rtd_recovered_fraction"] for r in singles])
     means = np.array([r.summary["mean_residence_time_s"] for r in singles])
     assert pooled.recovered_fraction == pytest.approx(weights.mean(), rel=1e-9)

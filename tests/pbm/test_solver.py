@@ -20,8 +20,14 @@ from pbm.solver import expm_taylor18
 def tanks_in_series(nx=5, ny=1, v=0.02, length=0.33, windows=1):
     """Uniform forward flow only: NX ideal tanks in series, rate k = v / dx each."""
     return make_table(
-        t=5.0 * np.arange(windows), x_edges=np.linspace(0, length, nx + 1), y_edges=np.linspace(-0.05, 0.05, ny + 1),
-        vx_pos=v, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0, window_s=5.0,
+        t=5.0 * np.arange(windows),
+        x_edges=np.linspace(0, length, nx + 1),
+        y_edges=np.linspace(-0.05, 0.05, ny + 1),
+        vx_pos=v,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        window_s=5.0,
     )
 
 
@@ -64,8 +70,16 @@ def test_tanks_in_series_rtd_is_erlang():
 def test_radial_exchange_decays_at_discrete_laplacian_eigenvalues():
     ny, v, dy = 8, 0.1, 0.01
     rate = v / dy
-    table = make_table(t=[0.0], x_edges=[0.0, 0.033], y_edges=dy * (np.arange(ny + 1) - ny / 2), vx_pos=0.0,
-                       vx_neg=0.0, vy_pos=v, vy_neg=v, window_s=5.0)
+    table = make_table(
+        t=[0.0],
+        x_edges=[0.0, 0.033],
+        y_edges=dy * (np.arange(ny + 1) - ny / 2),
+        vx_pos=0.0,
+        vx_neg=0.0,
+        vy_pos=v,
+        vy_neg=v,
+        window_s=5.0,
+    )
     # The generator restricted to the compartments is the reflecting 1-D Laplacian.
     eig = np.sort(np.linalg.eigvals(generator_matrix(table, 0)[:ny, :ny]).real)
     expected = np.sort(-2 * rate * (1 - np.cos(np.pi * np.arange(ny) / ny)))
@@ -84,8 +98,15 @@ def test_radial_exchange_decays_at_discrete_laplacian_eigenvalues():
 
 def test_generator_reduces_to_paper_eq4_for_uniform_velocities():
     vf, vb, vr = 0.04, 0.01, 0.2
-    table = make_table(t=[0.0], x_edges=np.linspace(0, 0.33, 6), y_edges=np.linspace(-0.05, 0.05, 6), vx_pos=vf,
-                       vx_neg=vb, vy_pos=vr, vy_neg=vr)
+    table = make_table(
+        t=[0.0],
+        x_edges=np.linspace(0, 0.33, 6),
+        y_edges=np.linspace(-0.05, 0.05, 6),
+        vx_pos=vf,
+        vx_neg=vb,
+        vy_pos=vr,
+        vy_neg=vr,
+    )
     g = generator_matrix(table, 0)
     dx, dy = 0.066, 0.02
     rng = np.random.default_rng(1)
@@ -93,8 +114,11 @@ def test_generator_reduces_to_paper_eq4_for_uniform_velocities():
     dn = (g[:25, :25] @ n_vec).reshape(5, 5)
     f = n_vec.reshape(5, 5)
     i, j = 2, 2  # an interior compartment: eq. (4) term by term
-    eq4 = (vf * (f[i - 1, j] - f[i, j]) / dx + vb * (f[i + 1, j] - f[i, j]) / dx
-           + vr * (f[i, j + 1] + f[i, j - 1] - 2 * f[i, j]) / dy)
+    eq4 = (
+        vf * (f[i - 1, j] - f[i, j]) / dx
+        + vb * (f[i + 1, j] - f[i, j]) / dx
+        + vr * (f[i, j + 1] + f[i, j - 1] - 2 * f[i, j]) / dy
+    )
     assert dn[i, j] == pytest.approx(eq4, rel=1e-12)
     # Walls: no backward flux through the inlet, none through the side walls.
     rates = transfer_rates(table, 0)
@@ -115,7 +139,11 @@ def test_particles_conserved_with_time_varying_tables_and_noise(method):
     tol = 1e-9 if method == "expm" else 1e-6
     assert np.max(np.abs(balance)) <= tol * fed[-1]
     for species in "AB":
-        per = getattr(result, f"fed_{species}") - getattr(result, f"discharged_{species}") - getattr(result, f"holdup_{species}")
+        per = (
+            getattr(result, f"fed_{species}")
+            - getattr(result, f"discharged_{species}")
+            - getattr(result, f"holdup_{species}")
+        )
         assert np.max(np.abs(per)) <= tol * fed[-1]
     # The noise really varied the feed: factors differ from 1.
     assert not np.allclose(np.diff(result.fed_A), np.diff(result.fed_A)[0])
@@ -131,8 +159,15 @@ def test_mirror_symmetric_blender_gives_C_A_one_half_at_all_times(rng):
     vx_neg = 0.5 * (vx_neg + vx_neg[:, :, ::-1])
     vy_pos = rng.uniform(0.05, 0.3, (k, nx, ny))
     vy_neg = vy_pos[:, :, ::-1]  # mirror image: j -> NY-1-j swaps the directions
-    table = make_table(t=5.0 * np.arange(k), x_edges=np.linspace(0, 0.33, nx + 1), y_edges=np.linspace(-0.05, 0.05, ny + 1),
-                       vx_pos=vx_pos, vx_neg=vx_neg, vy_pos=vy_pos, vy_neg=vy_neg)
+    table = make_table(
+        t=5.0 * np.arange(k),
+        x_edges=np.linspace(0, 0.33, nx + 1),
+        y_edges=np.linspace(-0.05, 0.05, ny + 1),
+        vx_pos=vx_pos,
+        vx_neg=vx_neg,
+        vy_pos=vy_pos,
+        vy_neg=vy_neg,
+    )
     result = simulate(table, PbmConfig(duration_s=30.0))
     np.testing.assert_allclose(result.C_A, 0.5, atol=1e-12)
 

@@ -140,7 +140,7 @@ def test_empty_config_file_is_refused_with_how_to_start(tmp_path, text):
 
 def test_binary_config_file_is_a_one_line_error(tmp_path):
     path = tmp_path / "blob.toml"
-    path.write_bytes(b"name = \"x\"\n\xff\xfe\x00\x89PNG\r\n")
+    path.write_bytes(b'name = "x"\n\xff\xfe\x00\x89PNG\r\n')
     with pytest.raises(ConfigError) as info:
         load_config(path)
     message = str(info.value)
@@ -161,22 +161,25 @@ def test_cli_reports_empty_config_without_traceback(capsys, tmp_path):
 
 
 # ----------------------------------------------------------------------------- issue 22: strict types
-@pytest.mark.parametrize(("assignment", "message"), [
-    ('dem.tables.nx="10"', r"'dem\.tables\.nx' = '\"10\"' \(text\): an integer is needed"),
-    ("dem.run.np=true", r"'dem\.run\.np' = true \(a boolean\): an integer is needed"),
-    ("dem.operation.duration_s=true", r"'dem\.operation\.duration_s' = true \(a boolean\): a number is needed"),
-    ("dem.tables.nx=1e9", r"'dem\.tables\.nx' = 1000000000\.0 \(a float\): an integer is needed"),
-    ("pbm.seed=false", r"'pbm\.seed' = false \(a boolean\): an integer is needed"),
-    ("pbm.feed_rate_a_per_s=true", r"'pbm\.feed_rate_a_per_s' = true \(a boolean\)"),
-    ("steady_state.window_s=true", r"steady_state\.window_s = true \(a boolean\): a number is needed"),
-    ("dem.run.launcher=mpirun -np {n}", r"uses the unknown field \{n\}; the only field is \{np\}"),
-    ("dem.run.launcher=mpirun -np {np", r"is not a valid template \(expected '\}' before end of string\)"),
-    ("dem.run.launcher=mpirun -np {np:d}", r"has a conversion or format spec; write it as plain \{np\}"),
-    ('dem.run.launcher=mpirun "-np {np}', r"is not a valid command line \(No closing quotation\)"),
-    ("dem.run.launcher=srun {}", r"uses the unknown field \{\}"),
-    ("dem.run.liggghts=", r"'dem\.run\.liggghts' = '': is empty; the LIGGGHTS command is needed"),
-    ("dem.run.liggghts=   ", r"is empty"),
-])
+@pytest.mark.parametrize(
+    ("assignment", "message"),
+    [
+        ('dem.tables.nx="10"', r"'dem\.tables\.nx' = '\"10\"' \(text\): an integer is needed"),
+        ("dem.run.np=true", r"'dem\.run\.np' = true \(a boolean\): an integer is needed"),
+        ("dem.operation.duration_s=true", r"'dem\.operation\.duration_s' = true \(a boolean\): a number is needed"),
+        ("dem.tables.nx=1e9", r"'dem\.tables\.nx' = 1000000000\.0 \(a float\): an integer is needed"),
+        ("pbm.seed=false", r"'pbm\.seed' = false \(a boolean\): an integer is needed"),
+        ("pbm.feed_rate_a_per_s=true", r"'pbm\.feed_rate_a_per_s' = true \(a boolean\)"),
+        ("steady_state.window_s=true", r"steady_state\.window_s = true \(a boolean\): a number is needed"),
+        ("dem.run.launcher=mpirun -np {n}", r"uses the unknown field \{n\}; the only field is \{np\}"),
+        ("dem.run.launcher=mpirun -np {np", r"is not a valid template \(expected '\}' before end of string\)"),
+        ("dem.run.launcher=mpirun -np {np:d}", r"has a conversion or format spec; write it as plain \{np\}"),
+        ('dem.run.launcher=mpirun "-np {np}', r"is not a valid command line \(No closing quotation\)"),
+        ("dem.run.launcher=srun {}", r"uses the unknown field \{\}"),
+        ("dem.run.liggghts=", r"'dem\.run\.liggghts' = '': is empty; the LIGGGHTS command is needed"),
+        ("dem.run.liggghts=   ", r"is empty"),
+    ],
+)
 def test_loose_types_and_bad_launcher_templates_are_refused_by_key(assignment, message):
     from workflows.config import override
 
@@ -190,8 +193,10 @@ def test_strict_types_in_a_toml_file_and_what_stays_valid(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert "'dem.tables.nx' = '10' (text)" in str(info.value) and "'dem.run.np' = true (a boolean)" in str(info.value)
-    path.write_text('name = "x"\n[dem.operation]\nduration_s = 10\n[dem.run]\nlauncher = "srun"\n'
-                    'liggghts = "liggghts -echo screen"\n[pbm]\nfeed_rate_a_per_s = 3\n')
+    path.write_text(
+        'name = "x"\n[dem.operation]\nduration_s = 10\n[dem.run]\nlauncher = "srun"\n'
+        'liggghts = "liggghts -echo screen"\n[pbm]\nfeed_rate_a_per_s = 3\n'
+    )
     config = load_config(path)  # an integer where a float belongs is a number
     assert config.dem.operation.duration_s == 10.0 and config.dem.run.launcher == "srun"
     from dem.config import check_launcher
@@ -201,14 +206,17 @@ def test_strict_types_in_a_toml_file_and_what_stays_valid(tmp_path):
 
 
 # ----------------------------------------------------------------------------- issue 22: degenerate inputs
-@pytest.mark.parametrize(("kwargs", "message"), [
-    ({"seed": -1}, r"seed must be an integer >= 0"),
-    ({"seed": 1.5}, r"seed must be an integer >= 0"),
-    ({"n_windows": 10**8}, r"a synthetic table of 100000000 windows .* needs about .* of memory"),
-    ({"n_windows": 0}, r"n_windows \(--windows\) must be an integer >= 1"),
-    ({"window_s": float("nan")}, r"window_s must be a finite number > 0, got nan"),
-    ({"n_windows": 10**6, "window_s": 1e4}, r"must stay within 1e\+09 s"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"seed": -1}, r"seed must be an integer >= 0"),
+        ({"seed": 1.5}, r"seed must be an integer >= 0"),
+        ({"n_windows": 10**8}, r"a synthetic table of 100000000 windows .* needs about .* of memory"),
+        ({"n_windows": 0}, r"n_windows \(--windows\) must be an integer >= 1"),
+        ({"window_s": float("nan")}, r"window_s must be a finite number > 0, got nan"),
+        ({"n_windows": 10**6, "window_s": 1e4}, r"must stay within 1e\+09 s"),
+    ],
+)
 def test_synthetic_table_refuses_bad_seeds_and_window_counts(kwargs, message):
     from coupling.errors import PbmDemError
     from pbm.synthetic import synthetic_table
@@ -220,8 +228,8 @@ def test_synthetic_table_refuses_bad_seeds_and_window_counts(kwargs, message):
 
 def test_memory_estimates_refuse_what_the_machine_cannot_hold():
     from coupling.errors import ResourceLimitError
-    from pbm.ensemble import noise_ensemble
     from pbm.config import PbmConfig
+    from pbm.ensemble import noise_ensemble
     from pbm.resources import check_ensemble_memory, check_pbm_memory
     from pbm.synthetic import synthetic_table
 
@@ -235,12 +243,15 @@ def test_memory_estimates_refuse_what_the_machine_cannot_hold():
         check_pbm_memory(1, 1, 1, available_bytes=100)
 
 
-@pytest.mark.parametrize(("recovered", "m1", "m2"), [
-    (2e-16, -7.2e-15, 3e-13),  # the probe's NY = 1 case: round-off "recovered" tracer, mean -36 s
-    (0.0, 0.0, 0.0),
-    (-1e-12, 1e-12, 1e-12),
-    (0.5, -1.0, 1.0),          # a negative first moment
-])
+@pytest.mark.parametrize(
+    ("recovered", "m1", "m2"),
+    [
+        (2e-16, -7.2e-15, 3e-13),  # the probe's NY = 1 case: round-off "recovered" tracer, mean -36 s
+        (0.0, 0.0, 0.0),
+        (-1e-12, 1e-12, 1e-12),
+        (0.5, -1.0, 1.0),  # a negative first moment
+    ],
+)
 def test_residence_time_moments_are_never_negative(recovered, m1, m2):
     import math
 

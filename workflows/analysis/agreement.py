@@ -54,8 +54,9 @@ class PbmMode:
     pooled: PooledRtd | None
 
 
-def run_modes(table: VelocityTable, config: PbmConfig, steady: SteadyStateRule,
-              dem_summary: DemSummary) -> dict[str, PbmMode]:
+def run_modes(
+    table: VelocityTable, config: PbmConfig, steady: SteadyStateRule, dem_summary: DemSummary
+) -> dict[str, PbmMode]:
     """The PBM in each rate mode the table supports (``measured`` needs its rates; asked
     for by ``config`` on a table without them, it raises ConfigError), with the pooled RTD
     over the DEM's entry window and horizon when the DEM has one."""
@@ -164,8 +165,14 @@ class AgreementRow:
     def record(self) -> dict[str, Any]:
         """The row as ``summary.json`` holds it: flat, ``pbm_<mode>`` and ``inside_<mode>``
         for every mode of :data:`MODES` (NaN / None for a mode that did not run)."""
-        out: dict[str, Any] = {"key": self.key, "quantity": self.quantity, "unit": self.unit, "dem": self.dem,
-                               "dem_ci_low": self.dem_ci_low, "dem_ci_high": self.dem_ci_high}
+        out: dict[str, Any] = {
+            "key": self.key,
+            "quantity": self.quantity,
+            "unit": self.unit,
+            "dem": self.dem,
+            "dem_ci_low": self.dem_ci_low,
+            "dem_ci_high": self.dem_ci_high,
+        }
         for mode in (*MODES, *(m for m in self.pbm if m not in MODES)):
             m = self.pbm.get(mode)
             out[f"pbm_{mode}"] = math.nan if m is None else m.value
@@ -183,27 +190,39 @@ def _row(key: str, quantity: str, unit: str, dem: dict[str, Any] | None, pbm: di
 
 def dem_density(records: pd.DataFrame, pooled_spec: PooledRtdSummary) -> tuple[np.ndarray, np.ndarray, int]:
     """(bin edges, density, recovered particles) of the DEM's pooled RTD."""
-    sample = rtd_pooled(records["entry_t_s"].to_numpy(float), records["exit_t_s"].to_numpy(float),
-                        pooled_spec.entry_window_s, pooled_spec.horizon_s)
+    sample = rtd_pooled(
+        records["entry_t_s"].to_numpy(float),
+        records["exit_t_s"].to_numpy(float),
+        pooled_spec.entry_window_s,
+        pooled_spec.horizon_s,
+    )
     edges, density = rtd_density(sample.residence_s, pooled_spec.bin_s, pooled_spec.horizon_s)
     return edges, density, int(sample.residence_s.size)
 
 
-def agreement_rows(dem_summary: DemSummary, records: pd.DataFrame,
-                   modes: dict[str, PbmMode]) -> list[AgreementRow]:
+def agreement_rows(dem_summary: DemSummary, records: pd.DataFrame, modes: dict[str, PbmMode]) -> list[AgreementRow]:
     """The agreement table (module docstring)."""
     steady = dem_summary.steady
     pooled_spec = dem_summary.pooled_rtd if dem_summary.has_pooled_rtd else None
     pbm_values = {mode: pbm_steady(m.result, steady) for mode, m in modes.items()}
     for mode, m in modes.items():
         if m.pooled is not None:
-            pbm_values[mode].update({"mean_residence_time_s": m.pooled.mean_s, "rtd_variance_s2": m.pooled.variance_s2,
-                                     "rtd_recovered_fraction": m.pooled.recovered_fraction})
+            pbm_values[mode].update(
+                {
+                    "mean_residence_time_s": m.pooled.mean_s,
+                    "rtd_variance_s2": m.pooled.variance_s2,
+                    "rtd_recovered_fraction": m.pooled.recovered_fraction,
+                }
+            )
     dem_values = dict(steady)
     if pooled_spec is not None:
-        dem_values.update({"mean_residence_time_s": pooled_spec.mean_residence_time_s.record(),
-                           "rtd_variance_s2": pooled_spec.rtd_variance_s2.record(),
-                           "rtd_recovered_fraction": pooled_spec.recovered_fraction.record()})
+        dem_values.update(
+            {
+                "mean_residence_time_s": pooled_spec.mean_residence_time_s.record(),
+                "rtd_variance_s2": pooled_spec.rtd_variance_s2.record(),
+                "rtd_recovered_fraction": pooled_spec.recovered_fraction.record(),
+            }
+        )
     rows = []
     for key, label, unit in _SCALARS:
         pbm = {mode: v[key] for mode, v in pbm_values.items() if key in v}
@@ -223,19 +242,34 @@ def agreement_rows(dem_summary: DemSummary, records: pd.DataFrame,
             band = overlap_noise_band(e_pbm, bin_s, n)
             overlaps[mode] = ModeValue(overlap, bool(overlap >= band.low), band.median, band.low)
         low = min((m.noise_low for m in overlaps.values()), default=math.nan)
-        rows.append(AgreementRow("rtd_overlap", "RTD overlap (pooled; interval: noise band of the mode)", "-",
-                                 1.0, low, 1.0, overlaps))
+        rows.append(
+            AgreementRow(
+                "rtd_overlap", "RTD overlap (pooled; interval: noise band of the mode)", "-", 1.0, low, 1.0, overlaps
+            )
+        )
     slices = steady.get("holdup_by_slice")
     if slices:
         for i, (value, low, high) in enumerate(zip(slices["value"], slices["low"], slices["high"])):
             pbm = {mode: v["holdup_by_slice"][i] for mode, v in pbm_values.items() if "holdup_by_slice" in v}
-            rows.append(_row(f"holdup_slice_{i + 1}", f"hold-up of axial slice {i + 1}", "particles",
-                             {"value": value, "low": low, "high": high}, pbm))
+            rows.append(
+                _row(
+                    f"holdup_slice_{i + 1}",
+                    f"hold-up of axial slice {i + 1}",
+                    "particles",
+                    {"value": value, "low": low, "high": high},
+                    pbm,
+                )
+            )
     return rows
 
 
-def nx_sensitivity(fine_table: VelocityTable, config: PbmConfig, steady: SteadyStateRule,
-                   dem_summary: DemSummary, coarse: dict[str, PbmMode]) -> dict[str, Any]:
+def nx_sensitivity(
+    fine_table: VelocityTable,
+    config: PbmConfig,
+    steady: SteadyStateRule,
+    dem_summary: DemSummary,
+    coarse: dict[str, PbmMode],
+) -> dict[str, Any]:
     """Pooled-RTD mean and variance of each mode on a table binned at a finer NX (the
     measured rates re-fitted to the DEM's moves between the finer compartments, not
     regridded), against the same on the coarse table: the relative changes."""

@@ -78,8 +78,10 @@ def table_from_first(results: DemResults, t_use_s: float, steady_time_s: float) 
     if not (math.isfinite(t_use_s) and t_use_s > 0):
         raise ValueError(f"T = {t_use_s!r}: expected a finite time > 0 s")
     if not math.isfinite(steady_time_s):
-        raise ValueError(f"T = {t_use_s:g} s: the steady-state time is {steady_time_s!r}; "
-                         "without a steady state there is no steady flow to hold")
+        raise ValueError(
+            f"T = {t_use_s:g} s: the steady-state time is {steady_time_s!r}; "
+            "without a steady state there is no steady flow to hold"
+        )
     tol = 1e-9 * table.window_s
     ends = table.t + table.window_s
     known = ends <= t_use_s + tol
@@ -88,24 +90,34 @@ def table_from_first(results: DemResults, t_use_s: float, steady_time_s: float) 
     if not steady.any():
         after = ends[after_steady]
         first = f"the first one ends at {after[0]:g} s" if after.size else "the table has none after it"
-        raise ValueError(f"T = {t_use_s:g} s: no complete {table.window_s:g}-s window lies in "
-                         f"[steady time {steady_time_s:g} s, T); {first}")
-    attrs = {"budget_t_use_s": float(min(t_use_s, table.t_end)), "budget_steady_time_s": float(steady_time_s),
-             "budget_rule": "windows from the steady state on hold the steady mean of the windows in "
-                            "[steady time, T) (workflows.analysis.budget.table_from_first)"}
+        raise ValueError(
+            f"T = {t_use_s:g} s: no complete {table.window_s:g}-s window lies in "
+            f"[steady time {steady_time_s:g} s, T); {first}"
+        )
+    attrs = {
+        "budget_t_use_s": float(min(t_use_s, table.t_end)),
+        "budget_steady_time_s": float(steady_time_s),
+        "budget_rule": "windows from the steady state on hold the steady mean of the windows in "
+        "[steady time, T) (workflows.analysis.budget.table_from_first)",
+    }
     return _hold_steady_mean(results, known=known, steady=steady, hold=after_steady, attrs=attrs)
 
 
-def _hold_steady_mean(results: DemResults, known: np.ndarray, steady: np.ndarray, hold: np.ndarray,
-                      attrs: dict[str, Any]) -> VelocityTable:
+def _hold_steady_mean(
+    results: DemResults, known: np.ndarray, steady: np.ndarray, hold: np.ndarray, attrs: dict[str, Any]
+) -> VelocityTable:
     """The table with the ``hold`` windows set to the steady mean of the ``steady``
     windows (the rule of :func:`table_from_first`), missing velocities filled from the
     ``known`` windows only. Masks are (K,) bool; ``steady`` lies within ``known``."""
     table = results.table
-    early = table.replace(t=table.t[known], n_samples=table.n_samples[known],
-                          **{name: getattr(table, name)[known]
-                             for name in (*VELOCITY_NAMES, "count_A", "count_B",
-                                          *(RATE_NAMES if table.has_rates else ()))})
+    early = table.replace(
+        t=table.t[known],
+        n_samples=table.n_samples[known],
+        **{
+            name: getattr(table, name)[known]
+            for name in (*VELOCITY_NAMES, "count_A", "count_B", *(RATE_NAMES if table.has_rates else ()))
+        },
+    )
     filled, _ = fill_missing_velocities(early)
     window = steady[known]  # the steady windows, indexed within the known ones
     n = filled.count_A[window] + filled.count_B[window]
@@ -123,8 +135,13 @@ def _hold_steady_mean(results: DemResults, known: np.ndarray, steady: np.ndarray
     if table.has_rates:
         fit = refit_rates(results, steady)
         held.update({f"rate_{key}": getattr(fit, key) for key in RATE_KEYS})
-        attrs.update({"budget_rates_converged": bool(fit.converged), "budget_rates_iterations": int(fit.iterations),
-                      "budget_rates_capped": int(fit.capped)})
+        attrs.update(
+            {
+                "budget_rates_converged": bool(fit.converged),
+                "budget_rates_iterations": int(fit.iterations),
+                "budget_rates_capped": int(fit.capped),
+            }
+        )
 
     fields = {}
     for name, value in held.items():
@@ -141,16 +158,21 @@ def refit_rates(results: DemResults, windows: np.ndarray):
     transitions = np.asarray(results.transitions)
     s = table.nx * table.ny
     if transitions.shape != (table.n_windows, s + 1, s + 1):
-        raise ValueError(f"the table carries measured rates but the transition counts have shape "
-                         f"{transitions.shape}, not (K, S+1, S+1) = ({table.n_windows}, {s + 1}, {s + 1})")
+        raise ValueError(
+            f"the table carries measured rates but the transition counts have shape "
+            f"{transitions.shape}, not (K, S+1, S+1) = ({table.n_windows}, {s + 1}, {s + 1})"
+        )
     interval = table.attrs.get("rates_interval_s")
     if interval is None:
-        raise ValueError("the table carries measured rates but no 'rates_interval_s' attribute (the dump "
-                         "interval they were fitted at)")
+        raise ValueError(
+            "the table carries measured rates but no 'rates_interval_s' attribute (the dump "
+            "interval they were fitted at)"
+        )
     # the rate fits are a hot loop of small matrices: one BLAS thread (coupling.blas)
     with single_threaded_blas():
-        return fit_rates(transitions[windows].sum(axis=0), table.nx, table.ny, float(interval),
-                         min_observations=table.min_samples)
+        return fit_rates(
+            transitions[windows].sum(axis=0), table.nx, table.ny, float(interval), min_observations=table.min_samples
+        )
 
 
 # ----------------------------------------------------------------------------- judging
@@ -159,8 +181,13 @@ def judge(rows_t: list[AgreementRow], reference_rows: list[AgreementRow], mode: 
     value against the reference PBM's (the whole run's), with the half width of the
     reference rows' DEM interval as the tolerance (:meth:`AgreementRow.half_width`)."""
     reference = {row.key: row for row in reference_rows if row.key not in SKIPPED}
-    return [Judged(row.key, row.quantity, row.value(mode), reference[row.key].value(mode),
-                   reference[row.key].half_width(mode)) for row in rows_t if row.key in reference]
+    return [
+        Judged(
+            row.key, row.quantity, row.value(mode), reference[row.key].value(mode), reference[row.key].half_width(mode)
+        )
+        for row in rows_t
+        if row.key in reference
+    ]
 
 
 @dataclass(frozen=True)
@@ -189,11 +216,26 @@ class Verdict:
 
     def record(self) -> dict[str, Any]:
         worst = self.worst
-        return {"all_inside": self.all_inside, "all_inside_without_slices": self.all_inside_without_slices,
-                "n_inside": self.n_inside, "n_rows": len(self.rows), "worst": None if worst is None else worst.key,
-                "worst_deviation": None if worst is None else worst.deviation,
-                "rows": [{"key": r.key, "quantity": r.quantity, "pbm_T": r.value, "pbm_whole": r.reference,
-                          "half_width": r.tolerance, "deviation": r.deviation, "inside": r.ok} for r in self.rows]}
+        return {
+            "all_inside": self.all_inside,
+            "all_inside_without_slices": self.all_inside_without_slices,
+            "n_inside": self.n_inside,
+            "n_rows": len(self.rows),
+            "worst": None if worst is None else worst.key,
+            "worst_deviation": None if worst is None else worst.deviation,
+            "rows": [
+                {
+                    "key": r.key,
+                    "quantity": r.quantity,
+                    "pbm_T": r.value,
+                    "pbm_whole": r.reference,
+                    "half_width": r.tolerance,
+                    "deviation": r.deviation,
+                    "inside": r.ok,
+                }
+                for r in self.rows
+            ],
+        }
 
 
 def verdict(judged: list[Judged]) -> Verdict:
@@ -230,8 +272,13 @@ class Budget:
     modes: dict[str, Verdict] = field(default_factory=dict)
 
     def record(self) -> dict[str, Any]:
-        out = {"t_s": self.t_s, "fraction": self.fraction, "steady_time_s": self.steady_time_s, "error": self.error,
-               "modes": {mode: v.record() for mode, v in self.modes.items()}}
+        out = {
+            "t_s": self.t_s,
+            "fraction": self.fraction,
+            "steady_time_s": self.steady_time_s,
+            "error": self.error,
+            "modes": {mode: v.record() for mode, v in self.modes.items()},
+        }
         if self.table is not None:
             out["table"] = self.table
         return out
@@ -257,19 +304,25 @@ class BudgetStudy:
         def smallest(values: dict[str, tuple[float | None, float | None]]) -> dict[str, Any]:
             return {mode: {"t_s": t, "fraction": f} for mode, (t, f) in values.items()}
 
-        out = {"t_end_s": self.t_end_s, "steady_state_time_s": self.steady_state_time_s, "skipped": list(SKIPPED),
-               "yardstick": YARDSTICK,
-               "whole": {mode: [r.record() for r in rows] for mode, rows in self.whole.items()},
-               "holding": {mode: v.record() for mode, v in self.holding.items()},
-               "budgets": [b.record() for b in self.budgets], "smallest_T": smallest(self.smallest_T),
-               "smallest_T_without_slices": smallest(self.smallest_T_without_slices)}
+        out = {
+            "t_end_s": self.t_end_s,
+            "steady_state_time_s": self.steady_state_time_s,
+            "skipped": list(SKIPPED),
+            "yardstick": YARDSTICK,
+            "whole": {mode: [r.record() for r in rows] for mode, rows in self.whole.items()},
+            "holding": {mode: v.record() for mode, v in self.holding.items()},
+            "budgets": [b.record() for b in self.budgets],
+            "smallest_T": smallest(self.smallest_T),
+            "smallest_T_without_slices": smallest(self.smallest_T_without_slices),
+        }
         if self.reference is not None:
             out["reference"], out["elapsed_s"] = self.reference, self.elapsed_s
         return out
 
 
-YARDSTICK = ("|pbm_T - pbm_whole| <= half width of the whole run's DEM 95 % interval "
-             "(RTD overlap: 1 - noise low of the mode)")
+YARDSTICK = (
+    "|pbm_T - pbm_whole| <= half width of the whole run's DEM 95 % interval (RTD overlap: 1 - noise low of the mode)"
+)
 
 
 def smallest_budget(all_inside: dict[float, bool]) -> float | None:
@@ -284,8 +337,9 @@ def smallest_budget(all_inside: dict[float, bool]) -> float | None:
 
 
 # ----------------------------------------------------------------------------- the study
-def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
-                 log: Log = lambda message: None) -> BudgetStudy:
+def budget_study(
+    results: DemResults, config: Config, t_values: Sequence[float], log: Log = lambda message: None
+) -> BudgetStudy:
     """For each T in ``t_values``: both PBM rate modes on :func:`table_from_first`, judged
     quantity by quantity (every agreement row but :data:`SKIPPED`) against the same mode
     on the whole run's table built by the same rule (T = the run's end).
@@ -335,10 +389,19 @@ def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
     modes = [mode for mode in MODES if math.isfinite(whole_rows[0].value(mode))]
     whole = {}
     for mode in modes:
-        whole[mode] = [WholeRow(row.key, row.quantity, row.value(mode), row.dem,
-                                row.pbm[mode].noise_low if row.pbm[mode].noise_low is not None else row.dem_ci_low,
-                                row.dem_ci_high, row.half_width(mode))
-                       for row in whole_rows if row.key not in SKIPPED]
+        whole[mode] = [
+            WholeRow(
+                row.key,
+                row.quantity,
+                row.value(mode),
+                row.dem,
+                row.pbm[mode].noise_low if row.pbm[mode].noise_low is not None else row.dem_ci_low,
+                row.dem_ci_high,
+                row.half_width(mode),
+            )
+            for row in whole_rows
+            if row.key not in SKIPPED
+        ]
     holding = {mode: verdict(judge(whole_rows, window_rows, mode)) for mode in modes}
 
     times = results.timeseries["t_s"].to_numpy(float)
@@ -360,8 +423,11 @@ def budget_study(results: DemResults, config: Config, t_values: Sequence[float],
             entry.error = str(exc)
             log(entry.error)
             continue
-        entry.table = {key.removeprefix("budget_"): value for key, value in table_t.attrs.items()
-                          if key.startswith("budget_") and key != "budget_rule"}
+        entry.table = {
+            key.removeprefix("budget_"): value
+            for key, value in table_t.attrs.items()
+            if key.startswith("budget_") and key != "budget_rule"
+        }
         if t_use >= t_end - 1e-9 * table.window_s:  # the whole run: its PBM is the reference itself
             rows_t = whole_rows
         else:

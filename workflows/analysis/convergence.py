@@ -62,10 +62,13 @@ def converged(results: DemResults, config: Config, t_s: float, step_s: float = C
     if not summary.has_pooled_rtd:
         # without it the agreement table has no RTD rows: judging the rest would pass a
         # PBM whose residence times nobody has checked
-        return Convergence(False, t_s, f"no pooled RTD in the first {t_s:g} s yet (its entry window ends a horizon "
-                                       "before T)")
+        return Convergence(
+            False, t_s, f"no pooled RTD in the first {t_s:g} s yet (its entry window ends a horizon before T)"
+        )
     if t_s - step_s < steady + results.table.window_s:
-        return Convergence(False, t_s, f"no complete steady window before {t_s - step_s:g} s (steady from {steady:g} s)")
+        return Convergence(
+            False, t_s, f"no complete steady window before {t_s - step_s:g} s (steady from {steady:g} s)"
+        )
     pbm_config = pbm_config_for(config, results.table, rtd_pulse(summary))
 
     def rows(t: float) -> list[AgreementRow]:
@@ -78,8 +81,9 @@ def converged(results: DemResults, config: Config, t_s: float, step_s: float = C
     if modes and all(v.all_inside for v in modes.values()):
         return Convergence(True, t_s, None, modes)
     worst = {m: v.worst.key for m, v in modes.items() if not v.all_inside and v.worst is not None}
-    return Convergence(False, t_s, "moved by more than the DEM resolves: "
-                       + ", ".join(f"{m}: {k}" for m, k in worst.items()), modes)
+    return Convergence(
+        False, t_s, "moved by more than the DEM resolves: " + ", ".join(f"{m}: {k}" for m, k in worst.items()), modes
+    )
 
 
 def check_run_directory(run_dir: Path, config: Config, t_s: float, step_s: float = CHECK_EVERY_S) -> Convergence:
@@ -95,9 +99,14 @@ class ConvergenceWatch:
     ``check(T)`` (default :func:`check_run_directory`) says converged. ``history`` keeps
     every check's answer; ``log`` is told each one."""
 
-    def __init__(self, config: Config, run_dir: Path, every_s: float = CHECK_EVERY_S,
-                 check: Callable[[float], Convergence] | None = None,
-                 log: Callable[[str], None] = lambda message: None) -> None:
+    def __init__(
+        self,
+        config: Config,
+        run_dir: Path,
+        every_s: float = CHECK_EVERY_S,
+        check: Callable[[float], Convergence] | None = None,
+        log: Callable[[str], None] = lambda message: None,
+    ) -> None:
         if not (math.isfinite(every_s) and every_s > 0):
             raise ValueError(f"the check interval must be > 0 s, got {every_s}")
         self.dt = float(config.dem.timestep_s)
@@ -122,8 +131,7 @@ class ConvergenceWatch:
             answer = Convergence(False, t_s, f"check failed: {exc}")
         with self._lock:
             self.history.append(answer)
-        self.log(f"convergence check at {t_s:g} s: "
-                 + ("converged" if answer.converged else f"not yet ({answer.why})"))
+        self.log(f"convergence check at {t_s:g} s: " + ("converged" if answer.converged else f"not yet ({answer.why})"))
 
     def __call__(self, line: str) -> None:
         t_stop = self.converged_at

@@ -62,9 +62,16 @@ def pbm_response(table, config: Config, rates: str, step_s: float, t_end: float)
     """The PBM's outlet C_A per sampling interval for ``table`` under the config's step."""
     op = config.dem.operation
     interval = float(config.dem.tables.sample_interval_s)
-    pbm_config = pbm_config_for(config, table, None).model_copy(update={
-        "rates": rates, "feed_step_s": step_s, "feed_step_factor_a": op.step_factor_a, "output_interval_s": interval,
-        "noise_interval_s": interval, "duration_s": min(t_end, table.t_end)})
+    pbm_config = pbm_config_for(config, table, None).model_copy(
+        update={
+            "rates": rates,
+            "feed_step_s": step_s,
+            "feed_step_factor_a": op.step_factor_a,
+            "output_interval_s": interval,
+            "noise_interval_s": interval,
+            "duration_s": min(t_end, table.t_end),
+        }
+    )
     result = simulate(table, pbm_config)
     return pd.DataFrame({"t_s": result.times, "C_A": result.C_A})
 
@@ -77,8 +84,9 @@ def feed_levels(config: Config) -> tuple[float, float]:
     return a / (a + b), op.step_factor_a * a / (op.step_factor_a * a + b)
 
 
-def mean_delay(t_s: np.ndarray, c_a: np.ndarray, step_s: float, interval_s: float,
-               levels: tuple[float, float]) -> float:
+def mean_delay(
+    t_s: np.ndarray, c_a: np.ndarray, step_s: float, interval_s: float, levels: tuple[float, float]
+) -> float:
     """sum over the intervals after the step of (C_after - C(t)) dt / (C_after - C_before),
     with the levels the feed's (:func:`feed_levels`): measuring them from the outlet would
     add their sampling noise to every interval of the sum."""
@@ -120,20 +128,26 @@ class TimeScale:
         return {"value": self.value, "low": self.low, "high": self.high, "at_bound": self.at_bound}
 
 
-def time_scale(t_s: np.ndarray, k: np.ndarray, n: np.ndarray, pbm_t: np.ndarray, pbm_c: np.ndarray,
-               step_s: float) -> TimeScale:
+def time_scale(
+    t_s: np.ndarray, k: np.ndarray, n: np.ndarray, pbm_t: np.ndarray, pbm_c: np.ndarray, step_s: float
+) -> TimeScale:
     """The factor alpha by which the DEM's response runs faster than the PBM's (the DEM at
     step + dt matches the PBM at step + alpha dt), by binomial maximum likelihood over a
     log-spaced grid, with its 95 % profile-likelihood interval (deviance within 3.84 of
     its minimum). ``at_bound`` says the interval reaches the grid's end (0.25 or 4)."""
     alphas = np.geomspace(ALPHA_RANGE[0], ALPHA_RANGE[1], 1201)
     ok = np.isfinite(pbm_c)
-    deviances = np.array([binomial_deviance(k, n, np.interp(step_s + (t_s - step_s) * a, pbm_t[ok], pbm_c[ok]))
-                          for a in alphas])
+    deviances = np.array(
+        [binomial_deviance(k, n, np.interp(step_s + (t_s - step_s) * a, pbm_t[ok], pbm_c[ok])) for a in alphas]
+    )
     best = int(np.argmin(deviances))
     inside = alphas[deviances <= deviances[best] + CHI2_95_ONE_DOF]
-    return TimeScale(value=float(alphas[best]), low=float(inside.min()), high=float(inside.max()),
-                     at_bound=bool(inside.min() <= alphas[0] or inside.max() >= alphas[-1]))
+    return TimeScale(
+        value=float(alphas[best]),
+        low=float(inside.min()),
+        high=float(inside.max()),
+        at_bound=bool(inside.min() <= alphas[0] or inside.max() >= alphas[-1]),
+    )
 
 
 @dataclass(frozen=True)
@@ -170,15 +184,28 @@ class StepJudgement:
 
     def record(self) -> dict[str, Any]:
         delay = self.dem_delay_s
-        return {"intervals_after_step": self.intervals_after_step, "deviance": self.deviance,
-                "deviance_p": self.deviance_p, "time_scale": self.time_scale.record(),
-                "time_scale_inside": self.time_scale_inside,
-                "dem_delay_s": {"value": delay.estimate, "low": delay.low, "high": delay.high},
-                "pbm_delay_s": self.pbm_delay_s, "delay_inside": self.delay_inside, "predicted": self.predicted}
+        return {
+            "intervals_after_step": self.intervals_after_step,
+            "deviance": self.deviance,
+            "deviance_p": self.deviance_p,
+            "time_scale": self.time_scale.record(),
+            "time_scale_inside": self.time_scale_inside,
+            "dem_delay_s": {"value": delay.estimate, "low": delay.low, "high": delay.high},
+            "pbm_delay_s": self.pbm_delay_s,
+            "delay_inside": self.delay_inside,
+            "predicted": self.predicted,
+        }
 
 
-def judge_step(dem: pd.DataFrame, pbm: pd.DataFrame, step_s: float, interval_s: float, levels: tuple[float, float],
-               n_boot: int = N_BOOT, seed: int = SEED) -> StepJudgement:
+def judge_step(
+    dem: pd.DataFrame,
+    pbm: pd.DataFrame,
+    step_s: float,
+    interval_s: float,
+    levels: tuple[float, float],
+    n_boot: int = N_BOOT,
+    seed: int = SEED,
+) -> StepJudgement:
     """One PBM's step response against the DEM's (module docstring): the response's time
     scale and the counts' deviance decide; the mean delay is reported with its interval.
     ``dem``: counts per interval (:func:`dem_counts`); ``pbm``: t_s and C_A
@@ -201,8 +228,14 @@ def judge_step(dem: pd.DataFrame, pbm: pd.DataFrame, step_s: float, interval_s: 
     boot = [mean_delay(t, d / n, step_s, interval_s, levels) for d in draws]
     low, high = (float(q) for q in np.percentile(boot, [2.5, 97.5]))
     pbm_delay = mean_delay(t, c_pbm, step_s, interval_s, levels)
-    return StepJudgement(intervals_after_step=int(t.size), deviance=deviance, deviance_p=p_value, time_scale=scale,
-                         dem_delay_s=Interval(dem_delay, low, high), pbm_delay_s=pbm_delay)
+    return StepJudgement(
+        intervals_after_step=int(t.size),
+        deviance=deviance,
+        deviance_p=p_value,
+        time_scale=scale,
+        dem_delay_s=Interval(dem_delay, low, high),
+        pbm_delay_s=pbm_delay,
+    )
 
 
 @dataclass(frozen=True)
@@ -235,8 +268,12 @@ class StepComparison:
 
     def record(self) -> dict[str, Any]:
         """The JSON-ready part (no series): ``summary.json``'s ``step_response``."""
-        return {"step_s": self.step_s, "factor_a": self.factor_a, "interval_s": self.interval_s,
-                "rows": [row.record() for row in self.rows]}
+        return {
+            "step_s": self.step_s,
+            "factor_a": self.factor_a,
+            "interval_s": self.interval_s,
+            "rows": [row.record() for row in self.rows],
+        }
 
 
 def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> StepComparison:
@@ -259,5 +296,6 @@ def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> 
             pbm = pbm_response(table, config, mode, step_s, t_end)
             series[(source, mode)] = pbm
             rows.append(StepRow(source, mode, judge_step(dem, pbm, step_s, interval, feed_levels(config))))
-    return StepComparison(step_s=step_s, factor_a=op.step_factor_a, interval_s=interval, rows=tuple(rows), dem=dem,
-                          series=series)
+    return StepComparison(
+        step_s=step_s, factor_a=op.step_factor_a, interval_s=interval, rows=tuple(rows), dem=dem, series=series
+    )

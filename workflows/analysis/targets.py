@@ -29,36 +29,63 @@ def check(summary: dict) -> list[tuple[str, str, bool | None]]:
     pooled = (summary.get("dem_summary") or {}).get("pooled_rtd") or {}
     out: list[tuple[str, str, bool | None]] = []
     n, rec = pooled.get("n_entered", 0), (pooled.get("recovered_fraction") or {}).get("value", math.nan)
-    out.append(("pooled RTD from >= 10 000 particles, >= 95 % recovered", f"{n} entered, {rec:.3f} recovered",
-                n >= 10_000 and rec >= 0.95))
+    out.append(
+        (
+            "pooled RTD from >= 10 000 particles, >= 95 % recovered",
+            f"{n} entered, {rec:.3f} recovered",
+            n >= 10_000 and rec >= 0.95,
+        )
+    )
     for mode, target in (("measured", True), ("velocity", None)):
         slices = [r for k, r in rows.items() if k.startswith("holdup_slice_")]
         if slices:
             errors = [r[f"pbm_{mode}"] / r["dem"] - 1 for r in slices]
             worst = max(errors, key=abs)
-            out.append((f"{mode}: every slice's hold-up within 10 % of the DEM",
-                        "errors " + ", ".join(f"{e:+.0%}" for e in errors), (abs(worst) <= 0.10) if target else None))
+            out.append(
+                (
+                    f"{mode}: every slice's hold-up within 10 % of the DEM",
+                    "errors " + ", ".join(f"{e:+.0%}" for e in errors),
+                    (abs(worst) <= 0.10) if target else None,
+                )
+            )
         for key in ("mean_residence_time_s", "rtd_variance_s2"):
             r = rows.get(key)
             if r:
-                out.append((f"{mode}: {r['quantity']} inside the DEM interval",
-                            f"{r[f'pbm_{mode}']:.4g} vs DEM {r['dem']:.4g} [{r['dem_ci_low']:.4g}, {r['dem_ci_high']:.4g}]",
-                            bool(r[f"inside_{mode}"]) if target else None))
+                out.append(
+                    (
+                        f"{mode}: {r['quantity']} inside the DEM interval",
+                        f"{r[f'pbm_{mode}']:.4g} vs DEM {r['dem']:.4g} [{r['dem_ci_low']:.4g}, {r['dem_ci_high']:.4g}]",
+                        bool(r[f"inside_{mode}"]) if target else None,
+                    )
+                )
         r = rows.get("rtd_overlap")
         if r:
             value, low = r[f"pbm_{mode}"], r.get(f"noise_low_{mode}", math.nan)
-            out.append((f"{mode}: RTD overlap >= 0.9 and inside its noise band",
-                        f"{value:.3f} (noise band low {low:.3f}, median {r.get(f'noise_median_{mode}', math.nan):.3f})",
-                        (value >= 0.9 and value >= low) if target else None))
+            out.append(
+                (
+                    f"{mode}: RTD overlap >= 0.9 and inside its noise band",
+                    f"{value:.3f} (noise band low {low:.3f}, median {r.get(f'noise_median_{mode}', math.nan):.3f})",
+                    (value >= 0.9 and value >= low) if target else None,
+                )
+            )
         sens = (summary.get("nx_sensitivity") or {}).get(mode)
         if sens:
             nx = summary["nx_sensitivity"]["nx"]
-            out.append((f"{mode}: mean and variance change < 5 % from NX = {nx[0]} to {nx[1]}",
-                        f"mean {sens['change_mean']:+.1%}, variance {sens['change_variance']:+.1%}",
-                        (abs(sens["change_mean"]) < 0.05 and abs(sens["change_variance"]) < 0.05) if target else None))
+            out.append(
+                (
+                    f"{mode}: mean and variance change < 5 % from NX = {nx[0]} to {nx[1]}",
+                    f"mean {sens['change_mean']:+.1%}, variance {sens['change_variance']:+.1%}",
+                    (abs(sens["change_mean"]) < 0.05 and abs(sens["change_variance"]) < 0.05) if target else None,
+                )
+            )
     prov = summary.get("provenance") or {}
     dem_s, post_s = prov.get("dem_wall_time_s"), prov.get("dem_postprocess_time_s")
     if dem_s and post_s:
-        out.append(("post-processing <= 5 % of the DEM wall time", f"{post_s:.1f} s / {dem_s:.0f} s = {post_s / dem_s:.2%}",
-                    post_s / dem_s <= 0.05))
+        out.append(
+            (
+                "post-processing <= 5 % of the DEM wall time",
+                f"{post_s:.1f} s / {dem_s:.0f} s = {post_s / dem_s:.2%}",
+                post_s / dem_s <= 0.05,
+            )
+        )
     return out

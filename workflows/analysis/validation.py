@@ -20,8 +20,9 @@ from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse, s
 NOT_JUDGED = ("rtd_recovered_fraction",)
 
 
-def prediction_tables(sides: dict[str, DemSide], configs: dict[str, Config],
-                      baseline: str = "baseline") -> dict[str, dict[str, VelocityTable | str]]:
+def prediction_tables(
+    sides: dict[str, DemSide], configs: dict[str, Config], baseline: str = "baseline"
+) -> dict[str, dict[str, VelocityTable | str]]:
     """For every run: its own table ("self"), the prediction from the baseline alone
     ("baseline": compartments rescaled to a new length, velocities and rates scaled by the
     rpm ratio, a new feed rate with the velocities unchanged), and from the table library
@@ -42,8 +43,11 @@ def prediction_tables(sides: dict[str, DemSide], configs: dict[str, Config],
                 table = scale_speed(table, speed)
             tables["baseline"] = table
         same_but_rpm = config_without(config, rpm_key)
-        library = [(other.dem.operation.impeller_rpm, sides[o].table) for o, other in configs.items()
-                   if o != name and config_without(other, rpm_key) == same_but_rpm]
+        library = [
+            (other.dem.operation.impeller_rpm, sides[o].table)
+            for o, other in configs.items()
+            if o != name and config_without(other, rpm_key) == same_but_rpm
+        ]
         if len(library) >= 2:
             try:
                 tables["library"] = interpolate_tables(library, config.dem.operation.impeller_rpm)
@@ -74,7 +78,9 @@ def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log 
                 out.append(Prediction(name, source, note=table))
                 continue
             log(f"PBM of {name} from {source}")
-            modes = run_modes(table, pbm_config_for(config, table, rtd_pulse(dem.summary)), config.steady_state, dem.summary)
+            modes = run_modes(
+                table, pbm_config_for(config, table, rtd_pulse(dem.summary)), config.steady_state, dem.summary
+            )
             out.append(Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes)))
     return out
 
@@ -102,9 +108,19 @@ class PredictedQuantity:
 
     def record(self) -> dict[str, Any]:
         j = self.judged
-        return {"key": j.key, "quantity": j.quantity, "dem": j.reference, "dem_ci_low": self.dem_ci_low,
-                "dem_ci_high": self.dem_ci_high, "predicted": j.value, "self": self.self_value, "error": j.error,
-                "model_error": self.model_error, "tolerance": j.tolerance, "ok": j.ok}
+        return {
+            "key": j.key,
+            "quantity": j.quantity,
+            "dem": j.reference,
+            "dem_ci_low": self.dem_ci_low,
+            "dem_ci_high": self.dem_ci_high,
+            "predicted": j.value,
+            "self": self.self_value,
+            "error": j.error,
+            "model_error": self.model_error,
+            "tolerance": j.tolerance,
+            "ok": j.ok,
+        }
 
 
 @dataclass(frozen=True)
@@ -124,12 +140,17 @@ class ModePrediction:
         return bool(self.rows) and not self.failing
 
     def record(self) -> dict[str, Any]:
-        return {"rows": [r.record() for r in self.rows], "missing": list(self.missing), "failing": self.failing,
-                "predicts": self.predicts}
+        return {
+            "rows": [r.record() for r in self.rows],
+            "missing": list(self.missing),
+            "failing": self.failing,
+            "predicts": self.predicts,
+        }
 
 
-def judge(predicted: list[AgreementRow], own: list[AgreementRow],
-          calibration: list[AgreementRow] | None = None) -> dict[str, ModePrediction]:
+def judge(
+    predicted: list[AgreementRow], own: list[AgreementRow], calibration: list[AgreementRow] | None = None
+) -> dict[str, ModePrediction]:
     """The verdict on one prediction (module docstring, 3.): per rate mode and quantity,
     the error |prediction - DEM| against the tolerance = the hybrid's own error on the
     ``calibration`` run (its self-built PBM against its DEM, default ``own``), relative to
@@ -155,8 +176,9 @@ def judge(predicted: list[AgreementRow], own: list[AgreementRow],
             if not all(math.isfinite(v) for v in values) or (key != "rtd_overlap" and cal_dem == 0):
                 missing.append(key)
                 continue
-            model_error = (abs(cal_pbm - cal_dem) if key == "rtd_overlap"
-                           else abs(cal_pbm - cal_dem) / abs(cal_dem) * abs(dem))
+            model_error = (
+                abs(cal_pbm - cal_dem) if key == "rtd_overlap" else abs(cal_pbm - cal_dem) / abs(cal_dem) * abs(dem)
+            )
             judged = Judged(key, row.quantity, pred, dem, model_error + half)
             rows.append(PredictedQuantity(judged, row.dem_ci_low, row.dem_ci_high, self_value, model_error))
         verdict[mode] = ModePrediction(tuple(rows), tuple(missing))
@@ -174,8 +196,12 @@ class PredictionVerdict:
     judged: dict[str, ModePrediction] | None
 
     def record(self) -> dict[str, Any]:
-        return {"run": self.run, "source": self.source, "verdict": self.verdict,
-                "judged": None if self.judged is None else {m: v.record() for m, v in self.judged.items()}}
+        return {
+            "run": self.run,
+            "source": self.source,
+            "verdict": self.verdict,
+            "judged": None if self.judged is None else {m: v.record() for m, v in self.judged.items()},
+        }
 
 
 def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[PredictionVerdict]:
@@ -224,5 +250,7 @@ def verdict_text(verdict: dict[str, ModePrediction]) -> str:
     slices = [key for key in failing if key.startswith("holdup_slice_")]
     named = [key for key in failing if key not in slices]
     named += [f"hold-up of {len(slices)} axial slice{'s' if len(slices) > 1 else ''}"] if slices else []
-    return (f"this needs a new DEM run (nearest: {best} rates, {len(failing)} of {len(verdict[best].rows)} "
-            f"quantities outside tolerance: {', '.join(named)})")
+    return (
+        f"this needs a new DEM run (nearest: {best} rates, {len(failing)} of {len(verdict[best].rows)} "
+        f"quantities outside tolerance: {', '.join(named)})"
+    )

@@ -128,12 +128,19 @@ class DemTransfer:
         """The feeder's entry of ``vrr.json``'s ``dem``: counts, floor, resolved mask,
         |H| and VRR as value/low/high, and the noise VRRs with their uncorrected values."""
         return {
-            "n_entered": self.n_entered, "n_recovered": self.n_recovered, "n_blocks": self.n_blocks,
+            "n_entered": self.n_entered,
+            "n_recovered": self.n_recovered,
+            "n_blocks": self.n_blocks,
             "recovered_fraction": self.recovered_fraction,
-            "mean_residence_time_s": self.mean_residence_time_s, "floor_abs_H": self.floor,
-            "resolved": self.resolved, "abs_H": _interval_dict(self.abs_H), "vrr": _interval_dict(self.vrr),
-            "noise": [{"tau_s": t, **_interval_dict(iv), "uncorrected": c}
-                      for t, iv, c in zip(self.noise_taus_s, self.noise, self.noise_uncorrected)],
+            "mean_residence_time_s": self.mean_residence_time_s,
+            "floor_abs_H": self.floor,
+            "resolved": self.resolved,
+            "abs_H": _interval_dict(self.abs_H),
+            "vrr": _interval_dict(self.vrr),
+            "noise": [
+                {"tau_s": t, **_interval_dict(iv), "uncorrected": c}
+                for t, iv, c in zip(self.noise_taus_s, self.noise, self.noise_uncorrected)
+            ],
         }
 
 
@@ -157,8 +164,13 @@ class NoiseVrr:
         return self.vrr / self.dem.estimate
 
     def record(self) -> dict[str, Any]:
-        return {"tau_s": self.tau_s, "vrr": self.vrr, "dem": _interval_dict(self.dem), "inside": self.inside,
-                "ratio_to_dem": self.ratio_to_dem}
+        return {
+            "tau_s": self.tau_s,
+            "vrr": self.vrr,
+            "dem": _interval_dict(self.dem),
+            "inside": self.inside,
+            "ratio_to_dem": self.ratio_to_dem,
+        }
 
 
 @dataclass(frozen=True)
@@ -175,8 +187,13 @@ class FeederVrr:
     noise: tuple[NoiseVrr, ...] = ()
 
     def record(self) -> dict[str, Any]:
-        return {"mean_residence_time_s": self.mean_residence_time_s, "abs_H": self.abs_H, "vrr": self.vrr,
-                "inside": list(self.inside), "noise": [n.record() for n in self.noise]}
+        return {
+            "mean_residence_time_s": self.mean_residence_time_s,
+            "abs_H": self.abs_H,
+            "vrr": self.vrr,
+            "inside": list(self.inside),
+            "noise": [n.record() for n in self.noise],
+        }
 
 
 @dataclass(frozen=True)
@@ -218,9 +235,15 @@ class EnsembleCheck:
         return self.sd_time_domain / self.sd_frequency_domain - 1
 
     def record(self) -> dict[str, Any]:
-        return {"sigma": self.sigma, "members": self.members, "from_s": self.from_s,
-                "sd_time_domain": self.sd_time_domain, "sd_frequency_domain": self.sd_frequency_domain,
-                "relative_difference": self.relative_difference, "ensemble_s": self.ensemble_s}
+        return {
+            "sigma": self.sigma,
+            "members": self.members,
+            "from_s": self.from_s,
+            "sd_time_domain": self.sd_time_domain,
+            "sd_frequency_domain": self.sd_frequency_domain,
+            "relative_difference": self.relative_difference,
+            "ensemble_s": self.ensemble_s,
+        }
 
 
 @dataclass(frozen=True)
@@ -266,7 +289,9 @@ class PbmVrr:
         return {
             "feeders": {f: fv.record() for f, fv in self.feeders.items()},
             "windows_averaged": list(self.windows_averaged),
-            "n_judged": self.n_judged, "n_inside": self.n_inside, "inside_fraction": self.inside_fraction,
+            "n_judged": self.n_judged,
+            "n_inside": self.n_inside,
+            "inside_fraction": self.inside_fraction,
             "worst": None if worst is None else worst.record(),
             "worst_outside": None if worst_outside is None else worst_outside.record(),
             "ensemble_check": [row.record() for row in self.ensemble_check],
@@ -295,9 +320,11 @@ class VrrComparison:
 
     @property
     def note(self) -> str:
-        return ("DEM H(f) is the mean of exp(-i 2 pi f tau) over the pooled RTD's recovered particles of each "
-                "feeder (conditional on recovery within the horizon); frequencies where the DEM's |H| is below "
-                f"{self.resolved_factor:g} x 1/sqrt(N) are unresolved (sampling floor) and not judged.")
+        return (
+            "DEM H(f) is the mean of exp(-i 2 pi f tau) over the pooled RTD's recovered particles of each "
+            "feeder (conditional on recovery within the horizon); frequencies where the DEM's |H| is below "
+            f"{self.resolved_factor:g} x 1/sqrt(N) are unresolved (sampling floor) and not judged."
+        )
 
     def record(self) -> dict[str, Any]:
         """The comparison as ``vrr.json`` and ``summary.json``'s ``vrr`` hold it (numpy
@@ -305,11 +332,19 @@ class VrrComparison:
         return {
             "frequency_hz": self.frequency_hz,
             "steady_time_s": self.steady_time_s,
-            "noise": {"taus_s": list(self.noise_taus_s), "f_max_hz": self.noise_f_max_hz,
-                      "quadrature_points": self.quadrature_points,
-                      "spectrum": "1 / (1 + (2 pi f tau)^2) on [0, f_max]; white for tau = 0"},
-            "interval": {"block_s": self.block_s, "n_boot": self.n_boot, "level": self.level, "seed": self.seed,
-                         "method": "block bootstrap over entry time (coupling.intervals.block_bootstrap)"},
+            "noise": {
+                "taus_s": list(self.noise_taus_s),
+                "f_max_hz": self.noise_f_max_hz,
+                "quadrature_points": self.quadrature_points,
+                "spectrum": "1 / (1 + (2 pi f tau)^2) on [0, f_max]; white for tau = 0",
+            },
+            "interval": {
+                "block_s": self.block_s,
+                "n_boot": self.n_boot,
+                "level": self.level,
+                "seed": self.seed,
+                "method": "block bootstrap over entry time (coupling.intervals.block_bootstrap)",
+            },
             "resolved_factor": self.resolved_factor,
             "dem": {f: d.record() for f, d in self.dem.items()},
             "pbm": {mode: m.record() for mode, m in self.pbm.items()},
@@ -318,12 +353,14 @@ class VrrComparison:
 
 
 def _feeder(component) -> str:
-    """"A"/"B" from a feeder name or particle_records' component code (1, 2)."""
+    """ "A"/"B" from a feeder name or particle_records' component code (1, 2)."""
     for name, code in COMPONENT_CODES.items():
         if component == name or (not isinstance(component, (bool, str)) and component == code):
             return name
-    raise ConfigError(f"component must be one of {list(COMPONENT_CODES)} or their codes "
-                      f"{list(COMPONENT_CODES.values())} in particle_records' 'component' column, got {component!r}")
+    raise ConfigError(
+        f"component must be one of {list(COMPONENT_CODES)} or their codes "
+        f"{list(COMPONENT_CODES.values())} in particle_records' 'component' column, got {component!r}"
+    )
 
 
 def _pooled_window(pooled_spec: PooledRtdSummary) -> tuple[tuple[float, float], float]:
@@ -331,18 +368,31 @@ def _pooled_window(pooled_spec: PooledRtdSummary) -> tuple[tuple[float, float], 
         t0, t1 = (float(v) for v in pooled_spec.entry_window_s)
         horizon = float(pooled_spec.horizon_s)
     except (AttributeError, TypeError, ValueError):
-        raise ConfigError("pooled_spec must be the DEM summary's pooled RTD (dem.summary.PooledRtdSummary) with an "
-                          f"entry window (t0, t1] and a horizon; got {pooled_spec!r}") from None
+        raise ConfigError(
+            "pooled_spec must be the DEM summary's pooled RTD (dem.summary.PooledRtdSummary) with an "
+            f"entry window (t0, t1] and a horizon; got {pooled_spec!r}"
+        ) from None
     if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1 and math.isfinite(horizon) and horizon > 0):
-        raise ConfigError(f"pooled_spec needs a finite entry window t0 < t1 and horizon > 0 s, got ({t0}, {t1}] and "
-                          f"{horizon}")
+        raise ConfigError(
+            f"pooled_spec needs a finite entry window t0 < t1 and horizon > 0 s, got ({t0}, {t1}] and {horizon}"
+        )
     return (t0, t1), horizon
 
 
-def dem_transfer(particles: pd.DataFrame, pooled_spec: PooledRtdSummary, frequencies, component, *,
-                 noise_taus_s: Sequence[float] = (), noise_f_max_hz: float = 0.5,
-                 quadrature_points: int = QUADRATURE_POINTS, block_s: float = BLOCK_S, n_boot: int = N_BOOT,
-                 level: float = LEVEL, seed: int = SEED) -> DemTransfer:
+def dem_transfer(
+    particles: pd.DataFrame,
+    pooled_spec: PooledRtdSummary,
+    frequencies,
+    component,
+    *,
+    noise_taus_s: Sequence[float] = (),
+    noise_f_max_hz: float = 0.5,
+    quadrature_points: int = QUADRATURE_POINTS,
+    block_s: float = BLOCK_S,
+    n_boot: int = N_BOOT,
+    level: float = LEVEL,
+    seed: int = SEED,
+) -> DemTransfer:
     """The DEM's H(f) = mean over the recovered particles of ``component`` of
     exp(-i 2 pi f tau), conditional on recovery within the horizon (module docstring).
 
@@ -382,9 +432,11 @@ def dem_transfer(particles: pd.DataFrame, pooled_spec: PooledRtdSummary, frequen
     n_blocks = block_ids.size
     counts = np.bincount(block_of[recovered], minlength=n_blocks).astype(float)
     if pooled.residence_s.size == 0 or np.count_nonzero(counts) < 2:
-        raise ConfigError(f"feeder {feeder} has {pooled.residence_s.size} recovered particle(s) in "
-                          f"{np.count_nonzero(counts)} {block_s:g}-s block(s) of the entry window ({window[0]:g}, "
-                          f"{window[1]:g}] s; an interval needs at least two blocks with recovered particles")
+        raise ConfigError(
+            f"feeder {feeder} has {pooled.residence_s.size} recovered particle(s) in "
+            f"{np.count_nonzero(counts)} {block_s:g}-s block(s) of the entry window ({window[0]:g}, "
+            f"{window[1]:g}] s; an interval needs at least two blocks with recovered particles"
+        )
 
     # Per block, the sum of exp(-i w tau) over its recovered particles: a bootstrap
     # replicate of the mean phasor is then (draws per block) @ sums / (draws @ counts),
@@ -421,9 +473,18 @@ def dem_transfer(particles: pd.DataFrame, pooled_spec: PooledRtdSummary, frequen
         h_grid = sums[:, n_f:].sum(axis=0) / counts.sum()
         uncorrected = tuple(vrr_spectrum(grid, h_grid, s) for s in spectra)
     return DemTransfer(
-        component=feeder, frequency_hz=freqs, H=h, abs_H=abs_h, vrr=vrr, n_entered=pooled.n_entered,
-        n_recovered=n_rec, n_blocks=int(n_blocks), mean_residence_time_s=pooled.mean_s, floor=floor,
-        resolved=abs_h.estimate >= RESOLVED_FACTOR * floor, noise_taus_s=taus,
+        component=feeder,
+        frequency_hz=freqs,
+        H=h,
+        abs_H=abs_h,
+        vrr=vrr,
+        n_entered=pooled.n_entered,
+        n_recovered=n_rec,
+        n_blocks=int(n_blocks),
+        mean_residence_time_s=pooled.mean_s,
+        floor=floor,
+        resolved=abs_h.estimate >= RESOLVED_FACTOR * floor,
+        noise_taus_s=taus,
         noise_f_max_hz=float(noise_f_max_hz) if taus else math.nan,
         noise=tuple(Interval(float(est[n_f + i]), float(low[n_f + i]), float(high[n_f + i])) for i in range(len(taus))),
         noise_uncorrected=uncorrected,
@@ -466,9 +527,17 @@ def _interval_dict(iv: Interval) -> dict[str, Any]:
     return {"value": iv.estimate, "low": iv.low, "high": iv.high}
 
 
-def _pbm_mode(table: VelocityTable, pbm_config: PbmConfig, mode: str, steady_time_s: float, freqs: np.ndarray,
-              grid: np.ndarray, taus: tuple[float, ...], spectra: list[np.ndarray],
-              dem: Mapping[str, DemTransfer]) -> PbmVrr:
+def _pbm_mode(
+    table: VelocityTable,
+    pbm_config: PbmConfig,
+    mode: str,
+    steady_time_s: float,
+    freqs: np.ndarray,
+    grid: np.ndarray,
+    taus: tuple[float, ...],
+    spectra: list[np.ndarray],
+    dem: Mapping[str, DemTransfer],
+) -> PbmVrr:
     """One PBM rate mode of :func:`vrr_comparison`, judged against ``dem`` per feeder."""
     system = stationary_system(table, pbm_config.model_copy(update={"rates": mode}), t_start_s=steady_time_s)
     feeders: dict[str, FeederVrr] = {}
@@ -483,15 +552,22 @@ def _pbm_mode(table: VelocityTable, pbm_config: PbmConfig, mode: str, steady_tim
             feeder=f,
             # Little's law at one particle/s: the steady hold-up is the mean residence time
             mean_residence_time_s=float(np.linalg.solve(system.generator, -system.feed_column(f)).sum()),
-            abs_H=np.abs(h), vrr=vrr,
+            abs_H=np.abs(h),
+            vrr=vrr,
             # unresolved DEM points are not judged: None rather than a verdict
             inside=tuple(bool(v) if r else None for v, r in zip(ok, d.resolved)),
             noise=tuple(NoiseVrr(tau, vrr_spectrum(grid, grid_h, s), iv) for tau, s, iv in zip(taus, spectra, d.noise)),
         )
-        points += [RatioPoint(float(vrr[i] / d.vrr.estimate[i]), f, float(freqs[i]), bool(ok[i]))
-                   for i in np.flatnonzero(d.resolved)]
-    return PbmVrr(mode=mode, feeders=feeders, windows_averaged=(int(system.windows[0]), int(system.windows[-1])),
-                  points=tuple(points))
+        points += [
+            RatioPoint(float(vrr[i] / d.vrr.estimate[i]), f, float(freqs[i]), bool(ok[i]))
+            for i in np.flatnonzero(d.resolved)
+        ]
+    return PbmVrr(
+        mode=mode,
+        feeders=feeders,
+        windows_averaged=(int(system.windows[0]), int(system.windows[-1])),
+        points=tuple(points),
+    )
 
 
 def steady_table(table: VelocityTable, rates: str, t_start_s: float) -> VelocityTable:
@@ -501,12 +577,21 @@ def steady_table(table: VelocityTable, rates: str, t_start_s: float) -> Velocity
     filled, _ = filled_table(table, rates)
     windows = filled.t >= t_start_s
     names = VELOCITY_NAMES + (RATE_NAMES if filled.has_rates else ())
-    return filled.replace(**{name: np.broadcast_to(getattr(filled, name)[windows].mean(axis=0), getattr(filled, name).shape).copy()
-                             for name in names})
+    return filled.replace(
+        **{
+            name: np.broadcast_to(getattr(filled, name)[windows].mean(axis=0), getattr(filled, name).shape).copy()
+            for name in names
+        }
+    )
 
 
-def ensemble_check(table: VelocityTable, config: PbmConfig, t_start_s: float, members: int = ENSEMBLE_MEMBERS,
-                   sigmas: Sequence[float] = ENSEMBLE_SIGMAS) -> list[EnsembleCheck]:
+def ensemble_check(
+    table: VelocityTable,
+    config: PbmConfig,
+    t_start_s: float,
+    members: int = ENSEMBLE_MEMBERS,
+    sigmas: Sequence[float] = ENSEMBLE_SIGMAS,
+) -> list[EnsembleCheck]:
     """The time-domain noise ensemble against the frequency domain, per sigma: the SD of
     the outlet C_A across ``members`` (both feeders redrawn every noise interval; the root
     of the variance over members, averaged over the outputs once the blender has filled)
@@ -527,14 +612,31 @@ def ensemble_check(table: VelocityTable, config: PbmConfig, t_start_s: float, me
         elapsed = time.perf_counter() - t0
         after = ens.times >= t_from
         measured = float(np.sqrt(np.mean(np.nanvar(ens.C_A_members[:, after], axis=0, ddof=1))))
-        rows.append(EnsembleCheck(sigma=sigma, members=members, from_s=t_from, sd_time_domain=measured,
-                                  sd_frequency_domain=predicted, ensemble_s=elapsed))
+        rows.append(
+            EnsembleCheck(
+                sigma=sigma,
+                members=members,
+                from_s=t_from,
+                sd_time_domain=measured,
+                sd_frequency_domain=predicted,
+                ensemble_s=elapsed,
+            )
+        )
     return rows
 
 
-def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: float, dem_summary: DemSummary,
-                   particles: pd.DataFrame, frequencies=None, *, noise_taus_s: Sequence[float] = NOISE_TAUS_S,
-                   n_boot: int = N_BOOT, seed: int = SEED) -> VrrComparison:
+def vrr_comparison(
+    table: VelocityTable,
+    pbm_config: PbmConfig,
+    steady_time_s: float,
+    dem_summary: DemSummary,
+    particles: pd.DataFrame,
+    frequencies=None,
+    *,
+    noise_taus_s: Sequence[float] = NOISE_TAUS_S,
+    n_boot: int = N_BOOT,
+    seed: int = SEED,
+) -> VrrComparison:
     """PBM (each rate mode the table supports) against DEM: |H|, VRR per feeder and
     frequency, whether each PBM VRR lies in the DEM's interval (None where the DEM is
     unresolved), the worst PBM / DEM ratio, and the VRR of band-limited noise, as a
@@ -548,8 +650,10 @@ def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: f
     """
     pooled_spec = dem_summary.pooled_rtd
     if not dem_summary.has_pooled_rtd:
-        raise ConfigError("the DEM summary has no pooled RTD ('pooled_rtd' with particles entered): the run has no "
-                          "entry window after its steady state, so the DEM predicts no H(f)")
+        raise ConfigError(
+            "the DEM summary has no pooled RTD ('pooled_rtd' with particles entered): the run has no "
+            "entry window after its steady state, so the DEM predicts no H(f)"
+        )
     if not (isinstance(steady_time_s, (int, float)) and math.isfinite(steady_time_s)):
         raise ConfigError(f"steady_time_s must be a finite time [s], got {steady_time_s!r}")
     if frequencies is None:
@@ -562,13 +666,36 @@ def vrr_comparison(table: VelocityTable, pbm_config: PbmConfig, steady_time_s: f
 
     # Small matrices in loops, next to a LIGGGHTS campaign: threads only slow them down.
     with single_threaded_blas():
-        dem = {f: dem_transfer(particles, pooled_spec, freqs, f, noise_taus_s=taus, noise_f_max_hz=f_max,
-                               n_boot=n_boot, seed=seed) for f in FEEDERS}
-        pbm = {mode: _pbm_mode(table, pbm_config, mode, steady_time_s, freqs, grid, taus, spectra, dem)
-               for mode in ["velocity"] + (["measured"] if table.has_rates else [])}
-        pbm = {mode: replace(m, ensemble_check=tuple(
-                   ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)))
-               for mode, m in pbm.items()}
-    return VrrComparison(frequency_hz=freqs, steady_time_s=float(steady_time_s), dem=dem, pbm=pbm, noise_taus_s=taus,
-                         noise_f_max_hz=f_max, quadrature_points=QUADRATURE_POINTS, block_s=BLOCK_S, n_boot=n_boot,
-                         level=LEVEL, seed=seed, resolved_factor=RESOLVED_FACTOR)
+        dem = {
+            f: dem_transfer(
+                particles, pooled_spec, freqs, f, noise_taus_s=taus, noise_f_max_hz=f_max, n_boot=n_boot, seed=seed
+            )
+            for f in FEEDERS
+        }
+        pbm = {
+            mode: _pbm_mode(table, pbm_config, mode, steady_time_s, freqs, grid, taus, spectra, dem)
+            for mode in ["velocity"] + (["measured"] if table.has_rates else [])
+        }
+        pbm = {
+            mode: replace(
+                m,
+                ensemble_check=tuple(
+                    ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)
+                ),
+            )
+            for mode, m in pbm.items()
+        }
+    return VrrComparison(
+        frequency_hz=freqs,
+        steady_time_s=float(steady_time_s),
+        dem=dem,
+        pbm=pbm,
+        noise_taus_s=taus,
+        noise_f_max_hz=f_max,
+        quadrature_points=QUADRATURE_POINTS,
+        block_s=BLOCK_S,
+        n_boot=n_boot,
+        level=LEVEL,
+        seed=seed,
+        resolved_factor=RESOLVED_FACTOR,
+    )

@@ -108,8 +108,7 @@ OUT = Path("results/bench/dem_deck.json")
 #: the paper's cost: 6.5 days on 8 workers
 PAPER_CORE_HOURS = 6.5 * 24 * 8
 LOAD_WARN = 1.5
-TARGETS = {"efficiency_min": 0.9, "speedup_np2_min": 1.7, "speedup_np2_whole_run_min": 1.5,
-           "dump_overhead_max": 0.05}
+TARGETS = {"efficiency_min": 0.9, "speedup_np2_min": 1.7, "speedup_np2_whole_run_min": 1.5, "dump_overhead_max": 0.05}
 #: the deck's neighbour skin is 0.5 d; the ``skin_0.75d`` variant scales it by this
 SKIN_FACTOR = 0.75 / 0.5
 
@@ -142,7 +141,7 @@ def _drop_thermo_columns(text: str, variant: str, columns: list[str]) -> str:
     if missing:
         raise DeckError(f"variant {variant}: thermo column(s) {missing} not in {tokens}")
     kept = " ".join(t for t in tokens if t not in columns)
-    return text[: match.start(1)] + kept + text[match.end(1):]
+    return text[: match.start(1)] + kept + text[match.end(1) :]
 
 
 def _replace_once(text: str, variant: str, old: str, new: str) -> str:
@@ -156,15 +155,17 @@ def no_dump(text: str) -> str:
 
 
 def no_massflow(text: str) -> str:
-    text = _drop_lines(text, "no_massflow", [r"fix\s+outA\s", r"fix\s+outB\s", r"variable\s+outA\s",
-                                             r"variable\s+outB\s"])
+    text = _drop_lines(
+        text, "no_massflow", [r"fix\s+outA\s", r"fix\s+outB\s", r"variable\s+outA\s", r"variable\s+outB\s"]
+    )
     return _drop_thermo_columns(text, "no_massflow", ["v_outA", "v_outB"])
 
 
 def no_insertion(text: str) -> str:
     # the insA/insB thermo variables read the insertion fixes: they go with them
-    text = _drop_lines(text, "no_insertion", [r"fix\s+insA\s", r"fix\s+insB\s", r"variable\s+insA\s",
-                                              r"variable\s+insB\s"])
+    text = _drop_lines(
+        text, "no_insertion", [r"fix\s+insA\s", r"fix\s+insB\s", r"variable\s+insA\s", r"variable\s+insB\s"]
+    )
     return _drop_thermo_columns(text, "no_insertion", ["v_insA", "v_insB"])
 
 
@@ -186,13 +187,19 @@ def wider_skin(text: str) -> str:
     if match is None:
         raise DeckError("variant skin_0.75d: no 'neighbor <skin> bin' line in the deck")
     skin = float(match.group(1)) * SKIN_FACTOR
-    return text[: match.start(1)] + f"{skin:.10g}" + text[match.end(1):]
+    return text[: match.start(1)] + f"{skin:.10g}" + text[match.end(1) :]
 
 
 #: name -> edit of the resume deck's text, in the order they are run
-VARIANTS = {"nodump": no_dump, "no_massflow": no_massflow, "no_insertion": no_insertion,
-            "no_timestep_check": no_timestep_check, "no_weir": no_weir, "static_impeller": static_impeller,
-            "skin_0.75d": wider_skin}
+VARIANTS = {
+    "nodump": no_dump,
+    "no_massflow": no_massflow,
+    "no_insertion": no_insertion,
+    "no_timestep_check": no_timestep_check,
+    "no_weir": no_weir,
+    "static_impeller": static_impeller,
+    "skin_0.75d": wider_skin,
+}
 #: variants that change the number of particles during the run (cost per particle-step too)
 COUNT_CHANGING = ("no_massflow", "no_insertion", "no_weir")
 #: variants also measured on more than one rank
@@ -227,8 +234,11 @@ def _solve(run_config, np: int, run_dir: Path, main_input: str, log: str, timeou
     command = [*solver_command(run_config, np, main_input), "-log", log]
     result = run_solver(command, run_dir, f"{Path(log).stem}.out", timeout_s=timeout_s)
     if result.failure:
-        raise SolverRunError(f"{result.failure} (running {main_input} on {np} rank(s))", run_dir=run_dir,
-                             log_tail=text_tail(result.output_file, 20))
+        raise SolverRunError(
+            f"{result.failure} (running {main_input} on {np} rank(s))",
+            run_dir=run_dir,
+            log_tail=text_tail(result.output_file, 20),
+        )
     return result
 
 
@@ -240,21 +250,43 @@ def _measure(name: str, run_config, np: int, run_dir: Path, main_input: str, log
     runs = parse_runs(text)
     last = runs[-1] if runs else None
     if last is None or last.loop.seconds <= 0 or last.loop.steps <= 0:
-        raise SolverRunError(f"no plausible 'Loop time' line in the output of {main_input} "
-                             f"({last.loop if last else 'none'})", run_dir=run_dir)
+        raise SolverRunError(
+            f"no plausible 'Loop time' line in the output of {main_input} ({last.loop if last else 'none'})",
+            run_dir=run_dir,
+        )
     atoms = last.column("Atoms") or [float(last.loop.atoms)]
     mean_atoms = sum(atoms) / len(atoms)
     rate = mean_atoms * last.loop.steps / last.loop.seconds
     n_warn = sum(1 for line in text.splitlines() if line.lstrip().startswith("WARNING"))
     details = loop_details(text)
     sections = ", ".join(f"{k} {v / last.loop.seconds:.0%}" for k, v in details.get("sections_s", {}).items())
-    print(f"  {name:<26} np={np}  {last.loop.steps} steps, {mean_atoms:.0f} particles, loop {last.loop.seconds:.2f} s "
-          f"(wall {result.wall_s:.1f} s, CPU {result.cpu_s:.1f} s, load {load:.2f}->{load_after:.2f}): "
-          f"{rate:.3g} particle-steps/s"
-          + (f"\n{'':31}loop: {sections}; {details.get('neighbour_builds', 0):.0f} neighbour-list builds" if sections else ""),
-          flush=True)
-    return Measurement(name, np, last.loop.steps, last.loop.seconds, mean_atoms, last.loop.atoms, rate, result.cpu_s,
-                       result.wall_s, load, load_after, n_warn, str(run_dir), details)
+    print(
+        f"  {name:<26} np={np}  {last.loop.steps} steps, {mean_atoms:.0f} particles, loop {last.loop.seconds:.2f} s "
+        f"(wall {result.wall_s:.1f} s, CPU {result.cpu_s:.1f} s, load {load:.2f}->{load_after:.2f}): "
+        f"{rate:.3g} particle-steps/s"
+        + (
+            f"\n{'':31}loop: {sections}; {details.get('neighbour_builds', 0):.0f} neighbour-list builds"
+            if sections
+            else ""
+        ),
+        flush=True,
+    )
+    return Measurement(
+        name,
+        np,
+        last.loop.steps,
+        last.loop.seconds,
+        mean_atoms,
+        last.loop.atoms,
+        rate,
+        result.cpu_s,
+        result.wall_s,
+        load,
+        load_after,
+        n_warn,
+        str(run_dir),
+        details,
+    )
 
 
 def _with_numerics(config, **numerics):
@@ -273,8 +305,9 @@ def fill(config, work: Path, fill_s: float, np: int, timeout_s: float) -> tuple[
     """Run the blender from empty for ``fill_s`` s on ``np`` ranks; return (restart file, its
     step, Atoms at the end, the run's measurement)."""
     dem = config.dem
-    fill_config = _with_numerics(config, duration_s=fill_s, restart_interval_s=fill_s,
-                                 dump_interval_s=min(dem.tables.window_s, fill_s))
+    fill_config = _with_numerics(
+        config, duration_s=fill_s, restart_interval_s=fill_s, dump_interval_s=min(dem.tables.window_s, fill_s)
+    )
     run_dir = work / f"fill_np{np}"
     deck.write_deck(deck.build_deck(fill_config.dem), run_dir)
     print(f"  fill: {fill_s:g} s simulated from empty on {np} rank(s) in {run_dir} ...", flush=True)
@@ -315,11 +348,18 @@ def summarise(runs: list[Measurement]) -> dict:
     """Medians and spreads of one run's repeats, with the load range they ran under."""
     rates, loops, cpus = ([getattr(m, k) for m in runs] for k in ("particle_steps_per_s", "loop_s", "cpu_s"))
     loads = [x for m in runs for x in (m.load_before, m.load_after)]
-    return {"repeats": len(runs), "particle_steps_per_s": statistics.median(rates), "rate_spread": _spread(rates),
-            "loop_s": statistics.median(loops), "loop_spread": _spread(loops),
-            "cpu_s": statistics.median(cpus), "cpu_spread": _spread(cpus),
-            "atoms_mean": statistics.median([m.atoms_mean for m in runs]), "load_min": min(loads),
-            "load_max": max(loads)}
+    return {
+        "repeats": len(runs),
+        "particle_steps_per_s": statistics.median(rates),
+        "rate_spread": _spread(rates),
+        "loop_s": statistics.median(loops),
+        "loop_spread": _spread(loops),
+        "cpu_s": statistics.median(cpus),
+        "cpu_spread": _spread(cpus),
+        "atoms_mean": statistics.median([m.atoms_mean for m in runs]),
+        "load_min": min(loads),
+        "load_max": max(loads),
+    }
 
 
 def cost(base: list[float], variant: list[float]) -> dict:
@@ -340,8 +380,13 @@ def _liggghts_running() -> list[str]:
     return [line for line in out.splitlines() if line.strip()]
 
 
-def paper_core_hours(rate_serial: float, speedup_np2: float | None, holdup_smoke: float, smoke_config,
-                     reference_rate_serial: float | None = None) -> dict:
+def paper_core_hours(
+    rate_serial: float,
+    speedup_np2: float | None,
+    holdup_smoke: float,
+    smoke_config,
+    reference_rate_serial: float | None = None,
+) -> dict:
     """Core-hours of the ``paper`` preset on 2, 8 and 32 cores from the measured rate.
 
     ``core_hours`` uses the blender's measured particle-steps per second as is (the cost
@@ -355,8 +400,13 @@ def paper_core_hours(rate_serial: float, speedup_np2: float | None, holdup_smoke
     paper = load_preset("paper").dem
     scale = (smoke_config.dem.particles.diameter_m / paper.particles.diameter_m) ** 3
     scaled = holdup_smoke * scale
-    holdup, source = scaled, (f"measured smoke hold-up {holdup_smoke:.0f} x "
-                              f"({smoke_config.dem.particles.diameter_m * 1e3:g}/{paper.particles.diameter_m * 1e3:g})^3")
+    holdup, source = (
+        scaled,
+        (
+            f"measured smoke hold-up {holdup_smoke:.0f} x "
+            f"({smoke_config.dem.particles.diameter_m * 1e3:g}/{paper.particles.diameter_m * 1e3:g})^3"
+        ),
+    )
     reference = None
     try:
         # the hold-up `pbmdem dem slurm` uses: a shipped reference run, scaled by solid volume
@@ -370,21 +420,35 @@ def paper_core_hours(rate_serial: float, speedup_np2: float | None, holdup_smoke
     if reference_rate_serial and reference_rate_serial > 0:
         overhead_s_per_step = max(0.0, holdup_smoke * (1 / rate_serial - 1 / reference_rate_serial))
         amortised_rate = holdup / (holdup / reference_rate_serial + overhead_s_per_step)
-    out = {"holdup_particles": holdup, "holdup_source": source, "holdup_scaled_from_smoke": scaled,
-           "holdup_from_reference": reference[0] if reference else None, "particle_steps_per_core_s": rate_serial,
-           "throughput_assumption": "particle-steps/s independent of particle size (measured on the smoke deck, 6 mm)",
-           "paper_reported_core_hours": PAPER_CORE_HOURS, "cores": {}}
+    out = {
+        "holdup_particles": holdup,
+        "holdup_source": source,
+        "holdup_scaled_from_smoke": scaled,
+        "holdup_from_reference": reference[0] if reference else None,
+        "particle_steps_per_core_s": rate_serial,
+        "throughput_assumption": "particle-steps/s independent of particle size (measured on the smoke deck, 6 mm)",
+        "paper_reported_core_hours": PAPER_CORE_HOURS,
+        "cores": {},
+    }
     out["particle_steps_per_core_s_overhead_amortised"] = amortised_rate
-    for cores, eff, why in ((2, eff2, why2), (8, 0.85, "assumed (estimate_cost default)"),
-                            (32, 0.85, "assumed (estimate_cost default)")):
+    for cores, eff, why in (
+        (2, eff2, why2),
+        (8, 0.85, "assumed (estimate_cost default)"),
+        (32, 0.85, "assumed (estimate_cost default)"),
+    ):
         est = estimate_cost(paper, holdup, rate_serial, cores, eff)
         out["steps"] = est.steps
-        out["cores"][str(cores)] = {"core_hours": est.core_hours, "wall_hours": est.wall_hours,
-                                    "parallel_efficiency": eff, "efficiency_source": why,
-                                    "vs_paper": est.core_hours / PAPER_CORE_HOURS}
+        out["cores"][str(cores)] = {
+            "core_hours": est.core_hours,
+            "wall_hours": est.wall_hours,
+            "parallel_efficiency": eff,
+            "efficiency_source": why,
+            "vs_paper": est.core_hours / PAPER_CORE_HOURS,
+        }
         if reference:
             out["cores"][str(cores)]["core_hours_smoke_scaled_holdup"] = estimate_cost(
-                paper, scaled, rate_serial, cores, eff).core_hours
+                paper, scaled, rate_serial, cores, eff
+            ).core_hours
         if amortised_rate:
             low = estimate_cost(paper, holdup, amortised_rate, cores, eff)
             out["cores"][str(cores)]["core_hours_overhead_amortised"] = low.core_hours
@@ -410,17 +474,33 @@ def _key(kind: str, np: int, variant: str | None) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command line's options of this benchmark."""
     parser.add_argument("--preset", default="smoke", help="blender preset to measure (default smoke)")
-    parser.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
-                        help="change one value of the preset, e.g. dem.geometry.inlet_margin_m=0.005 (repeatable)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="PATH=VALUE",
+        help="change one value of the preset, e.g. dem.geometry.inlet_margin_m=0.005 (repeatable)",
+    )
     parser.add_argument("--steps", type=int, default=20000, help="measured steps per run (default 20000)")
-    parser.add_argument("--fill-s", type=float, default=25.0,
-                        help="simulated seconds of filling before measuring (default 25: smoke's hold-up is near steady)")
-    parser.add_argument("--fill-np", type=int, default=None,
-                        help="ranks of the fill whose restart the measured runs start from (default: the preset's)")
+    parser.add_argument(
+        "--fill-s",
+        type=float,
+        default=25.0,
+        help="simulated seconds of filling before measuring (default 25: smoke's hold-up is near steady)",
+    )
+    parser.add_argument(
+        "--fill-np",
+        type=int,
+        default=None,
+        help="ranks of the fill whose restart the measured runs start from (default: the preset's)",
+    )
     parser.add_argument("--nps", default="1,2", help="rank counts to measure (default 1,2)")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats of every run (default 3)")
-    parser.add_argument("--variants", default=",".join(VARIANTS),
-                        help=f"per-fix variants to measure, comma-separated (default all: {','.join(VARIANTS)})")
+    parser.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"per-fix variants to measure, comma-separated (default all: {','.join(VARIANTS)})",
+    )
     parser.add_argument("--out", default=str(OUT))
     parser.add_argument("--work", default=None, help="keep the run directories here (default: a temporary directory)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="per LIGGGHTS run [s]")
@@ -445,8 +525,9 @@ def measure_all(config, args: argparse.Namespace, nps: list[int], variants: list
         for kind, np, variant in plan:
             if kind == "blender":
                 key = _key(kind, np, variant)
-                dirs[key] = _blender_dir(config, work, key, restart, restart_step, args.steps,
-                                         None if variant is None else VARIANTS[variant])
+                dirs[key] = _blender_dir(
+                    config, work, key, restart, restart_step, args.steps, None if variant is None else VARIANTS[variant]
+                )
         particles = None
         for r in range(args.repeats):
             print(f" repeat {r + 1}/{args.repeats}", flush=True)
@@ -461,15 +542,18 @@ def measure_all(config, args: argparse.Namespace, nps: list[int], variants: list
                         dirs[key] = deck.write_deck(deck.build_drum_deck(config.dem, particles, args.steps), work / key)
                     m = _measure(key, run_config, np, dirs[key], deck.DRUM_DECK, deck.DRUM_LOG_FILE, args.timeout)
                     if m.atoms_end != particles:
-                        raise SolverRunError(f"the drum holds {m.atoms_end} particles, not {particles}: insertion fell "
-                                             "short or particles escaped", run_dir=dirs[key])
+                        raise SolverRunError(
+                            f"the drum holds {m.atoms_end} particles, not {particles}: insertion fell "
+                            "short or particles escaped",
+                            run_dir=dirs[key],
+                        )
                 results.setdefault(key, []).append(m)
     return results, fills, particles, restart_step, held_fill
 
 
-def variant_costs(results: dict[str, list[Measurement]], summary: dict, nps: list[int],
-                  variants: list[str]) -> dict:
+def variant_costs(results: dict[str, list[Measurement]], summary: dict, nps: list[int], variants: list[str]) -> dict:
     """Per variant run: what switching the fix off saves against the blender, ± the spread."""
+
     def rate(key: str) -> float | None:
         return summary[key]["particle_steps_per_s"] if key in summary else None
 
@@ -478,12 +562,15 @@ def variant_costs(results: dict[str, list[Measurement]], summary: dict, nps: lis
         if variant is None:
             continue
         base, var = results[_key("blender", np, None)], results[_key(kind, np, variant)]
-        entry = {"np": np, "loop": cost([m.loop_s for m in base], [m.loop_s for m in var]),
-                 "cpu": cost([m.cpu_s for m in base], [m.cpu_s for m in var]),
-                 "atoms_mean": summary[_key(kind, np, variant)]["atoms_mean"],
-                 "atoms_mean_blender": summary[_key("blender", np, None)]["atoms_mean"],
-                 "load_min": min(summary[_key(k, np, v)]["load_min"] for k, v in ((kind, None), (kind, variant))),
-                 "load_max": max(summary[_key(k, np, v)]["load_max"] for k, v in ((kind, None), (kind, variant)))}
+        entry = {
+            "np": np,
+            "loop": cost([m.loop_s for m in base], [m.loop_s for m in var]),
+            "cpu": cost([m.cpu_s for m in base], [m.cpu_s for m in var]),
+            "atoms_mean": summary[_key(kind, np, variant)]["atoms_mean"],
+            "atoms_mean_blender": summary[_key("blender", np, None)]["atoms_mean"],
+            "load_min": min(summary[_key(k, np, v)]["load_min"] for k, v in ((kind, None), (kind, variant))),
+            "load_max": max(summary[_key(k, np, v)]["load_max"] for k, v in ((kind, None), (kind, variant))),
+        }
         if variant in COUNT_CHANGING:
             entry["cost_per_particle_step"] = 1 - rate(_key("blender", np, None)) / rate(_key(kind, np, variant))
         costs[_key(kind, np, variant)] = entry
@@ -507,11 +594,16 @@ def run(args: argparse.Namespace) -> int:
     load_before = os.getloadavg()
     others = _liggghts_running()
     if load_before[0] > LOAD_WARN:
-        msg = (f"machine load {load_before[0]:.2f} > {LOAD_WARN} before starting: the timings will be slowed down "
-               f"by other jobs" + (f" ({len(others)} LIGGGHTS processes running)" if others else ""))
+        msg = (
+            f"machine load {load_before[0]:.2f} > {LOAD_WARN} before starting: the timings will be slowed down "
+            f"by other jobs" + (f" ({len(others)} LIGGGHTS processes running)" if others else "")
+        )
         print(f"WARNING: {msg}", file=sys.stderr, flush=True)
-    print(f"DEM deck benchmark: preset {args.preset}, {args.steps} steps, ranks {nps}, {args.repeats} repeats, "
-          f"variants {variants}, LIGGGHTS {version}", flush=True)
+    print(
+        f"DEM deck benchmark: preset {args.preset}, {args.steps} steps, ranks {nps}, {args.repeats} repeats, "
+        f"variants {variants}, LIGGGHTS {version}",
+        flush=True,
+    )
 
     t_start = time.monotonic()
     results, fills, particles, restart_step, held_fill = measure_all(config, args, nps, variants, fill_np)
@@ -537,10 +629,14 @@ def run(args: argparse.Namespace) -> int:
         "restart_step": restart_step,
         "timestep_s": config.dem.timestep_s,
         "dumps": "blender_* runs: the deck's dumps at their normal interval "
-                 f"({config.dem.numerics.dump_interval_s} s); blender_nodump_*: no dump command; drum: no dumps",
+        f"({config.dem.numerics.dump_interval_s} s); blender_nodump_*: no dump command; drum: no dumps",
         "efficiency_reference": "drum",
-        "drum": {"froude": deck.DRUM_FROUDE, "wall_speed_m_s": deck.drum_wall_speed_m_s(config.dem),
-                 "radius_m": config.dem.geometry.radius_m, "length_m": config.dem.geometry.length_m},
+        "drum": {
+            "froude": deck.DRUM_FROUDE,
+            "wall_speed_m_s": deck.drum_wall_speed_m_s(config.dem),
+            "radius_m": config.dem.geometry.radius_m,
+            "length_m": config.dem.geometry.length_m,
+        },
         "rates": "medians over the repeats of mean Atoms x steps / Loop time",
     }
     for np in nps:
@@ -562,21 +658,33 @@ def run(args: argparse.Namespace) -> int:
         record[f"dump_overhead_{'serial' if np == 1 else f'np{np}'}"] = nodump["loop"]["cost"] if nodump else None
     record["targets"] = dict(TARGETS)
     if rate("blender_np1"):
-        record["paper_core_hours"] = paper_core_hours(rate("blender_np1"), record.get("speedup_np2_blender"),
-                                                      summary["blender_np1"]["atoms_mean"], config, rate("drum_np1"))
+        record["paper_core_hours"] = paper_core_hours(
+            rate("blender_np1"),
+            record.get("speedup_np2_blender"),
+            summary["blender_np1"]["atoms_mean"],
+            config,
+            rate("drum_np1"),
+        )
     record["summary"] = summary
     record["fills"] = {f"np{np}": asdict(m) for np, m in fills.items()}
     record["runs"] = {k: [asdict(m) for m in v] for k, v in results.items()}
-    record["machine_load"] = {"before": list(load_before), "after": list(load_after), "cpus": os.cpu_count(),
-                              "other_liggghts_before": others}
-    record["machine"] = {"node": platform.node(), "python": platform.python_version(), "processor": platform.processor()}
+    record["machine_load"] = {
+        "before": list(load_before),
+        "after": list(load_after),
+        "cpus": os.cpu_count(),
+        "other_liggghts_before": others,
+    }
+    record["machine"] = {
+        "node": platform.node(),
+        "python": platform.python_version(),
+        "processor": platform.processor(),
+    }
     record["wall_s"] = time.monotonic() - t_start
 
     out = write_json(args.out, record)
     print_table(record, nps)
     print(f"wrote {out}")
     return 0
-
 
 
 def _fmt(x, spec: str) -> str:
@@ -599,56 +707,75 @@ def _cost_text(c: dict) -> str:
 
 def print_table(record: dict, nps: list[int]) -> None:
     summary, targets = record["summary"], record["targets"]
-    print(f"\n{record['particles']} particles, {record['steps']} steps, median of {record['repeats']} repeat(s) "
-          "(spread (max - min) / median); particle-steps per second (Loop time):")
+    print(
+        f"\n{record['particles']} particles, {record['steps']} steps, median of {record['repeats']} repeat(s) "
+        "(spread (max - min) / median); particle-steps per second (Loop time):"
+    )
     print(f"{'ranks':>6} {'blender':>16} {'drum':>16} {'eff.':>6}  target")
     for np in nps:
         tag = "serial" if np == 1 else f"np{np}"
         b, d = summary[f"blender_np{np}"], summary[f"drum_np{np}"]
-        print(f"{np:>6} {_fmt(b['particle_steps_per_s'], '9.3g')}{_spread_text(b['rate_spread']):>7} "
-              f"{_fmt(d['particle_steps_per_s'], '9.3g')}{_spread_text(d['rate_spread']):>7} "
-              f"{_fmt(record.get(f'efficiency_{tag}'), '6.0%')}  "
-              + (f">= {targets['efficiency_min']:.0%}" if np == 1 else "(none)  ")
-              + f"  {_load(min(b['load_min'], d['load_min']), max(b['load_max'], d['load_max']))}")
+        print(
+            f"{np:>6} {_fmt(b['particle_steps_per_s'], '9.3g')}{_spread_text(b['rate_spread']):>7} "
+            f"{_fmt(d['particle_steps_per_s'], '9.3g')}{_spread_text(d['rate_spread']):>7} "
+            f"{_fmt(record.get(f'efficiency_{tag}'), '6.0%')}  "
+            + (f">= {targets['efficiency_min']:.0%}" if np == 1 else "(none)  ")
+            + f"  {_load(min(b['load_min'], d['load_min']), max(b['load_max'], d['load_max']))}"
+        )
     for np in nps:
         if np == 1 or "blender_np1" not in summary:
             continue
         lo = min(summary[k]["load_min"] for k in ("blender_np1", f"blender_np{np}"))
         hi = max(summary[k]["load_max"] for k in ("blender_np1", f"blender_np{np}"))
-        print(f"speed-up {np} ranks at steady state: blender {_fmt(record.get(f'speedup_np{np}_blender'), '.2f')}x "
-              f"(target >= {targets['speedup_np2_min']}x), drum {_fmt(record.get(f'speedup_np{np}_drum'), '.2f')}x  "
-              f"{_load(lo, hi)}")
+        print(
+            f"speed-up {np} ranks at steady state: blender {_fmt(record.get(f'speedup_np{np}_blender'), '.2f')}x "
+            f"(target >= {targets['speedup_np2_min']}x), drum {_fmt(record.get(f'speedup_np{np}_drum'), '.2f')}x  "
+            f"{_load(lo, hi)}"
+        )
         whole = record.get(f"speedup_np{np}_whole_run")
         if whole:
             f1, fn = record["fills"]["np1"], record["fills"][f"np{np}"]
-            print(f"speed-up {np} ranks, whole smoke run, filling included ({record['fill_s']:g} s from empty, one run "
-                  f"each): {whole:.2f}x (target >= {targets['speedup_np2_whole_run_min']}x; loop {f1['loop_s']:.4g} s "
-                  f"vs {fn['loop_s']:.4g} s)  "
-                  f"{_load(min(f1['load_before'], fn['load_before']), max(f1['load_after'], fn['load_after']))}")
+            print(
+                f"speed-up {np} ranks, whole smoke run, filling included ({record['fill_s']:g} s from empty, one run "
+                f"each): {whole:.2f}x (target >= {targets['speedup_np2_whole_run_min']}x; loop {f1['loop_s']:.4g} s "
+                f"vs {fn['loop_s']:.4g} s)  "
+                f"{_load(min(f1['load_before'], fn['load_before']), max(f1['load_after'], fn['load_after']))}"
+            )
     costs = record["variant_costs"]
     for np in nps:
         c = costs.get(f"blender_nodump_np{np}")
         if c:
-            print(f"dump overhead, {np} rank(s): {_cost_text(c['loop'])} of the Loop time, {_cost_text(c['cpu'])} of "
-                  f"the CPU time (target <= {targets['dump_overhead_max']:.0%})  {_load(c['load_min'], c['load_max'])}")
+            print(
+                f"dump overhead, {np} rank(s): {_cost_text(c['loop'])} of the Loop time, {_cost_text(c['cpu'])} of "
+                f"the CPU time (target <= {targets['dump_overhead_max']:.0%})  {_load(c['load_min'], c['load_max'])}"
+            )
     if costs:
         print("\nper-fix profile: time saved by switching it off, (blender - variant) / blender, ± the spread:")
         print(f"{'variant':<30} {'particles':>9} {'Loop time':>30} {'CPU time':>30}")
         for key, c in costs.items():
             per = c.get("cost_per_particle_step")
-            print(f"{key:<30} {c['atoms_mean']:>9.0f} {_cost_text(c['loop']):>30} {_cost_text(c['cpu']):>30}  "
-                  f"{_load(c['load_min'], c['load_max'])}"
-                  + (f"\n{'':31}(blender {c['atoms_mean_blender']:.0f} particles; per particle-step {per:+.1%})"
-                     if per is not None else ""))
+            print(
+                f"{key:<30} {c['atoms_mean']:>9.0f} {_cost_text(c['loop']):>30} {_cost_text(c['cpu']):>30}  "
+                f"{_load(c['load_min'], c['load_max'])}"
+                + (
+                    f"\n{'':31}(blender {c['atoms_mean_blender']:.0f} particles; per particle-step {per:+.1%})"
+                    if per is not None
+                    else ""
+                )
+            )
     cost_hours = record.get("paper_core_hours")
     if cost_hours:
-        print(f"\npaper preset: {cost_hours['steps']} steps x {cost_hours['holdup_particles']:.0f} particles "
-              f"({cost_hours['holdup_source']})")
+        print(
+            f"\npaper preset: {cost_hours['steps']} steps x {cost_hours['holdup_particles']:.0f} particles "
+            f"({cost_hours['holdup_source']})"
+        )
         for cores, est in cost_hours["cores"].items():
             low = est.get("core_hours_overhead_amortised")
-            print(f"  {cores:>3} cores: {est['core_hours']:7.0f} core-hours ({est['wall_hours']:.1f} h wall"
-                  + (f"; {low:.0f} if the blender's per-step overhead is amortised" if low else "")
-                  + f"), parallel efficiency {est['parallel_efficiency']:.2f} {est['efficiency_source']}")
+            print(
+                f"  {cores:>3} cores: {est['core_hours']:7.0f} core-hours ({est['wall_hours']:.1f} h wall"
+                + (f"; {low:.0f} if the blender's per-step overhead is amortised" if low else "")
+                + f"), parallel efficiency {est['parallel_efficiency']:.2f} {est['efficiency_source']}"
+            )
         print(f"  the paper: {cost_hours['paper_reported_core_hours']:.0f} core-hours (6.5 days on 8 workers)")
     load = record["machine_load"]
     print(f"load average before {load['before'][0]:.2f}, after {load['after'][0]:.2f} on {load['cpus']} CPUs")

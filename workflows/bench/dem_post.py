@@ -46,13 +46,21 @@ def write_synthetic(directory: Path, particles: int, snapshots: int, seed: int =
     types = rng.integers(1, 3, particles)
     for k in range(snapshots):
         step = 4000 * k
-        values = np.column_stack([
-            rng.uniform(0, 0.34, particles), rng.uniform(-0.05, 0.05, particles), rng.uniform(-0.05, 0.05, particles),
-            rng.normal(0.02, 0.1, particles), rng.normal(0, 0.1, particles), rng.normal(0, 0.1, particles),
-            rng.normal(0.001, 0.00005, particles),
-        ])
-        head = (f"ITEM: TIMESTEP\n{step}\nITEM: NUMBER OF ATOMS\n{particles}\nITEM: BOX BOUNDS ff ff ff\n"
-                "-0.06 0.4\n-0.06 0.06\n-0.06 0.06\nITEM: ATOMS " + " ".join(COLUMNS) + " \n")
+        values = np.column_stack(
+            [
+                rng.uniform(0, 0.34, particles),
+                rng.uniform(-0.05, 0.05, particles),
+                rng.uniform(-0.05, 0.05, particles),
+                rng.normal(0.02, 0.1, particles),
+                rng.normal(0, 0.1, particles),
+                rng.normal(0, 0.1, particles),
+                rng.normal(0.001, 0.00005, particles),
+            ]
+        )
+        head = (
+            f"ITEM: TIMESTEP\n{step}\nITEM: NUMBER OF ATOMS\n{particles}\nITEM: BOX BOUNDS ff ff ff\n"
+            "-0.06 0.4\n-0.06 0.06\n-0.06 0.06\nITEM: ATOMS " + " ".join(COLUMNS) + " \n"
+        )
         text = pd.DataFrame({"id": ids, "type": types, **{c: values[:, n] for n, c in enumerate(COLUMNS[2:])}})
         body = text.to_csv(sep=" ", header=False, index=False, float_format="%.6g", lineterminator=" \n")
         path = directory / f"dump.{step}.txt"
@@ -154,8 +162,9 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
     def interrupt(line: str) -> None:
         run_dirs = [p for p in (root / "c").iterdir() if p.is_dir()]
         # a restart file untouched for 2 s is complete (not being written)
-        if run_dirs and any(p.stat().st_size > 0 and time.time() - p.stat().st_mtime > 2
-                            for p in run_dirs[0].glob("restart/*")):
+        if run_dirs and any(
+            p.stat().st_size > 0 and time.time() - p.stat().st_mtime > 2 for p in run_dirs[0].glob("restart/*")
+        ):
             raise KeyboardInterrupt
 
     done = [read_status(p) for p in (root / "c").glob("*")] if (root / "c").exists() else []
@@ -165,8 +174,16 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
         except KeyboardInterrupt:
             pass
     records["resumed"] = run_dem(inputs, runs_root=root / "c", np=np_ranks, resume=True, progress=False)
-    results = {name: postprocess(rec.dump_glob, base.dem, base.steady_state, massflow_dir=rec.massflow_dir,
-                                 solver_counters=rec.solver_counters) for name, rec in records.items()}
+    results = {
+        name: postprocess(
+            rec.dump_glob,
+            base.dem,
+            base.steady_state,
+            massflow_dir=rec.massflow_dir,
+            solver_counters=rec.solver_counters,
+        )
+        for name, rec in records.items()
+    }
     keys = ("holdup_final", "discharged", "inserted", "lost", "accounting_mismatch", "discharge_crosscheck_diff")
     return {
         "preset": preset,
@@ -187,8 +204,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dumps", default=None, help="real dumps instead of synthetic ones (glob, quoted)")
     parser.add_argument("--preset", default="smoke", help="config of the real dumps (default smoke)")
     parser.add_argument("--out", default=str(OUT))
-    parser.add_argument("--restart-scatter", action="store_true",
-                        help="instead: run the preset 3 times (2 seeds + interrupted/resumed) and compare tables")
+    parser.add_argument(
+        "--restart-scatter",
+        action="store_true",
+        help="instead: run the preset 3 times (2 seeds + interrupted/resumed) and compare tables",
+    )
     parser.add_argument("--duration", type=float, default=None, help="shorten the preset's run (restart scatter)")
     parser.add_argument("--np", type=int, default=None, help="MPI ranks (restart scatter)")
     parser.add_argument("--runs-dir", default=None, help="where the restart-scatter runs go (default: temporary)")
@@ -247,15 +267,22 @@ def run(args: argparse.Namespace) -> int:
         "postprocess_s": post_s,
         "postprocess_MB_per_s": nbytes / post_s / 1e6,
         "postprocess_snapshots": int(results.summary.n_snapshots),
-        "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "pandas": pd.__version__,
-                    "numpy": np.__version__, "platform": platform.platform()},
+        "machine": {
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "pandas": pd.__version__,
+            "numpy": np.__version__,
+            "platform": platform.platform(),
+        },
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     out = Path(args.out)
     write_json(out, record)
     print(f"{source}: {nbytes / 1e6:.1f} MB in {len(paths)} files")
-    print(f"  dem.dumps reader      {record['reader_MB_per_s']:7.1f} MB/s (best of {args.repeat}, "
-          "default threads: 2 for files > 512 kB)")
+    print(
+        f"  dem.dumps reader      {record['reader_MB_per_s']:7.1f} MB/s (best of {args.repeat}, "
+        "default threads: 2 for files > 512 kB)"
+    )
     print(f"  dem.dumps, 1 thread   {record['reader_1thread_MB_per_s']:7.1f} MB/s")
     print(f"  pandas.read_csv (C)   {record['pandas_MB_per_s']:7.1f} MB/s (best of {args.repeat})")
     print(f"  reader / pandas speed {record['reader_over_pandas_speed']:7.2f}")

@@ -37,9 +37,11 @@ from workflows.config import load_preset
 OUT = Path("results/bench/machine.json")
 #: mpirun as the runs use it, without binding ranks to cores, and with ranks that yield the
 #: core while they wait for a message (Open MPI spins by default)
-LAUNCHERS = ("mpirun --allow-run-as-root -np {np}",
-             "mpirun --allow-run-as-root --bind-to none -np {np}",
-             "mpirun --allow-run-as-root --mca mpi_yield_when_idle 1 -np {np}")
+LAUNCHERS = (
+    "mpirun --allow-run-as-root -np {np}",
+    "mpirun --allow-run-as-root --bind-to none -np {np}",
+    "mpirun --allow-run-as-root --mca mpi_yield_when_idle 1 -np {np}",
+)
 
 
 def _start(run_config, run_dir: Path, np: int = 1) -> subprocess.Popen:
@@ -83,25 +85,39 @@ def measure(config, particles: int, steps: int, repeats: int, launchers: list[st
             for launcher in launchers:
                 run = config.dem.run.model_copy(update={"launcher": launcher})
                 two_ranks[launcher].append(_rate(_start(run, dirs[0], 2), dirs[0]))
-            print(f"  {particles} particles, repeat {repeat + 1}: one alone {alone[-1]:.3g} particle-steps/s, two at "
-                  f"once x{together[-1] / alone[-1]:.2f}, 2 ranks "
-                  + ", ".join(f"x{v[-1] / alone[-1]:.2f}" for v in two_ranks.values()), flush=True)
-    return {"particles": particles, "alone": alone, "together": together,
-            "bound_two_ranks": statistics.median(t / a for t, a in zip(together, alone)),
-            "two_ranks": {launcher: {"rates": values,
-                                     "speedup": statistics.median(v / a for v, a in zip(values, alone))}
-                          for launcher, values in two_ranks.items()}}
+            print(
+                f"  {particles} particles, repeat {repeat + 1}: one alone {alone[-1]:.3g} particle-steps/s, two at "
+                f"once x{together[-1] / alone[-1]:.2f}, 2 ranks "
+                + ", ".join(f"x{v[-1] / alone[-1]:.2f}" for v in two_ranks.values()),
+                flush=True,
+            )
+    return {
+        "particles": particles,
+        "alone": alone,
+        "together": together,
+        "bound_two_ranks": statistics.median(t / a for t, a in zip(together, alone)),
+        "two_ranks": {
+            launcher: {"rates": values, "speedup": statistics.median(v / a for v, a in zip(values, alone))}
+            for launcher, values in two_ranks.items()
+        },
+    }
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command line's options of this benchmark."""
     parser.add_argument("--preset", default="smoke")
-    parser.add_argument("--particles", default="1546",
-                        help="comma-separated drum bed sizes (default: the smoke bed, 1546)")
+    parser.add_argument(
+        "--particles", default="1546", help="comma-separated drum bed sizes (default: the smoke bed, 1546)"
+    )
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--launchers", type=_check_launcher, nargs="*", default=list(LAUNCHERS),
-                        help="MPI launchers for the 2-rank runs, each with {np} (default: %(default)s)")
+    parser.add_argument(
+        "--launchers",
+        type=_check_launcher,
+        nargs="*",
+        default=list(LAUNCHERS),
+        help="MPI launchers for the 2-rank runs, each with {np} (default: %(default)s)",
+    )
     parser.add_argument("--out", default=str(OUT))
 
 
@@ -109,7 +125,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         sizes = [int(v) for v in args.particles.split(",")]
     except ValueError:
-        raise ConfigError(f"--particles {args.particles!r}: expected comma-separated whole numbers, e.g. 1546,6000") from None
+        raise ConfigError(
+            f"--particles {args.particles!r}: expected comma-separated whole numbers, e.g. 1546,6000"
+        ) from None
     if any(n < 1 for n in sizes):
         raise ConfigError(f"--particles {args.particles!r}: every bed size must be >= 1")
     for name in ("steps", "repeats"):
@@ -119,12 +137,20 @@ def run(args: argparse.Namespace) -> int:
     load = [os.getloadavg()[0]]
     beds = [measure(config, n, args.steps, args.repeats, args.launchers) for n in sizes]
     load.append(os.getloadavg()[0])
-    record = {"preset": args.preset, "steps": args.steps, "repeats": args.repeats, "beds": beds,
-              "bound_two_ranks": min(bed["bound_two_ranks"] for bed in beds), "load_average": load,
-              "cpus": os.cpu_count()}
+    record = {
+        "preset": args.preset,
+        "steps": args.steps,
+        "repeats": args.repeats,
+        "beds": beds,
+        "bound_two_ranks": min(bed["bound_two_ranks"] for bed in beds),
+        "load_average": load,
+        "cpus": os.cpu_count(),
+    }
     print(f"medians of {args.repeats}, load {load[0]:.2f}-{load[1]:.2f}:")
     for bed in beds:
-        print(f"  {bed['particles']} particles: two single-rank runs at once x{bed['bound_two_ranks']:.2f}; one run on "
-              "2 ranks " + ", ".join(f"x{r['speedup']:.2f} ({_label(k)})" for k, r in bed["two_ranks"].items()))
+        print(
+            f"  {bed['particles']} particles: two single-rank runs at once x{bed['bound_two_ranks']:.2f}; one run on "
+            "2 ranks " + ", ".join(f"x{r['speedup']:.2f} ({_label(k)})" for k, r in bed["two_ranks"].items())
+        )
     print(f"wrote {write_json(args.out, record)}")
     return 0

@@ -75,12 +75,18 @@ def profile_simulate(table, config: PbmConfig, rtd_pulse_s: float) -> dict:
         return sum(v[3] for (_f, _l, fn), v in stats.items() if fn == name)
 
     total = cumulative("simulate")
-    stages = {"operators (Propagators.prepare: matrix exponentials, threaded)": cumulative("prepare"),
-              "march (state updates, without the operators)": cumulative("march") - cumulative("prepare"),
-              "filled_table (fill rule)": cumulative("filled_table"),
-              "generator_matrix": cumulative("generator_matrix")}
-    stages["the rest (CQAs, RTD, checks)"] = total - stages[next(iter(stages))] - stages[
-        "march (state updates, without the operators)"] - stages["filled_table (fill rule)"]
+    stages = {
+        "operators (Propagators.prepare: matrix exponentials, threaded)": cumulative("prepare"),
+        "march (state updates, without the operators)": cumulative("march") - cumulative("prepare"),
+        "filled_table (fill rule)": cumulative("filled_table"),
+        "generator_matrix": cumulative("generator_matrix"),
+    }
+    stages["the rest (CQAs, RTD, checks)"] = (
+        total
+        - stages[next(iter(stages))]
+        - stages["march (state updates, without the operators)"]
+        - stages["filled_table (fill rule)"]
+    )
     # the products one run's exponentials need: 5 each, plus the squarings its norm asks for
     props = Propagators(table, np.zeros((table.nx * table.ny, 2)), config.rates)
     m = props.n_states + 2
@@ -93,15 +99,22 @@ def profile_simulate(table, config: PbmConfig, rtd_pulse_s: float) -> dict:
     a = np.random.default_rng(0).standard_normal((m, m))
     product_s = statistics.median(_timed(lambda: a @ a, 200)[0])
     products = sum(5 + s for s in squarings)
-    return {"total_s": total, "stages_s": stages, "matrix_size": m, "exponentials": table.n_windows,
-            "mean_squarings": float(np.mean(squarings)), "dense_products": products,
-            "one_product_s": product_s,
-            "product_bound_s": products * product_s,
-            "product_bound_two_threads_s": products * product_s / 2}
+    return {
+        "total_s": total,
+        "stages_s": stages,
+        "matrix_size": m,
+        "exponentials": table.n_windows,
+        "mean_squarings": float(np.mean(squarings)),
+        "dense_products": products,
+        "one_product_s": product_s,
+        "product_bound_s": products * product_s,
+        "product_bound_two_threads_s": products * product_s / 2,
+    }
 
 
-def run_benchmark(repeats: int = 15, bdf_repeats: int = 3, ensemble_repeats: int = 3, members: int = 10000,
-                  rtd_pulse_s: float = 50.0) -> dict:
+def run_benchmark(
+    repeats: int = 15, bdf_repeats: int = 3, ensemble_repeats: int = 3, members: int = 10000, rtd_pulse_s: float = 50.0
+) -> dict:
     """Run the measurements; return them as a JSON-ready dict (times in seconds)."""
     table = synthetic_table()
     config = PbmConfig()
@@ -130,29 +143,66 @@ def run_benchmark(repeats: int = 15, bdf_repeats: int = 3, ensemble_repeats: int
     bdf_median = statistics.median(bdf_times)
     return {
         "scenario": {
-            "nx": table.nx, "ny": table.ny, "windows": table.n_windows, "window_s": table.window_s,
-            "duration_s": table.t_end, "output_interval_s": config.output_interval_s, "species": ["A", "B", "tracer"],
-            "rtd_pulse_s": rtd_pulse_s, "table": "pbm.synthetic.synthetic_table(seed=2013)",
+            "nx": table.nx,
+            "ny": table.ny,
+            "windows": table.n_windows,
+            "window_s": table.window_s,
+            "duration_s": table.t_end,
+            "output_interval_s": config.output_interval_s,
+            "species": ["A", "B", "tracer"],
+            "rtd_pulse_s": rtd_pulse_s,
+            "table": "pbm.synthetic.synthetic_table(seed=2013)",
         },
-        "expm": {"median_s": expm_median, "min_s": min(expm_times), "runs_s": expm_times,
-                 "median_cpu_s": statistics.median(expm_cpu)},
-        "expm_detected_pulse": {"median_s": statistics.median(detect_times), "runs_s": detect_times,
-                                "note": "default path: A+B, steady-state detection, then the tracer"},
-        "bdf": {"median_s": bdf_median, "runs_s": bdf_times, "rtol": bdf_config.bdf_rtol,
-                "median_cpu_s": statistics.median(bdf_cpu)},
+        "expm": {
+            "median_s": expm_median,
+            "min_s": min(expm_times),
+            "runs_s": expm_times,
+            "median_cpu_s": statistics.median(expm_cpu),
+        },
+        "expm_detected_pulse": {
+            "median_s": statistics.median(detect_times),
+            "runs_s": detect_times,
+            "note": "default path: A+B, steady-state detection, then the tracer",
+        },
+        "bdf": {
+            "median_s": bdf_median,
+            "runs_s": bdf_times,
+            "rtol": bdf_config.bdf_rtol,
+            "median_cpu_s": statistics.median(bdf_cpu),
+        },
         "speedup_vs_bdf": bdf_median / expm_median,
-        "max_rel_diff_expm_vs_bdf": {name: _max_rel_diff(getattr(exact, name), getattr(bdf, name)) for name in COMPARED},
+        "max_rel_diff_expm_vs_bdf": {
+            name: _max_rel_diff(getattr(exact, name), getattr(bdf, name)) for name in COMPARED
+        },
         "max_rel_diff_derived": {name: _max_rel_diff(getattr(exact, name), getattr(bdf, name)) for name in DERIVED},
-        "mean_residence_time_s": {"expm": exact.summary["mean_residence_time_s"],
-                                  "bdf": bdf.summary["mean_residence_time_s"]},
-        "ensemble": {"members": members, "sigma": 0.1, "median_s": statistics.median(ens_times), "runs_s": ens_times,
-                     "median_cpu_s": statistics.median(ens_cpu),
-                     "peak_traced_bytes": peak, "peak_traced_MiB": peak / 2**20, "process_max_rss_bytes": max_rss},
+        "mean_residence_time_s": {
+            "expm": exact.summary["mean_residence_time_s"],
+            "bdf": bdf.summary["mean_residence_time_s"],
+        },
+        "ensemble": {
+            "members": members,
+            "sigma": 0.1,
+            "median_s": statistics.median(ens_times),
+            "runs_s": ens_times,
+            "median_cpu_s": statistics.median(ens_cpu),
+            "peak_traced_bytes": peak,
+            "peak_traced_MiB": peak / 2**20,
+            "process_max_rss_bytes": max_rss,
+        },
         "profile": profile,
-        "targets": {"expm_median_s": 0.01, "speedup_vs_bdf": 100.0, "ensemble_members": 10000, "ensemble_s": 2.0,
-                    "ensemble_peak_bytes": 2**30},
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-                    "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
+        "targets": {
+            "expm_median_s": 0.01,
+            "speedup_vs_bdf": 100.0,
+            "ensemble_members": 10000,
+            "ensemble_s": 2.0,
+            "ensemble_peak_bytes": 2**30,
+        },
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        },
     }
 
 
@@ -165,18 +215,28 @@ def format_report(r: dict) -> str:
         ("speed-up vs BDF", f"{r['speedup_vs_bdf']:8.1f} x", ">= 100 x"),
         ("max rel. diff expm vs BDF (states, E)", f"{max(r['max_rel_diff_expm_vs_bdf'].values()):10.2e}", "<= 1e-6"),
         ("max rel. diff (C_A, RSD)", f"{max(r['max_rel_diff_derived'].values()):10.2e}", ""),
-        (f"ensemble {r['ensemble']['members']} members, sigma 0.1", f"{r['ensemble']['median_s'] * 1e3:8.1f} ms",
-         "<= 2000 ms"),
+        (
+            f"ensemble {r['ensemble']['members']} members, sigma 0.1",
+            f"{r['ensemble']['median_s'] * 1e3:8.1f} ms",
+            "<= 2000 ms",
+        ),
         ("  peak traced memory", f"{r['ensemble']['peak_traced_MiB']:8.1f} MiB", "<= 1024 MiB"),
     ]
     p = r["profile"]
     rows.append(("where one exact run's time goes (cProfile)", f"{p['total_s'] * 1e3:8.1f} ms", ""))
     rows += [(f"  {stage}", f"{sec * 1e3:8.1f} ms", "") for stage, sec in p["stages_s"].items()]
     rows += [
-        (f"  bound: {p['exponentials']} expm x (5 + {p['mean_squarings']:.1f} squarings) = {p['dense_products']} "
-         f"products of {p['matrix_size']}x{p['matrix_size']}", f"{p['one_product_s'] * 1e6:8.1f} us", "each"),
-        ("  products alone, 1 / 2 threads", f"{p['product_bound_s'] * 1e3:6.1f}/{p['product_bound_two_threads_s'] * 1e3:.1f} ms",
-         ""),
+        (
+            f"  bound: {p['exponentials']} expm x (5 + {p['mean_squarings']:.1f} squarings) = {p['dense_products']} "
+            f"products of {p['matrix_size']}x{p['matrix_size']}",
+            f"{p['one_product_s'] * 1e6:8.1f} us",
+            "each",
+        ),
+        (
+            "  products alone, 1 / 2 threads",
+            f"{p['product_bound_s'] * 1e3:6.1f}/{p['product_bound_two_threads_s'] * 1e3:.1f} ms",
+            "",
+        ),
     ]
     width = max(len(name) for name, _, _ in rows)
     lines = [f"{'measurement':<{width}}  {'median':>12}  target", "-" * (width + 26)]

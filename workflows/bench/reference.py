@@ -21,8 +21,12 @@ OUT = Path("results/bench/reference.json")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command line's options of this benchmark."""
-    parser.add_argument("folders", nargs="*", default=[str(REFERENCE_DIR)],
-                        help="folders of DEM results files (default: the shipped reference)")
+    parser.add_argument(
+        "folders",
+        nargs="*",
+        default=[str(REFERENCE_DIR)],
+        help="folders of DEM results files (default: the shipped reference)",
+    )
     parser.add_argument("--out", default=str(OUT))
 
 
@@ -52,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'preset':>8} {'ranks':>5} {'DEM [s]':>9} {'post [s]':>9} {'post/DEM':>9}  file")
     for r in rows:
         frac = f"{r['postprocess_fraction']:.2%}" if r["postprocess_fraction"] is not None else "-"
-        print(f"{r['preset']:>8} {r['np']!s:>5} {r['dem_wall_time_s'] or 0:9.0f} {r['postprocess_time_s'] or 0:9.1f} {frac:>9}  {r['file']}")
+        print(
+            f"{r['preset']:>8} {r['np']!s:>5} {r['dem_wall_time_s'] or 0:9.0f} {r['postprocess_time_s'] or 0:9.1f} {frac:>9}  {r['file']}"
+        )
     print(f"wrote {write_json(args.out, rows)}")
     return 0

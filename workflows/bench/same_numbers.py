@@ -107,9 +107,25 @@ from typing import Any
 from coupling.errors import ConfigError
 from coupling.jsonable import write_json
 
-__all__ = ["CAPTURE_FILE", "GUARD_EXIT", "IGNORED_JSON_KEYS", "IGNORED_TEXT", "PRESETS", "SKIPPED_FILES",
-           "TEXT_FILES", "Capture", "Difference", "Step", "StepResult", "capture", "capture_steps",
-           "compare_trees", "skip_reason", "solver_guard", "walk_trees"]
+__all__ = [
+    "CAPTURE_FILE",
+    "GUARD_EXIT",
+    "IGNORED_JSON_KEYS",
+    "IGNORED_TEXT",
+    "PRESETS",
+    "SKIPPED_FILES",
+    "TEXT_FILES",
+    "Capture",
+    "Difference",
+    "Step",
+    "StepResult",
+    "capture",
+    "capture_steps",
+    "compare_trees",
+    "skip_reason",
+    "solver_guard",
+    "walk_trees",
+]
 
 #: Written by :func:`capture`: {"tree_root": ..., "source_root": ..., "entry": ..., "steps": ...}.
 CAPTURE_FILE = "_capture.json"
@@ -130,8 +146,21 @@ SKIPPED_FILES: tuple[tuple[str, str], ...] = (
 )
 
 #: Globs of files compared line by line as text (all others, except JSON, byte for byte).
-TEXT_FILES: tuple[str, ...] = ("**/in.*", "in.*", "**.toml", "**.stl", "**.csv", "**.html", "**.txt", "**.pvd",
-                               "**.vtr", "**.vtp", "**.vtu", "**.vts", "**.vti")
+TEXT_FILES: tuple[str, ...] = (
+    "**/in.*",
+    "in.*",
+    "**.toml",
+    "**.stl",
+    "**.csv",
+    "**.html",
+    "**.txt",
+    "**.pvd",
+    "**.vtr",
+    "**.vtp",
+    "**.vtu",
+    "**.vts",
+    "**.vti",
+)
 
 _SUMMARY = "results/*/summary.json"
 #: (file glob, JSON key path pattern, reason). Key paths are dotted with list indices as
@@ -154,10 +183,16 @@ IGNORED_TEXT: tuple[tuple[str, str, str], ...] = (
     (_REPORT, r"<td>report_made</td><td>([^<]*)</td>", "time the report was written"),
     (_REPORT, r"<td>commit</td><td>([^<]*)</td>", "git commit of the code that ran"),
     (_REPORT, r"<td>studies_wall_time_s</td><td>([^<]*)</td>", "measured wall time"),
-    (_REPORT, r"<td>Wall time \[s\]</td><td>[^<]*</td><td>([^<]*)</td>",
-     "measured PBM wall time (the shipped DEM's is compared)"),
-    (_REPORT, r"PBM speed-up over DEM \(wall time\)</td><td[^>]*>([^<]*)</td>",
-     "DEM wall time / measured PBM wall time"),
+    (
+        _REPORT,
+        r"<td>Wall time \[s\]</td><td>[^<]*</td><td>([^<]*)</td>",
+        "measured PBM wall time (the shipped DEM's is compared)",
+    ),
+    (
+        _REPORT,
+        r"PBM speed-up over DEM \(wall time\)</td><td[^>]*>([^<]*)</td>",
+        "DEM wall time / measured PBM wall time",
+    ),
     ("**.vt?", r'Name="Array (0x[0-9a-f]+)"', "VTK names an unnamed array by its memory address"),
 )
 
@@ -217,7 +252,8 @@ def _key_matches(key_path: str, pattern: str) -> bool:
     patterns = _split_key_path(pattern)
     return len(segments) == len(patterns) and all(
         s == p or (p == "[*]" and s.startswith("[")) or (not p.startswith("[") and fnmatch.fnmatchcase(s, p))
-        for s, p in zip(segments, patterns))
+        for s, p in zip(segments, patterns)
+    )
 
 
 def _split_key_path(path: str) -> list[str]:
@@ -242,7 +278,7 @@ def _show_pair(before: Any, after: Any, context: int = 60) -> tuple[str, str]:
         lo = max(0, start - context)
 
         def cut(text: str) -> str:
-            piece = text[lo: start + context]
+            piece = text[lo : start + context]
             return ("..." if lo else "") + piece + ("..." if start + context < len(text) else "")
 
         return json.dumps(cut(before), ensure_ascii=False), json.dumps(cut(after), ensure_ascii=False)
@@ -377,7 +413,7 @@ def _mask(line: str, mask: re.Pattern[str]) -> str:
         for g in range(1, (match.re.groups or 0) + 1):
             if match.start(g) < 0:
                 continue
-            pieces += [whole[pos: match.start(g) - start], "<IGNORED>"]
+            pieces += [whole[pos : match.start(g) - start], "<IGNORED>"]
             pos = match.end(g) - start
         return "".join(pieces) + whole[pos:]
 
@@ -496,15 +532,56 @@ def capture_steps(out: Path) -> tuple[Step, ...]:
     steps: list[Step] = []
     for preset in PRESETS:
         steps.append(Step(f"config-{preset}", ("config", "--preset", preset), f"config-{preset}.toml"))
-        steps.append(Step(f"deck-{preset}", ("dem", "deck", "--preset", preset, "--out", str(out / "decks" / preset)),
-                          f"stdout/deck-{preset}.txt"))
-    steps.append(Step("compare", ("compare", "--preset", "reduced", "--runs-dir", str(out / "runs"),
-                                  "--results-dir", str(out / "results"), "--no-progress"), "stdout/compare.txt"))
-    steps.append(Step("validate", ("validate", "--out", str(out / "validation"),
-                                   "--runs-dir", str(out / "runs-validation")), "stdout/validate.txt"))
+        steps.append(
+            Step(
+                f"deck-{preset}",
+                ("dem", "deck", "--preset", preset, "--out", str(out / "decks" / preset)),
+                f"stdout/deck-{preset}.txt",
+            )
+        )
+    steps.append(
+        Step(
+            "compare",
+            (
+                "compare",
+                "--preset",
+                "reduced",
+                "--runs-dir",
+                str(out / "runs"),
+                "--results-dir",
+                str(out / "results"),
+                "--no-progress",
+            ),
+            "stdout/compare.txt",
+        )
+    )
+    steps.append(
+        Step(
+            "validate",
+            ("validate", "--out", str(out / "validation"), "--runs-dir", str(out / "runs-validation")),
+            "stdout/validate.txt",
+        )
+    )
     # README.md, "Design: the smallest blender that meets a spec"
-    steps.append(Step("design", ("design", "--ca-within", "0.04", "--noise-sigma", "0.1", "--noise-tau", "5",
-                                 "--mrt-max", "25", "--out", str(out / "design")), "stdout/design.txt"))
+    steps.append(
+        Step(
+            "design",
+            (
+                "design",
+                "--ca-within",
+                "0.04",
+                "--noise-sigma",
+                "0.1",
+                "--noise-tau",
+                "5",
+                "--mrt-max",
+                "25",
+                "--out",
+                str(out / "design"),
+            ),
+            "stdout/design.txt",
+        )
+    )
     return tuple(steps)
 
 
@@ -542,12 +619,17 @@ def solver_guard(path: str) -> Iterator[str]:
 
 def _check_empty(out: Path) -> None:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"same-numbers capture: {out} exists and is not an empty directory; "
-                          "refusing to mix two captures")
+        raise ConfigError(
+            f"same-numbers capture: {out} exists and is not an empty directory; refusing to mix two captures"
+        )
 
 
-def capture(out: Path, entry: Sequence[str] | None = None, checkout: Path | None = None,
-            progress: Callable[[StepResult], None] | None = None) -> Capture:
+def capture(
+    out: Path,
+    entry: Sequence[str] | None = None,
+    checkout: Path | None = None,
+    progress: Callable[[StepResult], None] | None = None,
+) -> Capture:
     """Run :func:`capture_steps` into the new or empty directory ``out``, each step as
     ``[*entry, *step.args]`` in the directory ``checkout`` (default: the current one) under
     :func:`solver_guard`. ``entry`` defaults to ``[sys.executable, "-m", "workflows.cli"]``,
@@ -561,17 +643,31 @@ def capture(out: Path, entry: Sequence[str] | None = None, checkout: Path | None
     entry = list(entry) if entry is not None else [sys.executable, "-m", "workflows.cli"]
     _check_empty(out)
     if not (checkout / "workflows" / "cli").is_dir():
-        raise ConfigError(f"same-numbers capture: --checkout {checkout} has no workflows/cli; "
-                          "give the root of a pbmdem checkout")
+        raise ConfigError(
+            f"same-numbers capture: --checkout {checkout} has no workflows/cli; give the root of a pbmdem checkout"
+        )
     (out / "stdout").mkdir(parents=True, exist_ok=True)
     (out / "_logs").mkdir()
     results: list[StepResult] = []
 
     def record() -> None:
-        write_json(out / CAPTURE_FILE, {
-            "tree_root": str(out), "source_root": str(checkout), "entry": entry,
-            "steps": [{"name": r.step.name, "command": [*entry, *r.step.args], "exit": r.exit_code,
-                       "wall_s": round(r.wall_s, 1)} for r in results]})
+        write_json(
+            out / CAPTURE_FILE,
+            {
+                "tree_root": str(out),
+                "source_root": str(checkout),
+                "entry": entry,
+                "steps": [
+                    {
+                        "name": r.step.name,
+                        "command": [*entry, *r.step.args],
+                        "exit": r.exit_code,
+                        "wall_s": round(r.wall_s, 1),
+                    }
+                    for r in results
+                ],
+            },
+        )
 
     record()
     with solver_guard(os.environ.get("PATH", os.defpath)) as guarded_path:
@@ -579,8 +675,15 @@ def capture(out: Path, entry: Sequence[str] | None = None, checkout: Path | None
         for step in capture_steps(out):
             start = time.perf_counter()
             with open(out / step.stdout, "wb") as stdout, open(out / "_logs" / f"{step.name}.stderr", "wb") as stderr:
-                code = subprocess.run([*entry, *step.args], cwd=checkout, env=env, stdin=subprocess.DEVNULL,
-                                      stdout=stdout, stderr=stderr, check=False).returncode
+                code = subprocess.run(
+                    [*entry, *step.args],
+                    cwd=checkout,
+                    env=env,
+                    stdin=subprocess.DEVNULL,
+                    stdout=stdout,
+                    stderr=stderr,
+                    check=False,
+                ).returncode
             results.append(StepResult(step, code, time.perf_counter() - start))
             record()
             if progress is not None:
@@ -592,13 +695,20 @@ def capture(out: Path, entry: Sequence[str] | None = None, checkout: Path | None
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``capture OUT [--checkout DIR]`` and ``compare BEFORE AFTER [--list-skipped]``."""
     sub = parser.add_subparsers(dest="same_numbers", required=True, metavar="ACTION")
-    take = sub.add_parser("capture", help="run the fixed command set into OUT (several minutes)",
-                          description="Run the fixed command set of the shipped data into the new or empty OUT.")
+    take = sub.add_parser(
+        "capture",
+        help="run the fixed command set into OUT (several minutes)",
+        description="Run the fixed command set of the shipped data into the new or empty OUT.",
+    )
     take.add_argument("out", type=Path, metavar="OUT")
-    take.add_argument("--checkout", type=Path, default=None,
-                      help="root of the checkout to measure (default: the current directory)")
-    compare = sub.add_parser("compare", help="every difference between two captures; exit 1 if any",
-                             description="Every difference between two capture trees; exit 0 when none, 1 otherwise.")
+    take.add_argument(
+        "--checkout", type=Path, default=None, help="root of the checkout to measure (default: the current directory)"
+    )
+    compare = sub.add_parser(
+        "compare",
+        help="every difference between two captures; exit 1 if any",
+        description="Every difference between two capture trees; exit 0 when none, 1 otherwise.",
+    )
     compare.add_argument("before", type=Path, metavar="BEFORE")
     compare.add_argument("after", type=Path, metavar="AFTER")
     compare.add_argument("--list-skipped", action="store_true", help="also print every skipped file and why")
@@ -608,8 +718,11 @@ def _print_step(result: StepResult) -> None:
     if result.ok:
         print(f"ok ({result.wall_s:.1f}s): {result.step.name}", flush=True)
     else:
-        print(f"FAILED (exit {result.exit_code}, {result.wall_s:.1f}s): {result.step.name}  "
-              f"(see _logs/{result.step.name}.stderr)", flush=True)
+        print(
+            f"FAILED (exit {result.exit_code}, {result.wall_s:.1f}s): {result.step.name}  "
+            f"(see _logs/{result.step.name}.stderr)",
+            flush=True,
+        )
 
 
 def run(args: argparse.Namespace) -> int:

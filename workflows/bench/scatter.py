@@ -72,8 +72,11 @@ def quantities(dem: DemSide) -> dict[str, float]:
     s = dem.results.summary
     ts = dem.results.timeseries
     out_a, out_b = ts["outflow_A_per_s"].sum(), ts["outflow_B_per_s"].sum()
-    return {"holdup_final": float(s.holdup_final), "discharged": float(s.accounting["discharged"]),
-            "C_A_discharged": float(out_a / (out_a + out_b)) if out_a + out_b > 0 else float("nan")}
+    return {
+        "holdup_final": float(s.holdup_final),
+        "discharged": float(s.accounting["discharged"]),
+        "C_A_discharged": float(out_a / (out_a + out_b)) if out_a + out_b > 0 else float("nan"),
+    }
 
 
 def difference(a: DemSide, b: DemSide) -> dict[str, float]:
@@ -86,9 +89,12 @@ def difference(a: DemSide, b: DemSide) -> dict[str, float]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command line's options of this benchmark."""
     parser.add_argument("--preset", default="smoke")
-    parser.add_argument("--change", default="dem.geometry.inlet_margin_m=0.005",
-                        help="config path=value of the change to judge (default: the inlet margin of the "
-                             "configs before the 2-rank cut was moved)")
+    parser.add_argument(
+        "--change",
+        default="dem.geometry.inlet_margin_m=0.005",
+        help="config path=value of the change to judge (default: the inlet margin of the "
+        "configs before the 2-rank cut was moved)",
+    )
     parser.add_argument("--seeds", type=int, default=3, help="seed runs for the scatter (>= 2)")
     parser.add_argument("--runs-dir", default=str(RUNS))
     parser.add_argument("--out", default=str(OUT))
@@ -116,10 +122,19 @@ def run(args: argparse.Namespace) -> int:
     scatter = {m: max(p[m] for p in pairs.values()) for m in metrics}
     effect = {m: max(p[m] for p in against.values()) for m in metrics}
     within = {m: bool(effect[m] <= scatter[m]) for m in metrics}
-    record = {"preset": args.preset, "change": args.change, "seeds": seeds, "seed_pairs": pairs,
-              "change_vs_seeds": against, "seed_scatter": scatter, "change_effect": effect, "within_scatter": within,
-              "all_within": all(within.values()), "load_average": load,
-              "runs": {name: str(dem.cache_file) for name, dem in runs.items()}}
+    record = {
+        "preset": args.preset,
+        "change": args.change,
+        "seeds": seeds,
+        "seed_pairs": pairs,
+        "change_vs_seeds": against,
+        "seed_scatter": scatter,
+        "change_effect": effect,
+        "within_scatter": within,
+        "all_within": all(within.values()),
+        "load_average": load,
+        "runs": {name: str(dem.cache_file) for name, dem in runs.items()},
+    }
     print(f"\n{'metric':<16} {'seed scatter':>13} {'change':>10}  verdict")
     for m in metrics:
         print(f"{m:<16} {scatter[m]:>13.3g} {effect[m]:>10.3g}  {'within' if within[m] else 'OUTSIDE'}")

@@ -30,7 +30,9 @@ NOT_IN_ALL = frozenset({"same-numbers"})
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
-    every = sub.add_parser("all", help="every benchmark below (but same-numbers) with its defaults, one after the other")
+    every = sub.add_parser(
+        "all", help="every benchmark below (but same-numbers) with its defaults, one after the other"
+    )
     every.add_argument("only", nargs="*", help="run only these benchmarks (names as below)")
     every.set_defaults(func=run_all)
     for name, module_name, title in BENCHMARKS:
@@ -45,9 +47,11 @@ def run_all(args: argparse.Namespace) -> int:
     run, so one broken benchmark does not hide the others' numbers."""
     unknown = set(args.only) - {name for name, _, _ in BENCHMARKS if name not in NOT_IN_ALL}
     if unknown:
-        raise ConfigError(f"pbmdem bench all: unknown {sorted(unknown)}; known: "
-                         f"{', '.join(name for name, _, _ in BENCHMARKS if name not in NOT_IN_ALL)} "
-                         f"({', '.join(sorted(NOT_IN_ALL))}: run on its own)")
+        raise ConfigError(
+            f"pbmdem bench all: unknown {sorted(unknown)}; known: "
+            f"{', '.join(name for name, _, _ in BENCHMARKS if name not in NOT_IN_ALL)} "
+            f"({', '.join(sorted(NOT_IN_ALL))}: run on its own)"
+        )
     failed = []
     for name, module_name, title in BENCHMARKS:
         if name in NOT_IN_ALL or (args.only and name not in args.only):

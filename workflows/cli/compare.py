@@ -16,7 +16,9 @@ HELP = "DEM (or its cached / shipped results) -> velocity tables -> PBM -> side-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser)
     parser.add_argument("--np", type=int, default=None, help="MPI ranks for LIGGGHTS (default: the config's)")
-    parser.add_argument("--fresh", action="store_true", help="ignore cached and shipped DEM results: run LIGGGHTS again")
+    parser.add_argument(
+        "--fresh", action="store_true", help="ignore cached and shipped DEM results: run LIGGGHTS again"
+    )
     parser.add_argument("--resume", action="store_true", help="resume an interrupted DEM run from its restart file")
     parser.add_argument("--results-dir", default="results", help="where <preset>-<hash>/report.html goes")
     parser.add_argument("--runs-dir", default="runs", help="root of the DEM run directories and cache")
@@ -30,11 +32,24 @@ def run(args: argparse.Namespace) -> int:
 
     config = resolve_config(args.preset, args.config)
     # the studies' ensembles: refused now, not after the DEM and the PBM
-    check_ensemble_memory(args.noise_members, config.dem.operation.duration_s, config.pbm.noise_interval_s,
-                          config.pbm.output_interval_s, config.dem.tables.nx)
+    check_ensemble_memory(
+        args.noise_members,
+        config.dem.operation.duration_s,
+        config.pbm.noise_interval_s,
+        config.pbm.output_interval_s,
+        config.dem.tables.nx,
+    )
     report = full_comparison(
-        config, results_root=Path(args.results_dir), runs_root=Path(args.runs_dir),
-        np_ranks=args.np, fresh=args.fresh, resume=args.resume, noise_members=args.noise_members,
-        paraview=not args.no_paraview, progress=not args.no_progress, log=stderr_log)
+        config,
+        results_root=Path(args.results_dir),
+        runs_root=Path(args.runs_dir),
+        np_ranks=args.np,
+        fresh=args.fresh,
+        resume=args.resume,
+        noise_members=args.noise_members,
+        paraview=not args.no_paraview,
+        progress=not args.no_progress,
+        log=stderr_log,
+    )
     print(f"report: {report}")
     return 0

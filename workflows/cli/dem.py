@@ -27,10 +27,27 @@ from dem.summary import DemSummary
 from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline.stages import stderr_log
 
-SUMMARY_KEYS = ("t_end_s", "steady_state_time_s", "steady_outflow_per_s", "steady_C_A", "mean_residence_time_s",
-                "rtd_variance_s2", "rtd_recovered_fraction", "final_rsd_outlet", "final_rsd_outlet_floor",
-                "final_rsd_blender", "final_rsd_blender_floor", "holdup_final", "inserted", "held", "discharged",
-                "lost", "accounting_mismatch", "massflow_discharged", "discharge_crosscheck_diff")
+SUMMARY_KEYS = (
+    "t_end_s",
+    "steady_state_time_s",
+    "steady_outflow_per_s",
+    "steady_C_A",
+    "mean_residence_time_s",
+    "rtd_variance_s2",
+    "rtd_recovered_fraction",
+    "final_rsd_outlet",
+    "final_rsd_outlet_floor",
+    "final_rsd_blender",
+    "final_rsd_blender_floor",
+    "holdup_final",
+    "inserted",
+    "held",
+    "discharged",
+    "lost",
+    "accounting_mismatch",
+    "massflow_discharged",
+    "discharge_crosscheck_diff",
+)
 
 
 HELP = "DEM stage: write decks, run LIGGGHTS, post-process dumps"
@@ -42,12 +59,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     deck = dem_sub.add_parser("deck", help="write a LIGGGHTS deck, meshes and the resolved config into a directory")
     add_config_arguments(deck)
     deck.add_argument("--out", required=True, help="run directory to create (or refresh)")
-    deck.add_argument("--resume-from", default=None,
-                      help="also write in.resume, continuing from this restart file (path relative to --out)")
+    deck.add_argument(
+        "--resume-from",
+        default=None,
+        help="also write in.resume, continuing from this restart file (path relative to --out)",
+    )
     deck.add_argument("--png", action="store_true", help="also render the assembled geometry to geometry.png")
-    deck.add_argument("--view-stl", action="store_true",
-                      help="also write meshes/view_barrel.stl and meshes/view_inlet_wall.stl (viewing only; the deck "
-                           "uses LIGGGHTS primitives for these)")
+    deck.add_argument(
+        "--view-stl",
+        action="store_true",
+        help="also write meshes/view_barrel.stl and meshes/view_inlet_wall.stl (viewing only; the deck "
+        "uses LIGGGHTS primitives for these)",
+    )
     deck.set_defaults(func=deck_command)
 
     run = dem_sub.add_parser("run", help="run LIGGGHTS on the deck, post-process, cache the velocity table and results")
@@ -58,30 +81,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.add_argument("--runs-dir", default="runs", help="root of the run directories (default: ./runs)")
     run.add_argument("--cache-dir", default=None, help="where dem-<hash>.h5 goes (default: <runs-dir>/cache)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
-    run.add_argument("--stop-when-converged", action="store_true",
-                     help="stop the run once more DEM would not move the PBM by more than the DEM resolves "
-                          "(checked every --check-every simulated seconds; --resume continues a stopped run)")
-    run.add_argument("--check-every", type=float, default=None, metavar="S",
-                     help="simulated seconds between convergence checks (default 20)")
+    run.add_argument(
+        "--stop-when-converged",
+        action="store_true",
+        help="stop the run once more DEM would not move the PBM by more than the DEM resolves "
+        "(checked every --check-every simulated seconds; --resume continues a stopped run)",
+    )
+    run.add_argument(
+        "--check-every",
+        type=float,
+        default=None,
+        metavar="S",
+        help="simulated seconds between convergence checks (default 20)",
+    )
     run.set_defaults(func=run_command)
 
     post = dem_sub.add_parser("post", help="post-process existing dumps into a velocity table + DEM results file")
     add_config_arguments(post)
     post.add_argument("--dumps", required=True, help="glob of the dump files, quoted: 'run/dumps/dump.*.txt'")
     post.add_argument("--out", required=True, help="output HDF5 file (velocity table + DEM results)")
-    post.add_argument("--massflow-dir", default=None, help="directory of the discharge files (default: beside the dumps)")
+    post.add_argument(
+        "--massflow-dir", default=None, help="directory of the discharge files (default: beside the dumps)"
+    )
     post.set_defaults(func=post_command)
 
-    slurm = dem_sub.add_parser("slurm", help="write the deck and a Slurm batch script with a cost estimate, without running")
+    slurm = dem_sub.add_parser(
+        "slurm", help="write the deck and a Slurm batch script with a cost estimate, without running"
+    )
     add_config_arguments(slurm)
     slurm.add_argument("--out", required=True, help="run directory to create (deck + job.slurm)")
     slurm.add_argument("--np", type=int, default=32, help="MPI tasks (default 32)")
     slurm.add_argument("--partition", default=None, help="Slurm partition")
-    slurm.add_argument("--holdup", type=float, default=None,
-                       help="steady hold-up [particles]; default: scaled from the shipped reduced run")
-    slurm.add_argument("--throughput", type=float, default=None,
-                       help="particle-steps per second per core; default: the shipped paper-scale measurement "
-                            "for the paper's particles, else 3.9e6 (`pbmdem bench dem-deck` measures this machine's)")
+    slurm.add_argument(
+        "--holdup",
+        type=float,
+        default=None,
+        help="steady hold-up [particles]; default: scaled from the shipped reduced run",
+    )
+    slurm.add_argument(
+        "--throughput",
+        type=float,
+        default=None,
+        help="particle-steps per second per core; default: the shipped paper-scale measurement "
+        "for the paper's particles, else 3.9e6 (`pbmdem bench dem-deck` measures this machine's)",
+    )
     slurm.set_defaults(func=slurm_command)
 
 
@@ -99,8 +142,9 @@ def deck_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.stages import write_run_directory
 
     refuse_config_overwrite(args.out, args.config, RUN_DIRECTORY_FILES)
-    out, digest = write_run_directory(resolve_config(args.preset, args.config), args.out, args.resume_from,
-                                      view_stl=args.view_stl, png=args.png)
+    out, digest = write_run_directory(
+        resolve_config(args.preset, args.config), args.out, args.resume_from, view_stl=args.view_stl, png=args.png
+    )
     print(f"wrote {out / 'in.blender'} (deck hash {digest}); run: cd {out} && liggghts -in in.blender")
     return 0
 
@@ -120,8 +164,17 @@ def run_command(args: argparse.Namespace) -> int:
         watch = functools.partial(ConvergenceWatch, config, every_s=every, log=stderr_log)
     elif args.check_every is not None:
         raise ConfigError("--check-every needs --stop-when-converged")
-    dem = dem_stage(config, runs_root=args.runs_dir, cache_root=args.cache_dir, np=args.np, resume=args.resume,
-                    fresh=args.fresh, progress=not args.no_progress, log=stderr_log, watch=watch)
+    dem = dem_stage(
+        config,
+        runs_root=args.runs_dir,
+        cache_root=args.cache_dir,
+        np=args.np,
+        resume=args.resume,
+        fresh=args.fresh,
+        progress=not args.no_progress,
+        log=stderr_log,
+        watch=watch,
+    )
     if dem.source != "run":
         stderr_log(f"DEM results reused from the {dem.source} (LIGGGHTS not started)")
     print_summary(dem.results.summary)
@@ -135,8 +188,9 @@ def run_command(args: argparse.Namespace) -> int:
 def post_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.stages import postprocess_dumps
 
-    results = postprocess_dumps(resolve_config(args.preset, args.config), args.dumps, args.out, args.massflow_dir,
-                                inputs=(args.config,))
+    results = postprocess_dumps(
+        resolve_config(args.preset, args.config), args.dumps, args.out, args.massflow_dir, inputs=(args.config,)
+    )
     print_summary(results.summary)
     print(f"velocity table and DEM results: {args.out} ({results.summary.n_snapshots} snapshots)")
     return 0
@@ -146,15 +200,27 @@ def slurm_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.cluster import plan_cluster_run
 
     refuse_config_overwrite(args.out, args.config, (*RUN_DIRECTORY_FILES, "job.slurm"))
-    plan = plan_cluster_run(resolve_config(args.preset, args.config), args.out, args.np, args.partition,
-                            holdup=args.holdup, throughput=args.throughput)
+    plan = plan_cluster_run(
+        resolve_config(args.preset, args.config),
+        args.out,
+        args.np,
+        args.partition,
+        holdup=args.holdup,
+        throughput=args.throughput,
+    )
     est = plan.estimate
-    print(f"wrote {plan.run_dir}/in.blender and {plan.run_dir}/job.slurm; submit with: cd {plan.run_dir} && sbatch job.slurm")
+    print(
+        f"wrote {plan.run_dir}/in.blender and {plan.run_dir}/job.slurm; submit with: cd {plan.run_dir} && sbatch job.slurm"
+    )
     print(f"or run with MPI: cd {plan.run_dir} && {' '.join(plan.mpi_command)}")
-    print(f"hold-up {plan.holdup:.0f} particles ({plan.holdup_source}); throughput {plan.throughput:.3g} "
-          f"particle-steps/s/core ({plan.throughput_source}); {est.steps} steps")
-    print(f"estimate on {args.np} cores at {est.parallel_efficiency:.0%} parallel efficiency: {est.wall_hours:.1f} h wall, "
-          f"{est.core_hours:.0f} core-hours (the paper: 6.5 days on 8 workers = about 1250 core-hours)")
+    print(
+        f"hold-up {plan.holdup:.0f} particles ({plan.holdup_source}); throughput {plan.throughput:.3g} "
+        f"particle-steps/s/core ({plan.throughput_source}); {est.steps} steps"
+    )
+    print(
+        f"estimate on {args.np} cores at {est.parallel_efficiency:.0%} parallel efficiency: {est.wall_hours:.1f} h wall, "
+        f"{est.core_hours:.0f} core-hours (the paper: 6.5 days on 8 workers = about 1250 core-hours)"
+    )
     return 0
 
 

@@ -12,8 +12,13 @@ HELP = "the smallest blender and the impeller speeds that meet a spec, from a ta
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     spec = parser.add_argument_group("the spec (at least one of --ca-within, --rsd-max, --mrt-min, --mrt-max)")
-    spec.add_argument("--ca-within", type=float, default=None, metavar="X",
-                      help="outlet C_A within +-X (absolute fraction) for --coverage standard deviations")
+    spec.add_argument(
+        "--ca-within",
+        type=float,
+        default=None,
+        metavar="X",
+        help="outlet C_A within +-X (absolute fraction) for --coverage standard deviations",
+    )
     spec.add_argument("--coverage", type=float, default=3.0, help="standard deviations within --ca-within (default 3)")
     spec.add_argument("--rsd-max", type=float, default=None, help="largest relative SD of the outlet C_A")
     spec.add_argument("--mrt-min", type=float, default=None, help="shortest mean residence time [s]")
@@ -28,11 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     space.add_argument("--rpm-max", type=float, default=None, help="default: the library's highest speed")
     space.add_argument("--length-min", type=float, default=None, help="smallest length factor (default 0.5)")
     space.add_argument("--length-max", type=float, default=None, help="largest length factor (default 2.0)")
-    parser.add_argument("--library", default=None,
-                        help="directory of DEM results files (default: the shipped validation campaign)")
-    parser.add_argument("--rates", choices=("measured", "velocity"), default="measured",
-                        help="PBM transfer rates (default measured: the mode whose residence times follow the DEM "
-                             "across speeds)")
+    parser.add_argument(
+        "--library", default=None, help="directory of DEM results files (default: the shipped validation campaign)"
+    )
+    parser.add_argument(
+        "--rates",
+        choices=("measured", "velocity"),
+        default="measured",
+        help="PBM transfer rates (default measured: the mode whose residence times follow the DEM across speeds)",
+    )
     parser.add_argument("--out", default="results/design", help="where design.json and feasible.png go")
 
 
@@ -41,11 +50,21 @@ def run(args: argparse.Namespace) -> int:
     from workflows.products.design import answer_lines, run_design
     from workflows.shipped import VALIDATION_DIR
 
-    given = {"ca_tolerance": args.ca_within, "coverage_sigmas": args.coverage, "rsd_max": args.rsd_max,
-             "mrt_min_s": args.mrt_min, "mrt_max_s": args.mrt_max, "noise_sigma": args.noise_sigma,
-             "noise_tau_s": args.noise_tau, "noise_band_hz": args.noise_band, "noise_feeder": args.noise_feeder,
-             "rpm_min": args.rpm_min, "rpm_max": args.rpm_max, "length_factor_min": args.length_min,
-             "length_factor_max": args.length_max}
+    given = {
+        "ca_tolerance": args.ca_within,
+        "coverage_sigmas": args.coverage,
+        "rsd_max": args.rsd_max,
+        "mrt_min_s": args.mrt_min,
+        "mrt_max_s": args.mrt_max,
+        "noise_sigma": args.noise_sigma,
+        "noise_tau_s": args.noise_tau,
+        "noise_band_hz": args.noise_band,
+        "noise_feeder": args.noise_feeder,
+        "rpm_min": args.rpm_min,
+        "rpm_max": args.rpm_max,
+        "length_factor_min": args.length_min,
+        "length_factor_max": args.length_max,
+    }
     spec = design_spec(**{k: v for k, v in given.items() if v is not None})
     result, out = run_design(spec, args.out, args.library or VALIDATION_DIR, args.rates, log=stderr_log)
     print("\n".join(answer_lines(result)))

@@ -32,7 +32,8 @@ COMMANDS = (
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="pbmdem", description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013).")
+        prog="pbmdem", description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013)."
+    )
     parser.add_argument("--traceback", action="store_true", help="on an error, show the whole traceback")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, module_name in COMMANDS:

@@ -1,8 +1,8 @@
 """``pbmdem pbm ...``: run the PBM on a velocity table, or make a synthetic table to try it.
 
-    pbmdem pbm run --tables TABLES.h5 [--config FILE.toml | --preset NAME]
-                   [--rtd-pulse SECONDS] [--method expm|bdf] [--rates velocity|measured|both] --out DIR
-    pbmdem pbm synth --out TABLES.h5 [--nx 10 --ny 10 --windows 52 --window-s 5 --seed 2013]
+pbmdem pbm run --tables TABLES.h5 [--config FILE.toml | --preset NAME]
+               [--rtd-pulse SECONDS] [--method expm|bdf] [--rates velocity|measured|both] --out DIR
+pbmdem pbm synth --out TABLES.h5 [--nx 10 --ny 10 --windows 52 --window-s 5 --seed 2013]
 """
 
 from __future__ import annotations
@@ -23,13 +23,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run = pbm_sub.add_parser("run", help="simulate the blender from a velocity table and write the CQAs")
     run.add_argument("--tables", required=True, help="velocity table (HDF5, see coupling/tables.py)")
     add_config_arguments(run, required=False)
-    run.add_argument("--rtd-pulse", type=float, default=None, metavar="SECONDS",
-                     help="tracer pulse time [s] (default: config, else the detected steady state)")
-    run.add_argument("--method", choices=("expm", "bdf"), default=None,
-                     help="exact propagation (default) or the solve_ivp BDF cross-check")
-    run.add_argument("--rates", choices=("velocity", "measured", "phases", "both"), default=None,
-                     help="transfer rates: the paper's v/dx rule, the rates measured from DEM particle moves (schema-2 "
-                          "tables), or both into OUT/velocity and OUT/measured (default: the config's pbm.rates)")
+    run.add_argument(
+        "--rtd-pulse",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="tracer pulse time [s] (default: config, else the detected steady state)",
+    )
+    run.add_argument(
+        "--method",
+        choices=("expm", "bdf"),
+        default=None,
+        help="exact propagation (default) or the solve_ivp BDF cross-check",
+    )
+    run.add_argument(
+        "--rates",
+        choices=("velocity", "measured", "phases", "both"),
+        default=None,
+        help="transfer rates: the paper's v/dx rule, the rates measured from DEM particle moves (schema-2 "
+        "tables), or both into OUT/velocity and OUT/measured (default: the config's pbm.rates)",
+    )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--out", required=True, help="output directory")
     run.set_defaults(func=run_command)
@@ -50,14 +63,23 @@ def run_command(args: argparse.Namespace) -> int:
 
     config = Config() if args.preset is None and args.config is None else resolve_config(args.preset, args.config)
     refuse_output_over_inputs(args.out, [args.config], "--out", ConfigError)
-    runs = run_pbm(args.tables, config, args.out, rtd_pulse_s=args.rtd_pulse, method=args.method,
-                   figures=not args.no_figures, rates=args.rates)
+    runs = run_pbm(
+        args.tables,
+        config,
+        args.out,
+        rtd_pulse_s=args.rtd_pulse,
+        method=args.method,
+        figures=not args.no_figures,
+        rates=args.rates,
+    )
     for mode, (result, paths) in runs.items():
         s = result.summary
-        print(f"PBM ({mode} rates) {s['nx']}x{s['ny']}, {s['duration_s']:g} s ({s['method']}) in "
-              f"{s['wall_time_s'] * 1e3:.1f} ms: steady outflow {s['steady_outflow_per_s']:.1f}/s, "
-              f"C_A {s['steady_C_A']:.4f}, mean residence {s['mean_residence_time_s']:.2f} s "
-              f"(recovered {s['rtd_recovered_fraction']:.3f}), final outlet RSD {s['final_rsd_outlet']:.3g}")
+        print(
+            f"PBM ({mode} rates) {s['nx']}x{s['ny']}, {s['duration_s']:g} s ({s['method']}) in "
+            f"{s['wall_time_s'] * 1e3:.1f} ms: steady outflow {s['steady_outflow_per_s']:.1f}/s, "
+            f"C_A {s['steady_C_A']:.4f}, mean residence {s['mean_residence_time_s']:.2f} s "
+            f"(recovered {s['rtd_recovered_fraction']:.3f}), final outlet RSD {s['final_rsd_outlet']:.3g}"
+        )
         print(json.dumps({k: str(v) for k, v in paths.items()}, indent=2))
     return 0
 

@@ -16,8 +16,9 @@ DEFAULT = "results/reduced-*/summary.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("summaries", nargs="*", default=[DEFAULT],
-                        help="summary.json files or globs (default: %(default)s)")
+    parser.add_argument(
+        "summaries", nargs="*", default=[DEFAULT], help="summary.json files or globs (default: %(default)s)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -30,8 +30,14 @@ class ClusterPlan:
     estimate: Any  # dem.cluster.CostEstimate
 
 
-def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | None = None,
-                     holdup: float | None = None, throughput: float | None = None) -> ClusterPlan:
+def plan_cluster_run(
+    config: Config,
+    out: str | Path,
+    np: int,
+    partition: str | None = None,
+    holdup: float | None = None,
+    throughput: float | None = None,
+) -> ClusterPlan:
     """Write the run directory (deck, meshes, resolved config) and ``job.slurm`` with a
     core-hour estimate: hold-up given or scaled from the shipped reference; throughput
     given, else the shipped paper-scale measurement when the particles are the same
@@ -59,9 +65,15 @@ def plan_cluster_run(config: Config, out: str | Path, np: int, partition: str | 
     files = build_deck(config.dem)
     writable_directory(out, "run directory")
     files["config.toml"] = dump_toml(config)
-    files["job.slurm"] = slurm_script(config.dem, str(Path(out).resolve()), np, estimate.wall_hours,
-                                      job_name=f"pbmdem-{config.name}", partition=partition)
+    files["job.slurm"] = slurm_script(
+        config.dem,
+        str(Path(out).resolve()),
+        np,
+        estimate.wall_hours,
+        job_name=f"pbmdem-{config.name}",
+        partition=partition,
+    )
     run_dir = write_deck(files, out)
-    return ClusterPlan(run_dir, mpi_command(config.dem, np, MAIN_DECK), holdup, holdup_source, throughput,
-                       throughput_source, estimate)
-
+    return ClusterPlan(
+        run_dir, mpi_command(config.dem, np, MAIN_DECK), holdup, holdup_source, throughput, throughput_source, estimate
+    )

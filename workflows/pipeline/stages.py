@@ -59,7 +59,7 @@ def stderr_log(message: str) -> None:
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def writable_directory(path: str | Path, what: str) -> Path:
@@ -94,8 +94,13 @@ class DemSide:
 
 def post_hash(config: Config) -> str:
     """Hash of everything the post-processing does with a run's dumps."""
-    return stable_hash({"tables": config.dem.tables.model_dump(mode="json"),
-                        "steady_state": dataclasses.asdict(config.steady_state), "version": POST_VERSION})
+    return stable_hash(
+        {
+            "tables": config.dem.tables.model_dump(mode="json"),
+            "steady_state": dataclasses.asdict(config.steady_state),
+            "version": POST_VERSION,
+        }
+    )
 
 
 def results_key(run_key: str, post: str) -> str:
@@ -119,7 +124,9 @@ def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], lo
                     log(f"cache file not usable, rebuilding: {reason}")
                 continue
             if key is None and (entry.provenance.get("deck_hash"), entry.provenance.get("post_hash")) != (
-                    inputs.deck_hash, post):
+                inputs.deck_hash,
+                post,
+            ):
                 continue
             return DemSide(entry.table, DemResults.from_cache_entry(entry), entry.provenance, path, source)
     return None
@@ -164,38 +171,70 @@ def dem_stage(
     if solver:
         check_postprocess_resources(config.dem)  # before an hour of LIGGGHTS, not after
         on_line = None if watch is None else watch(runs_root / str(inputs.key))
-        record = run_dem(inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress,
-                         on_line=on_line)
+        record = run_dem(
+            inputs, runs_root=runs_root, np=np, resume=resume, fresh=fresh, progress=progress, on_line=on_line
+        )
     else:
         record = completed_run(inputs, runs_root)
         if record is None:
-            raise LookupError(f"no cached or shipped DEM results, nor a completed run under {runs_root}, for the "
-                              f"deck {inputs.deck_hash} binned as configured")
+            raise LookupError(
+                f"no cached or shipped DEM results, nor a completed run under {runs_root}, for the "
+                f"deck {inputs.deck_hash} binned as configured"
+            )
     stopped = record.state == STOPPED
     stop_step = record.solver_counters.get("step")
     key = results_key(f"{record.key}-stopped-{stop_step}" if stopped else record.key, post)
-    log(f"run {'reused' if record.reused else 'stopped early' if stopped else 'finished'}: {record.run_dir}; "
-        "post-processing the dumps")
+    log(
+        f"run {'reused' if record.reused else 'stopped early' if stopped else 'finished'}: {record.run_dir}; "
+        "post-processing the dumps"
+    )
     t0 = time.monotonic()
     provenance = {
-        "key": key, "input_hash": key, "run_key": record.key, "deck_hash": inputs.deck_hash, "post_hash": post,
-        "liggghts_version": record.liggghts_version, "preset": config.name, "config_toml": dump_toml(config),
-        "run_dir": str(record.run_dir), "run_started": record.started, "run_finished": record.finished,
-        "wall_time_s": record.wall_time_s, "np": record.np, "resumed_from": record.resumed_from, "created": _now(),
-        "run_state": record.state, "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
+        "key": key,
+        "input_hash": key,
+        "run_key": record.key,
+        "deck_hash": inputs.deck_hash,
+        "post_hash": post,
+        "liggghts_version": record.liggghts_version,
+        "preset": config.name,
+        "config_toml": dump_toml(config),
+        "run_dir": str(record.run_dir),
+        "run_started": record.started,
+        "run_finished": record.finished,
+        "wall_time_s": record.wall_time_s,
+        "np": record.np,
+        "resumed_from": record.resumed_from,
+        "created": _now(),
+        "run_state": record.state,
+        "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
     }
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
-    results = postprocess(record.dump_glob, config.dem, config.steady_state, massflow_dir=record.massflow_dir,
-                          solver_counters=record.solver_counters, provenance=table_attrs)
-    results = dataclasses.replace(results, summary=dataclasses.replace(
-        results.summary, extra={**results.summary.extra, "wall_time_s": record.wall_time_s}))
+    results = postprocess(
+        record.dump_glob,
+        config.dem,
+        config.steady_state,
+        massflow_dir=record.massflow_dir,
+        solver_counters=record.solver_counters,
+        provenance=table_attrs,
+    )
+    results = dataclasses.replace(
+        results,
+        summary=dataclasses.replace(
+            results.summary, extra={**results.summary.extra, "wall_time_s": record.wall_time_s}
+        ),
+    )
     provenance["postprocess_time_s"] = time.monotonic() - t0
     path = save_entry(cache_path(cache_root, key), results.to_cache_entry(provenance))
     return DemSide(results.table, results, provenance, path, "run")
 
 
-def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir: str | Path | None = None,
-                      inputs: tuple[str | Path | None, ...] = ()) -> DemResults:
+def postprocess_dumps(
+    config: Config,
+    dumps: str,
+    out: str | Path,
+    massflow_dir: str | Path | None = None,
+    inputs: tuple[str | Path | None, ...] = (),
+) -> DemResults:
     """Post-process existing dumps (glob ``dumps``) into a results file ``out`` (velocity
     table + DEM results, readable as a velocity table). The solver's discharge files are
     looked for beside the dumps (one level up when they sit in the deck's ``dumps/``), and
@@ -214,18 +253,35 @@ def postprocess_dumps(config: Config, dumps: str, out: str | Path, massflow_dir:
     _check_same_deck(config, run_dir)
     t0 = time.monotonic()
     key = stable_hash({"dumps": [str(p.resolve()) for p in paths], "config": config.to_dict()})
-    attrs = {"input_hash": key, "preset": config.name, "config_toml": dump_toml(config), "created": _now(),
-             "liggghts_version": "unknown (post-processed from existing dumps)"}
-    results = postprocess(paths, config.dem, config.steady_state, massflow_dir=massflow_dir,
-                          solver_counters=solver_counters(run_dir) or None, provenance=attrs)
+    attrs = {
+        "input_hash": key,
+        "preset": config.name,
+        "config_toml": dump_toml(config),
+        "created": _now(),
+        "liggghts_version": "unknown (post-processed from existing dumps)",
+    }
+    results = postprocess(
+        paths,
+        config.dem,
+        config.steady_state,
+        massflow_dir=massflow_dir,
+        solver_counters=solver_counters(run_dir) or None,
+        provenance=attrs,
+    )
     provenance = {**attrs, "key": key, "dumps": str(dumps), "postprocess_time_s": time.monotonic() - t0}
     save_entry(out, results.to_cache_entry(provenance))
     return results
 
 
-def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: float | None = None,
-            method: str | None = None, figures: bool = True,
-            rates: str | None = None) -> dict[str, tuple[PbmResult, dict[str, Path]]]:
+def run_pbm(
+    tables: str | Path,
+    config: Config,
+    out: str | Path,
+    rtd_pulse_s: float | None = None,
+    method: str | None = None,
+    figures: bool = True,
+    rates: str | None = None,
+) -> dict[str, tuple[PbmResult, dict[str, Path]]]:
     """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
     rule) on the velocity table in ``tables``, in the rate mode ``rates`` ("velocity",
     "measured", or "both": one subdirectory of ``out`` per mode; default the config's).
@@ -246,8 +302,9 @@ def run_pbm(tables: str | Path, config: Config, out: str | Path, rtd_pulse_s: fl
     return runs
 
 
-def write_run_directory(config: Config, out: str | Path, resume_from: str | None = None, view_stl: bool = False,
-                        png: bool = False) -> tuple[Path, str]:
+def write_run_directory(
+    config: Config, out: str | Path, resume_from: str | None = None, view_stl: bool = False, png: bool = False
+) -> tuple[Path, str]:
     """``pbmdem dem deck``: the deck, meshes, ``deck.json`` and the resolved ``config.toml``
     (its first line records the deck hash) in ``out``; optionally STL files of the barrel
     and inlet wall (the deck uses primitives for them) and a picture. Returns (directory,
@@ -275,11 +332,15 @@ def _check_same_deck(config: Config, run_dir: Path) -> None:
     if status.get("deck_hash"):
         ours = deck_hash(files)
         if status["deck_hash"] != ours:
-            raise ConfigError(f"the dumps in {run_dir} come from deck {status['deck_hash']}, but the configuration given "
-                              f"makes deck {ours}: pass the configuration of that run")
+            raise ConfigError(
+                f"the dumps in {run_dir} come from deck {status['deck_hash']}, but the configuration given "
+                f"makes deck {ours}: pass the configuration of that run"
+            )
     elif (run_dir / DECK_INFO).is_file() and (run_dir / DECK_INFO).read_text() != files[DECK_INFO]:
-        raise ConfigError(f"the dumps in {run_dir} come from a deck whose {DECK_INFO} differs from the one the "
-                          "configuration given makes (timestep, intervals or geometry): pass the configuration of that run")
+        raise ConfigError(
+            f"the dumps in {run_dir} come from a deck whose {DECK_INFO} differs from the one the "
+            "configuration given makes (timestep, intervals or geometry): pass the configuration of that run"
+        )
 
 
 def load_results(path: str | Path) -> tuple[DemResults, Config]:
@@ -309,10 +370,12 @@ def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | No
     feed rates, each feeder's zone mapped onto the inlet compartments by overlap in y."""
     zones = feed_zones(config.dem.geometry)
     operation = config.dem.operation
-    return config.pbm.model_copy(update={
-        "feed_rate_a_per_s": operation.feed_rate_a_per_s,
-        "feed_rate_b_per_s": operation.feed_rate_b_per_s,
-        "feed_weights_a": inlet_weights(table.y_edges, zones["A"].ymin, zones["A"].ymax),
-        "feed_weights_b": inlet_weights(table.y_edges, zones["B"].ymin, zones["B"].ymax),
-        "rtd_pulse_s": rtd_pulse_s,
-    })
+    return config.pbm.model_copy(
+        update={
+            "feed_rate_a_per_s": operation.feed_rate_a_per_s,
+            "feed_rate_b_per_s": operation.feed_rate_b_per_s,
+            "feed_weights_a": inlet_weights(table.y_edges, zones["A"].ymin, zones["A"].ymax),
+            "feed_weights_b": inlet_weights(table.y_edges, zones["B"].ymin, zones["B"].ymax),
+            "rtd_pulse_s": rtd_pulse_s,
+        }
+    )

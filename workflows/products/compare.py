@@ -62,10 +62,16 @@ def pbm_conservation_error(result: PbmResult) -> float:
 def _git_commit() -> str:
     here = Path(__file__).parent
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True,
-                             timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10)
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=here,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     if out.returncode != 0:
@@ -77,8 +83,10 @@ def _notes(dem: DemSide) -> list[str]:
     notes = []
     made = dem.provenance.get("created")
     if dem.source == "reference":
-        notes.append(f"DEM results come from the reference data shipped with the repository (made {made}); "
-                     "LIGGGHTS was not run. Use FRESH=1 (pbmdem compare --fresh) to rerun it.")
+        notes.append(
+            f"DEM results come from the reference data shipped with the repository (made {made}); "
+            "LIGGGHTS was not run. Use FRESH=1 (pbmdem compare --fresh) to rerun it."
+        )
     elif dem.source == "cache":
         notes.append(f"DEM results come from the cache made {made}; LIGGGHTS was not run now.")
     notes += [f"DEM: {warning}" for warning in dem.results.summary.warnings]
@@ -140,11 +148,17 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     log("running the PBM on the DEM's tables, in each rate mode the table supports")
     modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
     pbm_result = modes[pbm_config.rates].result
-    dem_view = SideResults("DEM", dem.results.timeseries, dem.results.rtd[["t_s", "E_per_s"]],
-                           dem.results.rsd_by_slice, dem.results.summary.record(),
-                           rsd_by_slice_floor=dem.results.rsd_by_slice_floor)
-    pbm_view = SideResults("PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final,
-                           dict(pbm_result.summary))
+    dem_view = SideResults(
+        "DEM",
+        dem.results.timeseries,
+        dem.results.rtd[["t_s", "E_per_s"]],
+        dem.results.rsd_by_slice,
+        dem.results.summary.record(),
+        rsd_by_slice_floor=dem.results.rsd_by_slice_floor,
+    )
+    pbm_view = SideResults(
+        "PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final, dict(pbm_result.summary)
+    )
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
@@ -157,8 +171,11 @@ def write_figures(c: Comparison, out_dir: Path, log: Log) -> dict[str, str]:
     figures = plot_comparison(c.dem_view, c.pbm_view, out_dir)
     summary = c.dem.results.summary
     dem_rtd = dem_density(c.dem.results.particles, summary.pooled_rtd)[:2] if summary.has_pooled_rtd else None
-    pbm_rtd = {mode: (m.pooled.bin_edges, m.pooled.recovered_density_per_s)
-               for mode, m in c.modes.items() if m.pooled is not None}
+    pbm_rtd = {
+        mode: (m.pooled.bin_edges, m.pooled.recovered_density_per_s)
+        for mode, m in c.modes.items()
+        if m.pooled is not None
+    }
     figures.update(plot_agreement(c.rows, dem_rtd, pbm_rtd, out_dir))
     if c.vrr is not None:
         figures["vrr"] = plot_vrr(c.vrr, out_dir / "vrr.png").name
@@ -187,13 +204,14 @@ def provenance_of(c: Comparison, studies_time_s: float) -> dict[str, Any]:
         "dem_postprocess_time_s": dem.provenance.get("postprocess_time_s"),
         "dem_cache_file": str(dem.cache_file),
         "rtd_tag_time_s": rtd_pulse(dem.results.summary),
-        "steady_state_rule": (f"window {config.steady_state.window_s:g} s, "
-                              f"relative tolerance {config.steady_state.rel_tol:g}"),
+        "steady_state_rule": (
+            f"window {config.steady_state.window_s:g} s, relative tolerance {config.steady_state.rel_tol:g}"
+        ),
         "pbm_conservation_max_rel_error": pbm_conservation_error(c.pbm_result),
         "pbm_feed_weights_a": c.pbm_config.feed_weights_a,
         "pbm_feed_weights_b": c.pbm_config.feed_weights_b,
         "studies_wall_time_s": round(studies_time_s, 2),
-        "report_made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "report_made": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "config_toml": dump_toml(config),
     }
 
@@ -208,8 +226,15 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
     studies = run_studies(c.dem.table, c.pbm_config, c.config.steady_state, out_dir, noise_members)
     provenance = provenance_of(c, time.monotonic() - t0)
     notes = _notes(c.dem)
-    page = render_html(f"DEM vs PBM — preset {c.config.name} ({c.dem.key})", c.metrics, figures, provenance, studies,
-                       notes, agreement_html(c.rows, c.sensitivity) + vrr_section)
+    page = render_html(
+        f"DEM vs PBM — preset {c.config.name} ({c.dem.key})",
+        c.metrics,
+        figures,
+        provenance,
+        studies,
+        notes,
+        agreement_html(c.rows, c.sensitivity) + vrr_section,
+    )
     (out_dir / "report.html").write_text(page)
     summary = {
         "metrics": c.metrics,

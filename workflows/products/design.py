@@ -22,7 +22,9 @@ from workflows.shipped import VALIDATION_DIR
 RPM_KEY = "dem.operation.impeller_rpm"
 
 
-def load_library(directory: str | Path = VALIDATION_DIR, rates: str = "velocity", log: Log | None = None) -> TableLibrary:
+def load_library(
+    directory: str | Path = VALIDATION_DIR, rates: str = "velocity", log: Log | None = None
+) -> TableLibrary:
     """The table library in ``directory``: its DEM results files grouped by configuration
     less the impeller speed; the largest group (ties: the one with the widest speed range)
     is the library. Raises ConfigError when the directory holds no results file."""
@@ -40,25 +42,39 @@ def load_library(directory: str | Path = VALIDATION_DIR, rates: str = "velocity"
     speeds = [m[0] for m in members]
     if len(set(speeds)) != len(speeds):
         raise ConfigError(f"table library {directory}: two runs at the same speed ({sorted(speeds)} rpm)")
-    (log or (lambda _: None))(f"table library: {', '.join(f'{m[0]:g} rpm ({m[3].name})' for m in sorted(members, key=lambda m: m[0]))}")
+    (log or (lambda _: None))(
+        f"table library: {', '.join(f'{m[0]:g} rpm ({m[3].name})' for m in sorted(members, key=lambda m: m[0]))}"
+    )
     _, results, config, _ = members[0]
     if any(m[1].summary.steady_time is None for m in members):
-        raise ConfigError(f"table library {directory}: a run never reached the steady state; its tables describe no "
-                          "stationary blender")
+        raise ConfigError(
+            f"table library {directory}: a run never reached the steady state; its tables describe no "
+            "stationary blender"
+        )
     pbm_config = pbm_config_for(config, results.table, None).model_copy(update={"rates": rates})
     steady = max(m[1].summary.steady_time for m in members)
-    return TableLibrary(tuple((m[0], m[1].table) for m in members), pbm_config, float(steady),
-                        float(config.dem.geometry.length_m))
+    return TableLibrary(
+        tuple((m[0], m[1].table) for m in members), pbm_config, float(steady), float(config.dem.geometry.length_m)
+    )
 
 
-def run_design(spec: DesignSpec, out_dir: str | Path = "results/design", library_dir: str | Path = VALIDATION_DIR,
-               rates: str = "velocity", log: Log | None = None) -> tuple[DesignResult, Path]:
+def run_design(
+    spec: DesignSpec,
+    out_dir: str | Path = "results/design",
+    library_dir: str | Path = VALIDATION_DIR,
+    rates: str = "velocity",
+    log: Log | None = None,
+) -> tuple[DesignResult, Path]:
     """``pbmdem design``: the answer, ``design.json`` and ``feasible.png`` in ``out_dir``."""
     out_dir = writable_directory(out_dir, "design output directory")
     library = load_library(library_dir, rates, log)
     result = design(library, spec)
-    data: dict[str, Any] = {**result.to_dict(), "library_dir": str(library_dir), "rates": rates,
-                            "steady_time_s": library.steady_time_s}
+    data: dict[str, Any] = {
+        **result.to_dict(),
+        "library_dir": str(library_dir),
+        "rates": rates,
+        "steady_time_s": library.steady_time_s,
+    }
     try:
         write_json(out_dir / "design.json", json_ready(data))
         plot_feasible(result, out_dir / "feasible.png")
@@ -72,14 +88,23 @@ def answer_lines(result: DesignResult) -> list[str]:
     if result.best is None:
         return ["no design in the library's range meets the spec: " + "; ".join(result.notes)]
     best = result.best
-    lines = [f"smallest blender: {best.length_factor * result.length_m * 1000:.1f} mm "
-             f"({best.length_factor:.3f} x the library's {result.length_m * 1000:.0f} mm) at {best.rpm:g} rpm"]
+    lines = [
+        f"smallest blender: {best.length_factor * result.length_m * 1000:.1f} mm "
+        f"({best.length_factor:.3f} x the library's {result.length_m * 1000:.0f} mm) at {best.rpm:g} rpm"
+    ]
     ranges = " and ".join(f"{a:.0f}-{b:.0f} rpm" for a, b in result.rpm_ranges) or "no speed searched"
-    lines.append(f"the library's own {result.length_m * 1000:.0f}-mm blender meets it at {ranges} (searched "
-                 f"{result.rows[0].rpm:g}-{result.rows[-1].rpm:g} rpm)")
-    lines.append(f"mean residence time {best.mean_residence_time_s:.1f} s"
-                 + (f"; outlet C_A SD {best.ca_sd:.4f} (RSD {best.ca_rsd:.2%}, VRR {best.vrr:.1f})"
-                    if best.ca_sd is not None else ""))
+    lines.append(
+        f"the library's own {result.length_m * 1000:.0f}-mm blender meets it at {ranges} (searched "
+        f"{result.rows[0].rpm:g}-{result.rows[-1].rpm:g} rpm)"
+    )
+    lines.append(
+        f"mean residence time {best.mean_residence_time_s:.1f} s"
+        + (
+            f"; outlet C_A SD {best.ca_sd:.4f} (RSD {best.ca_rsd:.2%}, VRR {best.vrr:.1f})"
+            if best.ca_sd is not None
+            else ""
+        )
+    )
     lines.append("margins: " + ", ".join(f"{k} {v:+.4g}" for k, v in best.margins.items()))
     lines += [f"note: {n}" for n in result.notes]
     return lines

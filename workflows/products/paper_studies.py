@@ -81,7 +81,9 @@ def geometry_section(parameter: str, results: dict[float, PbmResult], base_size_
         f"{_trend(late)} ({' → '.join(f'{v:.3g}' for v in late)}) and the mean residence time {_trend(mrt)} "
         f"({' → '.join(f'{v:.3g}' for v in mrt)} s). Same velocities, compartments scaled (paper Figs 3-4)."
     )
-    return Study(f"Blender {parameter} (paper Fig. {'3' if parameter == 'length' else '4'})", parameter, figure, trend, rows)
+    return Study(
+        f"Blender {parameter} (paper Fig. {'3' if parameter == 'length' else '4'})", parameter, figure, trend, rows
+    )
 
 
 def noise_study_section(table: VelocityTable, pbm_config: PbmConfig, out_dir: Path, members: int) -> Study:
@@ -121,12 +123,14 @@ def noise_study_section(table: VelocityTable, pbm_config: PbmConfig, out_dir: Pa
     return Study("Feed noise (paper Figs 5-6)", "sigma", "study_noise.png", trend, rows)
 
 
-def run_studies(table: VelocityTable, pbm_config: PbmConfig, steady: SteadyStateRule, out_dir: Path,
-                members: int) -> list[Study]:
+def run_studies(
+    table: VelocityTable, pbm_config: PbmConfig, steady: SteadyStateRule, out_dir: Path, members: int
+) -> list[Study]:
     """Every study on ``table``; the tracer pulse of each run at its own steady state."""
     base = pbm_config.model_copy(update={"rtd_pulse_s": None})
-    geometry = geometry_study(table, base, length_factors=LENGTH_FACTORS, diameter_factors=DIAMETER_FACTORS,
-                              steady=steady)
+    geometry = geometry_study(
+        table, base, length_factors=LENGTH_FACTORS, diameter_factors=DIAMETER_FACTORS, steady=steady
+    )
     return [
         geometry_section("length", geometry["length"], float(table.x_edges[-1] - table.x_edges[0]), out_dir),
         geometry_section("diameter", geometry["diameter"], float(table.y_edges[-1] - table.y_edges[0]), out_dir),

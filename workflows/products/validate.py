@@ -60,8 +60,11 @@ class Change:
 #: that spacing with 13 stations, the last 27.5 mm upstream of the weir (30 mm in the baseline).
 CHANGES = (
     Change("baseline", "baseline (validation preset)"),
-    Change("length_x1.25", "blender length x1.25",
-           ("dem.geometry.length_m=0.4125", "dem.geometry.blade_stations=13", "dem.geometry.last_blade_x_m=0.385")),
+    Change(
+        "length_x1.25",
+        "blender length x1.25",
+        ("dem.geometry.length_m=0.4125", "dem.geometry.blade_stations=13", "dem.geometry.last_blade_x_m=0.385"),
+    ),
     Change("rpm_150", "impeller 150 rpm", ("dem.operation.impeller_rpm=150",)),
     Change("rpm_350", "impeller 350 rpm", ("dem.operation.impeller_rpm=350",)),
     Change("feed_x2", "feed rate x2", ("dem.operation.feed_rate_total_per_s=147.4",)),
@@ -80,9 +83,15 @@ def campaign_configs(base: Config | None = None) -> dict[str, Config]:
     return configs
 
 
-def run_campaign(runs_root: str | Path = "runs/validation", fresh: bool = False, nprocs: int | None = None,
-                 log: Log = stderr_log, reference_dir: Path = VALIDATION_DIR,
-                 configs: dict[str, Config] | None = None, solver: bool = True) -> dict[str, DemSide]:
+def run_campaign(
+    runs_root: str | Path = "runs/validation",
+    fresh: bool = False,
+    nprocs: int | None = None,
+    log: Log = stderr_log,
+    reference_dir: Path = VALIDATION_DIR,
+    configs: dict[str, Config] | None = None,
+    solver: bool = True,
+) -> dict[str, DemSide]:
     """Every run of the campaign, in :data:`CHANGES` order: from the cache under
     ``runs_root``, the shipped results, else LIGGGHTS (an interrupted run continues from its
     newest restart file). ``fresh`` reruns every solver run; ``solver=False`` never starts
@@ -93,8 +102,17 @@ def run_campaign(runs_root: str | Path = "runs/validation", fresh: bool = False,
         resume = not fresh and can_resume(prepare_run(config.dem), runs_root)
         log(f"validation run {name}: {'resuming' if resume else 'starting or reusing'}")
         t0 = time.monotonic()
-        sides[name] = dem_stage(config, runs_root=runs_root, np=nprocs, resume=resume, fresh=fresh, progress=False,
-                                log=log, reference_dir=reference_dir, solver=solver)
+        sides[name] = dem_stage(
+            config,
+            runs_root=runs_root,
+            np=nprocs,
+            resume=resume,
+            fresh=fresh,
+            progress=False,
+            log=log,
+            reference_dir=reference_dir,
+            solver=solver,
+        )
         log(f"validation run {name}: {sides[name].source} ({time.monotonic() - t0:.0f} s)")
     return sides
 
@@ -104,15 +122,22 @@ def run_campaign(runs_root: str | Path = "runs/validation", fresh: bool = False,
 BUDGET_FRACTIONS = (0.25, 0.3, 0.45, 0.6, 0.75, 1.0)
 
 
-def validation_report(out_dir: str | Path = "results/validation", runs_root: str | Path = "runs/validation",
-                      fresh: bool = False, nprocs: int | None = None, log: Log = stderr_log,
-                      reference_dir: Path = VALIDATION_DIR, solver: bool = True) -> Path:
+def validation_report(
+    out_dir: str | Path = "results/validation",
+    runs_root: str | Path = "runs/validation",
+    fresh: bool = False,
+    nprocs: int | None = None,
+    log: Log = stderr_log,
+    reference_dir: Path = VALIDATION_DIR,
+    solver: bool = True,
+) -> Path:
     """``make validate``: the campaign (:func:`run_campaign`), every prediction and verdict,
     ``summary.json``, the figures and ``report.html`` in ``out_dir``. Returns the page."""
     out_dir = writable_directory(out_dir, "validation output directory")
     configs = campaign_configs()
-    sides = run_campaign(runs_root, fresh=fresh, nprocs=nprocs, log=log, reference_dir=reference_dir,
-                         configs=configs, solver=solver)
+    sides = run_campaign(
+        runs_root, fresh=fresh, nprocs=nprocs, log=log, reference_dir=reference_dir, configs=configs, solver=solver
+    )
     preds = predictions(sides, configs, log=log)
     judged = verdicts(preds)
     campaign = _campaign_rows(sides)
@@ -143,13 +168,33 @@ def validation_report(out_dir: str | Path = "results/validation", runs_root: str
             plot_budget(budget, out_dir / figures["budget"])
         else:
             figures.pop("budget")
-        write_json(out_dir / "summary.json", json_ready({
-            "campaign": campaign, "campaign_elapsed_s": span_s, "verdicts": [v.record() for v in judged], "dem_budget": None if budget is None else budget.record(),
-            "step_response": None if step is None else step.record(),
-            "predictions": [{"run": p.run, "source": p.source, "note": p.note, "agreement": [r.record() for r in p.rows]} for p in preds]}))
+        write_json(
+            out_dir / "summary.json",
+            json_ready(
+                {
+                    "campaign": campaign,
+                    "campaign_elapsed_s": span_s,
+                    "verdicts": [v.record() for v in judged],
+                    "dem_budget": None if budget is None else budget.record(),
+                    "step_response": None if step is None else step.record(),
+                    "predictions": [
+                        {"run": p.run, "source": p.source, "note": p.note, "agreement": [r.record() for r in p.rows]}
+                        for p in preds
+                    ],
+                }
+            ),
+        )
         page = out_dir / "report.html"
-        page.write_text(render_report(campaign, judged, figures, budget, span_s,
-                                      None if step is None else step_html(step, figures.get("step"))))
+        page.write_text(
+            render_report(
+                campaign,
+                judged,
+                figures,
+                budget,
+                span_s,
+                None if step is None else step_html(step, figures.get("step")),
+            )
+        )
     except OSError as exc:
         raise OutputError(f"cannot write the validation report in {out_dir}: {os_reason(exc)}") from exc
     return page
@@ -164,14 +209,29 @@ def step_config(base: Config | None = None) -> Config:
     return override(base, *STEP_OVERRIDES).model_copy(update={"name": f"{base.name}-step_a_x2"})
 
 
-def run_step(runs_root: str | Path = "runs/validation", fresh: bool = False, nprocs: int | None = None,
-             log: Log = stderr_log, reference_dir: Path = STEP_DIR, solver: bool = True,
-             config: Config | None = None) -> DemSide:
+def run_step(
+    runs_root: str | Path = "runs/validation",
+    fresh: bool = False,
+    nprocs: int | None = None,
+    log: Log = stderr_log,
+    reference_dir: Path = STEP_DIR,
+    solver: bool = True,
+    config: Config | None = None,
+) -> DemSide:
     """The step run: cached, shipped, or LIGGGHTS (an interrupted run resumes)."""
     config = config if config is not None else step_config()
     resume = solver and not fresh and can_resume(prepare_run(config.dem), runs_root)
-    return dem_stage(config, runs_root=runs_root, np=nprocs, resume=resume, fresh=fresh, progress=False, log=log,
-                     reference_dir=reference_dir, solver=solver)
+    return dem_stage(
+        config,
+        runs_root=runs_root,
+        np=nprocs,
+        resume=resume,
+        fresh=fresh,
+        progress=False,
+        log=log,
+        reference_dir=reference_dir,
+        solver=solver,
+    )
 
 
 def _campaign_rows(sides: dict[str, DemSide]) -> list[dict[str, Any]]:
@@ -180,10 +240,17 @@ def _campaign_rows(sides: dict[str, DemSide]) -> list[dict[str, Any]]:
     for name, side in sides.items():
         summary = side.results.summary
         pooled, steady = summary.pooled_rtd, summary.steady
-        rows.append({"run": name, "change": labels.get(name, name), "source": side.source, "key": side.key,
-                     "dem_wall_time_s": side.provenance.get("wall_time_s"),
-                     "holdup": (steady.get("holdup") or {}).get("value"),
-                     "mean_residence_time_s": pooled.mean_residence_time_s.value if summary.has_pooled_rtd else None,
-                     "tracers": None if pooled is None else pooled.n_entered,
-                     "recovered": pooled.recovered_fraction.value if summary.has_pooled_rtd else None})
+        rows.append(
+            {
+                "run": name,
+                "change": labels.get(name, name),
+                "source": side.source,
+                "key": side.key,
+                "dem_wall_time_s": side.provenance.get("wall_time_s"),
+                "holdup": (steady.get("holdup") or {}).get("value"),
+                "mean_residence_time_s": pooled.mean_residence_time_s.value if summary.has_pooled_rtd else None,
+                "tracers": None if pooled is None else pooled.n_entered,
+                "recovered": pooled.recovered_fraction.value if summary.has_pooled_rtd else None,
+            }
+        )
     return rows

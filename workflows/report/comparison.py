@@ -86,7 +86,9 @@ def comparison_metrics(dem: SideResults, pbm: SideResults, feed_rate_per_s: floa
     return {
         "mean_residence_time_dem_s": d.get("mean_residence_time_s"),
         "mean_residence_time_pbm_s": p.get("mean_residence_time_s"),
-        "mean_residence_time_rel_diff": rel(d.get("mean_residence_time_s", np.nan), p.get("mean_residence_time_s", np.nan)),
+        "mean_residence_time_rel_diff": rel(
+            d.get("mean_residence_time_s", np.nan), p.get("mean_residence_time_s", np.nan)
+        ),
         "rtd_variance_dem_s2": d.get("rtd_variance_s2"),
         "rtd_variance_pbm_s2": p.get("rtd_variance_s2"),
         "rtd_overlap": rtd_overlap(dem.rtd, pbm.rtd),
@@ -136,8 +138,13 @@ def _draw_rsd_time(ax, dem: SideResults, pbm: SideResults) -> None:
     for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ax.plot(side.timeseries["t_s"], side.timeseries["rsd_outlet"], color=colour, label=side.label)
     if "rsd_outlet_floor" in dem.timeseries:
-        ax.plot(dem.timeseries["t_s"], dem.timeseries["rsd_outlet_floor"], ":", color=DEM_COLOUR,
-                label="DEM random-mixture floor")
+        ax.plot(
+            dem.timeseries["t_s"],
+            dem.timeseries["rsd_outlet_floor"],
+            ":",
+            color=DEM_COLOUR,
+            label="DEM random-mixture floor",
+        )
     ax.set(title="RSD at the outlet (Fig. 8b)", xlabel="t [s]", ylabel="RSD across the last slice")
 
 
@@ -200,8 +207,12 @@ def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[s
 MODE_STYLES = {"velocity": ("--", "PBM, velocity rates (paper eq. 4)"), "measured": ("-", "PBM, measured rates")}
 
 
-def plot_agreement(rows: list[AgreementRow], dem_rtd: tuple[np.ndarray, np.ndarray] | None,
-                   pbm_rtd: dict[str, tuple[np.ndarray, np.ndarray]], out_dir: Path) -> dict[str, str]:
+def plot_agreement(
+    rows: list[AgreementRow],
+    dem_rtd: tuple[np.ndarray, np.ndarray] | None,
+    pbm_rtd: dict[str, tuple[np.ndarray, np.ndarray]],
+    out_dir: Path,
+) -> dict[str, str]:
     """The pooled RTD (DEM histogram, each PBM mode's density on the same bins, all
     conditional on recovery within the horizon) and the steady axial hold-up profile (DEM
     means with their 95 % intervals, each PBM mode). Returns figure key -> file name."""
@@ -251,23 +262,33 @@ def agreement_html(rows: list[AgreementRow], nx_sensitivity: dict[str, Any] | No
         f"<tr><td>{html.escape(r.quantity)}</td><td>{html.escape(r.unit)}</td><td>{fmt(r.dem)}</td>"
         f"<td>{fmt(r.dem_ci_low)} – {fmt(r.dem_ci_high)}</td>"
         + "".join(f"<td>{fmt(r.value(m))}</td><td>{verdict(r.inside(m))}</td>" for m in MODE_STYLES)
-        + "</tr>" for r in rows)
-    head = ("<tr><th>quantity</th><th>unit</th><th>DEM</th><th>DEM 95 % interval</th>"
-            + "".join(f"<th>{html.escape(label)}</th><th>verdict</th>" for _, label in MODE_STYLES.values()) + "</tr>")
+        + "</tr>"
+        for r in rows
+    )
+    head = (
+        "<tr><th>quantity</th><th>unit</th><th>DEM</th><th>DEM 95 % interval</th>"
+        + "".join(f"<th>{html.escape(label)}</th><th>verdict</th>" for _, label in MODE_STYLES.values())
+        + "</tr>"
+    )
     out = f"<table>{head}{body}</table>"
     if nx_sensitivity:
         lines = []
         for mode in MODE_STYLES:
             entry = nx_sensitivity.get(mode)
             if entry:
-                lines.append(f"<tr><td>{html.escape(MODE_STYLES[mode][1])}</td><td>{fmt(entry['mean_s'])}</td>"
-                             f"<td>{fmt(entry['change_mean'])}</td><td>{fmt(entry['variance_s2'])}</td>"
-                             f"<td>{fmt(entry['change_variance'])}</td></tr>")
+                lines.append(
+                    f"<tr><td>{html.escape(MODE_STYLES[mode][1])}</td><td>{fmt(entry['mean_s'])}</td>"
+                    f"<td>{fmt(entry['change_mean'])}</td><td>{fmt(entry['variance_s2'])}</td>"
+                    f"<td>{fmt(entry['change_variance'])}</td></tr>"
+                )
         if lines:
             nx = ", ".join(str(v) for v in nx_sensitivity.get("nx", []))
-            out += (f"<h3>Grid sensitivity (NX = {html.escape(nx)})</h3><table><tr><th>mode</th><th>mean [s]</th>"
-                    "<th>relative change</th><th>variance [s²]</th><th>relative change</th></tr>"
-                    + "".join(lines) + "</table>")
+            out += (
+                f"<h3>Grid sensitivity (NX = {html.escape(nx)})</h3><table><tr><th>mode</th><th>mean [s]</th>"
+                "<th>relative change</th><th>variance [s²]</th><th>relative change</th></tr>"
+                + "".join(lines)
+                + "</table>"
+            )
     return out
 
 

@@ -33,6 +33,7 @@ def compartment_grid(table: VelocityTable, k: int, height_m: float) -> pv.Rectil
     Compartments span the full height of the vessel, hence one cell in z."""
     half = height_m / 2
     grid = pv.RectilinearGrid(table.x_edges, table.y_edges, np.array([-half, half]))
+
     # VTK numbers cells with x fastest: (i, j) -> i + NX * j, i.e. Fortran order of (NX, NY).
     def cells(values: np.ndarray) -> np.ndarray:
         return np.asarray(values).ravel(order="F")

@@ -31,17 +31,25 @@ def plot_step(comparison: StepComparison, path: str | Path) -> Path:
     block = np.floor((t - 1e-9) / 5.0)
     pooled = pd.DataFrame({"b": block, "k": dem["n_A"].to_numpy()[keep], "n": n[keep]}).groupby("b").sum()
     ax.plot(5.0 * pooled.index + 2.5, pooled["k"] / pooled["n"], "ko", ms=4, label="DEM, 5-s pooled")
-    styles = {("self", "velocity"): ("#3182bd", "-"), ("self", "measured"): ("#3182bd", "--"),
-              ("baseline", "velocity"): ("#e6550d", "-"), ("baseline", "measured"): ("#e6550d", "--")}
+    styles = {
+        ("self", "velocity"): ("#3182bd", "-"),
+        ("self", "measured"): ("#3182bd", "--"),
+        ("baseline", "velocity"): ("#e6550d", "-"),
+        ("baseline", "measured"): ("#e6550d", "--"),
+    }
     for (source, mode), pbm in comparison.series.items():
         colour, ls = styles.get((source, mode), ("#31a354", "-"))
         ax.plot(pbm["t_s"], pbm["C_A"], color=colour, ls=ls, lw=1.5, label=f"PBM, {source} tables, {mode} rates")
     ax.axvline(comparison.step_s, color="#636363", lw=0.8, ls=":")
     start = max(0.0, comparison.step_s - 40)
     shown = t >= start
-    ax.set(xlabel="time [s]", ylabel="outlet C_A",
-           title=f"Feeder A x{comparison.factor_a:g} at {comparison.step_s:g} s: the outlet's response",
-           xlim=(start, t.max()), ylim=(max(0.0, lo[shown].min() - 0.05), min(1.0, hi[shown].max() + 0.05)))
+    ax.set(
+        xlabel="time [s]",
+        ylabel="outlet C_A",
+        title=f"Feeder A x{comparison.factor_a:g} at {comparison.step_s:g} s: the outlet's response",
+        xlim=(start, t.max()),
+        ylim=(max(0.0, lo[shown].min() - 0.05), min(1.0, hi[shown].max() + 0.05)),
+    )
     ax.legend(fontsize=8, loc="lower right")
     out = Path(path)
     fig.savefig(out, dpi=120)
@@ -60,7 +68,8 @@ def step_html(comparison: StepComparison, figure: str | None) -> str:
         f"deviance, p &ge; {P_MIN:g}). The mean delay (for a linear blender the mean residence time of A) is shown "
         "with the DEM's interval.</p>",
         "<table><tr><th>PBM tables</th><th>rates</th><th>DEM faster by [95 %]</th><th>deviance p</th>"
-        "<th>mean delay, DEM [95 %]</th><th>mean delay, PBM</th><th>verdict</th></tr>"]
+        "<th>mean delay, DEM [95 %]</th><th>mean delay, PBM</th><th>verdict</th></tr>",
+    ]
     for row in comparison.rows:
         j = row.judgement
         d, a = j.dem_delay_s, j.time_scale
@@ -70,7 +79,8 @@ def step_html(comparison: StepComparison, figure: str | None) -> str:
             f"<td>{row.mode}</td><td>&times;{a.value:.2f} [{a.low:.2f}, {a.high:.2f}] "
             f"{'&#10003;' if j.time_scale_inside else '&#10007;'}</td><td>{j.deviance_p:.2f}</td>"
             f"<td>{fmt(d.estimate)} [{fmt(d.low)}, {fmt(d.high)}] s</td><td>{fmt(j.pbm_delay_s)} s "
-            f"{'&#10003;' if j.delay_inside else '&#10007;'}</td><td>{verdict}</td></tr>")
+            f"{'&#10003;' if j.delay_inside else '&#10007;'}</td><td>{verdict}</td></tr>"
+        )
     parts.append("</table>")
     if figure:
         parts.append(f"<p><img src='{figure}' style='max-width:100%'></p>")

@@ -47,22 +47,45 @@ def plot_vrr(comparison: VrrComparison, path: str | Path) -> Path:
         # resolved part, so the axis stops a decade above the DEM's largest measurable VRR
         ceiling = 10 * float(d.n_recovered)
         for ax, scale in ((top_ax, np.ones_like(freqs)), (ratio_ax, vrr["value"])):
-            ax.fill_between(freqs, vrr["low"] / scale, np.minimum(vrr["high"], ceiling) / scale, color=DEM_COLOUR,
-                            alpha=0.2, lw=0, label="DEM 95 % interval (block bootstrap)")
-            ax.plot(freqs, vrr["value"] / scale, "o-", ms=3, color=DEM_COLOUR, lw=1,
-                    label=f"DEM, N = {d.n_recovered} recovered")
+            ax.fill_between(
+                freqs,
+                vrr["low"] / scale,
+                np.minimum(vrr["high"], ceiling) / scale,
+                color=DEM_COLOUR,
+                alpha=0.2,
+                lw=0,
+                label="DEM 95 % interval (block bootstrap)",
+            )
+            ax.plot(
+                freqs,
+                vrr["value"] / scale,
+                "o-",
+                ms=3,
+                color=DEM_COLOUR,
+                lw=1,
+                label=f"DEM, N = {d.n_recovered} recovered",
+            )
             for mode, m in comparison.pbm.items():
                 style, label = MODE_STYLES[mode]
-                ax.plot(freqs, np.asarray(m.feeders[f].vrr, dtype=float) / scale, style, color=PBM_COLOUR,
-                        label=label)
+                ax.plot(freqs, np.asarray(m.feeders[f].vrr, dtype=float) / scale, style, color=PBM_COLOUR, label=label)
             for n, (a, b) in enumerate(_runs(~resolved)):
-                ax.axvspan(edges[a], edges[b + 1], color="0.85", zorder=0,
-                           label="DEM unresolved (sampling floor)" if n == 0 else None)
+                ax.axvspan(
+                    edges[a],
+                    edges[b + 1],
+                    color="0.85",
+                    zorder=0,
+                    label="DEM unresolved (sampling floor)" if n == 0 else None,
+                )
             ax.set_xscale("log")
             ax.grid(alpha=0.3, which="both")
         top_ax.set_yscale("log")
-        top_ax.axhline(1.0 / (comparison.resolved_factor * d.floor) ** 2, color="0.4", ls=":", lw=1,
-                       label=f"resolution limit: |H| = {comparison.resolved_factor:g}/sqrt(N)")
+        top_ax.axhline(
+            1.0 / (comparison.resolved_factor * d.floor) ** 2,
+            color="0.4",
+            ls=":",
+            lw=1,
+            label=f"resolution limit: |H| = {comparison.resolved_factor:g}/sqrt(N)",
+        )
         top_ax.set_ylim(0.8, ceiling)
         top_ax.set_title(f"feeder {f}: mean residence {d.mean_residence_time_s:.1f} s (DEM)")
         ratio_ax.axhline(1.0, color="k", lw=0.8)
@@ -89,33 +112,45 @@ def vrr_html(c: VrrComparison, figure: str | None = None) -> str:
     """The report's section: per rate mode how many resolved frequencies have the PBM's
     VRR inside the DEM's interval, and the noise VRRs with the DEM's interval."""
 
-    parts = ["<h2>Feeder-noise filtering (variance reduction ratio)</h2>",
-             f"<p>{html.escape(c.note)}</p><table><tr><th>PBM rates</th><th>VRR(f) inside the DEM interval</th>"
-             "<th>worst PBM/DEM outside it</th></tr>"]
+    parts = [
+        "<h2>Feeder-noise filtering (variance reduction ratio)</h2>",
+        f"<p>{html.escape(c.note)}</p><table><tr><th>PBM rates</th><th>VRR(f) inside the DEM interval</th>"
+        "<th>worst PBM/DEM outside it</th></tr>",
+    ]
     for mode, m in c.pbm.items():
         worst = _ratio(m.worst_outside, "–")
         parts.append(f"<tr><td>{mode}</td><td>{m.n_inside}/{m.n_judged} resolved points</td><td>{worst}</td></tr>")
-    parts.append(f"</table><p>Band-limited feeder noise on [0, {c.noise_f_max_hz:g} Hz] (first order, "
-                 "correlation time τ; 0 = white):</p><table><tr><th>feeder, τ [s]</th><th>DEM [95 %]</th>"
-                 + "".join(f"<th>PBM, {mode} rates</th>" for mode in c.pbm) + "</tr>")
+    parts.append(
+        f"</table><p>Band-limited feeder noise on [0, {c.noise_f_max_hz:g} Hz] (first order, "
+        "correlation time τ; 0 = white):</p><table><tr><th>feeder, τ [s]</th><th>DEM [95 %]</th>"
+        + "".join(f"<th>PBM, {mode} rates</th>" for mode in c.pbm)
+        + "</tr>"
+    )
     for f in FEEDERS:
         for i, tau in enumerate(c.noise_taus_s):
             dn = c.dem[f].noise[i]
-            cells = "".join(f"<td>{m.feeders[f].noise[i].vrr:.4g} "
-                            f"{'✓' if m.feeders[f].noise[i].inside else '✗'}</td>" for m in c.pbm.values())
-            parts.append(f"<tr><td>{f}, {tau:g}</td><td>{dn.estimate:.4g} [{dn.low:.4g}, {dn.high:.4g}]</td>"
-                         f"{cells}</tr>")
+            cells = "".join(
+                f"<td>{m.feeders[f].noise[i].vrr:.4g} {'✓' if m.feeders[f].noise[i].inside else '✗'}</td>"
+                for m in c.pbm.values()
+            )
+            parts.append(
+                f"<tr><td>{f}, {tau:g}</td><td>{dn.estimate:.4g} [{dn.low:.4g}, {dn.high:.4g}]</td>{cells}</tr>"
+            )
     parts.append("</table>")
-    parts.append("<p>The same PBM in the time domain: a noise ensemble, both feeders redrawn every "
-                 "noise interval, on the steady windows' mean table; the spread of its outlet C_A against the "
-                 "transfer functions' prediction for that noise (zero-order hold, output-interval means).</p>"
-                 "<table><tr><th>PBM rates</th><th>σ</th><th>members</th><th>SD of C_A, time domain</th>"
-                 "<th>predicted</th><th>difference</th></tr>")
+    parts.append(
+        "<p>The same PBM in the time domain: a noise ensemble, both feeders redrawn every "
+        "noise interval, on the steady windows' mean table; the spread of its outlet C_A against the "
+        "transfer functions' prediction for that noise (zero-order hold, output-interval means).</p>"
+        "<table><tr><th>PBM rates</th><th>σ</th><th>members</th><th>SD of C_A, time domain</th>"
+        "<th>predicted</th><th>difference</th></tr>"
+    )
     for mode, m in c.pbm.items():
         for row in m.ensemble_check:
-            parts.append(f"<tr><td>{mode}</td><td>{row.sigma:g}</td><td>{row.members}</td>"
-                         f"<td>{row.sd_time_domain:.4g}</td><td>{row.sd_frequency_domain:.4g}</td>"
-                         f"<td>{row.relative_difference:+.2%}</td></tr>")
+            parts.append(
+                f"<tr><td>{mode}</td><td>{row.sigma:g}</td><td>{row.members}</td>"
+                f"<td>{row.sd_time_domain:.4g}</td><td>{row.sd_frequency_domain:.4g}</td>"
+                f"<td>{row.relative_difference:+.2%}</td></tr>"
+            )
     parts.append("</table>")
     if figure:
         parts.append(f"<p><img src='{figure}' style='max-width:100%'></p>")
@@ -125,24 +160,32 @@ def vrr_html(c: VrrComparison, figure: str | None = None) -> str:
 def print_table(c: VrrComparison) -> None:
     """The comparison as a short text table on stdout."""
     for f, d in c.dem.items():
-        print(f"DEM feeder {f}: N = {d.n_recovered} recovered of {d.n_entered} in {d.n_blocks} blocks, "
-              f"floor 1/sqrt(N) = {d.floor:.4f}, resolved {int(np.sum(d.resolved))}/"
-              f"{len(d.resolved)} frequencies (up to "
-              f"{max((fr for fr, r in zip(c.frequency_hz, d.resolved) if r), default=float('nan')):.3g} Hz)")
+        print(
+            f"DEM feeder {f}: N = {d.n_recovered} recovered of {d.n_entered} in {d.n_blocks} blocks, "
+            f"floor 1/sqrt(N) = {d.floor:.4f}, resolved {int(np.sum(d.resolved))}/"
+            f"{len(d.resolved)} frequencies (up to "
+            f"{max((fr for fr, r in zip(c.frequency_hz, d.resolved) if r), default=float('nan')):.3g} Hz)"
+        )
     for mode, m in c.pbm.items():
         worst = _ratio(m.worst, "-")
         outside = _ratio(m.worst_outside, "-", prefix="")
-        print(f"{mode:>9}: VRR(f) inside the DEM interval at {m.n_inside}/{m.n_judged} resolved points "
-              f"({m.inside_fraction:.0%}); worst PBM/DEM {worst}; worst outside the interval {outside}")
+        print(
+            f"{mode:>9}: VRR(f) inside the DEM interval at {m.n_inside}/{m.n_judged} resolved points "
+            f"({m.inside_fraction:.0%}); worst PBM/DEM {worst}; worst outside the interval {outside}"
+        )
     print(f"noise VRR on [0, {c.noise_f_max_hz:g} Hz]: DEM [95 % interval] | PBM per mode (* = inside)")
     for f in FEEDERS:
         for i, tau in enumerate(c.noise_taus_s):
             dn = c.dem[f].noise[i]
-            cells = "  ".join(f"{mode} {m.feeders[f].noise[i].vrr:8.4g}"
-                              f"{'*' if m.feeders[f].noise[i].inside else ' '}" for mode, m in c.pbm.items())
+            cells = "  ".join(
+                f"{mode} {m.feeders[f].noise[i].vrr:8.4g}{'*' if m.feeders[f].noise[i].inside else ' '}"
+                for mode, m in c.pbm.items()
+            )
             print(f"  {f} tau {tau:>4g} s: DEM {dn.estimate:8.4g} [{dn.low:.4g}, {dn.high:.4g}]  {cells}")
     print("time-domain ensemble vs the transfer functions: SD of the outlet C_A")
     for mode, m in c.pbm.items():
         for row in m.ensemble_check:
-            print(f"  {mode}, sigma {row.sigma:g}, {row.members} members: {row.sd_time_domain:.4g} vs "
-                  f"{row.sd_frequency_domain:.4g} predicted ({row.relative_difference:+.2%})")
+            print(
+                f"  {mode}, sigma {row.sigma:g}, {row.members} members: {row.sd_time_domain:.4g} vs "
+                f"{row.sd_frequency_domain:.4g} predicted ({row.relative_difference:+.2%})"
+            )

@@ -21,8 +21,14 @@ OUT = Path("results/dem_budget")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference", default=str(REDUCED_RUN), help="DEM results file (default: %(default)s)")
-    parser.add_argument("--t", type=float, nargs="+", default=list(DEFAULT_T), metavar="T",
-                        help="DEM budgets to study [s] (default: %(default)s)")
+    parser.add_argument(
+        "--t",
+        type=float,
+        nargs="+",
+        default=list(DEFAULT_T),
+        metavar="T",
+        help="DEM budgets to study [s] (default: %(default)s)",
+    )
     parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
 
 

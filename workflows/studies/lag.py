@@ -72,7 +72,9 @@ def lag_counts(times, states, exit_t, lag: int, window_s: float, n_windows: int,
     return counts.reshape(n_windows, n_states, n_states)
 
 
-HELP = "the measured chain fitted at longer dump lags: is the missing dispersion the dump interval? (needs a run's dumps)"
+HELP = (
+    "the measured chain fitted at longer dump lags: is the missing dispersion the dump interval? (needs a run's dumps)"
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -87,9 +89,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_preset(args.preset)
     dem_config = config.dem
-    results_path = Path(args.results) if args.results else next(
-        p for p in sorted(REFERENCE_DIR.glob("dem-*.h5")) if (try_load_entry(p)[0] or None) is not None
-        and try_load_entry(p)[0].table.nx == dem_config.tables.nx)
+    results_path = (
+        Path(args.results)
+        if args.results
+        else next(
+            p
+            for p in sorted(REFERENCE_DIR.glob("dem-*.h5"))
+            if (try_load_entry(p)[0] or None) is not None and try_load_entry(p)[0].table.nx == dem_config.tables.nx
+        )
+    )
     entry, reason = try_load_entry(results_path)
     if entry is None:
         raise SystemExit(f"{results_path}: {reason}")
@@ -106,19 +114,32 @@ def run(args: argparse.Namespace) -> int:
     cap_per_s = rates_module.MAX_RATE_X_INTERVAL / interval
     pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=None).model_copy(update={"rates": "measured"})
     out = {"dem_mean_s": spec["mean_residence_time_s"], "dem_variance_s2": spec["rtd_variance_s2"], "lags": {}}
-    print(f"DEM pooled RTD: mean {spec['mean_residence_time_s']['value']:.2f} s, variance "
-          f"{spec['rtd_variance_s2']['value']:.1f} s^2")
+    print(
+        f"DEM pooled RTD: mean {spec['mean_residence_time_s']['value']:.2f} s, variance "
+        f"{spec['rtd_variance_s2']['value']:.1f} s^2"
+    )
     for lag in (int(v) for v in args.lags.split(",")):
         counts = lag_counts(times, states, exit_t, lag, dem_config.tables.window_s, dem.table.n_windows, n_cells)
-        fits = rates_module.fit_windows(counts, dem_config.tables.nx, dem_config.tables.ny, lag * interval,
-                                        min_observations=dem.table.min_samples,
-                                        max_rate_x_interval=cap_per_s * lag * interval)  # the same absolute cap
+        fits = rates_module.fit_windows(
+            counts,
+            dem_config.tables.nx,
+            dem_config.tables.ny,
+            lag * interval,
+            min_observations=dem.table.min_samples,
+            max_rate_x_interval=cap_per_s * lag * interval,
+        )  # the same absolute cap
         table = dem.table.replace(**fits.rates)
-        pooled = pooled_rtd(table, pbm_config, entry_window=tuple(spec["entry_window_s"]),
-                            horizon_s=spec["horizon_s"])
-        out["lags"][lag] = {"interval_s": lag * interval, "mean_s": pooled.mean_s, "variance_s2": pooled.variance_s2,
-                            "capped": fits.capped}
-        print(f"  lag {lag:>3} ({lag * interval:.1f} s): PBM mean {pooled.mean_s:.2f} s, variance "
-              f"{pooled.variance_s2:.1f} s^2 ({fits.capped} rates at the cap)", flush=True)
+        pooled = pooled_rtd(table, pbm_config, entry_window=tuple(spec["entry_window_s"]), horizon_s=spec["horizon_s"])
+        out["lags"][lag] = {
+            "interval_s": lag * interval,
+            "mean_s": pooled.mean_s,
+            "variance_s2": pooled.variance_s2,
+            "capped": fits.capped,
+        }
+        print(
+            f"  lag {lag:>3} ({lag * interval:.1f} s): PBM mean {pooled.mean_s:.2f} s, variance "
+            f"{pooled.variance_s2:.1f} s^2 ({fits.capped} rates at the cap)",
+            flush=True,
+        )
     write_json(args.out, out)
     return 0

@@ -91,7 +91,7 @@ def layer_edges(snaps: Snapshots, t_from: float, length_m: float, nz: int) -> np
     """Inner z edges [m] at the 1/NZ, ..., (NZ-1)/NZ quantiles of the heights of the particles
     inside the blender from ``t_from`` on."""
     first = int(np.searchsorted(snaps.t, t_from))
-    x, z = snaps.xyz[0, snaps.offsets[first]:], snaps.xyz[2, snaps.offsets[first]:]
+    x, z = snaps.xyz[0, snaps.offsets[first] :], snaps.xyz[2, snaps.offsets[first] :]
     inside = (x >= 0) & (x <= length_m)
     return np.quantile(z[inside], np.arange(1, nz) / nz) if nz > 1 else np.zeros(0)
 
@@ -107,8 +107,9 @@ def states(xyz: np.ndarray, length_m: float, diameter_m: float, grid, z_edges) -
     return np.where(x > length_m, s, np.where(x >= 0, (i * ny + j) * nz + layer, -1))
 
 
-def chain_data(snaps: Snapshots, grid, z_edges, length_m: float, diameter_m: float, t_ss: float,
-               discharged: np.ndarray):
+def chain_data(
+    snaps: Snapshots, grid, z_edges, length_m: float, diameter_m: float, t_ss: float, discharged: np.ndarray
+):
     """(counts (S+1, S+1) of dump-to-dump moves from ``t_ss`` on, first state of every id)."""
     s = int(np.prod(grid))
     top = int(snaps.ids.max()) + 1
@@ -152,8 +153,12 @@ def fit_chain(counts: np.ndarray, grid, interval_s: float, max_iterations: int =
     q[src, dst] = rates
     q[np.diag_indices_from(q)] = -q.sum(axis=1)
     cap = rates_module.MAX_RATE_X_INTERVAL / interval_s
-    return q, {"iterations": fit.iterations, "converged": fit.converged, "rates": int(rates.size),
-               "capped": int(np.count_nonzero(rates >= 0.999 * cap))}
+    return q, {
+        "iterations": fit.iterations,
+        "converged": fit.converged,
+        "rates": int(rates.size),
+        "capped": int(np.count_nonzero(rates >= 0.999 * cap)),
+    }
 
 
 def chain_rtd(q: np.ndarray, entry: np.ndarray, horizon_s: float, step_s: float) -> dict:
@@ -171,12 +176,18 @@ def chain_rtd(q: np.ndarray, entry: np.ndarray, horizon_s: float, step_s: float)
     t = (np.arange(e.size) + 0.5) * step_s
     recovered = float(cdf[-1])
     mean = float(e @ t / recovered)
-    return {"mean_s": mean, "variance_s2": float(e @ (t - mean) ** 2 / recovered), "recovered_fraction": recovered,
-            "cdf_t_s": (np.arange(cdf.size) * step_s).tolist(), "cdf": cdf.tolist()}
+    return {
+        "mean_s": mean,
+        "variance_s2": float(e @ (t - mean) ** 2 / recovered),
+        "recovered_fraction": recovered,
+        "cdf_t_s": (np.arange(cdf.size) * step_s).tolist(),
+        "cdf": cdf.tolist(),
+    }
 
 
-def occupancy_by_class(snaps: Snapshots, records, tracers, mean_s: float, length_m: float, nx: int,
-                       z_edges: np.ndarray) -> dict:
+def occupancy_by_class(
+    snaps: Snapshots, records, tracers, mean_s: float, length_m: float, nx: int, z_edges: np.ndarray
+) -> dict:
     """Share of the dumps in which the tracers of each residence-time class were seen in each
     axial slice and height layer (``z_edges``: inner edges)."""
     tau = records["exit_t_s"].to_numpy() - records["entry_t_s"].to_numpy()
@@ -198,9 +209,12 @@ def occupancy_by_class(snaps: Snapshots, records, tracers, mean_s: float, length
     for k, (lo, hi, name) in enumerate(CLASSES):
         total = occ[k].sum()
         share = occ[k] / total if total else occ[k]
-        out[name] = {"tau_over_mean": [lo, None if np.isinf(hi) else hi],
-                     "tracers": int(np.count_nonzero(label == k)),
-                     "slice_share": share.sum(axis=1).tolist(), "layer_share": share.sum(axis=0).tolist()}
+        out[name] = {
+            "tau_over_mean": [lo, None if np.isinf(hi) else hi],
+            "tracers": int(np.count_nonzero(label == k)),
+            "slice_share": share.sum(axis=1).tolist(),
+            "layer_share": share.sum(axis=0).tolist(),
+        }
     return out
 
 
@@ -242,8 +256,9 @@ def run(args: argparse.Namespace) -> int:
     interval = float(deck["dump_every_steps"]) * timestep
     window = tuple(spec["entry_window_s"])
     horizon = float(spec["horizon_s"])
-    massflow = [Path(p) for pattern in deck["massflow_globs"].values()
-                for p in sorted(glob.glob(str(run_dir / pattern)))]
+    massflow = [
+        Path(p) for pattern in deck["massflow_globs"].values() for p in sorted(glob.glob(str(run_dir / pattern)))
+    ]
     discharged, _, _ = latest_records(massflow)
     try:
         snaps = Snapshots(str(run_dir / deck["dump_glob"]), timestep)
@@ -255,11 +270,20 @@ def run(args: argparse.Namespace) -> int:
     tracers = (entry_t > window[0]) & (entry_t <= window[1])
     tracer_ids = records["id"].to_numpy()[tracers]
     dem_mean, dem_var = spec["mean_residence_time_s"], spec["rtd_variance_s2"]
-    out = {"run_dir": str(run_dir), "results": str(args.results), "entry_window_s": window, "horizon_s": horizon,
-           "dump_interval_s": interval, "dem": {"mean_s": dem_mean, "variance_s2": dem_var}, "grids": {}}
-    print(f"DEM pooled RTD ({int(tracers.sum())} tracers): mean {dem_mean['value']:.2f} s "
-          f"[{dem_mean['low']:.2f}, {dem_mean['high']:.2f}], variance {dem_var['value']:.1f} s^2 "
-          f"[{dem_var['low']:.1f}, {dem_var['high']:.1f}]")
+    out = {
+        "run_dir": str(run_dir),
+        "results": str(args.results),
+        "entry_window_s": window,
+        "horizon_s": horizon,
+        "dump_interval_s": interval,
+        "dem": {"mean_s": dem_mean, "variance_s2": dem_var},
+        "grids": {},
+    }
+    print(
+        f"DEM pooled RTD ({int(tracers.sum())} tracers): mean {dem_mean['value']:.2f} s "
+        f"[{dem_mean['low']:.2f}, {dem_mean['high']:.2f}], variance {dem_var['value']:.1f} s^2 "
+        f"[{dem_var['low']:.1f}, {dem_var['high']:.1f}]"
+    )
     for grid in grids:
         z_edges = layer_edges(snaps, window[0], length, grid[2])
         counts, first = chain_data(snaps, grid, z_edges, length, diameter, window[0], discharged)
@@ -268,18 +292,25 @@ def run(args: argparse.Namespace) -> int:
         start = start[(start >= 0) & (start < q.shape[0] - 1)]
         rtd = chain_rtd(q, np.bincount(start, minlength=q.shape[0] - 1) / start.size, horizon, interval)
         name = "x".join(str(v) for v in grid)
-        inside = {key: dem_val["low"] <= rtd[key] <= dem_val["high"]
-                  for key, dem_val in (("mean_s", dem_mean), ("variance_s2", dem_var))}
+        inside = {
+            key: dem_val["low"] <= rtd[key] <= dem_val["high"]
+            for key, dem_val in (("mean_s", dem_mean), ("variance_s2", dem_var))
+        }
         out["grids"][name] = {"z_edges_m": z_edges.tolist(), **fit, **rtd, "inside": inside}
-        print(f"  {name:>8}: mean {rtd['mean_s']:6.2f} s ({'inside' if inside['mean_s'] else 'outside'}), variance "
-              f"{rtd['variance_s2']:6.1f} s^2 ({'inside' if inside['variance_s2'] else 'outside'}); "
-              f"{fit['capped']}/{fit['rates']} rates at the cap, {fit['iterations']} iterations"
-              f"{'' if fit['converged'] else ' (not converged)'}", flush=True)
+        print(
+            f"  {name:>8}: mean {rtd['mean_s']:6.2f} s ({'inside' if inside['mean_s'] else 'outside'}), variance "
+            f"{rtd['variance_s2']:6.1f} s^2 ({'inside' if inside['variance_s2'] else 'outside'}); "
+            f"{fit['capped']}/{fit['rates']} rates at the cap, {fit['iterations']} iterations"
+            f"{'' if fit['converged'] else ' (not converged)'}",
+            flush=True,
+        )
     z3 = layer_edges(snaps, window[0], length, 3)
     out["occupancy"] = occupancy_by_class(snaps, records, tracers, dem_mean["value"], length, 10, z3)
     print("where the DEM's tracers spend their time (10 slices; 3 layers of equal steady occupancy, bottom first):")
     for name, row in out["occupancy"].items():
-        print(f"  {name:>6} ({row['tracers']} tracers): first slice {row['slice_share'][0]:.0%}, last "
-              f"{row['slice_share'][-1]:.0%}; layers " + ", ".join(f"{v:.0%}" for v in row["layer_share"]))
+        print(
+            f"  {name:>6} ({row['tracers']} tracers): first slice {row['slice_share'][0]:.0%}, last "
+            f"{row['slice_share'][-1]:.0%}; layers " + ", ".join(f"{v:.0%}" for v in row["layer_share"])
+        )
     print(f"wrote {write_json(args.out, out)}")
     return 0

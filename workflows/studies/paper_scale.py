@@ -108,12 +108,23 @@ def dump_throughput(dump_files: list[Path]) -> dict[str, np.ndarray]:
     keep = (dwall > 0) & (dsteps > 0)
     if keep.sum() > 2:
         keep &= dwall <= 10 * np.median(dwall[keep])
-    return {"step": steps_a[1:][keep], "particles": held[keep], "wall_s": dwall[keep],
-            "particle_steps_per_s": held[keep] * dsteps[keep] / dwall[keep]}
+    return {
+        "step": steps_a[1:][keep],
+        "particles": held[keep],
+        "wall_s": dwall[keep],
+        "particle_steps_per_s": held[keep] * dsteps[keep] / dwall[keep],
+    }
 
 
-def summarise(log_text: str, thermo: dict[str, np.ndarray], throughput: dict[str, np.ndarray], config,
-              np_ranks: int, wall_time_s: float | None, load_average: list[float] | None = None) -> dict[str, Any]:
+def summarise(
+    log_text: str,
+    thermo: dict[str, np.ndarray],
+    throughput: dict[str, np.ndarray],
+    config,
+    np_ranks: int,
+    wall_time_s: float | None,
+    load_average: list[float] | None = None,
+) -> dict[str, Any]:
     """The probe's verdicts and measurements from its log, thermo rows and dump timings."""
     dem = config.dem
     t = thermo["simtime"]
@@ -149,7 +160,9 @@ def summarise(log_text: str, thermo: dict[str, np.ndarray], throughput: dict[str
         "load_average_at_end": load_average,
         "insertion": {
             "configured_per_s": dem.operation.feed_rate_total_per_s,
-            "fitted_per_s": rate, "fitted_A_per_s": rate_a, "fitted_B_per_s": rate_b,
+            "fitted_per_s": rate,
+            "fitted_A_per_s": rate_a,
+            "fitted_B_per_s": rate_b,
             "relative_error": rate / dem.operation.feed_rate_total_per_s - 1,
             "inserted": int(inserted[-1]),
             "fitted_from_s": FIT_FROM_S,
@@ -175,15 +188,24 @@ def summarise(log_text: str, thermo: dict[str, np.ndarray], throughput: dict[str
             "late_particle_steps_per_s": float(np.median(rates[late])),
             "late_particle_steps_per_s_per_core": float(np.median(rates[late])) / np_ranks,
             "late_spread": [float(np.percentile(rates[late], 10)), float(np.percentile(rates[late], 90))],
-            "whole_probe_particle_steps_per_s": float(np.sum(rates * throughput["wall_s"]) / np.sum(throughput["wall_s"])),
+            "whole_probe_particle_steps_per_s": float(
+                np.sum(rates * throughput["wall_s"]) / np.sum(throughput["wall_s"])
+            ),
         },
         "loop": loop_details(log_text),
     }
 
 
-def measure(runs_root: str | Path = "runs/paper_scale", duration_s: float = PROBE_DURATION_S, np_ranks: int = PROBE_NP,
-            max_wall_s: float = MAX_WALL_S, resume: bool = False, fresh: bool = False, progress: bool = True,
-            out_dir: Path = SUMMARY_DIR) -> dict[str, Any]:
+def measure(
+    runs_root: str | Path = "runs/paper_scale",
+    duration_s: float = PROBE_DURATION_S,
+    np_ranks: int = PROBE_NP,
+    max_wall_s: float = MAX_WALL_S,
+    resume: bool = False,
+    fresh: bool = False,
+    progress: bool = True,
+    out_dir: Path = SUMMARY_DIR,
+) -> dict[str, Any]:
     """Run (or reuse) the probe and write its summary and thermo rows into ``out_dir``.
 
     The solver is stopped after ``max_wall_s`` seconds of wall time (as a scheduler would:
@@ -210,26 +232,54 @@ def measure(runs_root: str | Path = "runs/paper_scale", duration_s: float = PROB
         finally:
             timer.cancel()
         status = read_status(run_dir) or {}
-    log_text = "\n".join(path.read_text(errors="replace")
-                         for path in (run_dir / deck.LOG_FILE, run_dir / deck.RESUME_LOG_FILE) if path.is_file())
+    log_text = "\n".join(
+        path.read_text(errors="replace")
+        for path in (run_dir / deck.LOG_FILE, run_dir / deck.RESUME_LOG_FILE)
+        if path.is_file()
+    )
     thermo = thermo_rows(log_text)
     throughput = dump_throughput(sorted(run_dir.glob(deck.DUMP_GLOB)))
     wall = status.get("wall_time_s")
-    summary = summarise(log_text, thermo, throughput, config, int(status.get("np") or np_ranks),
-                        float(wall) if wall is not None else None, list(os.getloadavg()))
-    summary.update({
-        "liggghts_version": status.get("liggghts_version"), "run_key": inputs.key, "state": status.get("state"),
-        "stopped_at_wall_limit": status.get("state") == "interrupted", "max_wall_s": max_wall_s,
-        "run_started": status.get("started"), "run_finished": status.get("finished"),
-        "config_toml": dump_toml(config)})
+    summary = summarise(
+        log_text,
+        thermo,
+        throughput,
+        config,
+        int(status.get("np") or np_ranks),
+        float(wall) if wall is not None else None,
+        list(os.getloadavg()),
+    )
+    summary.update(
+        {
+            "liggghts_version": status.get("liggghts_version"),
+            "run_key": inputs.key,
+            "state": status.get("state"),
+            "stopped_at_wall_limit": status.get("state") == "interrupted",
+            "max_wall_s": max_wall_s,
+            "run_started": status.get("started"),
+            "run_finished": status.get("finished"),
+            "config_toml": dump_toml(config),
+        }
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / SUMMARY_FILE.name, summary)
     header = ",".join(deck.THERMO_COLUMNS)
-    np.savetxt(out_dir / THERMO_FILE.name, np.column_stack([thermo[c] for c in deck.THERMO_COLUMNS]),
-               delimiter=",", header=header, comments="", fmt="%.10g")
-    np.savetxt(out_dir / "throughput.csv",
-               np.column_stack([throughput[k] for k in ("step", "particles", "wall_s", "particle_steps_per_s")]),
-               delimiter=",", header="step,particles_held,wall_s,particle_steps_per_s", comments="", fmt="%.6g")
+    np.savetxt(
+        out_dir / THERMO_FILE.name,
+        np.column_stack([thermo[c] for c in deck.THERMO_COLUMNS]),
+        delimiter=",",
+        header=header,
+        comments="",
+        fmt="%.10g",
+    )
+    np.savetxt(
+        out_dir / "throughput.csv",
+        np.column_stack([throughput[k] for k in ("step", "particles", "wall_s", "particle_steps_per_s")]),
+        delimiter=",",
+        header="step,particles_held,wall_s,particle_steps_per_s",
+        comments="",
+        fmt="%.6g",
+    )
     return summary
 
 
@@ -248,14 +298,19 @@ def plot_probe(summary_dir: Path = SUMMARY_DIR, out: str | Path = "results/paper
     ax, bx = fig.subplots(1, 2)
     t = thermo["simtime"]
     ax.plot(t, thermo["insA"] + thermo["insB"], label="inserted")
-    ax.plot(t, summary["insertion"]["configured_per_s"] * t, "k:", label=f"{summary['insertion']['configured_per_s']:g} /s")
+    ax.plot(
+        t, summary["insertion"]["configured_per_s"] * t, "k:", label=f"{summary['insertion']['configured_per_s']:g} /s"
+    )
     ax.plot(t, thermo["Atoms"], label="in the blender")
     ax.plot(t, thermo["outA"] + thermo["outB"], label="discharged")
     ax.set(xlabel="simulated time [s]", ylabel="particles", title=f"paper scale, first {summary['simulated_s']:.0f} s")
     ax.legend()
     bx.plot(rates["particles_held"], rates["particle_steps_per_s"] / 1e6, ".", ms=3)
-    bx.set(xlabel="particles held", ylabel="particle-steps/s [1e6]",
-           title=f"throughput on {summary['np']} ranks (from dump times)")
+    bx.set(
+        xlabel="particles held",
+        ylabel="particle-steps/s [1e6]",
+        title=f"throughput on {summary['np']} ranks (from dump times)",
+    )
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -270,8 +325,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs-dir", default="runs/paper_scale")
     parser.add_argument("--duration", type=float, default=PROBE_DURATION_S, help="simulated seconds (default 15)")
     parser.add_argument("--np", type=int, default=PROBE_NP)
-    parser.add_argument("--max-wall-min", type=float, default=MAX_WALL_S / 60,
-                        help="stop the solver after this many minutes of wall time (default 45)")
+    parser.add_argument(
+        "--max-wall-min",
+        type=float,
+        default=MAX_WALL_S / 60,
+        help="stop the solver after this many minutes of wall time (default 45)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue an interrupted probe")
     parser.add_argument("--fresh", action="store_true", help="discard a previous probe of the same inputs")
     parser.add_argument("--out", default=str(SUMMARY_DIR), help="where summary.json and the thermo rows go")
@@ -279,8 +338,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        summary = measure(args.runs_dir, args.duration, args.np, args.max_wall_min * 60, args.resume, args.fresh,
-                          out_dir=Path(args.out))
+        summary = measure(
+            args.runs_dir,
+            args.duration,
+            args.np,
+            args.max_wall_min * 60,
+            args.resume,
+            args.fresh,
+            out_dir=Path(args.out),
+        )
         figure = plot_probe(Path(args.out))
     except (ConfigError, OSError, ValueError) as exc:
         print(f"paper-scale probe: {error_line(exc)}", file=sys.stderr)
@@ -290,26 +356,28 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-
 def report_lines(summary: dict[str, Any]) -> str:
     ins, ts, tp = summary["insertion"], summary["timestep_check"], summary["throughput"]
     first, sustained = summary["first_discharge_s"], summary["sustained_discharge_s"]
     wall = f" in {summary['wall_time_s'] / 60:.1f} min" if summary["wall_time_s"] else ""
     stop = " (stopped at the wall-time limit)" if summary.get("stopped_at_wall_limit") else ""
-    return "\n".join([
-        f"{summary['simulated_s']:.2f} s simulated ({summary['steps']} steps of {summary['timestep_s']:.3g} s) on "
-        f"{summary['np']} ranks{wall}{stop}",
-        f"insertion: {ins['fitted_per_s']:.1f} /s fitted (A {ins['fitted_A_per_s']:.1f}, B {ins['fitted_B_per_s']:.1f}) "
-        f"against {ins['configured_per_s']:g} configured ({ins['relative_error']:+.2%})",
-        f"lost particles: {summary['lost_max']}; discharged {summary['discharged']}, the first at "
-        + (f"{first:.2f} s" if first is not None else "(none)") + "; outflow above "
-        f"{summary['sustained_fraction']:.0%} of the feed " + (f"from {sustained:.2f} s" if sustained is not None
-                                                            else "not reached"),
-        f"timestep check: at most {ts['max_rayleigh_fraction']:.3f} of the Rayleigh time (limit {ts['rayleigh_limit']:g}),"
-        f" {ts['max_hertz_fraction']:.3f} of the Hertz time (warns above {ts['hertz_warn_fraction']:g});"
-        f" {ts['warnings']} timestep warnings" + (f"; other warnings: {'; '.join(summary['other_warnings'])}"
-                                                  if summary.get("other_warnings") else ""),
-        f"throughput: {tp['late_particle_steps_per_s']:.3g} particle-steps/s on {summary['np']} ranks with "
-        f"{tp['late_particles_mean']:.0f} particles held (10-90 %: {tp['late_spread'][0]:.3g}-{tp['late_spread'][1]:.3g});"
-        f" {tp['late_particle_steps_per_s_per_core']:.3g} per core",
-    ])
+    return "\n".join(
+        [
+            f"{summary['simulated_s']:.2f} s simulated ({summary['steps']} steps of {summary['timestep_s']:.3g} s) on "
+            f"{summary['np']} ranks{wall}{stop}",
+            f"insertion: {ins['fitted_per_s']:.1f} /s fitted (A {ins['fitted_A_per_s']:.1f}, B {ins['fitted_B_per_s']:.1f}) "
+            f"against {ins['configured_per_s']:g} configured ({ins['relative_error']:+.2%})",
+            f"lost particles: {summary['lost_max']}; discharged {summary['discharged']}, the first at "
+            + (f"{first:.2f} s" if first is not None else "(none)")
+            + "; outflow above "
+            f"{summary['sustained_fraction']:.0%} of the feed "
+            + (f"from {sustained:.2f} s" if sustained is not None else "not reached"),
+            f"timestep check: at most {ts['max_rayleigh_fraction']:.3f} of the Rayleigh time (limit {ts['rayleigh_limit']:g}),"
+            f" {ts['max_hertz_fraction']:.3f} of the Hertz time (warns above {ts['hertz_warn_fraction']:g});"
+            f" {ts['warnings']} timestep warnings"
+            + (f"; other warnings: {'; '.join(summary['other_warnings'])}" if summary.get("other_warnings") else ""),
+            f"throughput: {tp['late_particle_steps_per_s']:.3g} particle-steps/s on {summary['np']} ranks with "
+            f"{tp['late_particles_mean']:.0f} particles held (10-90 %: {tp['late_spread'][0]:.3g}-{tp['late_spread'][1]:.3g});"
+            f" {tp['late_particle_steps_per_s_per_core']:.3g} per core",
+        ]
+    )

@@ -86,11 +86,17 @@ def dem_target(summary: dict[str, Any], source: str) -> DemTarget:
     pooled, steady = summary["pooled_rtd"], summary["steady"]
     by_slice = steady["holdup_by_slice"]
     return DemTarget(
-        mean_s=_interval(pooled["mean_residence_time_s"]), variance_s2=_interval(pooled["rtd_variance_s2"]),
-        entry_window_s=tuple(float(v) for v in pooled["entry_window_s"]), horizon_s=float(pooled["horizon_s"]),
-        holdup_by_slice=tuple(Interval(v, lo, hi) for v, lo, hi in zip(by_slice["value"], by_slice["low"],
-                                                                       by_slice["high"])),
-        holdup=_interval(steady["holdup"]), steady_time_s=float(summary["steady_state_time_s"]), source=source)
+        mean_s=_interval(pooled["mean_residence_time_s"]),
+        variance_s2=_interval(pooled["rtd_variance_s2"]),
+        entry_window_s=tuple(float(v) for v in pooled["entry_window_s"]),
+        horizon_s=float(pooled["horizon_s"]),
+        holdup_by_slice=tuple(
+            Interval(v, lo, hi) for v, lo, hi in zip(by_slice["value"], by_slice["low"], by_slice["high"])
+        ),
+        holdup=_interval(steady["holdup"]),
+        steady_time_s=float(summary["steady_state_time_s"]),
+        source=source,
+    )
 
 
 @dataclass(frozen=True)
@@ -138,9 +144,16 @@ class PhaseStudy:
 def phase_table(model, length_m: float, diameter_m: float, t_end_s: float, window_s: float = 5.0):
     """A time-invariant table on the model's grid that carries only the phase model (its
     velocities are never read in mode "phases")."""
-    return make_table(np.arange(0.0, t_end_s, window_s), np.linspace(0.0, length_m, model.nx + 1),
-                      np.linspace(-diameter_m / 2, diameter_m / 2, model.ny + 1), 0.0, 0.0, 0.0, 0.0,
-                      window_s=window_s).replace(phases=model)
+    return make_table(
+        np.arange(0.0, t_end_s, window_s),
+        np.linspace(0.0, length_m, model.nx + 1),
+        np.linspace(-diameter_m / 2, diameter_m / 2, model.ny + 1),
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        window_s=window_s,
+    ).replace(phases=model)
 
 
 def pbm_numbers(model, config: Config, target: DemTarget) -> dict[str, Any]:
@@ -154,12 +167,27 @@ def pbm_numbers(model, config: Config, target: DemTarget) -> dict[str, Any]:
     result = simulate(table, pbm_config)
     steady = result.times > target.steady_time_s
     by_slice = result.counts[steady].sum(axis=(1, 3)).mean(axis=0)
-    return {"mean_s": rtd.mean_s, "variance_s2": rtd.variance_s2, "recovered_fraction": rtd.recovered_fraction,
-            "by_slice": by_slice, "holdup": float(by_slice.sum())}
+    return {
+        "mean_s": rtd.mean_s,
+        "variance_s2": rtd.variance_s2,
+        "recovered_fraction": rtd.recovered_fraction,
+        "by_slice": by_slice,
+        "holdup": float(by_slice.sum()),
+    }
 
 
-def evaluate(sequences, config: Config, target: DemTarget, grid: tuple[int, int], k: int, fit_window, starts: int,
-             max_iterations: int, seed: int = 0, residents: bool = True) -> ModelResult:
+def evaluate(
+    sequences,
+    config: Config,
+    target: DemTarget,
+    grid: tuple[int, int],
+    k: int,
+    fit_window,
+    starts: int,
+    max_iterations: int,
+    seed: int = 0,
+    residents: bool = True,
+) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
     the particles already inside when the window opens (:func:`dem.phases.prepare`); the
     held-out particles are only those that enter in the second half."""
@@ -183,20 +211,40 @@ def evaluate(sequences, config: Config, target: DemTarget, grid: tuple[int, int]
     pbm_c = pbm_slices.reshape(n, -1).sum(axis=1)
     lls = fit.start_log_likelihoods
     return ModelResult(
-        grid=grid, n_phases=k, n_parameters=fit.n_parameters(),
+        grid=grid,
+        n_phases=k,
+        n_parameters=fit.n_parameters(),
         log_likelihood_per_step=fit.log_likelihood / data.n_steps,
         held_out_per_step=held.score(test) / test.n_steps,
-        ck_max_z=ck.max_z(), ck_max_abs_error=ck.max_abs_error(), ck_passed=ck.passed,
-        mean_s=pbm["mean_s"], variance_s2=pbm["variance_s2"], recovered_fraction=pbm["recovered_fraction"],
-        holdup=pbm["holdup"], slice_error=tuple(float(v) for v in pbm_c / dem_c - 1.0),
-        timescales_s=tuple(float(v) for v in fit.implied_timescales(3)), fit_wall_s=wall,
-        iterations=fit.iterations, converged=fit.converged, start_spread=float(max(lls) - min(lls)),
-        entry=tuple(tuple(float(v) for v in row) for row in fit.entry_distribution()))
+        ck_max_z=ck.max_z(),
+        ck_max_abs_error=ck.max_abs_error(),
+        ck_passed=ck.passed,
+        mean_s=pbm["mean_s"],
+        variance_s2=pbm["variance_s2"],
+        recovered_fraction=pbm["recovered_fraction"],
+        holdup=pbm["holdup"],
+        slice_error=tuple(float(v) for v in pbm_c / dem_c - 1.0),
+        timescales_s=tuple(float(v) for v in fit.implied_timescales(3)),
+        fit_wall_s=wall,
+        iterations=fit.iterations,
+        converged=fit.converged,
+        start_spread=float(max(lls) - min(lls)),
+        entry=tuple(tuple(float(v) for v in row) for row in fit.entry_distribution()),
+    )
 
 
-def phase_study(results: str | Path, target: str | Path | None = None, grids=((10, 10), (10, 1)), ks=(1, 2, 3),
-        starts: int = 3, max_iterations: int = 200, fit_window_s: tuple[float, float] | None = None,
-        target_override: DemTarget | None = None, residents: bool = True, log=print) -> PhaseStudy:
+def phase_study(
+    results: str | Path,
+    target: str | Path | None = None,
+    grids=((10, 10), (10, 1)),
+    ks=(1, 2, 3),
+    starts: int = 3,
+    max_iterations: int = 200,
+    fit_window_s: tuple[float, float] | None = None,
+    target_override: DemTarget | None = None,
+    residents: bool = True,
+    log=print,
+) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
     defaults to (the target's steady-state time, the last dump]."""
@@ -205,8 +253,10 @@ def phase_study(results: str | Path, target: str | Path | None = None, grids=((1
         raise ConfigError(f"results {results}: {reason}")
     dem = DemResults.from_cache_entry(entry)
     if dem.sequences is None:
-        raise ConfigError(f"results {results} hold no compartment sequences: post-process the run's dumps again "
-                         "with this version (pbmdem dem post)")
+        raise ConfigError(
+            f"results {results} hold no compartment sequences: post-process the run's dumps again "
+            "with this version (pbmdem dem post)"
+        )
     config = config_of(entry)
     if target_override is None:
         target_entry = entry if target is None else try_load_entry(Path(target))[0]
@@ -222,12 +272,20 @@ def phase_study(results: str | Path, target: str | Path | None = None, grids=((1
     for grid in grids:
         for k in ks:
             row = evaluate(seq, config, goal, tuple(grid), k, window, starts, max_iterations, residents=residents)
-            log(f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
+            log(
+                f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
                 f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
-                f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s")
+                f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s"
+            )
             out.append(row)
-    return PhaseStudy(goal, tuple(out), tuple(window), data.n_particles, data.n_steps,
-                      float(entry.provenance.get("wall_time_s", float("nan"))))
+    return PhaseStudy(
+        goal,
+        tuple(out),
+        tuple(window),
+        data.n_particles,
+        data.n_steps,
+        float(entry.provenance.get("wall_time_s", float("nan"))),
+    )
 
 
 def markdown(study: PhaseStudy) -> str:
@@ -237,18 +295,22 @@ def markdown(study: PhaseStudy) -> str:
     def mark(ok: bool) -> str:
         return "✓" if ok else "✗"
 
-    lines = [f"DEM ({g.source}): mean {g.mean_s.value:.2f} s [{g.mean_s.low:.2f}, {g.mean_s.high:.2f}], variance "
-             f"{g.variance_s2.value:.0f} s² [{g.variance_s2.low:.0f}, {g.variance_s2.high:.0f}], hold-up "
-             f"{g.holdup.value:.0f} [{g.holdup.low:.0f}, {g.holdup.high:.0f}]; fit window {study.fit_window_s[0]:.1f}-"
-             f"{study.fit_window_s[1]:.1f} s, {study.n_particles} particles, {study.n_steps} particle-steps",
-             "",
-             "| grid | K | mean [s] | variance [s²] | hold-up | worst slice | held-out ll/step | CK max z | fit [s] |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        f"DEM ({g.source}): mean {g.mean_s.value:.2f} s [{g.mean_s.low:.2f}, {g.mean_s.high:.2f}], variance "
+        f"{g.variance_s2.value:.0f} s² [{g.variance_s2.low:.0f}, {g.variance_s2.high:.0f}], hold-up "
+        f"{g.holdup.value:.0f} [{g.holdup.low:.0f}, {g.holdup.high:.0f}]; fit window {study.fit_window_s[0]:.1f}-"
+        f"{study.fit_window_s[1]:.1f} s, {study.n_particles} particles, {study.n_steps} particle-steps",
+        "",
+        "| grid | K | mean [s] | variance [s²] | hold-up | worst slice | held-out ll/step | CK max z | fit [s] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for r in study.results:
-        lines.append(f"| {r.grid[0]}×{r.grid[1]} | {r.n_phases} | {r.mean_s:.2f} {mark(g.mean_s.inside(r.mean_s))} | "
-                     f"{r.variance_s2:.0f} {mark(g.variance_s2.inside(r.variance_s2))} | "
-                     f"{r.holdup:.0f} {mark(g.holdup.inside(r.holdup))} | {r.worst_slice_error():+.1%} | "
-                     f"{r.held_out_per_step:.4f} | {r.ck_max_z:.1f} {mark(r.ck_passed)} | {r.fit_wall_s:.0f} |")
+        lines.append(
+            f"| {r.grid[0]}×{r.grid[1]} | {r.n_phases} | {r.mean_s:.2f} {mark(g.mean_s.inside(r.mean_s))} | "
+            f"{r.variance_s2:.0f} {mark(g.variance_s2.inside(r.variance_s2))} | "
+            f"{r.holdup:.0f} {mark(g.holdup.inside(r.holdup))} | {r.worst_slice_error():+.1%} | "
+            f"{r.held_out_per_step:.4f} | {r.ck_max_z:.1f} {mark(r.ck_passed)} | {r.fit_wall_s:.0f} |"
+        )
     return "\n".join(lines)
 
 
@@ -294,8 +356,14 @@ def discrete_rtd(transition: np.ndarray, start: np.ndarray, interval_s: float, h
     return mean, float(density @ (t - mean) ** 2 / total)
 
 
-def compare_time(results: str | Path, target: DemTarget, grid=(10, 1), k: int = 2,
-                 fit_window_s: tuple[float, float] | None = None, max_iterations: int = 200) -> TimeComparison:
+def compare_time(
+    results: str | Path,
+    target: DemTarget,
+    grid=(10, 1),
+    k: int = 2,
+    fit_window_s: tuple[float, float] | None = None,
+    max_iterations: int = 200,
+) -> TimeComparison:
     """:class:`TimeComparison` on the DEM results ``results`` (with sequences)."""
     from pbm.model import feed_distribution
 
@@ -323,18 +391,29 @@ def compare_time(results: str | Path, target: DemTarget, grid=(10, 1), k: int = 
     # the discrete chain from the same inlet, in its own entry phases
     feed_d = feed_distribution(table, pbm_config.feed_weights_a, pbm_config.feed_weights_b, "phases").mean(axis=1)
     return TimeComparison(
-        grid=tuple(grid), n_phases=k,
-        continuous_ll_per_step=cont.log_likelihood / data.n_steps, continuous_parameters=cont.n_parameters(),
-        discrete_ll_per_step=disc.log_likelihood / data.n_steps, discrete_parameters=disc.n_parameters,
+        grid=tuple(grid),
+        n_phases=k,
+        continuous_ll_per_step=cont.log_likelihood / data.n_steps,
+        continuous_parameters=cont.n_parameters(),
+        discrete_ll_per_step=disc.log_likelihood / data.n_steps,
+        discrete_parameters=disc.n_parameters,
         continuous_rtd=(start_cont["mean_s"], start_cont["variance_s2"]),
         discrete_rtd=discrete_rtd(disc.transition, feed_d, data.interval_s, target.horizon_s),
         projected_rtd=(start_proj["mean_s"], start_proj["variance_s2"]),
-        continuous_wall_s=wall1 - wall0, discrete_wall_s=wall2 - wall1)
+        continuous_wall_s=wall1 - wall0,
+        discrete_wall_s=wall2 - wall1,
+    )
 
 
-def timescales_over_lags(results: str | Path, grid=(10, 1), lags=(1, 2, 5, 10), n_phases: int = 1,
-                         fit_window_s: tuple[float, float] | None = None, count: int = 3,
-                         steady_time_s: float | None = None) -> dict[int, tuple[float, ...]]:
+def timescales_over_lags(
+    results: str | Path,
+    grid=(10, 1),
+    lags=(1, 2, 5, 10),
+    n_phases: int = 1,
+    fit_window_s: tuple[float, float] | None = None,
+    count: int = 3,
+    steady_time_s: float | None = None,
+) -> dict[int, tuple[float, ...]]:
     """The ``count`` longest implied timescales [s] of the K = ``n_phases`` chain fitted at
     each lag (in dumps), the MSM test of Markovianity: a Markovian chain's are the same at
     every lag, a chain on states that forget too much speeds up (shorter timescales) at
@@ -368,8 +447,9 @@ def _grids(text: str) -> tuple[tuple[int, int], ...]:
 
 def add_arguments(parser) -> None:
     parser.add_argument("--results", required=True, help="DEM results file with compartment sequences (dem-*.h5)")
-    parser.add_argument("--target", default=None, help="DEM results whose pooled RTD and hold-up judge the models "
-                                                       "(default: --results)")
+    parser.add_argument(
+        "--target", default=None, help="DEM results whose pooled RTD and hold-up judge the models (default: --results)"
+    )
     parser.add_argument("--grids", default="10x10,10x1", help="comma-separated NXxNY coarsenings (default %(default)s)")
     parser.add_argument("--ks", default="1,2,3", help="numbers of phases (default %(default)s)")
     parser.add_argument("--starts", type=int, default=3, help="EM starts per fit (default 3)")

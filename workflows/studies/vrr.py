@@ -30,8 +30,10 @@ def run(args: argparse.Namespace) -> int:
     results, config = load_results(args.reference)
     steady = results.summary.steady_state_time_s
     if steady is None or not math.isfinite(steady):
-        raise ConfigError(f"{args.reference}: the DEM run reached no steady state (steady_state_time_s = "
-                          f"{steady!r}); there is no stationary blender to compare")
+        raise ConfigError(
+            f"{args.reference}: the DEM run reached no steady state (steady_state_time_s = "
+            f"{steady!r}); there is no stationary blender to compare"
+        )
     pbm_config = pbm_config_for(config, results.table, rtd_pulse_s=None)
     comparison = vrr_comparison(results.table, pbm_config, float(steady), results.summary, results.particles)
     elapsed_s = time.perf_counter() - started

@@ -30,8 +30,17 @@ def test_both_modes_and_every_row(synthetic_80s):
     assert all(m.pooled is not None for m in modes.values())
     rows = agreement_rows(results.summary, results.particles, modes)
     keys = [r.key for r in rows]
-    for key in ("mean_residence_time_s", "rtd_variance_s2", "holdup", "outflow_per_s", "C_A", "rsd_outlet",
-                "lacey_outlet", "rtd_overlap", "little_mean_residence_time_s"):
+    for key in (
+        "mean_residence_time_s",
+        "rtd_variance_s2",
+        "holdup",
+        "outflow_per_s",
+        "C_A",
+        "rsd_outlet",
+        "lacey_outlet",
+        "rtd_overlap",
+        "little_mean_residence_time_s",
+    ):
         assert key in keys
     assert [k for k in keys if k.startswith("holdup_slice_")] == [f"holdup_slice_{i}" for i in range(1, 5)]
     for row in rows:

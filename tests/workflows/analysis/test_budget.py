@@ -20,8 +20,12 @@ STEADY_S = 10.0  # windows 2.. are steady
 
 def _rates(scale: float) -> dict[str, np.ndarray]:
     """Forward-biased axial rates and faster transverse ones [1/s], zero through walls."""
-    rates = {"x_pos": np.full((NX, NY), 1.5 * scale), "x_neg": np.full((NX, NY), 0.4 * scale),
-             "y_pos": np.full((NX, NY), 2.0 * scale), "y_neg": np.full((NX, NY), 1.0 * scale)}
+    rates = {
+        "x_pos": np.full((NX, NY), 1.5 * scale),
+        "x_neg": np.full((NX, NY), 0.4 * scale),
+        "y_pos": np.full((NX, NY), 2.0 * scale),
+        "y_neg": np.full((NX, NY), 1.0 * scale),
+    }
     rates["x_pos"][1, 1] = 2.5 * scale  # not uniform: the fit must place each rate
     rates["x_neg"][0] = 0.0
     rates["y_pos"][:, -1] = 0.0
@@ -37,24 +41,51 @@ def results():
     rng = np.random.default_rng(20130101)
     shape = (K, NX, NY)
     # before the steady state another generator moves the particles: the refit must not see it
-    transitions = np.stack([
-        simulate_observations(generator(_rates(0.5 if k < 2 else 1.0), NX, NY), np.full(NX * NY, 20000),
-                              n_steps=50, interval_s=INTERVAL_S, rng=rng)
-        for k in range(K)])
-    per_window = {f"rate_{key}": np.stack([_rates(0.5 if k < 2 else 1.0)[key] for k in range(K)]) * 1.01
-                  for key in RATE_KEYS}
+    transitions = np.stack(
+        [
+            simulate_observations(
+                generator(_rates(0.5 if k < 2 else 1.0), NX, NY),
+                np.full(NX * NY, 20000),
+                n_steps=50,
+                interval_s=INTERVAL_S,
+                rng=rng,
+            )
+            for k in range(K)
+        ]
+    )
+    per_window = {
+        f"rate_{key}": np.stack([_rates(0.5 if k < 2 else 1.0)[key] for k in range(K)]) * 1.01 for key in RATE_KEYS
+    }
     per_window["rate_x_pos"][3, 2, 0] = np.nan  # an unmeasured rate stays unmeasured
     table = make_table(
-        t=np.arange(K) * WINDOW_S, x_edges=np.linspace(0, 0.33, NX + 1), y_edges=np.linspace(-0.05, 0.05, NY + 1),
-        vx_pos=rng.uniform(0.01, 0.1, shape), vx_neg=rng.uniform(0.0, 0.02, shape),
-        vy_pos=rng.uniform(0.01, 0.05, shape), vy_neg=rng.uniform(0.01, 0.05, shape),
-        count_A=rng.uniform(5, 50, shape), count_B=rng.uniform(5, 50, shape),
-        n_samples=rng.integers(10, 1000, shape), window_s=WINDOW_S, min_samples=5,
-        attrs={"rates_interval_s": INTERVAL_S}, **per_window)
+        t=np.arange(K) * WINDOW_S,
+        x_edges=np.linspace(0, 0.33, NX + 1),
+        y_edges=np.linspace(-0.05, 0.05, NY + 1),
+        vx_pos=rng.uniform(0.01, 0.1, shape),
+        vx_neg=rng.uniform(0.0, 0.02, shape),
+        vy_pos=rng.uniform(0.01, 0.05, shape),
+        vy_neg=rng.uniform(0.01, 0.05, shape),
+        count_A=rng.uniform(5, 50, shape),
+        count_B=rng.uniform(5, 50, shape),
+        n_samples=rng.integers(10, 1000, shape),
+        window_s=WINDOW_S,
+        min_samples=5,
+        attrs={"rates_interval_s": INTERVAL_S},
+        **per_window,
+    )
     empty = pd.DataFrame()
-    return DemResults(table=table, timeseries=empty, holdup=empty, rsd_by_slice=np.zeros(NX),
-                      rsd_by_slice_floor=np.zeros(NX), rtd=empty, residence_times_s=np.zeros(0), particles=empty,
-                      transitions=transitions, summary=DemSummary(steady_state_time_s=STEADY_S))
+    return DemResults(
+        table=table,
+        timeseries=empty,
+        holdup=empty,
+        rsd_by_slice=np.zeros(NX),
+        rsd_by_slice_floor=np.zeros(NX),
+        rtd=empty,
+        residence_times_s=np.zeros(0),
+        particles=empty,
+        transitions=transitions,
+        summary=DemSummary(steady_state_time_s=STEADY_S),
+    )
 
 
 def test_transient_kept_steady_period_holds_the_mean_seen_by_t_and_refit_recovers_the_generator(results):
@@ -107,8 +138,9 @@ def test_the_whole_run_holds_the_mean_of_every_steady_window(results):
     mean = (n * full.vy_neg[2:]).sum(axis=0) / n.sum(axis=0)
     np.testing.assert_allclose(pooled.vy_neg[2:], np.broadcast_to(mean, (K - 2, NX, NY)), rtol=1e-12)
     np.testing.assert_array_equal(pooled.n_samples[3], full.n_samples[2:].sum(axis=0))
-    np.testing.assert_allclose(pooled.rate_y_pos[4][STEADY_RATES["y_pos"] > 0],
-                               STEADY_RATES["y_pos"][STEADY_RATES["y_pos"] > 0], rtol=0.04)
+    np.testing.assert_allclose(
+        pooled.rate_y_pos[4][STEADY_RATES["y_pos"] > 0], STEADY_RATES["y_pos"][STEADY_RATES["y_pos"] > 0], rtol=0.04
+    )
     with pytest.raises(ValueError, match="the table has none after it"):
         table_from_first(results, K * WINDOW_S, 100.0)
 
@@ -119,14 +151,21 @@ def test_t_beyond_the_end_is_the_whole_run(results):
         np.testing.assert_array_equal(getattr(beyond, name), getattr(whole, name), err_msg=name)
 
 
-@pytest.mark.parametrize("t_use, steady, match", [
-    (10.0, STEADY_S, r"T = 10 s: no complete 5-s window lies in \[steady time 10 s, T\); the first one ends at 15 s"),
-    (12.0, STEADY_S, r"T = 12 s"),
-    (25.0, 100.0, r"T = 25 s.*steady time 100 s, T\); the table has none after it"),
-    (25.0, math.nan, r"T = 25 s: the steady-state time is nan"),
-    (math.inf, STEADY_S, r"T = inf"),
-    (-5.0, STEADY_S, r"T = -5.0"),
-])
+@pytest.mark.parametrize(
+    "t_use, steady, match",
+    [
+        (
+            10.0,
+            STEADY_S,
+            r"T = 10 s: no complete 5-s window lies in \[steady time 10 s, T\); the first one ends at 15 s",
+        ),
+        (12.0, STEADY_S, r"T = 12 s"),
+        (25.0, 100.0, r"T = 25 s.*steady time 100 s, T\); the table has none after it"),
+        (25.0, math.nan, r"T = 25 s: the steady-state time is nan"),
+        (math.inf, STEADY_S, r"T = inf"),
+        (-5.0, STEADY_S, r"T = -5.0"),
+    ],
+)
 def test_bad_t_raises(results, t_use, steady, match):
     with pytest.raises(ValueError, match=match):
         table_from_first(results, t_use, steady)
@@ -138,10 +177,18 @@ def _row(key, dem_low, dem_high, pbm, noise_low=None):
 
 
 def test_judge_uses_half_the_full_runs_interval_and_the_noise_band_for_the_overlap():
-    full = [_row("holdup", 90.0, 110.0, 130.0), _row("rtd_recovered_fraction", 0.99, 1.0, 0.5),
-            _row("rtd_overlap", 0.95, 1.0, 0.9, noise_low=0.96), _row("C_A", 0.5, 0.5, 0.5)]
-    at_t = [_row("holdup", 90.0, 110.0, 139.0), _row("rtd_recovered_fraction", 0.99, 1.0, 0.0),
-            _row("rtd_overlap", 0.95, 1.0, 0.95, noise_low=0.9), _row("C_A", 0.5, 0.5, 0.5)]
+    full = [
+        _row("holdup", 90.0, 110.0, 130.0),
+        _row("rtd_recovered_fraction", 0.99, 1.0, 0.5),
+        _row("rtd_overlap", 0.95, 1.0, 0.9, noise_low=0.96),
+        _row("C_A", 0.5, 0.5, 0.5),
+    ]
+    at_t = [
+        _row("holdup", 90.0, 110.0, 139.0),
+        _row("rtd_recovered_fraction", 0.99, 1.0, 0.0),
+        _row("rtd_overlap", 0.95, 1.0, 0.95, noise_low=0.9),
+        _row("C_A", 0.5, 0.5, 0.5),
+    ]
     rows = {row.key: row for row in judge(at_t, full, "velocity")}
     assert "rtd_recovered_fraction" not in rows  # not judged
     assert rows["holdup"].tolerance == 10.0 and rows["holdup"].ok  # 9 <= 10, though outside the DEM's

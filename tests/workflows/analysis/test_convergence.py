@@ -57,13 +57,13 @@ def test_watch_checks_on_time_and_stops_after_a_converged_check():
 
 @pytest.mark.liggghts
 def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
-    config = variant(load_preset("smoke"), operation={"duration_s": 6.0}, numerics={"restart_interval_s": 1.0},
-                     run={"np": 1})
+    config = variant(
+        load_preset("smoke"), operation={"duration_s": 6.0}, numerics={"restart_interval_s": 1.0}, run={"np": 1}
+    )
     runs = tmp_path / "runs"
 
     def stop_at_3(run_dir):
-        return ConvergenceWatch(config, run_dir, every_s=1.5,
-                                check=lambda t: Convergence(t >= 3.0, t))
+        return ConvergenceWatch(config, run_dir, every_s=1.5, check=lambda t: Convergence(t >= 3.0, t))
 
     side = dem_stage(config, runs_root=runs, progress=False, watch=stop_at_3)
     assert side.provenance["run_state"] == STOPPED and "converged" in side.provenance["stop_reason"]
@@ -84,10 +84,13 @@ def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
     assert full.cache_file != side.cache_file
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--check-every", "10"], "--check-every needs --stop-when-converged"),
-    (["--stop-when-converged", "--check-every", "0"], "--check-every must be a number of seconds > 0, got 0"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--check-every", "10"], "--check-every needs --stop-when-converged"),
+        (["--stop-when-converged", "--check-every", "0"], "--check-every must be a number of seconds > 0, got 0"),
+    ],
+)
 def test_cli_refuses_bad_convergence_flags(tmp_path, capsys, argv, message):
     from workflows.cli.main import main
 

@@ -34,11 +34,14 @@ def test_step_config_adds_a_second_feeder_that_starts_on_time():
     assert STEP_FEEDER not in build_deck(load_preset("validation").dem)["in.blender"]
 
 
-@pytest.mark.parametrize("assignments, message", [
-    (("dem.operation.step_time_s=80", "dem.operation.step_factor_a=0.5"), "must be > 1"),
-    (("dem.operation.step_factor_a=2",), "needs step_time_s"),
-    (("dem.operation.step_time_s=300", "dem.operation.step_factor_a=2"), "before the end"),
-])
+@pytest.mark.parametrize(
+    "assignments, message",
+    [
+        (("dem.operation.step_time_s=80", "dem.operation.step_factor_a=0.5"), "must be > 1"),
+        (("dem.operation.step_factor_a=2",), "needs step_time_s"),
+        (("dem.operation.step_time_s=300", "dem.operation.step_factor_a=2"), "before the end"),
+    ],
+)
 def test_bad_steps_are_refused(assignments, message):
     with pytest.raises(ConfigError, match=message):
         override(load_preset("validation"), *assignments)
@@ -52,10 +55,25 @@ def test_pbm_step_is_off_its_feed_grid_refused():
 def test_pbm_step_matches_a_single_tank():
     k, f_a, f_b, t0, factor = 0.1, 10.0, 10.0, 20.0, 2.0
     v = k * 0.33  # one compartment of length 0.33 m: rate v / dx = k
-    table = make_table(t=[0.0, 30.0], x_edges=[0.0, 0.33], y_edges=[-0.05, 0.05], vx_pos=v, vx_neg=0.0, vy_pos=0.0,
-                       vy_neg=0.0, window_s=30.0)
-    config = PbmConfig(feed_rate_a_per_s=f_a, feed_rate_b_per_s=f_b, feed_weights_a=[1.0], feed_weights_b=[1.0],
-                       feed_step_s=t0, feed_step_factor_a=factor, duration_s=60.0)
+    table = make_table(
+        t=[0.0, 30.0],
+        x_edges=[0.0, 0.33],
+        y_edges=[-0.05, 0.05],
+        vx_pos=v,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        window_s=30.0,
+    )
+    config = PbmConfig(
+        feed_rate_a_per_s=f_a,
+        feed_rate_b_per_s=f_b,
+        feed_weights_a=[1.0],
+        feed_weights_b=[1.0],
+        feed_step_s=t0,
+        feed_step_factor_a=factor,
+        duration_s=60.0,
+    )
     result = simulate(table, config)
 
     def discharged(rate, t, start):  # particles out of an empty tank fed `rate` from `start`
@@ -116,22 +134,37 @@ def test_step_records_keep_the_summary_json_layout():
     dem = synthetic_dem(t, c, n)
     judged = judge_step(dem, pbm, 80.0, 1.0, (0.5, 2 / 3), n_boot=200)
     row = StepRow("self", "velocity", judged)
-    comparison = StepComparison(step_s=80.0, factor_a=2.0, interval_s=1.0, rows=(row,), dem=dem,
-                                series={("self", "velocity"): pbm})
+    comparison = StepComparison(
+        step_s=80.0, factor_a=2.0, interval_s=1.0, rows=(row,), dem=dem, series={("self", "velocity"): pbm}
+    )
     record = comparison.record()
     assert list(record) == ["step_s", "factor_a", "interval_s", "rows"]
     assert (record["step_s"], record["factor_a"], record["interval_s"]) == (80.0, 2.0, 1.0)
     (r,) = record["rows"]
-    assert list(r) == ["source", "mode", "intervals_after_step", "deviance", "deviance_p", "time_scale",
-                       "time_scale_inside", "dem_delay_s", "pbm_delay_s", "delay_inside", "predicted"]
+    assert list(r) == [
+        "source",
+        "mode",
+        "intervals_after_step",
+        "deviance",
+        "deviance_p",
+        "time_scale",
+        "time_scale_inside",
+        "dem_delay_s",
+        "pbm_delay_s",
+        "delay_inside",
+        "predicted",
+    ]
     assert (r["source"], r["mode"], r["intervals_after_step"]) == ("self", "velocity", 90)
     assert list(r["time_scale"]) == ["value", "low", "high", "at_bound"]
     assert list(r["dem_delay_s"]) == ["value", "low", "high"]
     scale, delay = judged.time_scale, judged.dem_delay_s
     assert r["time_scale"] == {"value": scale.value, "low": scale.low, "high": scale.high, "at_bound": scale.at_bound}
     assert r["dem_delay_s"] == {"value": delay.estimate, "low": delay.low, "high": delay.high}
-    assert (r["deviance"], r["deviance_p"], r["pbm_delay_s"]) == (judged.deviance, judged.deviance_p,
-                                                                   judged.pbm_delay_s)
+    assert (r["deviance"], r["deviance_p"], r["pbm_delay_s"]) == (
+        judged.deviance,
+        judged.deviance_p,
+        judged.pbm_delay_s,
+    )
     assert r["time_scale_inside"] == (scale.low <= 1 <= scale.high)
     assert r["delay_inside"] == (delay.low <= judged.pbm_delay_s <= delay.high)
     assert r["predicted"] == (r["time_scale_inside"] and r["deviance_p"] >= 0.05)
@@ -159,8 +192,9 @@ def test_shipped_step_run_is_found_and_judged(tmp_path):
 
     side = run_step(runs_root=tmp_path, solver=False, log=lambda message: None)
     assert side.source == "reference"
-    base = run_campaign(tmp_path, solver=False, log=lambda message: None,
-                        configs={"baseline": campaign_configs()["baseline"]})["baseline"]
+    base = run_campaign(
+        tmp_path, solver=False, log=lambda message: None, configs={"baseline": campaign_configs()["baseline"]}
+    )["baseline"]
     comparison = step_comparison(side, base, step_config())
     rows = {(r.source, r.mode): r.judgement for r in comparison.rows}
     assert set(rows) == {(s, m) for s in ("self", "baseline") for m in ("velocity", "measured")}

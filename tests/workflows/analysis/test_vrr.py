@@ -30,14 +30,18 @@ def records(residence_a, residence_b, rng, window=WINDOW):
     rows = []
     for code, tau in ((1, residence_a), (2, residence_b)):
         entry = rng.uniform(*window, size=tau.size)
-        rows.append(pd.DataFrame({"component": np.full(tau.size, code, dtype=np.int8), "entry_t_s": entry,
-                                  "exit_t_s": entry + tau}))
+        rows.append(
+            pd.DataFrame(
+                {"component": np.full(tau.size, code, dtype=np.int8), "entry_t_s": entry, "exit_t_s": entry + tau}
+            )
+        )
     return pd.concat(rows, ignore_index=True)
 
 
 def spec(window=WINDOW, horizon=HORIZON, n_entered=1, mean=MEAN_S):
-    return PooledRtdSummary(horizon, tuple(window), n_entered, mean_residence_time_s=Estimate(mean, mean, mean),
-                            bin_s=1.0)
+    return PooledRtdSummary(
+        horizon, tuple(window), n_entered, mean_residence_time_s=Estimate(mean, mean, mean), bin_s=1.0
+    )
 
 
 def test_single_tank_exponential_rtd_recovered_within_interval(rng):
@@ -52,8 +56,8 @@ def test_single_tank_exponential_rtd_recovered_within_interval(rng):
     assert d.n_entered == n + 1 and d.n_recovered == n
     assert d.H[0] == pytest.approx(1.0, abs=1e-12)  # conditional on recovery: all of it leaves
     assert np.all((d.abs_H.low <= exact) & (exact <= d.abs_H.high)), (d.abs_H, exact)
-    np.testing.assert_allclose(d.vrr.estimate, 1 / d.abs_H.estimate ** 2)
-    assert np.all(d.vrr.low <= 1 / exact ** 2) and np.all(1 / exact ** 2 <= d.vrr.high)
+    np.testing.assert_allclose(d.vrr.estimate, 1 / d.abs_H.estimate**2)
+    assert np.all(d.vrr.low <= 1 / exact**2) and np.all(1 / exact**2 <= d.vrr.high)
     assert d.floor == pytest.approx(1 / math.sqrt(n))
     assert d.resolved.all()
     # the component code and the feeder name select the same particles
@@ -85,9 +89,19 @@ def chain_table(n_tanks, k_per_s, length_m=0.3):
     """n tanks in series (NY = 1), forward rate k in both rate modes; nothing moves back."""
     dx = length_m / n_tanks
     zero = np.zeros((1, n_tanks, 1))
-    return make_table(t=5.0 * np.arange(12), x_edges=np.linspace(0, length_m, n_tanks + 1),
-                      y_edges=np.array([-0.05, 0.05]), vx_pos=k_per_s * dx, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0,
-                      rate_x_pos=zero + k_per_s, rate_x_neg=zero, rate_y_pos=zero, rate_y_neg=zero)
+    return make_table(
+        t=5.0 * np.arange(12),
+        x_edges=np.linspace(0, length_m, n_tanks + 1),
+        y_edges=np.array([-0.05, 0.05]),
+        vx_pos=k_per_s * dx,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        rate_x_pos=zero + k_per_s,
+        rate_x_neg=zero,
+        rate_y_pos=zero,
+        rate_y_neg=zero,
+    )
 
 
 def half_widths(value, interval: Interval):
@@ -165,50 +179,100 @@ def assert_record_matches(c: VrrComparison) -> None:
     assert set(r["interval"]) == {"block_s", "n_boot", "level", "seed", "method"}
     for f, d in c.dem.items():
         rd = r["dem"][f]
-        assert list(rd) == ["n_entered", "n_recovered", "n_blocks", "recovered_fraction", "mean_residence_time_s",
-                            "floor_abs_H", "resolved", "abs_H", "vrr", "noise"]
+        assert list(rd) == [
+            "n_entered",
+            "n_recovered",
+            "n_blocks",
+            "recovered_fraction",
+            "mean_residence_time_s",
+            "floor_abs_H",
+            "resolved",
+            "abs_H",
+            "vrr",
+            "noise",
+        ]
         assert rd["floor_abs_H"] == d.floor and rd["recovered_fraction"] == d.n_recovered / d.n_entered
         assert rd["vrr"]["value"] is d.vrr.estimate and rd["abs_H"]["high"] is d.abs_H.high
         assert [list(row) for row in rd["noise"]] == [["tau_s", "value", "low", "high", "uncorrected"]] * len(d.noise)
     for mode, m in c.pbm.items():
         rm = r["pbm"][mode]
-        assert list(rm) == ["feeders", "windows_averaged", "n_judged", "n_inside", "inside_fraction", "worst",
-                            "worst_outside", "ensemble_check"]
+        assert list(rm) == [
+            "feeders",
+            "windows_averaged",
+            "n_judged",
+            "n_inside",
+            "inside_fraction",
+            "worst",
+            "worst_outside",
+            "ensemble_check",
+        ]
         assert rm["n_judged"] == sum(int(np.sum(c.dem[f].resolved)) for f in c.dem)
         assert rm["n_inside"] == sum(v is True for fv in m.feeders.values() for v in fv.inside)
-        assert rm["worst"] == {"ratio_pbm_to_dem": m.worst.ratio_pbm_to_dem, "feeder": m.worst.feeder,
-                               "frequency_hz": m.worst.frequency_hz}
+        assert rm["worst"] == {
+            "ratio_pbm_to_dem": m.worst.ratio_pbm_to_dem,
+            "feeder": m.worst.feeder,
+            "frequency_hz": m.worst.frequency_hz,
+        }
         assert isinstance(rm["windows_averaged"], list) and len(rm["windows_averaged"]) == 2
         for f, fv in m.feeders.items():
             rf = rm["feeders"][f]
             assert list(rf) == ["mean_residence_time_s", "abs_H", "vrr", "inside", "noise"]
             assert rf["vrr"] is fv.vrr and rf["inside"] == list(fv.inside)
             for row, n in zip(rf["noise"], fv.noise):
-                assert row == {"tau_s": n.tau_s, "vrr": n.vrr, "dem": {"value": n.dem.estimate, "low": n.dem.low,
-                                                                      "high": n.dem.high},
-                               "inside": n.inside, "ratio_to_dem": n.ratio_to_dem}
+                assert row == {
+                    "tau_s": n.tau_s,
+                    "vrr": n.vrr,
+                    "dem": {"value": n.dem.estimate, "low": n.dem.low, "high": n.dem.high},
+                    "inside": n.inside,
+                    "ratio_to_dem": n.ratio_to_dem,
+                }
         (row,) = rm["ensemble_check"]
-        assert list(row) == ["sigma", "members", "from_s", "sd_time_domain", "sd_frequency_domain",
-                             "relative_difference", "ensemble_s"]
+        assert list(row) == [
+            "sigma",
+            "members",
+            "from_s",
+            "sd_time_domain",
+            "sd_frequency_domain",
+            "relative_difference",
+            "ensemble_s",
+        ]
     json_ready(r)  # nothing but JSON-able values (numpy arrays, floats, None) below the keys
 
 
 def test_velocity_only_table_gives_one_mode(rng):
-    table = make_table(t=[0.0, 5.0], x_edges=np.linspace(0, 0.3, 3), y_edges=np.array([-0.05, 0.05]),
-                       vx_pos=0.3 / 2 * 0.2, vx_neg=0.0, vy_pos=0.0, vy_neg=0.0)
+    table = make_table(
+        t=[0.0, 5.0],
+        x_edges=np.linspace(0, 0.3, 3),
+        y_edges=np.array([-0.05, 0.05]),
+        vx_pos=0.3 / 2 * 0.2,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+    )
     particles = records(rng.gamma(2, 5.0, 1000), rng.gamma(2, 5.0, 1000), rng)
-    c = vrr_comparison(table, PbmConfig(), 0.0, DemSummary(pooled_rtd=spec(n_entered=2000, mean=10.0)), particles,
-                       frequencies=[0.01, 0.05], noise_taus_s=(0.0,), n_boot=100)
+    c = vrr_comparison(
+        table,
+        PbmConfig(),
+        0.0,
+        DemSummary(pooled_rtd=spec(n_entered=2000, mean=10.0)),
+        particles,
+        frequencies=[0.01, 0.05],
+        noise_taus_s=(0.0,),
+        n_boot=100,
+    )
     assert list(c.pbm) == ["velocity"] and list(c.record()["pbm"]) == ["velocity"]
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"component": "C"}, "component must be one of"),
-    ({"component": 3}, "component must be one of"),
-    ({"pooled_spec": None}, "pooled RTD"),
-    ({"pooled_spec": spec(window=(190.0, 194.0))}, "at least two blocks"),
-    ({"frequencies": [-1.0]}, "frequencies must be"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"component": "C"}, "component must be one of"),
+        ({"component": 3}, "component must be one of"),
+        ({"pooled_spec": None}, "pooled RTD"),
+        ({"pooled_spec": spec(window=(190.0, 194.0))}, "at least two blocks"),
+        ({"frequencies": [-1.0]}, "frequencies must be"),
+    ],
+)
 def test_bad_inputs_raise_config_error_naming_the_value(rng, kwargs, match):
     particles = records(rng.exponential(5.0, 200), rng.exponential(5.0, 200), rng)
     args = {"particles": particles, "pooled_spec": spec(), "frequencies": [0.01], "component": "A", **kwargs}

@@ -83,8 +83,13 @@ Neighbor list builds = 7
 Dangerous builds = 0
 """
     out = loop_details("Loop time of 9 on 1 procs for 1 steps with 1 atoms\nPair  time (%) = 9 (100)\n" + log)
-    assert out["sections_s"] == {"Pair": 1.04285, "Neigh": 0.5, "Comm": 0.000195497, "Outpt": 4.4997e-05,
-                                 "Other": 0.234003}
+    assert out["sections_s"] == {
+        "Pair": 1.04285,
+        "Neigh": 0.5,
+        "Comm": 0.000195497,
+        "Outpt": 4.4997e-05,
+        "Other": 0.234003,
+    }
     assert out["neighbours_per_particle"] == 5.33571 and out["neighbour_builds"] == 7
     assert loop_details("no timing here") == {}
 
@@ -94,9 +99,12 @@ Dangerous builds = 0
 # --------------------------------------------------------------------------------------
 
 #: lines the drum must share with the blender deck, word for word: the physics and numerics
-_SHARED = re.compile(r"^(atom_style|atom_modify|boundary|newton|communicate|units|processors|region +domain|"
-                     r"create_box|neighbor|neigh_modify|hard_particles|pair_style|pair_coeff|timestep|thermo +\d|"
-                     r"fix +(m\d|gravi|pt[AB]\d+|integr|ts) ).*$", re.M)
+_SHARED = re.compile(
+    r"^(atom_style|atom_modify|boundary|newton|communicate|units|processors|region +domain|"
+    r"create_box|neighbor|neigh_modify|hard_particles|pair_style|pair_coeff|timestep|thermo +\d|"
+    r"fix +(m\d|gravi|pt[AB]\d+|integr|ts) ).*$",
+    re.M,
+)
 
 
 def _lines(text: str, start: str) -> list[str]:
@@ -110,11 +118,14 @@ def test_drum_deck_is_the_blender_barrel_spinning(preset):
     blender = build_deck(dem)[MAIN_DECK]
     drum = build_drum_deck(dem, particles=1490, steps=30000)[DRUM_DECK]
     assert _SHARED.findall(drum) and sorted(m.group(0) for m in _SHARED.finditer(drum)) == sorted(
-        m.group(0) for m in _SHARED.finditer(blender))
+        m.group(0) for m in _SHARED.finditer(blender)
+    )
     box = simulation_box(g)
     assert _lines(drum, "region          domain") == [
-        "region          domain block " + " ".join(f"{v:.10g}" for v in (box.xmin, box.xmax, box.ymin, box.ymax,
-                                                                         box.zmin, box.zmax)) + " units box"]
+        "region          domain block "
+        + " ".join(f"{v:.10g}" for v in (box.xmin, box.xmax, box.ymin, box.ymax, box.zmin, box.zmax))
+        + " units box"
+    ]
     # the blender's barrel primitive, spinning about x at V = sqrt(Fr g R), Fr = 0.5
     (barrel_blender,) = _lines(blender, "fix barrel ")
     (barrel,) = _lines(drum, "fix barrel ")
@@ -126,7 +137,8 @@ def test_drum_deck_is_the_blender_barrel_spinning(preset):
     assert "mesh" not in drum and "insert/rate" not in drum and "massflow" not in drum and "dump" not in drum
     # the insertion region is the whole barrel; the count is the blender's bed; then unfix and measure
     assert _lines(drum, "region          fill") == [
-        f"region          fill cylinder x 0 0 {g.radius_m:.10g} 0 {g.length_m:.10g} units box"]
+        f"region          fill cylinder x 0 0 {g.radius_m:.10g} 0 {g.length_m:.10g} units box"
+    ]
     (ins,) = _lines(drum, "fix ins ")
     assert "insert/pack" in ins and "particles_in_region 1490 region fill" in ins
     runs = [line.split()[1] for line in _lines(drum, "run ")]
@@ -170,13 +182,19 @@ def test_variant_edits_change_exactly_what_they_say():
 
     expected = {
         "nodump": ([_lines(text, "dump ")[0]], []),
-        "no_massflow": ([fix_line("outA"), fix_line("outB"), variable("outA"), variable("outB"), _THERMO],
-                        [_THERMO.replace(" v_outA v_outB", "")]),
-        "no_insertion": ([fix_line("insA"), fix_line("insB"), variable("insA"), variable("insB"), _THERMO],
-                         [_THERMO.replace(" v_insA v_insB", "")]),
+        "no_massflow": (
+            [fix_line("outA"), fix_line("outB"), variable("outA"), variable("outB"), _THERMO],
+            [_THERMO.replace(" v_outA v_outB", "")],
+        ),
+        "no_insertion": (
+            [fix_line("insA"), fix_line("insB"), variable("insA"), variable("insB"), _THERMO],
+            [_THERMO.replace(" v_insA v_insB", "")],
+        ),
         "no_timestep_check": ([fix_line("ts"), _THERMO], [_THERMO.replace(" f_ts[1] f_ts[2]", "")]),
-        "no_weir": ([fix_line("walls")], [fix_line("walls").replace("n_meshes 2 meshes impeller weir",
-                                                                   "n_meshes 1 meshes impeller")]),
+        "no_weir": (
+            [fix_line("walls")],
+            [fix_line("walls").replace("n_meshes 2 meshes impeller weir", "n_meshes 1 meshes impeller")],
+        ),
         "static_impeller": ([fix_line("rotor")], []),
         "skin_0.75d": (["neighbor        0.003 bin"], ["neighbor        0.0045 bin"]),  # smoke: d = 6 mm
     }
@@ -212,8 +230,11 @@ def test_every_variant_runs_on_one_rank_and_nodump_on_all():
     plan = bench_dem_deck._plan([1, 2], list(VARIANTS))
     assert plan[0] == ("blender", 1, None) and plan[len(VARIANTS) + 1] == ("drum", 1, None)
     assert [v for kind, np_, v in plan if np_ == 1 and v] == list(VARIANTS)
-    assert [(kind, v) for kind, np_, v in plan if np_ == 2] == [("blender", None), ("blender", "nodump"),
-                                                                 ("drum", None)]
+    assert [(kind, v) for kind, np_, v in plan if np_ == 2] == [
+        ("blender", None),
+        ("blender", "nodump"),
+        ("drum", None),
+    ]
 
 
 # --------------------------------------------------------------------------------------
@@ -224,13 +245,39 @@ def test_every_variant_runs_on_one_rank_and_nodump_on_all():
 @pytest.mark.liggghts
 def test_tiny_benchmark_run_writes_every_key(tmp_path):
     out = tmp_path / "dem_deck.json"
-    assert main(["bench", "dem-deck", "--steps", "200", "--fill-s", "0.3", "--repeats", "1", "--work", str(tmp_path / "work"),
-                         "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "dem-deck",
+                "--steps",
+                "200",
+                "--fill-s",
+                "0.3",
+                "--repeats",
+                "1",
+                "--work",
+                str(tmp_path / "work"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     record = json.loads(out.read_text())
-    for key in ("blender_particle_steps_per_s_serial", "blender_particle_steps_per_s_np2",
-                "blender_nodump_particle_steps_per_s_serial", "drum_particle_steps_per_s_serial",
-                "drum_particle_steps_per_s_np2", "efficiency_serial", "efficiency_np2", "speedup_np2_blender",
-                "speedup_np2_whole_run", "dump_overhead_serial", "dump_overhead_np2"):
+    for key in (
+        "blender_particle_steps_per_s_serial",
+        "blender_particle_steps_per_s_np2",
+        "blender_nodump_particle_steps_per_s_serial",
+        "drum_particle_steps_per_s_serial",
+        "drum_particle_steps_per_s_np2",
+        "efficiency_serial",
+        "efficiency_np2",
+        "speedup_np2_blender",
+        "speedup_np2_whole_run",
+        "dump_overhead_serial",
+        "dump_overhead_np2",
+    ):
         assert record[key] > 0 or key.startswith("dump_overhead"), key
     assert set(record["variant_costs"]) == {f"blender_{v}_np1" for v in VARIANTS} | {"blender_nodump_np2"}
     for entry in record["variant_costs"].values():
@@ -239,6 +286,10 @@ def test_tiny_benchmark_run_writes_every_key(tmp_path):
     for runs in record["runs"].values():
         (run,) = runs
         assert run["load_before"] >= 0 and run["load_after"] >= 0 and run["steps"] == 200
-    assert record["targets"] == {"efficiency_min": 0.9, "speedup_np2_min": 1.7, "speedup_np2_whole_run_min": 1.5,
-                                 "dump_overhead_max": 0.05}
+    assert record["targets"] == {
+        "efficiency_min": 0.9,
+        "speedup_np2_min": 1.7,
+        "speedup_np2_whole_run_min": 1.5,
+        "dump_overhead_max": 0.05,
+    }
     assert record["particles"] == record["runs"]["drum_np1"][0]["atoms_end"]

@@ -9,13 +9,16 @@ from workflows.bench import machine as bench_machine
 from workflows.cli.main import main
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--particles", "1546,many"], "comma-separated whole numbers"),
-    (["--particles", "0"], ">= 1"),
-    (["--launchers", "mpirun -np 2"], "no {np}"),
-    (["--repeats", "0"], "--repeats 0: expected a whole number >= 1"),
-    (["--steps", "-5"], "--steps -5: expected a whole number >= 1"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--particles", "1546,many"], "comma-separated whole numbers"),
+        (["--particles", "0"], ">= 1"),
+        (["--launchers", "mpirun -np 2"], "no {np}"),
+        (["--repeats", "0"], "--repeats 0: expected a whole number >= 1"),
+        (["--steps", "-5"], "--steps -5: expected a whole number >= 1"),
+    ],
+)
 def test_bad_arguments_are_refused_by_name(argv, message, capsys):
     try:
         code = main(["bench", "machine", *argv])
@@ -34,8 +37,25 @@ def test_launcher_labels():
 def test_tiny_run_records_bound_and_speedups(tmp_path):
     out = tmp_path / "machine.json"
     launcher = "mpirun --allow-run-as-root --oversubscribe -np {np}"
-    assert main(["bench", "machine", "--particles", "60", "--steps", "200", "--repeats", "1", "--launchers", launcher,
-                        "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "machine",
+                "--particles",
+                "60",
+                "--steps",
+                "200",
+                "--repeats",
+                "1",
+                "--launchers",
+                launcher,
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     record = json.loads(out.read_text())
     (bed,) = record["beds"]
     assert bed["particles"] == 60 and len(bed["alone"]) == len(bed["together"]) == 1

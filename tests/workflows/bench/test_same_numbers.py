@@ -30,16 +30,28 @@ from workflows.cli.main import main
 
 DECK = "# deck\nunits si\ntimestep 5.9e-05\nrun 100000\n"
 SUMMARY = {
-    "metrics": {"mean_residence_time_pbm_s": 18.404478384334823, "pbm_wall_time_s": 0.118,
-                "speedup_pbm_over_dem": 16201.9, "nan_value": math.nan},
-    "provenance": {"report_made": "2026-12-01T21:26:21+00:00", "commit": "9964567",
-                   "dem_wall_time_s": 1912.187176669, "dem_results_made": "2026-11-23T13:01:53+00:00"},
-    "pbm_modes": {"velocity": {"wall_time_s": 0.12, "holdup": [2356.0, 1.5]},
-                  "measured": {"wall_time_s": 0.17, "holdup": [2292.0, 1.25]}},
+    "metrics": {
+        "mean_residence_time_pbm_s": 18.404478384334823,
+        "pbm_wall_time_s": 0.118,
+        "speedup_pbm_over_dem": 16201.9,
+        "nan_value": math.nan,
+    },
+    "provenance": {
+        "report_made": "2026-12-01T21:26:21+00:00",
+        "commit": "9964567",
+        "dem_wall_time_s": 1912.187176669,
+        "dem_results_made": "2026-11-23T13:01:53+00:00",
+    },
+    "pbm_modes": {
+        "velocity": {"wall_time_s": 0.12, "holdup": [2356.0, 1.5]},
+        "measured": {"wall_time_s": 0.17, "holdup": [2292.0, 1.25]},
+    },
     "vrr": {"pbm": {"velocity": {"ensemble_check": [{"ensemble_s": 1.1, "sd_time_domain": 0.0062}]}}},
 }
-REPORT = ("<html><table><tr><td>mrt</td><td>18.4</td></tr>"
-          "<tr><td>report_made</td><td>2026-12-01T21:26:21+00:00</td></tr></table>\n<p>end</p>\n")
+REPORT = (
+    "<html><table><tr><td>mrt</td><td>18.4</td></tr>"
+    "<tr><td>report_made</td><td>2026-12-01T21:26:21+00:00</td></tr></table>\n<p>end</p>\n"
+)
 
 
 def make_tree(root: Path, summary: dict | None = None, deck: str = DECK, report: str = REPORT) -> Path:
@@ -89,19 +101,22 @@ def test_identical_trees_differ_in_nothing(before: Path, tmp_path: Path) -> None
 
 
 def test_a_changed_number_is_reported(before: Path, tmp_path: Path) -> None:
-    after = make_tree(tmp_path / "after",
-                      changed_summary(metrics__mean_residence_time_pbm_s=18.404478384334825))
-    assert compare_trees(before, after) == [Difference("results/reduced-17ea/summary.json",
-                                                       "metrics.mean_residence_time_pbm_s",
-                                                       18.404478384334823, 18.404478384334825)]
+    after = make_tree(tmp_path / "after", changed_summary(metrics__mean_residence_time_pbm_s=18.404478384334825))
+    assert compare_trees(before, after) == [
+        Difference(
+            "results/reduced-17ea/summary.json",
+            "metrics.mean_residence_time_pbm_s",
+            18.404478384334823,
+            18.404478384334825,
+        )
+    ]
 
 
 def test_a_changed_number_in_a_list_is_reported(before: Path, tmp_path: Path) -> None:
     data = changed_summary()
     data["pbm_modes"]["measured"]["holdup"][1] = 1.2500000000000002
     diffs = compare_trees(before, make_tree(tmp_path / "after", data))
-    assert [(d.where, d.before, d.after) for d in diffs] == [("pbm_modes.measured.holdup[1]", 1.25,
-                                                                1.2500000000000002)]
+    assert [(d.where, d.before, d.after) for d in diffs] == [("pbm_modes.measured.holdup[1]", 1.25, 1.2500000000000002)]
 
 
 def test_nan_equals_nan_but_not_a_number(before: Path, tmp_path: Path) -> None:
@@ -114,14 +129,17 @@ def test_an_int_that_became_a_float_is_reported(before: Path, tmp_path: Path) ->
     data = changed_summary()
     data["pbm_modes"]["velocity"]["holdup"][0] = 2356  # same value, int instead of float
     assert [d.where for d in compare_trees(before, make_tree(tmp_path / "after", data))] == [
-        "pbm_modes.velocity.holdup[0]"]
+        "pbm_modes.velocity.holdup[0]"
+    ]
 
 
 def test_a_missing_and_an_extra_key_are_reported(before: Path, tmp_path: Path) -> None:
     data = changed_summary(provenance__dem_wall_time_s=KeyError, metrics__new_key=1)
     diffs = compare_trees(before, make_tree(tmp_path / "after", data))
     assert sorted((d.where, d.before, d.after) for d in diffs) == [
-        ("metrics.new_key", "<absent>", 1), ("provenance.dem_wall_time_s", 1912.187176669, "<absent>")]
+        ("metrics.new_key", "<absent>", 1),
+        ("provenance.dem_wall_time_s", 1912.187176669, "<absent>"),
+    ]
 
 
 def test_an_extra_file_and_a_missing_file_are_reported(before: Path, tmp_path: Path) -> None:
@@ -139,7 +157,8 @@ def test_an_extra_file_and_a_missing_file_are_reported(before: Path, tmp_path: P
 def test_a_changed_deck_line_is_reported_with_its_number(before: Path, tmp_path: Path) -> None:
     after = make_tree(tmp_path / "after", deck=DECK.replace("5.9e-05", "5.8e-05"))
     assert compare_trees(before, after) == [
-        Difference("decks/smoke/in.blender", "line 3", "timestep 5.9e-05", "timestep 5.8e-05")]
+        Difference("decks/smoke/in.blender", "line 3", "timestep 5.9e-05", "timestep 5.8e-05")
+    ]
 
 
 def test_an_inserted_deck_line_is_one_difference(before: Path, tmp_path: Path) -> None:
@@ -148,8 +167,12 @@ def test_an_inserted_deck_line_is_one_difference(before: Path, tmp_path: Path) -
 
 
 def test_ignored_timestamps_and_wall_times_are_not_reported(before: Path, tmp_path: Path) -> None:
-    data = changed_summary(provenance__report_made="2030-01-01T00:00:00+00:00", provenance__commit="abcdef0",
-                           metrics__pbm_wall_time_s=9.9, metrics__speedup_pbm_over_dem=1.0)
+    data = changed_summary(
+        provenance__report_made="2030-01-01T00:00:00+00:00",
+        provenance__commit="abcdef0",
+        metrics__pbm_wall_time_s=9.9,
+        metrics__speedup_pbm_over_dem=1.0,
+    )
     data["pbm_modes"]["velocity"]["wall_time_s"] = 3.0
     data["vrr"]["pbm"]["velocity"]["ensemble_check"][0]["ensemble_s"] = 2.0
     report = REPORT.replace("2026-12-01T21:26:21+00:00", "2030-01-01T00:00:00+00:00")
@@ -204,8 +227,12 @@ def test_capture_refuses_a_non_empty_directory_and_writes_nothing(tmp_path: Path
 def test_the_steps_write_under_the_tree_in_the_layout_compared() -> None:
     out = Path("/captures/x")
     steps = capture_steps(out)
-    assert [s.name for s in steps] == [*(f"{kind}-{p}" for p in PRESETS for kind in ("config", "deck")),
-                                       "compare", "validate", "design"]
+    assert [s.name for s in steps] == [
+        *(f"{kind}-{p}" for p in PRESETS for kind in ("config", "deck")),
+        "compare",
+        "validate",
+        "design",
+    ]
     assert {s.stdout for s in steps if s.name.startswith("config-")} == {f"config-{p}.toml" for p in PRESETS}
     paths = [a for s in steps for a in s.args if a.startswith("/")]
     assert paths and all(a.startswith("/captures/x/") for a in paths)
@@ -231,14 +258,18 @@ def test_the_guard_refuses_the_solver_but_forwards_the_version_banner(tmp_path: 
 
 
 # ----------------------------------------------------------------------------- command line
-def test_the_command_line_compares_and_reports_by_exit_code(before: Path, tmp_path: Path,
-                                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_command_line_compares_and_reports_by_exit_code(
+    before: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     same = make_tree(tmp_path / "same")
     assert main(["bench", "same-numbers", "compare", str(before), str(same)]) == 0
     assert capsys.readouterr().out.splitlines()[-1] == "6 files compared, 0 differences"
 
-    after = make_tree(tmp_path / "after", deck=DECK.replace("run 100000", "run 200000"),
-                      summary=changed_summary(metrics__mean_residence_time_pbm_s=1.0))
+    after = make_tree(
+        tmp_path / "after",
+        deck=DECK.replace("run 100000", "run 200000"),
+        summary=changed_summary(metrics__mean_residence_time_pbm_s=1.0),
+    )
     assert main(["bench", "same-numbers", "compare", str(before), str(after), "--list-skipped"]) == 1
     lines = capsys.readouterr().out.splitlines()
     assert lines[-1] == "6 files compared, 2 differences"

@@ -11,9 +11,19 @@ from workflows.config import load_preset, override
 
 
 def _table(scale=1.0, windows=5):
-    return make_table(np.arange(windows) * 5.0, np.linspace(0, 0.33, 5), np.linspace(-0.05, 0.05, 3),
-                      0.1 * scale, 0.05 * scale, 0.02 * scale, 0.03 * scale, count_A=2.0, count_B=3.0,
-                      n_samples=10, window_s=5.0)
+    return make_table(
+        np.arange(windows) * 5.0,
+        np.linspace(0, 0.33, 5),
+        np.linspace(-0.05, 0.05, 3),
+        0.1 * scale,
+        0.05 * scale,
+        0.02 * scale,
+        0.03 * scale,
+        count_A=2.0,
+        count_B=3.0,
+        n_samples=10,
+        window_s=5.0,
+    )
 
 
 def test_identical_tables_differ_by_nothing_and_a_scaled_one_by_its_scale():

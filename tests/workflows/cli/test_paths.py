@@ -18,23 +18,79 @@ def paths(tmp_path):
 
 COMMANDS = {
     "config: missing file": lambda p: ["config", "--config", str(p["missing"] / "c.toml")],
-    "pbm run: missing table": lambda p: ["pbm", "run", "--tables", str(p["missing"] / "t.h5"), "--out", str(p["missing"])],
+    "pbm run: missing table": lambda p: [
+        "pbm",
+        "run",
+        "--tables",
+        str(p["missing"] / "t.h5"),
+        "--out",
+        str(p["missing"]),
+    ],
     "pbm run: out under a file": lambda p: ["pbm", "run", "--tables", str(p["table"]), "--out", str(p["under_file"])],
     "pbm run: out is a file": lambda p: ["pbm", "run", "--tables", str(p["table"]), "--out", str(p["file"])],
     "pbm synth: out under a file": lambda p: ["pbm", "synth", "--out", str(p["under_file"] / "t.h5")],
     "dem deck: out under a file": lambda p: ["dem", "deck", "--preset", "smoke", "--out", str(p["under_file"])],
-    "dem run: runs dir under a file": lambda p: ["dem", "run", "--preset", "smoke", "--runs-dir", str(p["under_file"]),
-                                                 "--no-progress"],
-    "dem post: missing dumps": lambda p: ["dem", "post", "--preset", "smoke", "--dumps", str(p["missing"] / "d.*.txt"),
-                                          "--out", str(p["missing"].parent / "r.h5")],
-    "dem post: out under a file": lambda p: ["dem", "post", "--preset", "smoke", "--dumps", str(p["missing"] / "*.txt"),
-                                             "--out", str(p["under_file"] / "r.h5")],
-    "dem slurm: out under a file": lambda p: ["dem", "slurm", "--preset", "paper", "--out", str(p["under_file"]),
-                                              "--holdup", "1000", "--throughput", "1e6"],
-    "compare: results under a file": lambda p: ["compare", "--preset", "smoke", "--results-dir", str(p["under_file"]),
-                                                "--runs-dir", str(p["missing"]), "--no-progress"],
-    "compare: runs under a file": lambda p: ["compare", "--preset", "smoke", "--runs-dir", str(p["under_file"]),
-                                             "--results-dir", str(p["missing"]), "--no-progress"],
+    "dem run: runs dir under a file": lambda p: [
+        "dem",
+        "run",
+        "--preset",
+        "smoke",
+        "--runs-dir",
+        str(p["under_file"]),
+        "--no-progress",
+    ],
+    "dem post: missing dumps": lambda p: [
+        "dem",
+        "post",
+        "--preset",
+        "smoke",
+        "--dumps",
+        str(p["missing"] / "d.*.txt"),
+        "--out",
+        str(p["missing"].parent / "r.h5"),
+    ],
+    "dem post: out under a file": lambda p: [
+        "dem",
+        "post",
+        "--preset",
+        "smoke",
+        "--dumps",
+        str(p["missing"] / "*.txt"),
+        "--out",
+        str(p["under_file"] / "r.h5"),
+    ],
+    "dem slurm: out under a file": lambda p: [
+        "dem",
+        "slurm",
+        "--preset",
+        "paper",
+        "--out",
+        str(p["under_file"]),
+        "--holdup",
+        "1000",
+        "--throughput",
+        "1e6",
+    ],
+    "compare: results under a file": lambda p: [
+        "compare",
+        "--preset",
+        "smoke",
+        "--results-dir",
+        str(p["under_file"]),
+        "--runs-dir",
+        str(p["missing"]),
+        "--no-progress",
+    ],
+    "compare: runs under a file": lambda p: [
+        "compare",
+        "--preset",
+        "smoke",
+        "--runs-dir",
+        str(p["under_file"]),
+        "--results-dir",
+        str(p["missing"]),
+        "--no-progress",
+    ],
 }
 
 
@@ -101,9 +157,11 @@ def small_mounts(tmp_path):
 @pytest.mark.parametrize("where", ["full", "readonly"])
 def test_full_disk_and_read_only_directory_give_one_line(where, paths, small_mounts, capsys):
     target = small_mounts[where]
-    for argv in (["pbm", "run", "--tables", str(paths["table"]), "--out", str(target / "out")],
-                 ["dem", "deck", "--preset", "smoke", "--out", str(target / "deck")],
-                 ["pbm", "synth", "--out", str(target / "t.h5")]):
+    for argv in (
+        ["pbm", "run", "--tables", str(paths["table"]), "--out", str(target / "out")],
+        ["dem", "deck", "--preset", "smoke", "--out", str(target / "deck")],
+        ["pbm", "synth", "--out", str(target / "t.h5")],
+    ):
         capsys.readouterr()
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
@@ -141,8 +199,18 @@ def test_no_output_over_an_input(tmp_path, capsys, target):
         victim.symlink_to(dump)
     before = (dump if target != "config" else config_file).read_bytes()
     capsys.readouterr()
-    code = main(["dem", "post", "--config", str(config_file), "--dumps", str(run_dir / "dumps" / "dump.*.txt"),
-                 "--out", str(victim)])
+    code = main(
+        [
+            "dem",
+            "post",
+            "--config",
+            str(config_file),
+            "--dumps",
+            str(run_dir / "dumps" / "dump.*.txt"),
+            "--out",
+            str(victim),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "one of this command's inputs" in err and len(err.strip().splitlines()) == 1, err
     assert (dump if target != "config" else config_file).read_bytes() == before
@@ -154,9 +222,10 @@ def test_a_run_directory_never_replaces_its_configuration(tmp_path, capsys):
     config_file = out / "config.toml"
     config_file.write_text('name = "mine"\n[dem.run]\nnp = 1\n')
     before = config_file.read_text()
-    for argv in (["dem", "deck", "--config", str(config_file), "--out", str(out)],
-                 ["dem", "slurm", "--config", str(config_file), "--out", str(out), "--holdup", "1000",
-                  "--throughput", "1e6"]):
+    for argv in (
+        ["dem", "deck", "--config", str(config_file), "--out", str(out)],
+        ["dem", "slurm", "--config", str(config_file), "--out", str(out), "--holdup", "1000", "--throughput", "1e6"],
+    ):
         capsys.readouterr()
         assert main(argv) == 2
         assert "one of this command's inputs" in capsys.readouterr().err
@@ -174,8 +243,23 @@ def test_a_runs_directory_that_is_a_symlink_loop_is_one_line(tmp_path, capsys):
 
 def test_too_many_noise_members_are_refused_before_the_dem(tmp_path, capsys):
     capsys.readouterr()
-    assert main(["compare", "--preset", "smoke", "--noise-members", "100000000", "--runs-dir", str(tmp_path / "runs"),
-                 "--results-dir", str(tmp_path / "results"), "--no-progress"]) == 2
+    assert (
+        main(
+            [
+                "compare",
+                "--preset",
+                "smoke",
+                "--noise-members",
+                "100000000",
+                "--runs-dir",
+                str(tmp_path / "runs"),
+                "--results-dir",
+                str(tmp_path / "results"),
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "members" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "runs").exists()  # nothing started

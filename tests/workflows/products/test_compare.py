@@ -40,8 +40,20 @@ def test_pbm_config_takes_the_dem_feed(rng):
 @pytest.mark.slow
 def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
     results_dir = tmp_path / "results"
-    code = main(["compare", "--preset", "smoke", "--runs-dir", str(smoke_runs_root), "--results-dir", str(results_dir),
-                 "--noise-members", "20", "--no-progress"])
+    code = main(
+        [
+            "compare",
+            "--preset",
+            "smoke",
+            "--runs-dir",
+            str(smoke_runs_root),
+            "--results-dir",
+            str(results_dir),
+            "--noise-members",
+            "20",
+            "--no-progress",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     report = next(results_dir.glob("smoke-*/report.html"))
     out = report.parent
@@ -64,8 +76,17 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
 
     # Report: page, every figure non-empty, provenance present.
     page = report.read_text()
-    for name in ("rtd.png", "rsd_axial.png", "rsd_time.png", "c_a.png", "outflow.png", "holdup.png",
-                 "study_length.png", "study_diameter.png", "study_noise.png"):
+    for name in (
+        "rtd.png",
+        "rsd_axial.png",
+        "rsd_time.png",
+        "c_a.png",
+        "outflow.png",
+        "holdup.png",
+        "study_length.png",
+        "study_diameter.png",
+        "study_noise.png",
+    ):
         assert (out / name).stat().st_size > 10_000, name
         assert name in page
     assert "3.8.0" in page and summary["provenance"]["dem_source"] in ("LIGGGHTS ran now", "cache")
@@ -144,7 +165,6 @@ def test_shipped_reference_covers_the_reduced_preset(tmp_path):
     data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
     dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs")
     assert dem.source == "reference", dem.cache_file
-
 
 
 def test_shipped_reference_covers_the_grid_sensitivity(tmp_path):

@@ -20,8 +20,18 @@ X, Y = np.linspace(0, 0.33, 6), np.linspace(-0.05, 0.05, 5)
 
 def table(v: float, rates: bool = True, x_edges=X):
     rate = {f"rate_{k}": 2 * v for k in ("x_pos", "x_neg", "y_pos", "y_neg")} if rates else {}
-    return make_table(t=[0.0, 5.0], x_edges=x_edges, y_edges=Y, vx_pos=v, vx_neg=v / 2, vy_pos=v / 4, vy_neg=v / 4,
-                      count_A=10 * v, count_B=10 * v, **rate)
+    return make_table(
+        t=[0.0, 5.0],
+        x_edges=x_edges,
+        y_edges=Y,
+        vx_pos=v,
+        vx_neg=v / 2,
+        vy_pos=v / 4,
+        vy_neg=v / 4,
+        count_A=10 * v,
+        count_B=10 * v,
+        **rate,
+    )
 
 
 def test_campaign_changes_one_factor_at_a_time_and_keeps_the_blade_spacing():
@@ -80,15 +90,28 @@ def test_prediction_tables_from_the_baseline_and_the_library():
 def row(key, dem, low, high, velocity, measured):
     """An agreement row; the overlap's interval is its noise band [noise low, 1] per mode."""
     noise = low if key == "rtd_overlap" else None
-    return AgreementRow(key, key, "-", dem, low, high, {"velocity": ModeValue(velocity, None, None, noise),
-                                                        "measured": ModeValue(measured, None, None, noise)})
+    return AgreementRow(
+        key,
+        key,
+        "-",
+        dem,
+        low,
+        high,
+        {"velocity": ModeValue(velocity, None, None, noise), "measured": ModeValue(measured, None, None, noise)},
+    )
 
 
 def test_judge_compares_the_prediction_with_the_self_built_pbm_plus_the_dem_interval():
-    own = [row("holdup", 100, 98, 102, 110, 101), row("rtd_overlap", 1, 0.95, 1, 0.80, 0.97),
-           row("rtd_recovered_fraction", 0.99, 0.98, 1, 0.5, 0.5)]
-    predicted = [row("holdup", 100, 98, 102, 112, 104), row("rtd_overlap", 1, 0.95, 1, 0.78, 0.90),
-                 row("rtd_recovered_fraction", 0.99, 0.98, 1, 0.1, 0.1)]
+    own = [
+        row("holdup", 100, 98, 102, 110, 101),
+        row("rtd_overlap", 1, 0.95, 1, 0.80, 0.97),
+        row("rtd_recovered_fraction", 0.99, 0.98, 1, 0.5, 0.5),
+    ]
+    predicted = [
+        row("holdup", 100, 98, 102, 112, 104),
+        row("rtd_overlap", 1, 0.95, 1, 0.78, 0.90),
+        row("rtd_recovered_fraction", 0.99, 0.98, 1, 0.1, 0.1),
+    ]
     verdict = judge(predicted, own)
     velocity = {r.key: r for r in verdict["velocity"].rows}
     # |112 - 100| = 12 <= |110 - 100| + 2; overlap: 0.22 <= 0.20 + 0.05 (one-sided band)
@@ -99,10 +122,13 @@ def test_judge_compares_the_prediction_with_the_self_built_pbm_plus_the_dem_inte
     assert verdict["measured"].failing == ["holdup", "rtd_overlap"] and not verdict["measured"].predicts
     assert verdict_text(verdict) == "the hybrid predicts this (velocity rates)"
     both_fail = judge([row("holdup", 100, 98, 102, 130, 130)], own)
-    assert verdict_text(both_fail) == ("this needs a new DEM run (nearest: velocity rates, 1 of 1 quantities "
-                                       "outside tolerance: holdup)")
-    slices = judge([row(f"holdup_slice_{i}", 10, 9, 11, 20, 20) for i in (1, 2)],
-                   [row(f"holdup_slice_{i}", 10, 9, 11, 10, 10) for i in (1, 2)])
+    assert verdict_text(both_fail) == (
+        "this needs a new DEM run (nearest: velocity rates, 1 of 1 quantities outside tolerance: holdup)"
+    )
+    slices = judge(
+        [row(f"holdup_slice_{i}", 10, 9, 11, 20, 20) for i in (1, 2)],
+        [row(f"holdup_slice_{i}", 10, 9, 11, 10, 10) for i in (1, 2)],
+    )
     assert verdict_text(slices).endswith("2 of 2 quantities outside tolerance: hold-up of 2 axial slices)")
 
 

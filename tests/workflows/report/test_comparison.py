@@ -56,7 +56,13 @@ def test_report_writes_figures_and_page(tmp_path, rng):
         assert (tmp_path / name).stat().st_size > 5000
     study = Study("Blender length", "length_m", "rtd.png", "RSD falls with length", [{"length_m": 0.33, "rsd": 0.1}])
     page = render_html("smoke", metrics, figures, {"input_hash": "abc", "config_toml": "x = 1"}, [study], ["a note"])
-    assert 'src="rtd.png"' in page and "Blender length" in page and page.count('src="rtd.png"') == 2 and "a note" in page and "abc" in page
+    assert (
+        'src="rtd.png"' in page
+        and "Blender length" in page
+        and page.count('src="rtd.png"') == 2
+        and "a note" in page
+        and "abc" in page
+    )
 
 
 def test_side_results_requires_every_column(rng):

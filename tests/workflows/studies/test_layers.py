@@ -71,8 +71,17 @@ def test_chain_rtd_of_one_tank_is_exponential():
 
 
 def _write_dump(path, step, atoms):
-    lines = ["ITEM: TIMESTEP", str(step), "ITEM: NUMBER OF ATOMS", str(len(atoms)), "ITEM: BOX BOUNDS ff ff ff",
-             "-0.1 0.5", "-0.1 0.1", "-0.1 0.1", "ITEM: ATOMS id type x y z"]
+    lines = [
+        "ITEM: TIMESTEP",
+        str(step),
+        "ITEM: NUMBER OF ATOMS",
+        str(len(atoms)),
+        "ITEM: BOX BOUNDS ff ff ff",
+        "-0.1 0.5",
+        "-0.1 0.1",
+        "-0.1 0.1",
+        "ITEM: ATOMS id type x y z",
+    ]
     lines += [f"{pid} 1 {x} {y} {z}" for pid, x, y, z in atoms]
     path.write_text("\n".join(lines) + "\n")
 

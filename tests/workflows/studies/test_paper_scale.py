@@ -34,8 +34,12 @@ def feed_rows(rate=1990.0, dt=0.5, end=10.0, lost_at=None, out_from=None):
 
 
 def throughput(n=12):
-    return {"step": np.arange(1, n + 1) * 100.0, "particles": np.full(n, 1000.0), "wall_s": np.ones(n),
-            "particle_steps_per_s": np.full(n, 1e5)}
+    return {
+        "step": np.arange(1, n + 1) * 100.0,
+        "particles": np.full(n, 1000.0),
+        "wall_s": np.ones(n),
+        "particle_steps_per_s": np.full(n, 1e5),
+    }
 
 
 def test_thermo_rows_of_a_resumed_log_keep_one_row_per_step():
@@ -49,15 +53,18 @@ def test_thermo_rows_of_a_resumed_log_keep_one_row_per_step():
 
 def test_summary_finds_rate_losses_weir_and_warnings():
     config = probe_config()
-    text = log_text(feed_rows(lost_at=6.0, out_from=8.0), ["WARNING: time-step is 30 % of Rayleigh time",
-                                                         "WARNING: Forced restart written (./src/output.cpp:427)"])
+    text = log_text(
+        feed_rows(lost_at=6.0, out_from=8.0),
+        ["WARNING: time-step is 30 % of Rayleigh time", "WARNING: Forced restart written (./src/output.cpp:427)"],
+    )
     s = summarise(text, thermo_rows(text), throughput(), config, 2, 600.0)
     assert s["insertion"]["fitted_per_s"] == pytest.approx(1990.0)
     assert s["insertion"]["relative_error"] == pytest.approx(0.0, abs=1e-12)
     assert s["lost_max"] == 3
     assert s["first_discharge_s"] == pytest.approx(8.5) and s["sustained_discharge_s"] == pytest.approx(8.5)
-    assert s["timestep_check"]["warnings"] == 1 and s["other_warnings"] == ["WARNING: Forced restart written "
-                                                                            "(./src/output.cpp:427)"]
+    assert s["timestep_check"]["warnings"] == 1 and s["other_warnings"] == [
+        "WARNING: Forced restart written (./src/output.cpp:427)"
+    ]
     assert s["throughput"]["late_particle_steps_per_s_per_core"] == pytest.approx(5e4)
     clean = log_text(feed_rows())
     s = summarise(clean, thermo_rows(clean), throughput(), config, 2, 600.0)
@@ -82,9 +89,16 @@ def test_dump_throughput_from_file_times(tmp_path):
 
 def test_measured_throughput_only_for_the_same_particles(tmp_path):
     path = tmp_path / "summary.json"
-    path.write_text(json.dumps({"config_toml": dump_toml(probe_config()), "np": 2, "simulated_s": 12.0,
-                                "throughput": {"late_particle_steps_per_s_per_core": 1.7e6,
-                                               "late_particles_mean": 22000.0}}))
+    path.write_text(
+        json.dumps(
+            {
+                "config_toml": dump_toml(probe_config()),
+                "np": 2,
+                "simulated_s": 12.0,
+                "throughput": {"late_particle_steps_per_s_per_core": 1.7e6, "late_particles_mean": 22000.0},
+            }
+        )
+    )
     rate, source, ranks = measured_throughput(load_preset("paper").dem, path)
     assert rate == 1.7e6 and "paper scale" in source and ranks == 2
     assert measured_throughput(load_preset("smoke").dem, path) is None
