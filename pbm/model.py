@@ -143,6 +143,16 @@ def _fill_by_rule(times: np.ndarray, valid: np.ndarray, fields: dict[str, np.nda
     return filled
 
 
+def supported_modes(table: VelocityTable) -> tuple[str, ...]:
+    """The rate modes ``table`` can drive: the velocities always, the measured rates and
+    the hidden-phase model when it carries them."""
+    return tuple(
+        mode
+        for mode in RATE_MODES
+        if mode == "velocity" or (mode == "measured" and table.has_rates) or (mode == "phases" and table.has_phases)
+    )
+
+
 def require_rates(table: VelocityTable, rates: str) -> None:
     """Raise ConfigError unless ``rates`` is a known mode that this table can drive."""
     if rates not in RATE_MODES:

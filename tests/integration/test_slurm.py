@@ -164,6 +164,7 @@ def test_the_batch_script_runs_under_slurm(slurm_cluster, tmp_path, capsys):
     data = load_preset("smoke").to_dict()
     data["name"] = "slurmcheck"
     data["dem"]["operation"]["duration_s"] = 2.0
+    data["dem"]["tables"]["window_s"] = 1.0  # velocity windows inside the 2-s run
     config_file = tmp_path / "tiny.toml"
     config_file.write_text(dump_toml(config_from_dict(data)))
     run = tmp_path / "run"

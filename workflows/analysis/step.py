@@ -39,7 +39,7 @@ from scipy.stats import chi2
 
 from coupling.errors import ConfigError
 from coupling.intervals import N_BOOT, SEED, Interval
-from pbm.model import RATE_MODES
+from pbm.model import supported_modes
 from pbm.simulate import simulate
 from workflows.config import Config
 from workflows.pipeline.stages import DemSide, pbm_config_for
@@ -290,9 +290,7 @@ def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> 
         sources["baseline"] = baseline.table
     rows, series = [], {}
     for source, table in sources.items():
-        for mode in RATE_MODES:
-            if mode == "measured" and not table.has_rates:
-                continue
+        for mode in supported_modes(table):
             pbm = pbm_response(table, config, mode, step_s, t_end)
             series[(source, mode)] = pbm
             rows.append(StepRow(source, mode, judge_step(dem, pbm, step_s, interval, feed_levels(config))))

@@ -58,7 +58,11 @@ def test_watch_checks_on_time_and_stops_after_a_converged_check():
 @pytest.mark.liggghts
 def test_stopped_run_is_kept_apart_and_resumes_to_the_end(tmp_path):
     config = variant(
-        load_preset("smoke"), operation={"duration_s": 6.0}, numerics={"restart_interval_s": 1.0}, run={"np": 1}
+        load_preset("smoke"),
+        operation={"duration_s": 6.0},
+        numerics={"restart_interval_s": 1.0},
+        run={"np": 1},
+        tables={"window_s": 1.0},  # the run stopped at about 3 s still covers whole windows
     )
     runs = tmp_path / "runs"
 

@@ -1,6 +1,7 @@
 """ParaView output: compartment cells carry the value of the right (i, j), series are readable."""
 
 import numpy as np
+import pytest
 import pyvista as pv
 
 from coupling.tables import make_table
@@ -11,7 +12,7 @@ def test_compartment_cells_match_their_ij(tmp_path):
     nx, ny = 4, 3
     x_edges, y_edges = np.linspace(0, 0.33, nx + 1), np.linspace(-0.05, 0.05, ny + 1)
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    vx = np.stack([10 * ii + jj, 100 + 10 * ii + jj]).astype(float)  # value encodes (k, i, j)
+    vx = 0.01 * np.stack([10 * ii + jj, 100 + 10 * ii + jj]).astype(float)  # value encodes (k, i, j) [m/s]
     table = make_table([0.0, 5.0], x_edges, y_edges, vx, 0, 0, 0, count_A=1, count_B=3)
     pvd = write_compartment_series(table, tmp_path, height_m=0.1)
     assert "compartments_0001.vtr" in pvd.read_text()
@@ -19,7 +20,7 @@ def test_compartment_cells_match_their_ij(tmp_path):
     centres = grid.cell_centers().points
     for cell, (x, y, _) in enumerate(centres):
         i, j = np.searchsorted(x_edges, x) - 1, np.searchsorted(y_edges, y) - 1
-        assert grid.cell_data["vx_pos"][cell] == 100 + 10 * i + j
+        assert grid.cell_data["vx_pos"][cell] == pytest.approx(0.01 * (100 + 10 * i + j))
     np.testing.assert_allclose(grid.cell_data["fraction_A"], 0.25)
 
 
