@@ -99,20 +99,9 @@ def run_campaign(
     configs = configs if configs is not None else campaign_configs()
     sides = {}
     for name, config in configs.items():
-        resume = not fresh and can_resume(prepare_run(config.dem), runs_root)
-        log(f"validation run {name}: {'resuming' if resume else 'starting or reusing'}")
+        log(f"validation run {name}: starting, resuming or reusing")
         t0 = time.monotonic()
-        sides[name] = dem_stage(
-            config,
-            runs_root=runs_root,
-            np=nprocs,
-            resume=resume,
-            fresh=fresh,
-            progress=False,
-            log=log,
-            reference_dir=reference_dir,
-            solver=solver,
-        )
+        sides[name] = campaign_run(config, runs_root, fresh, nprocs, log, reference_dir, solver)
         log(f"validation run {name}: {sides[name].source} ({time.monotonic() - t0:.0f} s)")
     return sides
 
@@ -220,6 +209,14 @@ def run_step(
 ) -> DemSide:
     """The step run: cached, shipped, or LIGGGHTS (an interrupted run resumes)."""
     config = config if config is not None else step_config()
+    return campaign_run(config, runs_root, fresh, nprocs, log, reference_dir, solver)
+
+
+def campaign_run(
+    config: Config, runs_root: str | Path, fresh: bool, nprocs: int | None, log: Log, reference_dir: Path, solver: bool
+) -> DemSide:
+    """One run of the campaign through the DEM stage: cached, shipped, or LIGGGHTS; an
+    interrupted run resumes from its restart file."""
     resume = solver and not fresh and can_resume(prepare_run(config.dem), runs_root)
     return dem_stage(
         config,
