@@ -45,6 +45,7 @@ from coupling.jsonable import write_json
 from coupling.tables import make_table
 from dem import phases
 from dem.post import DemResults
+from dem.summary import DemSummary, Estimate
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.config import Config
@@ -77,24 +78,30 @@ class DemTarget:
     source: str
 
 
-def _interval(d: dict) -> Interval:
-    return Interval(float(d["value"]), float(d["low"]), float(d["high"]))
+def _interval(estimate: Estimate) -> Interval:
+    return Interval(float(estimate.value), float(estimate.low), float(estimate.high))
 
 
-def dem_target(summary: dict[str, Any], source: str) -> DemTarget:
-    """:class:`DemTarget` from a DEM results summary (raises KeyError without a pooled RTD)."""
-    pooled, steady = summary["pooled_rtd"], summary["steady"]
-    by_slice = steady["holdup_by_slice"]
+def dem_target(summary: DemSummary, source: str) -> DemTarget:
+    """:class:`DemTarget` from a DEM results summary; ConfigError naming ``source`` when
+    the run has no pooled RTD or no steady hold-up to judge against."""
+    steady = summary.steady
+    if not summary.has_pooled_rtd or "holdup" not in steady or "holdup_by_slice" not in steady:
+        raise ConfigError(
+            f"{source}: the DEM run has no pooled RTD or no steady hold-up to judge the models against; "
+            "give --target a complete run of the same deck"
+        )
+    pooled, by_slice = summary.pooled_rtd, steady["holdup_by_slice"]
     return DemTarget(
-        mean_s=_interval(pooled["mean_residence_time_s"]),
-        variance_s2=_interval(pooled["rtd_variance_s2"]),
-        entry_window_s=tuple(float(v) for v in pooled["entry_window_s"]),
-        horizon_s=float(pooled["horizon_s"]),
+        mean_s=_interval(pooled.mean_residence_time_s),
+        variance_s2=_interval(pooled.rtd_variance_s2),
+        entry_window_s=tuple(float(v) for v in pooled.entry_window_s),
+        horizon_s=float(pooled.horizon_s),
         holdup_by_slice=tuple(
             Interval(v, lo, hi) for v, lo, hi in zip(by_slice["value"], by_slice["low"], by_slice["high"])
         ),
-        holdup=_interval(steady["holdup"]),
-        steady_time_s=float(summary["steady_state_time_s"]),
+        holdup=_interval(Estimate.from_record(steady["holdup"])),
+        steady_time_s=float(summary.steady_state_time_s),
         source=source,
     )
 
@@ -259,8 +266,10 @@ def phase_study(
         )
     config = config_of(entry)
     if target_override is None:
-        target_entry = entry if target is None else try_load_entry(Path(target))[0]
-        goal = dem_target(target_entry.summary, str(target or results))
+        target_entry, why = (entry, None) if target is None else try_load_entry(Path(target))
+        if target_entry is None:
+            raise ConfigError(f"--target {target}: {why}")
+        goal = dem_target(DemSummary.from_record(target_entry.summary), str(target or results))
     else:
         goal = target_override
     seq = dem.sequences
