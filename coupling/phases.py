@@ -186,6 +186,35 @@ def mobility(rates: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
     return (rates[:, 0] * weights).sum(axis=(1, 2))
 
 
+def scaled(
+    model: PhaseTransport, axial: float = 1.0, transverse: float = 1.0, switching: float = 1.0
+) -> PhaseTransport:
+    """``model`` with its axial rates times ``axial``, its transverse rates times
+    ``transverse`` and its phase switching times ``switching`` (the table studies' rules:
+    longer cells, a faster impeller)."""
+    rates = model.rates.copy()
+    rates[:, :2] *= axial
+    rates[:, 2:] *= transverse
+    attrs = {**model.attrs, "scaled": {"axial": axial, "transverse": transverse, "switching": switching}}
+    return PhaseTransport(rates, model.switching * switching, model.entry, model.interval_s, attrs)
+
+
+def blend(a: PhaseTransport, b: PhaseTransport, w: float) -> PhaseTransport | None:
+    """(1 - w) ``a`` + w ``b``, rate by rate (a table library between two runs), or None when
+    the two models differ in grid or in the number of phases: phases are ordered by
+    mobility (slowest first), so phase h of one run is matched with phase h of the other."""
+    if a.rates.shape != b.rates.shape:
+        return None
+    mix = lambda x, y: (1 - w) * x + w * y  # noqa: E731
+    return PhaseTransport(
+        mix(a.rates, b.rates),
+        mix(a.switching, b.switching),
+        mix(a.entry, b.entry),
+        a.interval_s,
+        {**a.attrs, "interpolated": float(w)},
+    )
+
+
 def to_arrays(model: PhaseTransport) -> dict[str, np.ndarray]:
     """The datasets of a schema-3 table (:mod:`coupling.tables`)."""
     return {"phase_rates": model.rates, "phase_switching": model.switching, "phase_entry": model.entry}

@@ -89,6 +89,14 @@ from dem.tracking import CompartmentSequences
 FEEDERS = (1, 2)
 
 
+#: The number of hidden phases the post-processing fits (:func:`table_with_phases`). On the
+#: validation run's steady particles (10 axial slices, ``pbmdem study phases``) the held-out
+#: log-likelihood per particle-step rose from -0.672 (K = 1) to -0.607 (K = 2) and -0.601
+#: (K = 3), and the PBM's RTD variance from 172 to 238 and 258 s^2 against the DEM's 261
+#: [244, 277]: K = 3 is the first inside the interval.
+PHASES = 3
+
+
 # ----------------------------------------------------------------------------- data
 @dataclass(frozen=True)
 class PhaseData:
@@ -1022,20 +1030,76 @@ def steady_window(sequences: CompartmentSequences, steady_time_s: float | None) 
     return float(steady_time_s), float(sequences.snapshot_t[-1])
 
 
+def with_transverse(axial: PhaseTransport, transverse: PhaseTransport) -> PhaseTransport:
+    """The model on the table's NX x NY grid: the K-phase axial chain ``axial`` (fitted on
+    the NX x 1 slices) and, in every compartment, the transverse rates of the one-phase
+    fit ``transverse`` on the full grid, the same in every phase.
+
+    Axial moves and phase switching do not depend on j, so the chain lumped onto
+    (slice, phase) is exactly ``axial``: the RTD and the slice hold-ups are those of the
+    fit, and the transverse rates only carry particles across y (the composition). A
+    phase fit on the full grid would tie the phases to the transverse cells as well: on the
+    validation run's first 60 s it cost 35 s (K = 2) to 445 s (K = 3) against 3 to 38 s on
+    the slices, and its RTD was further from the DEM's (variance 270 s^2 with slice
+    hold-ups 19 % off at K = 2, 231 s^2 at K = 3; ``workflows/studies/phases.py``)."""
+    if axial.ny != 1 or transverse.n_phases != 1 or axial.nx != transverse.nx:
+        raise ValueError(
+            f"expected an NX x 1 axial model and a one-phase model on NX x NY with the same NX; got "
+            f"{axial.nx}x{axial.ny} (K = {axial.n_phases}) and {transverse.nx}x{transverse.ny} "
+            f"(K = {transverse.n_phases})"
+        )
+    k, ny = axial.n_phases, transverse.ny
+    rates = np.empty((k, len(phase_model.DIRECTIONS), axial.nx, ny))
+    rates[:, :2] = axial.rates[:, :2]  # broadcast over j
+    rates[:, 2:] = transverse.rates[0, 2:][None]
+    switching = np.repeat(axial.switching, ny, axis=3)
+    attrs = {
+        **axial.attrs,
+        "grid": [axial.nx, ny],
+        "axial_grid": [axial.nx, 1],
+        "transverse": "one-phase rates of the full grid, the same in every phase",
+    }
+    return PhaseTransport(rates, switching, axial.entry, axial.interval_s, attrs)
+
+
 def table_with_phases(
     table,
     sequences: CompartmentSequences,
     steady_time_s: float | None,
-    n_phases: int = 2,
-    starts: int = 3,
+    n_phases: int = 3,
+    starts: int = 2,
     seed: int = 0,
     max_iterations: int = 200,
 ):
     """``table`` (a :class:`coupling.tables.VelocityTable` on the sequences' grid) carrying
     the K = ``n_phases`` model fitted to the particles first seen after ``steady_time_s``:
-    a schema-3 table that ``pbm`` runs with ``rates = "phases"``. Returns (table, fit)."""
+    the phases on the axial slices, the transverse rates from the full grid
+    (:func:`with_transverse`); a schema-3 table that ``pbm`` runs with ``rates =
+    "phases"``. Returns (table, fit of the axial phases). Raises ValueError when the run
+    has no steady state or no particle entered after it."""
     if (table.nx, table.ny) != (sequences.nx, sequences.ny):
         raise ValueError(f"table grid {table.nx}x{table.ny} differs from the sequences' {sequences.nx}x{sequences.ny}")
-    data = prepare(sequences, steady_window(sequences, steady_time_s))
-    result = fit(data, n_phases, starts=starts, seed=seed, max_iterations=max_iterations)
-    return table.replace(phases=result.transport), result
+    window = steady_window(sequences, steady_time_s)
+    axial = fit(prepare(sequences, window, grid=(sequences.nx, 1)), n_phases, starts, seed, max_iterations)
+    transverse = one_phase(prepare(sequences, window)) if sequences.ny > 1 else None
+    model = axial.transport if transverse is None else with_transverse(axial.transport, transverse)
+    return table.replace(phases=model), axial
+
+
+def fit_record(fit: PhaseFit) -> dict:
+    """What a results summary keeps of a phase fit (the model itself lives in the table)."""
+    model = fit.transport
+    return {
+        "n_phases": fit.n_phases,
+        "grid": [model.nx, model.ny],
+        "log_likelihood": fit.log_likelihood,
+        "n_particles": fit.n_particles,
+        "n_steps": fit.n_steps,
+        "iterations": fit.iterations,
+        "converged": fit.converged,
+        "start_log_likelihoods": list(fit.start_log_likelihoods),
+        "wall_time_s": fit.wall_time_s,
+        "entry_phase_A": model.entry[0].tolist(),
+        "entry_phase_B": model.entry[1].tolist(),
+        "implied_timescales_s": fit.implied_timescales().tolist(),
+    }

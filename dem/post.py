@@ -63,7 +63,7 @@ from coupling.errors import ConfigError
 from coupling.files import input_directory
 from coupling.metrics import SteadyStateRule, outflow_fraction_a, random_mixture_rsd, rsd
 from coupling.tables import VELOCITY_NAMES, VelocityTable
-from dem import deck
+from dem import deck, phases
 from dem.config import DemConfig
 from dem.massflow import massflow_files
 from dem.rates import fit_windows
@@ -147,6 +147,22 @@ class DemResults:
             **plain,
             sequences=sequences,
         )
+
+
+def fit_phases(
+    table: VelocityTable, sequences: CompartmentSequences, steady_time_s: float | None
+) -> tuple[VelocityTable, dict[str, Any] | None, str | None]:
+    """The table carrying the hidden-phase transport (:func:`dem.phases.table_with_phases`,
+    K = :data:`dem.phases.PHASES`) fitted to the particles that entered during the steady
+    period, with a record of the fit; a run with no steady state, or no particle entering
+    after it, keeps its table without phases and gets a note saying why."""
+    if steady_time_s is None:
+        return table, None, "no phase model: the run never reached the steady state it is fitted to"
+    try:
+        with_phases, fit = phases.table_with_phases(table, sequences, steady_time_s, phases.PHASES)
+    except ValueError as exc:
+        return table, None, f"no phase model: {exc}"
+    return with_phases, phases.fit_record(fit), None
 
 
 def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:
@@ -460,6 +476,7 @@ def postprocess(
     steady_time = steady.time(timeseries["t_s"], timeseries["holdup_A"] + timeseries["holdup_B"])
     t_ss = float("nan") if steady_time is None else steady_time
     steady_outflow, steady_c_a = steady_means(timeseries, steady_time)
+    table, phase_fit, phase_note = fit_phases(table, sequences, steady_time)
     tag_time = float(rtd_tag_time_s) if rtd_tag_time_s is not None else t_ss
     tag_window = float(config.tables.rtd_tag_window_s)
     rtd, residence, n_tagged = tagged_rtd(acc, exits, tag_time, tag_window, tol)
@@ -519,7 +536,8 @@ def postprocess(
         **balance,
         "steady": steady_stats,
         "pooled_rtd": pooled,
-        "warnings": notes + warnings,
+        "phase_fit": phase_fit,
+        "warnings": notes + warnings + ([phase_note] if phase_note else []),
     }
     holdup = pd.DataFrame(
         {

@@ -446,6 +446,33 @@ class CompartmentSequences:
         out[element_owner, position] = np.repeat(self.run_state[run_index], lengths)
         return out
 
+    def until(self, t_end_s: float) -> CompartmentSequences:
+        """The record a run stopped at ``t_end_s`` [s] would hold: the dumps after it
+        dropped, the particles first seen after it left out, the sequences it cuts
+        censored there."""
+        last = int(np.searchsorted(self.snapshot_t, t_end_s + 1e-6 * self.interval_s, side="right")) - 1
+        n_runs = np.diff(self.run_offsets)
+        owner = np.repeat(np.arange(self.n_particles), n_runs)
+        before = np.cumsum(self.run_length) - self.run_length  # dumps before each run, all particles
+        first = self.start[owner] + before - before[self.run_offsets[:-1]][owner]  # each run's first dump
+        kept_runs = first <= last
+        kept = self.start <= last
+        counts = np.bincount(owner[kept_runs], minlength=self.n_particles)[kept]
+        return CompartmentSequences(
+            ids=self.ids[kept],
+            component=self.component[kept],
+            start=self.start[kept],
+            run_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(self.run_offsets.dtype),
+            run_state=self.run_state[kept_runs],
+            run_length=np.minimum(self.run_length[kept_runs], last - first[kept_runs] + 1).astype(
+                self.run_length.dtype
+            ),
+            snapshot_t=self.snapshot_t[: last + 1],
+            interval_s=self.interval_s,
+            nx=self.nx,
+            ny=self.ny,
+        )
+
     def to_arrays(self, prefix: str = "sequences_") -> dict[str, np.ndarray]:
         """Named arrays for a results file; the scalars ride along as 0-d arrays."""
         out = {prefix + name: getattr(self, name) for name in self.ARRAYS}

@@ -24,7 +24,7 @@ from coupling.errors import ConfigError
 from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
-from pbm.model import feed_distribution, filled_table
+from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases
 from pbm.resources import check_ensemble_memory
 from pbm.simulate import check_run, feed_factors
 from pbm.solver import MAX_THREADS, TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
@@ -92,17 +92,14 @@ def noise_ensemble(
     if isinstance(members, bool) or int(members) != members or members < 1:
         raise ConfigError(f"members must be an integer >= 1, got {members!r}")
     members = int(members)
-    if config.rates == "phases":
-        # the ensemble reads compartment populations straight off the state vector; with
-        # phases they are NX*NY*K entries (pbm.model.collapse_phases): not wired here yet
-        raise ConfigError("the noise ensemble does not run rates = 'phases' yet; use 'measured' or 'velocity'")
     t_end = check_run(table, config)
     # refused up front with the estimate, not killed by the kernel halfway (pbm.resources)
     check_ensemble_memory(members, t_end, config.noise_interval_s, config.output_interval_s, table.nx)
     filled, _ = filled_table(table, config.rates)
-    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b)
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
     props = Propagators(filled, feed, config.rates)
-    nx, ny = table.nx, table.ny
+    # the compartments' populations: (NX, NY, K) in mode "phases", K = 1 otherwise
+    grid = (table.nx, table.ny, n_phases(table, config.rates))
 
     # With sigma = 0 every member is the same run: propagate one and replicate it.
     distinct = members if sigma > 0 else 1
@@ -123,7 +120,7 @@ def noise_ensemble(
     out_index[np.searchsorted(times, out_times - TIME_TOLERANCE_S)] = np.arange(out_times.size)
 
     run = _by_superposition if distinct > n_noise else _by_columns
-    c_a, rsd_out, rsd_slices = run(props, times, feed_key, out_index, out_times.size, rates, factors, nx, ny)
+    c_a, rsd_out, rsd_slices = run(props, times, feed_key, out_index, out_times.size, rates, factors, grid)
 
     c_a_members = np.repeat(c_a.T, members // distinct, axis=0)
     rsd_members = np.repeat(rsd_out.T, members // distinct, axis=0)
@@ -149,9 +146,17 @@ def noise_ensemble(
     )
 
 
-def _by_columns(props, times, feed_key, out_index, n_out, rates, factors, nx, ny):
+def _compartments(z: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
+    """The (NX, NY, columns) populations of the compartments in the state ``z``: the
+    phases of each summed (:func:`pbm.model.collapse_phases`)."""
+    nx, ny, k = grid
+    return collapse_phases(z[: nx * ny * k], k).reshape(nx, ny, -1)
+
+
+def _by_columns(props, times, feed_key, out_index, n_out, rates, factors, grid):
     """Every member's A and B as two columns of one propagated state: cost ~ members."""
-    n = nx * ny
+    nx, ny, k = grid
+    n = nx * ny * k
     distinct = factors.shape[1]
 
     def feed_rates(key: int) -> np.ndarray:
@@ -165,27 +170,28 @@ def _by_columns(props, times, feed_key, out_index, n_out, rates, factors, nx, ny
     last_discharged = np.zeros(2 * distinct)
     z = np.zeros((props.n_states, 2 * distinct))
     for b, z in march(props, times, z, feed_rates, feed_key):  # noqa: B020 -- march returns each step's new state
-        k = out_index[b]
-        if k < 0:
+        out = out_index[b]
+        if out < 0:
             continue
         discharged = z[n]
         inc = discharged - last_discharged
         last_discharged = discharged.copy()
-        c_a[k] = outflow_fraction_a(inc[0::2], inc[1::2])
-        outlet = z[n - ny : n]
-        rsd_out[k] = rsd(outlet[:, 0::2], outlet[:, 1::2], axis=0)
-    final = z[:n].reshape(nx, ny, 2 * distinct)
+        c_a[out] = outflow_fraction_a(inc[0::2], inc[1::2])
+        outlet = _compartments(z, grid)[-1]
+        rsd_out[out] = rsd(outlet[:, 0::2], outlet[:, 1::2], axis=0)
+    final = _compartments(z, grid)
     return c_a, rsd_out, rsd(final[:, :, 0::2], final[:, :, 1::2], axis=1)
 
 
-def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, nx, ny, chunk: int = 16):
+def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, grid, chunk: int = 16):
     """The same numbers as :func:`_by_columns` at a cost independent of the members: the
     PBM is linear in its feed, so the particles fed at one particle/s during noise
     interval j alone are propagated once per feeder and interval (2 J columns), their
     outlet compartments and discharge recorded at every output; each member is then the
     sum over j of those responses times its feed rate in interval j (one matrix product
     per block of outputs, reduced to C_A and RSD before the next block)."""
-    n = nx * ny
+    nx, ny, k = grid
+    n = nx * ny * k
     n_int = factors.shape[0]
 
     def unit_feed(key: int) -> np.ndarray:
@@ -198,11 +204,11 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     discharged = np.empty((n_out, 2 * n_int))
     z = np.zeros((props.n_states, 2 * n_int))
     for b, z in march(props, times, z, unit_feed, feed_key):  # noqa: B020 -- march returns each step's new state
-        k = out_index[b]
-        if k >= 0:
-            outlet[k] = z[n - ny : n]
-            discharged[k] = z[n]
-    final = z[:n]
+        out = out_index[b]
+        if out >= 0:
+            outlet[out] = _compartments(z, grid)[-1]
+            discharged[out] = z[n]
+    final = _compartments(z, grid).reshape(nx * ny, -1)
     fed = [rates[s] * factors[:, :, s] for s in (0, 1)]  # (J, M) feed rate of each member
     # Member blocks on threads: numpy releases the GIL in its products, and each thread's
     # BLAS stays single-threaded (see coupling.blas), so a busy machine is not oversubscribed.

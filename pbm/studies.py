@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from coupling import phases as phase_model
 from coupling.errors import ConfigError
 from coupling.metrics import SteadyStateRule
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
@@ -33,19 +34,23 @@ def scale_blender(table: VelocityTable, length_factor: float = 1.0, diameter_fac
             "rate_y_pos": table.rate_y_pos / diameter_factor,
             "rate_y_neg": table.rate_y_neg / diameter_factor,
         }
+    if table.has_phases:  # the same, phase by phase; the phases' exchange keeps its pace
+        rates["phases"] = phase_model.scaled(table.phases, 1 / length_factor, 1 / diameter_factor)
     return table.replace(
         x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs, **rates
     )
 
 
 def scale_speed(table: VelocityTable, factor: float) -> VelocityTable:
-    """Every velocity and measured rate times ``factor``: the naive hypothesis that the
+    """Every velocity, measured rate and phase-model rate times ``factor``: the naive hypothesis that the
     flow follows the impeller speed (``factor`` = new rpm / old rpm) with an unchanged bed."""
     if not (np.isfinite(factor) and factor > 0):
         raise ConfigError(f"speed factor must be a finite number > 0, got {factor}")
     fields = {name: getattr(table, name) * factor for name in VELOCITY_NAMES}
     if table.has_rates:
         fields.update({name: getattr(table, name) * factor for name in RATE_NAMES})
+    if table.has_phases:
+        fields["phases"] = phase_model.scaled(table.phases, factor, factor, factor)
     attrs = {**table.attrs, "speed_scaling": float(factor)}
     return table.replace(attrs=attrs, **fields)
 
@@ -89,8 +94,11 @@ def interpolate_tables(points, at: float) -> VelocityTable:
     if a.has_rates and b.has_rates:
         ra, rb = fill_missing_rates(a)[0], fill_missing_rates(b)[0]
         rates = {name: (1 - w) * getattr(ra, name) + w * getattr(rb, name) for name in RATE_NAMES}
+    phases = None
+    if a.has_phases and b.has_phases:  # None when they differ in K: no phase model between them
+        phases = phase_model.blend(a.phases, b.phases, w)
     attrs = {**t0.attrs, "interpolated": {"at": float(at), "between": [v0, v1]}}
-    return a.replace(min_samples=1, attrs=attrs, **fields, **rates)
+    return a.replace(min_samples=1, attrs=attrs, phases=phases, **fields, **rates)
 
 
 def _overlap(old_edges: np.ndarray, new_edges: np.ndarray) -> np.ndarray:
@@ -127,6 +135,7 @@ def regrid(
         # measured rates belong to the grid they were fitted on; refitting them on another
         # grid needs the DEM's moves between its compartments (bin the dumps at that NX)
         table = table.replace(rate_x_pos=None, rate_x_neg=None, rate_y_pos=None, rate_y_neg=None)
+    table = table.replace(phases=None)  # the phase model too: refit from the sequences on that grid
     filled, _ = fill_missing_velocities(table)
     # Shares of each old compartment's content landing in each new one.
     sx = _overlap(table.x_edges, new_x) / table.dx[None, :]  # (NXn, NXo)

@@ -334,3 +334,62 @@ def test_residents_join_from_the_window_on(synthetic_two_phase):
     assert np.array_equal(both.obs[old, 0], both.group[old] - 2)
     fit = phases.fit(both, 2, starts=1, max_iterations=30)
     assert np.isfinite(fit.log_likelihood)
+
+
+def test_transverse_rates_leave_the_axial_phase_chain_exact():
+    """The table's model (phases on the slices, one-phase transverse rates in every phase)
+    lumps onto (slice, phase) exactly: its RTD moments and slice hold-ups are those of the
+    NX x 1 chain, whatever the transverse rates."""
+    axial = two_phase_model()
+    rng = np.random.default_rng(3)
+    ny = 4
+    transverse = PhaseTransport(
+        rng.uniform(0.5, 4.0, (1, 4, NX, ny)), np.zeros((1, 1, NX, ny)), np.ones((2, 1)), INTERVAL
+    )
+    model = phases.with_transverse(axial, transverse)
+    assert model.n_phases == 2 and (model.nx, model.ny) == (NX, ny)
+    np.testing.assert_array_equal(model.rates[:, 2:], np.broadcast_to(transverse.rates[0, 2:], (2, 2, NX, ny)))
+    entering = np.zeros((2, NX * ny))
+    entering[:, [0, 1]] = [[0.0, 1.0], [1.0, 0.0]]  # A on one side, B on the other
+    assert exact_rtd_moments(model, entering) == pytest.approx(exact_rtd_moments(axial, inlet()), rel=1e-10)
+    fine = phases.steady_occupancy(model, entering * 30.0).reshape(NX, ny, 2).sum(axis=1)
+    np.testing.assert_allclose(fine, phases.steady_occupancy(axial, inlet() * 30.0), rtol=1e-10)
+    with pytest.raises(ValueError, match="NX x 1 axial model"):
+        phases.with_transverse(model, transverse)
+
+
+def test_noise_ensemble_runs_the_phase_model(monkeypatch):
+    """sigma = 0: every member is the deterministic run, so the ensemble's outlet C_A is the
+    simulation's; with noise the superposition path equals one column pair per member."""
+    from pbm import ensemble
+
+    table = table_with(two_phase_model(ny=2), ny=2)
+    cfg = PbmConfig(rates="phases", feed_rate_a_per_s=30.0, feed_rate_b_per_s=30.0, duration_s=60.0)
+    quiet = ensemble.noise_ensemble(table, cfg, sigma=0.0, members=3)
+    res = simulate(table, cfg)
+    both = res.outflow_A + res.outflow_B
+    late = res.times > 30
+    np.testing.assert_allclose(quiet.C_A_mean[late], (res.outflow_A / both)[late], rtol=1e-6)
+    fast = ensemble.noise_ensemble(table, cfg, sigma=0.2, members=80)  # > 60 intervals: superposition
+    monkeypatch.setattr(ensemble, "_by_superposition", ensemble._by_columns)
+    slow = ensemble.noise_ensemble(table, cfg, sigma=0.2, members=80)
+    np.testing.assert_allclose(fast.C_A_members[:, late], slow.C_A_members[:, late], atol=1e-11)
+    np.testing.assert_allclose(fast.rsd_by_slice_mean, slow.rsd_by_slice_mean, atol=1e-11)
+    assert np.nanstd(fast.C_A_members[:, -1]) > 0.001
+
+
+def test_sequences_until_a_time_are_the_record_of_a_shorter_run(synthetic_two_phase):
+    _model, sequences, _data, _fit = synthetic_two_phase
+    cut_t = float(sequences.snapshot_t[700])
+    short = sequences.until(cut_t)
+    assert short.snapshot_t[-1] == cut_t and short.n_particles == int((sequences.start <= 700).sum())
+    full = sequences.padded(np.flatnonzero(sequences.start <= 700))
+    rows = short.padded()
+    for p in range(short.n_particles):  # each row: the full row up to dump 700, then nothing
+        keep = 700 - short.start[p] + 1
+        expected = full[p, :keep]
+        expected = expected[expected >= 0]
+        assert rows[p][rows[p] >= 0].tolist() == expected.tolist()
+    ends = sequences.start + sequences.lengths - 1  # the dump of each full sequence's last state
+    kept = sequences.start <= 700
+    np.testing.assert_array_equal(short.discharged, sequences.discharged[kept] & (ends[kept] <= 700))

@@ -152,11 +152,11 @@ def test_cli_synth_then_run(tmp_path, capsys):
     assert ts["holdup_A"][0] + ts["holdup_B"][0] == pytest.approx(fed * 1.0, rel=0.05)
     assert "PBM (velocity rates) 4x4" in capsys.readouterr().out
     # a synthetic table has no measured rates: asking for them is refused before writing
-    assert main(["pbm", "run", "--tables", str(table_path), "--rates", "both", "--out", str(tmp_path / "both")]) == 2
-    assert "no measured rates" in capsys.readouterr().err and not (tmp_path / "both").exists()
+    assert main(["pbm", "run", "--tables", str(table_path), "--rates", "measured", "--out", str(tmp_path / "m")]) == 2
+    assert "no measured rates" in capsys.readouterr().err and not (tmp_path / "m").exists()
 
 
-def test_cli_runs_both_rate_modes(tmp_path, capsys):
+def test_cli_runs_every_rate_mode_the_table_supports(tmp_path, capsys):
     table = synthetic_table(nx=3, ny=2, n_windows=2)
     rates = {name: table.vx_pos / table.dx[:, None] for name in ("rate_x_pos", "rate_x_neg")}
     rates.update({name: table.vy_pos / table.dy[None, :] for name in ("rate_y_pos", "rate_y_neg")})
@@ -169,7 +169,7 @@ def test_cli_runs_both_rate_modes(tmp_path, capsys):
                 "--tables",
                 str(tmp_path / "t.h5"),
                 "--rates",
-                "both",
+                "all",
                 "--out",
                 str(tmp_path / "o"),
                 "--no-figures",

@@ -37,10 +37,12 @@ from coupling.metrics import SteadyStateRule, rtd_density, rtd_overlap, rtd_pool
 from coupling.tables import VelocityTable
 from dem.summary import DemSummary, PooledRtdSummary
 from pbm.config import PbmConfig
+from pbm.model import RATE_MODES, supported_modes
 from pbm.rtd import PooledRtd, pooled_rtd
 from pbm.simulate import PbmResult, simulate
 
-MODES = ("velocity", "measured")
+#: the PBM's rate modes, in the order of every table and figure (:data:`pbm.model.RATE_MODES`)
+MODES = RATE_MODES
 #: binomial draws of the sampled RSD / Lacey index (their Monte-Carlo error is < 0.5 %)
 SAMPLING_DRAWS = 2000
 
@@ -57,13 +59,15 @@ class PbmMode:
 def run_modes(
     table: VelocityTable, config: PbmConfig, steady: SteadyStateRule, dem_summary: DemSummary
 ) -> dict[str, PbmMode]:
-    """The PBM in each rate mode the table supports (``measured`` needs its rates; asked
-    for by ``config`` on a table without them, it raises ConfigError), with the pooled RTD
-    over the DEM's entry window and horizon when the DEM has one."""
+    """The PBM in each rate mode the table supports (``measured`` needs its rates,
+    ``phases`` its phase model; the mode ``config`` asks for runs in any case, so a table
+    without what it needs raises ConfigError), with the pooled RTD over the DEM's entry
+    window and horizon when the DEM has one."""
     pooled_spec = dem_summary.pooled_rtd
+    available = supported_modes(table)
     modes = {}
     for mode in MODES:
-        if mode == "measured" and not table.has_rates and config.rates != "measured":
+        if mode not in available and config.rates != mode:
             continue
         cfg = config.model_copy(update={"rates": mode})
         result = simulate(table, cfg, steady=steady)

@@ -7,7 +7,7 @@ from the whole run by the same rule, to within the DEM's own sampling uncertaint
 * :func:`table_from_first` -- the velocity table a PBM would have had if the DEM had
   stopped at T: measured windows before T, the steady mean seen so far after it (the
   measured rates refitted by maximum likelihood on the pooled particle moves).
-* :func:`budget_study` -- for each T, both PBM rate modes on that table against the same
+* :func:`budget_study` -- for each T, each PBM rate mode on that table against the same
   modes on the whole run's table built by the same rule, each quantity of the agreement table judged against the half
   width of the full run's DEM 95 % interval (:func:`judge`); the smallest T per mode
   (:func:`smallest_budget`).
@@ -26,7 +26,9 @@ import numpy as np
 
 from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
+from coupling.phases import PhaseTransport
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
+from dem import phases
 from dem.post import DemResults
 from dem.rates import RATE_KEYS, fit_rates
 from pbm.model import fill_missing_velocities
@@ -100,7 +102,8 @@ def table_from_first(results: DemResults, t_use_s: float, steady_time_s: float) 
         "budget_rule": "windows from the steady state on hold the steady mean of the windows in "
         "[steady time, T) (workflows.analysis.budget.table_from_first)",
     }
-    return _hold_steady_mean(results, known=known, steady=steady, hold=after_steady, attrs=attrs)
+    table = _hold_steady_mean(results, known=known, steady=steady, hold=after_steady, attrs=attrs)
+    return table.replace(phases=refit_phases(results, t_use_s, steady_time_s))
 
 
 def _hold_steady_mean(
@@ -149,6 +152,22 @@ def _hold_steady_mean(
         full[hold] = value
         fields[name] = full
     return table.replace(**fields, attrs=attrs)
+
+
+def refit_phases(results: DemResults, t_use_s: float, steady_time_s: float) -> PhaseTransport | None:
+    """The phase model a run stopped at ``t_use_s`` would carry: refitted
+    (:func:`dem.phases.table_with_phases`) on the compartment sequences up to then; None
+    when the table has none, or the particles that entered in [steady time, T) are too few
+    to fit one (the budget's PBM then runs without the phases mode)."""
+    if not results.table.has_phases or results.sequences is None:
+        return None
+    try:
+        refit, _fit = phases.table_with_phases(
+            results.table, results.sequences.until(t_use_s), steady_time_s, results.table.phases.n_phases
+        )
+    except ValueError:
+        return None
+    return refit.phases
 
 
 def refit_rates(results: DemResults, windows: np.ndarray):
@@ -340,7 +359,7 @@ def smallest_budget(all_inside: dict[float, bool]) -> float | None:
 def budget_study(
     results: DemResults, config: Config, t_values: Sequence[float], log: Log = lambda message: None
 ) -> BudgetStudy:
-    """For each T in ``t_values``: both PBM rate modes on :func:`table_from_first`, judged
+    """For each T in ``t_values``: each PBM rate mode on :func:`table_from_first`, judged
     quantity by quantity (every agreement row but :data:`SKIPPED`) against the same mode
     on the whole run's table built by the same rule (T = the run's end).
 

@@ -72,7 +72,7 @@ from pbm.frequency import (
     vrr_sinusoid,
     vrr_spectrum,
 )
-from pbm.model import filled_table
+from pbm.model import filled_table, supported_modes
 
 #: particle_records' component codes of the two feeders (3, "other", feeds neither)
 COMPONENT_CODES = {"A": 1, "B": 2}
@@ -674,7 +674,7 @@ def vrr_comparison(
         }
         pbm = {
             mode: _pbm_mode(table, pbm_config, mode, steady_time_s, freqs, grid, taus, spectra, dem)
-            for mode in ["velocity"] + (["measured"] if table.has_rates else [])
+            for mode in supported_modes(table)
         }
         pbm = {
             mode: replace(

@@ -38,9 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--rates",
-        choices=("measured", "velocity"),
+        choices=("measured", "velocity", "phases"),
         default="measured",
-        help="PBM transfer rates (default measured: the mode whose residence times follow the DEM across speeds)",
+        help="PBM transfer rates (default measured: the mode whose residence times follow the DEM across "
+        "speeds; phases needs a library whose results carry the phase model)",
     )
     parser.add_argument("--out", default="results/design", help="where design.json and feasible.png go")
 

@@ -1,7 +1,7 @@
 """``pbmdem pbm ...``: run the PBM on a velocity table, or make a synthetic table to try it.
 
 pbmdem pbm run --tables TABLES.h5 [--config FILE.toml | --preset NAME]
-               [--rtd-pulse SECONDS] [--method expm|bdf] [--rates velocity|measured|both] --out DIR
+               [--rtd-pulse SECONDS] [--method expm|bdf] [--rates velocity|measured|phases|all] --out DIR
 pbmdem pbm synth --out TABLES.h5 [--nx 10 --ny 10 --windows 52 --window-s 5 --seed 2013]
 """
 
@@ -38,10 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     run.add_argument(
         "--rates",
-        choices=("velocity", "measured", "phases", "both"),
+        choices=("velocity", "measured", "phases", "all"),
         default=None,
         help="transfer rates: the paper's v/dx rule, the rates measured from DEM particle moves (schema-2 "
-        "tables), or both into OUT/velocity and OUT/measured (default: the config's pbm.rates)",
+        "tables), the hidden-phase model fitted to the particles' sequences (schema 3), or all the table "
+        "supports, each into OUT/<mode> (default: the config's pbm.rates)",
     )
     run.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     run.add_argument("--out", required=True, help="output directory")

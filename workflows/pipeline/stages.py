@@ -36,7 +36,7 @@ from dem.resources import check_postprocess_resources
 from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem, solver_counters
 from dem.summary import DemSummary
 from pbm.config import PbmConfig
-from pbm.model import require_rates
+from pbm.model import require_rates, supported_modes
 from pbm.outputs import write_outputs
 from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
@@ -44,6 +44,9 @@ from workflows.config import Config, config_from_dict, dump_toml, load_preset
 from workflows.shipped import REFERENCE_DIR
 
 #: Bump when the post-processing computes anything differently: cached results are redone.
+#: Datasets added without changing any other (the compartment sequences and the phase
+#: model) do not bump it: results without them are post-processed again by
+#: :func:`dem_stage` when the run's dumps are at hand, and otherwise serve without them.
 POST_VERSION = 3
 
 Log = Callable[[str], None]
@@ -164,7 +167,11 @@ def dem_stage(
     post = post_hash(config)
     if not fresh:
         found = _find_cached(inputs, post, [(cache_root, "cache"), (Path(reference_dir), "reference")], log)
-        if found is not None:
+        if found is not None and found.results.sequences is None and completed_run(inputs, runs_root):
+            # made before the compartment sequences were recorded: the run's dumps are here,
+            # so post-process them again for the sequences and the phase model
+            log(f"DEM results {found.cache_file.name} predate the compartment sequences; post-processing again")
+        elif found is not None:
             if found.source == "reference":
                 log(f"DEM results for inputs {found.key} taken from the shipped reference data")
             return found
@@ -284,12 +291,13 @@ def run_pbm(
 ) -> dict[str, tuple[PbmResult, dict[str, Path]]]:
     """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
     rule) on the velocity table in ``tables``, in the rate mode ``rates`` ("velocity",
-    "measured", or "both": one subdirectory of ``out`` per mode; default the config's).
+    "measured", "phases", or "all": every mode the table supports, one subdirectory of
+    ``out`` each; default the config's).
     Returns mode -> (result, files written)."""
     updates = {"method": method} if method is not None else {}
-    modes = ("velocity", "measured") if rates == "both" else (rates or config.pbm.rates,)
     refuse_output_over_inputs(out, [tables], "output directory", ConfigError)
     table = read_table(tables)
+    modes = supported_modes(table) if rates == "all" else (rates or config.pbm.rates,)
     check_pbm_memory(table.nx, table.ny, table.n_windows)
     for mode in modes:  # refused before anything is written
         require_rates(table, mode)

@@ -68,6 +68,13 @@ CHANGES = (
     Change("rpm_150", "impeller 150 rpm", ("dem.operation.impeller_rpm=150",)),
     Change("rpm_350", "impeller 350 rpm", ("dem.operation.impeller_rpm=350",)),
     Change("feed_x2", "feed rate x2", ("dem.operation.feed_rate_total_per_s=147.4",)),
+    # Half the feed keeps particles ~1.6x longer: 320 s leave the pooled RTD its entry window.
+    Change(
+        "feed_x0.5",
+        "feed rate x0.5",
+        ("dem.operation.feed_rate_total_per_s=36.85", "dem.operation.duration_s=320"),
+    ),
+    Change("feed_x1.5", "feed rate x1.5", ("dem.operation.feed_rate_total_per_s=110.55",)),
 )
 
 

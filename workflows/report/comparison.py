@@ -204,7 +204,12 @@ def plot_comparison(dem: SideResults, pbm: SideResults, out_dir: Path) -> dict[s
     return files
 
 
-MODE_STYLES = {"velocity": ("--", "PBM, velocity rates (paper eq. 4)"), "measured": ("-", "PBM, measured rates")}
+#: line style and label of each PBM rate mode (:data:`workflows.analysis.agreement.MODES`), in every figure
+MODE_STYLES = {
+    "velocity": ("--", "PBM, velocity rates (paper eq. 4)"),
+    "measured": ("-", "PBM, measured rates"),
+    "phases": ("-.", "PBM, hidden mobility phases"),
+}
 
 
 def plot_agreement(

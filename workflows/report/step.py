@@ -11,7 +11,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from workflows.analysis.step import P_MIN, StepComparison
-from workflows.report.comparison import fmt
+from workflows.report.comparison import MODE_STYLES, fmt
 
 
 def plot_step(comparison: StepComparison, path: str | Path) -> Path:
@@ -31,14 +31,9 @@ def plot_step(comparison: StepComparison, path: str | Path) -> Path:
     block = np.floor((t - 1e-9) / 5.0)
     pooled = pd.DataFrame({"b": block, "k": dem["n_A"].to_numpy()[keep], "n": n[keep]}).groupby("b").sum()
     ax.plot(5.0 * pooled.index + 2.5, pooled["k"] / pooled["n"], "ko", ms=4, label="DEM, 5-s pooled")
-    styles = {
-        ("self", "velocity"): ("#3182bd", "-"),
-        ("self", "measured"): ("#3182bd", "--"),
-        ("baseline", "velocity"): ("#e6550d", "-"),
-        ("baseline", "measured"): ("#e6550d", "--"),
-    }
+    colours = {"self": "#3182bd", "baseline": "#e6550d"}
     for (source, mode), pbm in comparison.series.items():
-        colour, ls = styles.get((source, mode), ("#31a354", "-"))
+        colour, ls = colours.get(source, "#31a354"), MODE_STYLES.get(mode, ("-", ""))[0]
         ax.plot(pbm["t_s"], pbm["C_A"], color=colour, ls=ls, lw=1.5, label=f"PBM, {source} tables, {mode} rates")
     ax.axvline(comparison.step_s, color="#636363", lw=0.8, ls=":")
     start = max(0.0, comparison.step_s - 40)

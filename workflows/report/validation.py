@@ -13,12 +13,12 @@ from matplotlib.figure import Figure
 from workflows.analysis.agreement import MODES
 from workflows.analysis.budget import BudgetStudy
 from workflows.analysis.validation import Prediction, PredictionVerdict
-from workflows.report.comparison import fmt
+from workflows.report.comparison import MODE_STYLES, fmt
 
 SOURCE_COLOURS = {"self": "#636363", "baseline": "#e6550d", "library": "#31a354"}
 
 
-MODE_MARKERS = {"velocity": "o", "measured": "s"}
+MODE_MARKERS = {"velocity": "o", "measured": "s", "phases": "^"}
 
 
 PARITY = (
@@ -116,7 +116,7 @@ def plot_profiles(preds: list[Prediction], runs: list[str], path: Path) -> None:
     handles += [axes[0].plot([], [], color=c, label=f"PBM from {s}")[0] for s, c in SOURCE_COLOURS.items()]
     handles += [
         axes[0].plot([], [], color="k", ls=ls, lw=1, label=f"{mode} rates")[0]
-        for mode, ls in (("velocity", "--"), ("measured", "-"))
+        for mode, (ls, _label) in MODE_STYLES.items()
     ]
     fig.legend(handles=handles, loc="outside lower center", ncol=6, fontsize=8)
     fig.savefig(path, dpi=110)
