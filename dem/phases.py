@@ -1062,6 +1062,15 @@ def with_transverse(axial: PhaseTransport, transverse: PhaseTransport) -> PhaseT
     return PhaseTransport(rates, switching, axial.entry, axial.interval_s, attrs)
 
 
+def axial_part(model: PhaseTransport) -> PhaseTransport:
+    """The NX x 1 chain of a :func:`with_transverse` model (its lumping onto the slices)."""
+    if np.ptp(model.rates[:, :2], axis=3).max(initial=0.0) > 0 or np.ptp(model.switching, axis=3).max(initial=0.0) > 0:
+        raise ValueError("the model's axial rates or switching vary across y: it does not lump onto the slices")
+    rates = model.rates[:, :, :, :1].copy()
+    rates[:, 2:] = 0.0
+    return PhaseTransport(rates, model.switching[:, :, :, :1], model.entry, model.interval_s, dict(model.attrs))
+
+
 def table_with_phases(
     table,
     sequences: CompartmentSequences,

@@ -8,10 +8,12 @@
 3. :func:`workflows.analysis.agreement.run_modes` -- the PBM on the DEM's own table in each rate
    mode, tracer pulse at the DEM's RTD tagging time, steady state by the same rule as the
    DEM; the configured mode's run gives the report's metrics and curves.
-4. :mod:`workflows.analysis.agreement` -- both PBM rate modes against every DEM quantity's 95 %
+4. :mod:`workflows.analysis.agreement` -- every PBM rate mode against every DEM quantity's 95 %
    interval, and the grid sensitivity (the DEM binned at twice the NX, when its dumps,
    cache or shipped results allow it without running LIGGGHTS); :mod:`workflows.analysis.vrr` --
-   the feeder-noise filtering VRR(f) of both modes against the DEM's pooled RTD.
+   the feeder-noise filtering VRR(f) of every mode against the DEM's pooled RTD;
+   :mod:`workflows.analysis.memory` -- the Chapman-Kolmogorov test of the phase model and of
+   the memoryless chain on the DEM's particle sequences.
 5. :func:`workflows.products.paper_studies.run_studies` -- the paper's length, diameter and noise studies.
 6. :mod:`workflows.report.comparison` -- metrics, figures, HTML and ``summary.json``; ParaView files.
 """
@@ -33,6 +35,7 @@ from coupling.jsonable import write_json
 from pbm.config import PbmConfig
 from pbm.simulate import PbmResult
 from workflows.analysis.agreement import AgreementRow, PbmMode, agreement_rows, dem_density, nx_sensitivity, run_modes
+from workflows.analysis.memory import MemoryCheck, memory_check
 from workflows.analysis.vrr import VrrComparison, vrr_comparison
 from workflows.config import Config, config_from_dict, dump_toml
 from workflows.pipeline.stages import DemSide, dem_stage, pbm_config_for, rtd_pulse, writable_directory
@@ -45,6 +48,7 @@ from workflows.report.comparison import (
     plot_comparison,
     render_html,
 )
+from workflows.report.memory import memory_html, plot_ck
 from workflows.report.vrr import plot_vrr, vrr_html
 
 NOISE_MEMBERS = 200
@@ -109,6 +113,7 @@ class Comparison:
     rows: list[AgreementRow]
     sensitivity: dict[str, Any] | None
     vrr: VrrComparison | None
+    memory: MemoryCheck | None
 
     @property
     def pbm_result(self) -> PbmResult:
@@ -163,7 +168,8 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     vrr = feeder_filtering(dem, pbm_config, log)
-    return Comparison(config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, sensitivity, vrr)
+    memory = memory_check(dem.results)
+    return Comparison(config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, sensitivity, vrr, memory)
 
 
 def write_figures(c: Comparison, out_dir: Path, log: Log) -> dict[str, str]:
@@ -179,6 +185,8 @@ def write_figures(c: Comparison, out_dir: Path, log: Log) -> dict[str, str]:
     figures.update(plot_agreement(c.rows, dem_rtd, pbm_rtd, out_dir))
     if c.vrr is not None:
         figures["vrr"] = plot_vrr(c.vrr, out_dir / "vrr.png").name
+    if c.memory is not None:
+        figures["ck"] = plot_ck(c.memory, out_dir / "chapman_kolmogorov.png").name
     try:
         from dem.render import render_geometry
 
@@ -221,6 +229,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
     time series as CSV and (``paraview``) the VTK files, all in ``out_dir``."""
     figures = write_figures(c, out_dir, log)
     vrr_section = "" if c.vrr is None else vrr_html(c.vrr, figures["vrr"])
+    memory_section = "" if c.memory is None else memory_html(c.memory, figures.get("ck"))
     log("running the PBM studies (length, diameter, feed noise)")
     t0 = time.monotonic()
     studies = run_studies(c.dem.table, c.pbm_config, c.config.steady_state, out_dir, noise_members)
@@ -233,7 +242,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         provenance,
         studies,
         notes,
-        agreement_html(c.rows, c.sensitivity) + vrr_section,
+        agreement_html(c.rows, c.sensitivity) + vrr_section + memory_section,
     )
     (out_dir / "report.html").write_text(page)
     summary = {
@@ -241,6 +250,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         "agreement": [r.record() for r in c.rows],
         "nx_sensitivity": c.sensitivity,
         "vrr": None if c.vrr is None else c.vrr.record(),
+        "memory": None if c.memory is None else c.memory.record(),
         "pbm_modes": {mode: m.result.summary for mode, m in c.modes.items()},
         "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
         "dem_summary": c.dem.results.summary.record(),

@@ -1,0 +1,81 @@
+"""The memory check (:mod:`workflows.analysis.memory`) as a figure and an HTML section."""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from workflows.analysis.memory import MemoryCheck
+from workflows.report.comparison import DEM_COLOUR, PBM_COLOUR, fmt
+
+#: the line of a chain by its number of phases: the memoryless chain dashed
+_STYLE = {1: "--"}
+
+
+def plot_ck(check: MemoryCheck, path: Path) -> Path:
+    """Chapman-Kolmogorov test: from the first, middle and last slice, the probability of
+    being still in that slice and of having been discharged after each lag, observed (with
+    two standard errors) against each chain's prediction."""
+    first = check.chains[0].ck
+    nx = first.observed.shape[1]
+    slices = sorted({0, nx // 2, nx - 1})
+    fig = Figure(figsize=(3.2 * len(slices), 4.0), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(slices), sharey=True))
+    for ax, i in zip(axes, slices):
+        lags = first.lags_s
+        for column, label, marker in ((i, "still in the slice", "o"), (nx, "discharged", "s")):
+            ax.errorbar(
+                lags,
+                first.observed[:, i, column],
+                yerr=2 * first.standard_error[:, i, column],
+                fmt=marker,
+                color=DEM_COLOUR,
+                ms=4,
+                capsize=2,
+                label=f"DEM: {label}",
+            )
+            for chain in check.chains:
+                ax.plot(
+                    lags,
+                    chain.ck.predicted[:, i, column],
+                    _STYLE.get(chain.n_phases, "-"),
+                    color=PBM_COLOUR,
+                    marker=marker,
+                    mfc="none",
+                    ms=4,
+                    label=f"K = {chain.n_phases}: {label}",
+                )
+        ax.set(title=f"from slice {i + 1} of {nx}", xlabel="lag [s]", ylim=(-0.02, 1.02))
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("probability")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=3, fontsize=7)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def memory_html(check: MemoryCheck, figure: str | None) -> str:
+    """The check's table (one row per chain) and figure."""
+    rows = "".join(
+        f"<tr><td>{c.n_phases}</td><td>{fmt(c.log_likelihood_per_step)}</td>"
+        f"<td>{', '.join(fmt(t, 3) for t in c.timescales_s)}</td><td>{fmt(c.ck.max_z(), 3)}</td>"
+        f"<td>{fmt(c.ck.max_abs_error(), 3)}</td><td>{'passed' if c.ck.passed else '<b>failed</b>'}</td></tr>"
+        for c in check.chains
+    )
+    lags = ", ".join(f"{v:g}" for v in check.chains[0].ck.lags_s)
+    out = (
+        "<h2>Transport with memory: is the chain Markov?</h2>"
+        f"<p>The particles that entered during the steady period ({check.fit_window_s[0]:.0f}–"
+        f"{check.fit_window_s[1]:.0f} s: {check.n_particles} particles, {check.n_steps} particle-steps), "
+        "on the axial slices. K = 1 is the memoryless chain fitted to them; the other row is the phase "
+        "model the PBM's <i>phases</i> mode solves. Chapman–Kolmogorov test at "
+        f"{html.escape(lags)} s: largest |predicted − observed| in standard errors (passed at ≤ "
+        f"{fmt(check.chains[0].ck.z_limit, 2)}).</p>"
+        "<table><tr><th>K</th><th>log-likelihood per particle-step</th><th>implied timescales [s]</th>"
+        f"<th>CK max z</th><th>CK max |error|</th><th>CK</th></tr>{rows}</table>"
+    )
+    if figure:
+        out += f'<figure><img src="{html.escape(figure)}" alt="Chapman-Kolmogorov test"></figure>'
+    return out
