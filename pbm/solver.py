@@ -159,12 +159,19 @@ class Propagators:
     def n_states(self) -> int:
         return self.feed.shape[0] + N_ACCUMULATORS
 
+    def _window(self, k: int) -> int:
+        """The window whose generator is in force: the phase model is the same in every
+        window, so its operators are computed once, not once per window."""
+        return 0 if self.rates == "phases" else k
+
     def generator(self, k: int) -> np.ndarray:
+        k = self._window(k)
         if k not in self._generators:
             self._generators[k] = generator_matrix(self.table, k, self.rates)
         return self._generators[k]
 
     def step(self, k: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+        k = self._window(k)
         key = (k, round(h / TIME_TOLERANCE_S))
         if key not in self._cache:
             self._cache[key] = self._compute(k, h)
@@ -178,7 +185,7 @@ class Propagators:
         see pbm._blas). Results are identical to computing them one by one.
         """
         todo = {}
-        for k, h in zip(windows.tolist(), steps.tolist()):
+        for k, h in zip(map(self._window, windows.tolist()), steps.tolist()):
             key = (k, round(h / TIME_TOLERANCE_S))
             if key not in self._cache and key not in todo:
                 todo[key] = (k, h)

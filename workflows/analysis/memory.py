@@ -11,19 +11,28 @@ steady period (the ones it was fitted to):
 * the implied timescales of each chain;
 * the log-likelihood per particle-step of each chain on those particles.
 
-The held-out choice of K (fit on the first half of the steady period, score the second)
-and the grids are the phase study's (``pbmdem study phases``); this check costs one
-one-phase fit and two CK tests, so every comparison carries it.
+Out of sample (:func:`out_of_sample`): the phase model refitted on the first half of the
+steady period alone (the sequences cut where it ends) predicts the pooled RTD of the
+particles that entered in the second half, judged against the DEM's 95 % intervals of
+that RTD (the same block bootstrap as the whole run's, :func:`dem.steady.pooled_rtd`).
+
+The held-out choice of K (score of the second half under a fit on the first) and the grids
+are the phase study's (``pbmdem study phases``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 from dem import phases
 from dem.phases import CkTest
 from dem.post import DemResults
+from dem.steady import pooled_rtd as dem_pooled_rtd
+from dem.summary import Estimate, PooledRtdSummary
+from pbm.config import PbmConfig
+from pbm.rtd import pooled_rtd
 
 #: the CK lags [dumps at 0.1 s: 1, 2, 5 and 10 s]
 LAG_SECONDS = (1.0, 2.0, 5.0, 10.0)
@@ -55,13 +64,54 @@ class ChainCheck:
 
 
 @dataclass(frozen=True)
+class OutOfSample:
+    """The pooled RTD of the particles that entered in ``entry_window_s`` (the second half
+    of the steady period): the DEM's, with its intervals, and the PBM's (mode "phases")
+    on a model fitted to the particles of ``fit_window_s`` alone."""
+
+    fit_window_s: tuple[float, float]
+    entry_window_s: tuple[float, float]
+    horizon_s: float
+    n_entered: int
+    dem_mean_s: Estimate
+    dem_variance_s2: Estimate
+    pbm_mean_s: float
+    pbm_variance_s2: float
+
+    @property
+    def mean_inside(self) -> bool:
+        return bool(self.dem_mean_s.low <= self.pbm_mean_s <= self.dem_mean_s.high)
+
+    @property
+    def variance_inside(self) -> bool:
+        return bool(self.dem_variance_s2.low <= self.pbm_variance_s2 <= self.dem_variance_s2.high)
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "fit_window_s": list(self.fit_window_s),
+            "entry_window_s": list(self.entry_window_s),
+            "horizon_s": self.horizon_s,
+            "n_entered": self.n_entered,
+            "dem_mean_s": self.dem_mean_s.record(),
+            "dem_variance_s2": self.dem_variance_s2.record(),
+            "pbm_mean_s": self.pbm_mean_s,
+            "pbm_variance_s2": self.pbm_variance_s2,
+            "mean_inside": self.mean_inside,
+            "variance_inside": self.variance_inside,
+        }
+
+
+@dataclass(frozen=True)
 class MemoryCheck:
-    """The memoryless chain and the phase model, each checked (module docstring)."""
+    """The memoryless chain and the phase model, each checked (module docstring), and the
+    out-of-sample prediction (None when the run is too short for one)."""
 
     chains: tuple[ChainCheck, ...]
     fit_window_s: tuple[float, float]
     n_particles: int
     n_steps: int
+    out_of_sample: OutOfSample | None = None
+    out_of_sample_note: str = ""
 
     def record(self) -> dict[str, Any]:
         return {
@@ -69,12 +119,15 @@ class MemoryCheck:
             "n_particles": self.n_particles,
             "n_steps": self.n_steps,
             "chains": [c.record() for c in self.chains],
+            "out_of_sample": None if self.out_of_sample is None else self.out_of_sample.record(),
+            "out_of_sample_note": self.out_of_sample_note,
         }
 
 
-def memory_check(results: DemResults) -> MemoryCheck | None:
-    """:class:`MemoryCheck` of the DEM results' phase model; None when the table carries
-    none (no steady state, or results made before the compartment sequences)."""
+def memory_check(results: DemResults, pbm_config: PbmConfig) -> MemoryCheck | None:
+    """:class:`MemoryCheck` of the DEM results' phase model (``pbm_config``: the PBM of the
+    same process, for the out-of-sample RTD); None when the table carries none (no steady
+    state, or results made before the compartment sequences)."""
     table, sequences = results.table, results.sequences
     if not table.has_phases or sequences is None:
         return None
@@ -92,4 +145,39 @@ def memory_check(results: DemResults) -> MemoryCheck | None:
                 fit.score(data) / max(data.n_steps, 1),
             )
         )
-    return MemoryCheck(tuple(chains), window, data.n_particles, data.n_steps)
+    try:
+        held_out, note = out_of_sample(results, pbm_config), ""
+    except ValueError as exc:
+        held_out, note = None, f"no out-of-sample check: {exc}"
+    return MemoryCheck(tuple(chains), window, data.n_particles, data.n_steps, held_out, note)
+
+
+def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
+    """:class:`OutOfSample` (module docstring). Raises ValueError when the second half of
+    the steady period leaves no entry window for the pooled RTD's horizon, or the first
+    half holds too few particles to fit."""
+    summary, table = results.summary, results.table
+    spec: PooledRtdSummary | None = summary.pooled_rtd
+    t_ss, t_end = summary.steady_time, float(results.sequences.snapshot_t[-1])
+    if t_ss is None or spec is None or not summary.has_pooled_rtd:
+        raise ValueError("the run has no pooled RTD to split")
+    mid = 0.5 * (t_ss + spec.entry_window_s[1])  # the halves of the whole run's entry window
+    little = float(summary.steady["little_mean_residence_time_s"]["value"])
+    dem = dem_pooled_rtd(results.particles, mid, t_end, little, float(table.window_s))
+    if not dem.get("n_entered"):
+        raise ValueError(dem.get("note", "no particle entered in the second half"))
+    refit, _fit = phases.table_with_phases(table, results.sequences.until(mid), t_ss, table.phases.n_phases)
+    config = pbm_config.model_copy(update={"rates": "phases", "rtd_pulse_s": None})
+    pbm = pooled_rtd(refit, config, tuple(dem["entry_window_s"]), dem["horizon_s"])
+    if not (math.isfinite(pbm.mean_s) and math.isfinite(pbm.variance_s2)):
+        raise ValueError("the PBM recovered no tracer within the horizon")
+    return OutOfSample(
+        (float(t_ss), float(mid)),
+        tuple(float(v) for v in dem["entry_window_s"]),
+        float(dem["horizon_s"]),
+        int(dem["n_entered"]),
+        Estimate.from_record(dem["mean_residence_time_s"]),
+        Estimate.from_record(dem["rtd_variance_s2"]),
+        float(pbm.mean_s),
+        float(pbm.variance_s2),
+    )

@@ -40,7 +40,13 @@ def check(summary: dict) -> list[tuple[str, str, bool | None]]:
     )
     for mode, target in (("phases", True), ("measured", None), ("velocity", None)):
         if not any(f"pbm_{mode}" in r for r in rows.values()):
-            out.append((f"{mode}: the PBM ran in this mode", "no such column in the agreement table", target))
+            out.append(
+                (
+                    f"{mode}: the PBM ran in this mode",
+                    "no such column in the agreement table",
+                    False if target else None,
+                )
+            )
             continue
         slices = [r for k, r in rows.items() if k.startswith("holdup_slice_")]
         if slices:

@@ -32,6 +32,8 @@ def prediction_tables(
     rpm_key = "dem.operation.impeller_rpm"
     out: dict[str, dict[str, VelocityTable | str]] = {}
     for name, config in configs.items():
+        if name not in sides:  # a run the campaign does not have (yet)
+            continue
         tables: dict[str, VelocityTable | str] = {"self": sides[name].table}
         if name != baseline:
             table = base_table
@@ -46,7 +48,7 @@ def prediction_tables(
         library = [
             (other.dem.operation.impeller_rpm, sides[o].table)
             for o, other in configs.items()
-            if o != name and config_without(other, rpm_key) == same_but_rpm
+            if o != name and o in sides and config_without(other, rpm_key) == same_but_rpm
         ]
         if len(library) >= 2:
             try:

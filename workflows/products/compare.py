@@ -168,7 +168,7 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     vrr = feeder_filtering(dem, pbm_config, log)
-    memory = memory_check(dem.results)
+    memory = memory_check(dem.results, pbm_config)
     return Comparison(config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, sensitivity, vrr, memory)
 
 

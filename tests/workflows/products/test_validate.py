@@ -11,7 +11,7 @@ import pytest
 from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.studies import interpolate_tables, scale_speed
-from workflows.analysis.agreement import AgreementRow, ModeValue
+from workflows.analysis.agreement import MODES, AgreementRow, ModeValue
 from workflows.analysis.validation import judge, prediction_tables, verdict_text
 from workflows.products.validate import CHANGES, campaign_configs
 
@@ -44,10 +44,14 @@ def test_campaign_changes_one_factor_at_a_time_and_keeps_the_blade_spacing():
     assert spacing(longer) == pytest.approx(spacing(base.dem.geometry))
     assert configs["rpm_150"].dem.operation.impeller_rpm == 150
     assert configs["feed_x2"].dem.operation.feed_rate_total_per_s == pytest.approx(2 * 73.7)
-    # everything else as the baseline: same particles, duration, numerics
-    for config in configs.values():
+    assert configs["feed_x0.5"].dem.operation.feed_rate_total_per_s == pytest.approx(0.5 * 73.7)
+    assert configs["feed_x1.5"].dem.operation.feed_rate_total_per_s == pytest.approx(1.5 * 73.7)
+    # everything else as the baseline: same particles, numerics, and duration but where half
+    # the feed needs longer for its pooled RTD
+    for name, config in configs.items():
         assert config.dem.particles == base.dem.particles and config.dem.numerics == base.dem.numerics
-        assert config.dem.operation.duration_s == base.dem.operation.duration_s
+        longer = 320.0 if name == "feed_x0.5" else base.dem.operation.duration_s
+        assert config.dem.operation.duration_s == longer
 
 
 def test_scale_speed_scales_velocities_and_rates():
@@ -168,9 +172,9 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
     assert {(c.name, "baseline") for c in CHANGES[1:]} | {("baseline", "library")} <= judged
     for v in summary["verdicts"]:
         assert v["verdict"].startswith(("the hybrid predicts this", "this needs a new DEM run", "not predicted"))
-        for mode in ("velocity", "measured"):
+        for mode in MODES:
             for row in (v["judged"] or {}).get(mode, {}).get("rows", []):
                 assert row["ok"] == (row["error"] <= row["tolerance"])
-    assert summary["dem_budget"]["smallest_T"].keys() == {"velocity", "measured"}
+    assert {"velocity", "measured"} <= summary["dem_budget"]["smallest_T"].keys() <= set(MODES)
     for name in ("parity.png", "profiles.png", "budget.png"):
         assert (page.parent / name).stat().st_size > 10_000

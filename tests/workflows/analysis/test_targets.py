@@ -1,0 +1,48 @@
+"""The transport targets read off a comparison's summary: the phases mode is the target,
+the other modes are information, a missing phases column fails."""
+
+from workflows.analysis.targets import check
+
+
+def row(key, dem, low, high, values):
+    out = {"key": key, "quantity": key, "dem": dem, "dem_ci_low": low, "dem_ci_high": high}
+    for mode, v in values.items():
+        out[f"pbm_{mode}"] = v
+        out[f"inside_{mode}"] = low <= v <= high
+    return out
+
+
+def summary(phases_variance: float, with_phases: bool = True):
+    modes = lambda p, m: {"phases": p, "measured": m} if with_phases else {"measured": m}  # noqa: E731
+    return {
+        "agreement": [
+            row("mean_residence_time_s", 21.2, 20.7, 21.7, modes(21.5, 22.0)),
+            row("rtd_variance_s2", 261.0, 244.0, 277.0, modes(phases_variance, 200.0)),
+            row("holdup", 1590.0, 1582.0, 1598.0, modes(1590.0, 1600.0)),
+            row("holdup_slice_1", 200.0, 190.0, 210.0, modes(205.0, 230.0)),
+        ],
+        "dem_summary": {
+            "pooled_rtd": {"n_entered": 12000, "recovered_fraction": {"value": 0.99}},
+            "phase_fit": {"wall_time_s": 20.0},
+        },
+        "provenance": {"dem_wall_time_s": 1000.0, "dem_postprocess_time_s": 40.0},
+    }
+
+
+def verdicts(s):
+    return {name: passed for name, _numbers, passed in check(s)}
+
+
+def test_phases_mode_is_the_target_and_the_others_inform():
+    good = verdicts(summary(258.0))
+    assert good["phases: rtd_variance_s2 inside the DEM interval"] is True
+    assert good["measured: rtd_variance_s2 inside the DEM interval"] is None  # information
+    assert good["phases: every slice's hold-up within 10 % of the DEM"] is True
+    assert good["phase fit <= 5 % of the DEM wall time"] is True
+    bad = verdicts(summary(172.0))
+    assert bad["phases: rtd_variance_s2 inside the DEM interval"] is False
+
+
+def test_a_summary_without_the_phases_mode_fails():
+    out = verdicts(summary(258.0, with_phases=False))
+    assert out["phases: the PBM ran in this mode"] is False
