@@ -3,7 +3,7 @@ own particle sequences, beside the memoryless chain (K = 1) fitted to the same p
 
 The model the post-processing fitted (:func:`dem.phases.table_with_phases`) lumps exactly
 onto the axial slices, so it is tested there, on the particles that entered during the
-steady period (the ones it was fitted to):
+steady period and the moves of those already inside then (the data it was fitted to):
 
 * the Chapman-Kolmogorov test (:func:`dem.phases.chapman_kolmogorov`): from each slice,
   the observed fraction of particles in every slice, and discharged, after 1, 2, 5 and
@@ -132,10 +132,13 @@ def memory_check(results: DemResults, pbm_config: PbmConfig) -> MemoryCheck | No
     if not table.has_phases or sequences is None:
         return None
     window = phases.steady_window(sequences, results.summary.steady_time)
-    data = phases.prepare(sequences, window, grid=(sequences.nx, 1))
+    grid = (sequences.nx, 1)
+    data = phases.prepare(sequences, window, grid=grid, residents=True)
     lags = tuple(max(1, round(s / data.interval_s)) for s in LAG_SECONDS)
+    fit_lag = max(1, round(phases.PHASE_LAG_S / data.interval_s))  # the phase model's observations
+    memoryless = phases.one_phase(phases.prepare(sequences, window, grid=grid, lag=fit_lag, residents=True))
     chains = []
-    for model in (phases.one_phase(data), phases.axial_part(table.phases)):
+    for model in (memoryless, phases.axial_part(table.phases)):
         fit = phases.PhaseFit(model, float("nan"), data.n_particles, data.n_steps, 0, True)
         chains.append(
             ChainCheck(
