@@ -1092,6 +1092,7 @@ def table_with_phases(
     starts: int = 2,
     seed: int = 0,
     max_iterations: int = 200,
+    entered_s: tuple[float, float] | None = None,
 ):
     """``table`` (a :class:`coupling.tables.VelocityTable` on the sequences' grid) carrying
     the K = ``n_phases`` model fitted to the particles first seen after ``steady_time_s``
@@ -1100,11 +1101,12 @@ def table_with_phases(
     residence times, and the outlet slice's hold-up came out 10 % low), observed every
     :data:`PHASE_LAG_S`: the phases on the axial slices, the transverse rates from the full grid
     (:func:`with_transverse`); a schema-3 table that ``pbm`` runs with ``rates =
-    "phases"``. Returns (table, fit of the axial phases). Raises ValueError when the run
-    has no steady state or no particle entered after it."""
+    "phases"``. ``entered_s`` = (t0, t1): fit to the particles first seen then instead
+    (and those inside at t0). Returns (table, fit of the axial phases). Raises ValueError
+    when the run has no steady state or no particle entered after it."""
     if (table.nx, table.ny) != (sequences.nx, sequences.ny):
         raise ValueError(f"table grid {table.nx}x{table.ny} differs from the sequences' {sequences.nx}x{sequences.ny}")
-    window = steady_window(sequences, steady_time_s)
+    window = steady_window(sequences, steady_time_s) if entered_s is None else entered_s
     lag = max(1, round(PHASE_LAG_S / sequences.interval_s))
     axial_data = prepare(sequences, window, grid=(sequences.nx, 1), lag=lag, residents=True)
     axial = fit(axial_data, n_phases, starts, seed, max_iterations, tol=1e-5)

@@ -11,10 +11,12 @@ steady period and the moves of those already inside then (the data it was fitted
 * the implied timescales of each chain;
 * the log-likelihood per particle-step of each chain on those particles.
 
-Out of sample (:func:`out_of_sample`): the phase model refitted on the first half of the
-steady period alone (the sequences cut where it ends) predicts the pooled RTD of the
-particles that entered in the second half, judged against the DEM's 95 % intervals of
-that RTD (the same block bootstrap as the whole run's, :func:`dem.steady.pooled_rtd`).
+Out of sample (:func:`out_of_sample`): the pooled RTD's entry window split at its middle;
+the phase model refitted to the particles that entered in the first half (and those inside
+when it opened), followed as long as the run follows them, predicts the pooled RTD of the
+other particles, those that entered in the second half, judged against the DEM's 95 %
+intervals of that RTD (the same block bootstrap as the whole run's,
+:func:`dem.steady.pooled_rtd`).
 
 The held-out choice of K (score of the second half under a fit on the first) and the grids
 are the phase study's (``pbmdem study phases``).
@@ -169,7 +171,9 @@ def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
     dem = dem_pooled_rtd(results.particles, mid, t_end, little, float(table.window_s))
     if not dem.get("n_entered"):
         raise ValueError(dem.get("note", "no particle entered in the second half"))
-    refit, _fit = phases.table_with_phases(table, results.sequences.until(mid), t_ss, table.phases.n_phases)
+    refit, _fit = phases.table_with_phases(
+        table, results.sequences, t_ss, table.phases.n_phases, entered_s=(float(t_ss), float(mid))
+    )
     config = pbm_config.model_copy(update={"rates": "phases", "rtd_pulse_s": None})
     pbm = pooled_rtd(refit, config, tuple(dem["entry_window_s"]), dem["horizon_s"])
     if not (math.isfinite(pbm.mean_s) and math.isfinite(pbm.variance_s2)):
