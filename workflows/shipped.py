@@ -31,6 +31,8 @@ REDUCED_RUN = REFERENCE_DIR / "dem-17ea4c9cc143cd3e.h5"
 VALIDATION_DIR = REFERENCE_DIR / "validation"
 STEP_DIR = REFERENCE_DIR / "step"
 PAPER_SCALE_DIR = REFERENCE_DIR / "paper_scale"
+#: every folder of shipped DEM results, where the DEM stage looks for a run's results
+SHIPPED_RESULTS_DIRS = (REFERENCE_DIR, VALIDATION_DIR, STEP_DIR)
 PAPER_SCALE_SUMMARY = PAPER_SCALE_DIR / "summary.json"
 PAPER_SCALE_THERMO = PAPER_SCALE_DIR / "thermo.csv"
 

@@ -41,7 +41,7 @@ from pbm.outputs import write_outputs
 from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, config_from_dict, dump_toml, load_preset
-from workflows.shipped import REFERENCE_DIR
+from workflows.shipped import SHIPPED_RESULTS_DIRS
 
 #: Bump when the post-processing computes anything differently: cached results are redone.
 #: Datasets added without changing any other (the compartment sequences and the phase
@@ -144,14 +144,14 @@ def dem_stage(
     fresh: bool = False,
     progress: bool = True,
     log: Log = _quiet,
-    reference_dir: Path = REFERENCE_DIR,
+    reference_dir: Path | tuple[Path, ...] = SHIPPED_RESULTS_DIRS,
     solver: bool = True,
     watch: Callable[[Path], Callable[[str], None]] | None = None,
 ) -> DemSide:
     """The DEM's velocity table and CQAs for ``config``.
 
-    In order: the cache (``cache_root``, default ``<runs_root>/cache``), the reference
-    data shipped in ``reference_dir``, else LIGGGHTS (reusing a completed run of the same
+    In order: the cache (``cache_root``, default ``<runs_root>/cache``), the results
+    shipped in ``reference_dir`` (one folder or several), else LIGGGHTS (reusing a completed run of the same
     inputs; ``resume`` continues an interrupted one) followed by the post-processing,
     whose result is cached. ``fresh`` skips both caches and reruns the solver. The deck is
     built and the input hash computed once, here. Without LIGGGHTS installed, cached or
@@ -166,7 +166,8 @@ def dem_stage(
     inputs = prepare_run(config.dem)
     post = post_hash(config)
     if not fresh:
-        found = _find_cached(inputs, post, [(cache_root, "cache"), (Path(reference_dir), "reference")], log)
+        shipped = (reference_dir,) if isinstance(reference_dir, (str, Path)) else reference_dir
+        found = _find_cached(inputs, post, [(cache_root, "cache"), *((Path(d), "reference") for d in shipped)], log)
         if found is not None and found.results.sequences is None and completed_run(inputs, runs_root):
             # made before the compartment sequences were recorded: the run's dumps are here,
             # so post-process them again for the sequences and the phase model

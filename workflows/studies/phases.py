@@ -49,7 +49,7 @@ from dem.summary import DemSummary, Estimate
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.config import Config
-from workflows.pipeline.stages import config_of, pbm_config_for
+from workflows.pipeline.stages import config_of, pbm_config_for, writable_directory
 
 
 @dataclass(frozen=True)
@@ -194,20 +194,23 @@ def evaluate(
     max_iterations: int,
     seed: int = 0,
     residents: bool = True,
+    lag: int = 1,
 ) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
     the particles already inside when the window opens (:func:`dem.phases.prepare`); the
-    held-out particles are only those that enter in the second half."""
+    held-out particles are only those that enter in the second half. ``lag``: fit to every
+    ``lag``-th dump (the product's is :data:`dem.phases.PHASE_LAG_S`); the held-out score
+    and the CK test read the same observations, the CK test at 1, 2, 5 and 10 s."""
     t0, t1 = fit_window
-    data = phases.prepare(sequences, (t0, t1), grid, residents=residents)
+    data = phases.prepare(sequences, (t0, t1), grid, residents=residents, lag=lag)
     wall0 = time.perf_counter()
-    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations)
+    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
-    train = phases.prepare(sequences, (t0, middle), grid, residents=residents)
-    test = phases.prepare(sequences, (middle, t1), grid)
-    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations)
-    ck = fit.chapman_kolmogorov(data)
+    train = phases.prepare(sequences, (t0, middle), grid, residents=residents, lag=lag)
+    test = phases.prepare(sequences, (middle, t1), grid, lag=lag)
+    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=1e-5)
+    ck = fit.chapman_kolmogorov(data, tuple(max(1, round(v / data.interval_s)) for v in (1.0, 2.0, 5.0, 10.0)))
     pbm = pbm_numbers(fit.transport, config, target)
     # slice hold-ups: the DEM's are on 10 slices; a coarser or finer PBM grid is compared
     # after summing onto the coarser of the two
@@ -251,6 +254,7 @@ def phase_study(
     target_override: DemTarget | None = None,
     residents: bool = True,
     log=print,
+    lag_s: float = phases.PHASE_LAG_S,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
@@ -276,11 +280,14 @@ def phase_study(
     last = float(seq.snapshot_t[-1])
     window = fit_window_s or (goal.steady_time_s, last)
     window = (float(window[0]), min(float(window[1]), last))  # a run still going ends at its last dump
-    data = phases.prepare(seq, window, residents=residents)
+    lag = max(1, round(lag_s / seq.interval_s))
+    data = phases.prepare(seq, window, residents=residents, lag=lag)
     out = []
     for grid in grids:
         for k in ks:
-            row = evaluate(seq, config, goal, tuple(grid), k, window, starts, max_iterations, residents=residents)
+            row = evaluate(
+                seq, config, goal, tuple(grid), k, window, starts, max_iterations, residents=residents, lag=lag
+            )
             log(
                 f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
                 f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
@@ -462,6 +469,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--grids", default="10x10,10x1", help="comma-separated NXxNY coarsenings (default %(default)s)")
     parser.add_argument("--ks", default="1,2,3", help="numbers of phases (default %(default)s)")
     parser.add_argument("--starts", type=int, default=3, help="EM starts per fit (default 3)")
+    parser.add_argument(
+        "--lag-s",
+        type=float,
+        default=phases.PHASE_LAG_S,
+        help="interval between the observations fitted [s] (default %(default)s, the product's)",
+    )
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
 
@@ -472,7 +485,34 @@ def run(args) -> int:
         raise ConfigError(f"--ks {args.ks!r}: expected comma-separated whole numbers, e.g. 1,2,3") from None
     if not ks or min(ks) < 1 or args.starts < 1:
         raise ConfigError(f"--ks {args.ks!r} and --starts {args.starts}: all must be >= 1")
-    study = phase_study(args.results, args.target, _grids(args.grids), ks, starts=args.starts)
+    if not args.lag_s > 0:
+        raise ConfigError(f"--lag-s {args.lag_s}: expected an interval > 0 s")
+    study = phase_study(args.results, args.target, _grids(args.grids), ks, starts=args.starts, lag_s=args.lag_s)
     print(markdown(study))
-    print(f"wrote {write_json(Path(args.out) / 'phases.json', record(study))}")
+    out = writable_directory(args.out, "--out")
+    print(f"wrote {write_json(out / 'phases.json', record(study))} and {plot_study(study, out / 'phases.png')}")
     return 0
+
+
+def plot_study(study: PhaseStudy, path: Path) -> Path:
+    """Choosing K: per grid, the held-out log-likelihood per observation and the PBM's RTD
+    variance against K, beside the DEM's 95 % interval."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 3.6), layout="constrained")
+    held, var = fig.subplots(1, 2)
+    g = study.target.variance_s2
+    var.axhspan(g.low, g.high, color="#bdbdbd", alpha=0.6, label="DEM, 95 %")
+    for grid in dict.fromkeys(r.grid for r in study.results):
+        rows = [r for r in study.results if r.grid == grid]
+        ks = [r.n_phases for r in rows]
+        label = f"{grid[0]}×{grid[1]}"
+        held.plot(ks, [r.held_out_per_step for r in rows], "o-", label=label)
+        var.plot(ks, [r.variance_s2 for r in rows], "o-", label=label)
+    held.set(xlabel="phases K", ylabel="held-out log-likelihood per observation", title="second half, fit on the first")
+    var.set(xlabel="phases K", ylabel="pooled RTD variance [s²]", title="the PBM's RTD against the DEM's")
+    for ax in (held, var):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    return path

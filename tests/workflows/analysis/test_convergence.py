@@ -24,7 +24,7 @@ def test_criterion_on_the_shipped_validation_baseline():
     young = dataclasses.replace(side.results, summary=dataclasses.replace(side.results.summary, pooled_rtd=None))
     assert "no pooled RTD" in converged(young, config, 180.0).why
     late = converged(side.results, config, 180.0)
-    assert late.converged and set(late.modes) == {"velocity", "measured"}
+    assert late.converged and set(late.modes) == {"velocity", "measured", "phases"}  # the baseline has phases
     assert all(v.n_inside == len(v.rows) for v in late.modes.values())
 
 

@@ -163,13 +163,16 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
         pytest.fail(f"no shipped campaign results in {REFERENCE_DIR}")
     page = validation_report(tmp_path / "out", tmp_path / "runs", solver=False)
     summary = json.loads((page.parent / "summary.json").read_text())
-    assert [row["run"] for row in summary["campaign"]] == [c.name for c in CHANGES]
+    # every shipped run, in the campaign's order (runs not shipped yet are left out)
+    shipped = [row["run"] for row in summary["campaign"]]
+    assert shipped == [c.name for c in CHANGES if c.name in shipped]
+    assert {"baseline", "length_x1.25", "rpm_150", "rpm_350", "feed_x2"} <= set(shipped)
     assert all(row["source"] == "reference" for row in summary["campaign"])
     walls = [row["dem_wall_time_s"] for row in summary["campaign"]]
     assert max(walls) <= summary["campaign_elapsed_s"] <= sum(walls)
     # every change is judged from the baseline, and 250 rpm from the library of 150 and 350
     judged = {(v["run"], v["source"]) for v in summary["verdicts"] if v["judged"]}
-    assert {(c.name, "baseline") for c in CHANGES[1:]} | {("baseline", "library")} <= judged
+    assert {(name, "baseline") for name in shipped[1:]} | {("baseline", "library")} <= judged
     for v in summary["verdicts"]:
         assert v["verdict"].startswith(("the hybrid predicts this", "this needs a new DEM run", "not predicted"))
         for mode in MODES:
