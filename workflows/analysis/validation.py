@@ -224,18 +224,23 @@ def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[Predic
 
 
 def campaign_span_s(sides: dict[str, DemSide]) -> float | None:
-    """Elapsed time of the campaign's solver runs [s]: from the first run's start to the
-    last one's end, each start taken as its end minus its recorded wall time (so a resumed
-    run counts from its first attempt). None when a run lacks the timestamps."""
-    starts, ends = [], []
+    """Elapsed time of the campaign's solver runs [s]: the time during which at least one
+    of them ran (runs side by side count once; days between runs made in different
+    sessions do not count), each run taken as its recorded wall time up to its end. None
+    when a run lacks the timestamps."""
+    spans = []
     for side in sides.values():
         finished, wall = side.provenance.get("run_finished"), side.provenance.get("wall_time_s")
         if not finished or wall is None:
             return None
         end = _dt.datetime.fromisoformat(str(finished)).timestamp()
-        starts.append(end - float(wall))
-        ends.append(end)
-    return max(ends) - min(starts) if ends else None
+        spans.append((end - float(wall), end))
+    total, reach = 0.0, -math.inf
+    for start, end in sorted(spans):
+        if end > reach:
+            total += end - max(start, reach)
+            reach = end
+    return total if spans else None
 
 
 def verdict_text(verdict: dict[str, ModePrediction]) -> str:

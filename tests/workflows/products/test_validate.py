@@ -181,3 +181,18 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
     assert {"velocity", "measured"} <= summary["dem_budget"]["smallest_T"].keys() <= set(MODES)
     for name in ("parity.png", "profiles.png", "budget.png"):
         assert (page.parent / name).stat().st_size > 10_000
+
+
+def test_campaign_span_counts_side_by_side_runs_once_and_skips_the_days_between():
+    from workflows.analysis.validation import campaign_span_s
+
+    def side(finished, wall):
+        return SimpleNamespace(provenance={"run_finished": finished, "wall_time_s": wall})
+
+    sides = {
+        "a": side("2026-11-23T10:00:00+00:00", 3600.0),  # 09:00-10:00
+        "b": side("2026-11-23T10:30:00+00:00", 3600.0),  # 09:30-10:30, beside a
+        "c": side("2026-12-01T12:00:00+00:00", 600.0),  # a week later
+    }
+    assert campaign_span_s(sides) == pytest.approx(5400.0 + 600.0)
+    assert campaign_span_s({"a": side(None, 10.0)}) is None
