@@ -1046,7 +1046,7 @@ def steady_window(sequences: CompartmentSequences, steady_time_s: float | None) 
 def with_transverse(axial: PhaseTransport, transverse: PhaseTransport) -> PhaseTransport:
     """The model on the table's NX x NY grid: the K-phase axial chain ``axial`` (fitted on
     the NX x 1 slices) and, in every compartment, the transverse rates of the one-phase
-    fit ``transverse`` on the full grid, the same in every phase.
+    model ``transverse`` on the full grid (:func:`steady_transverse`), the same in every phase.
 
     Axial moves and phase switching do not depend on j, so the chain lumped onto
     (slice, phase) is exactly ``axial``: the RTD and the slice hold-ups are those of the
@@ -1075,6 +1075,32 @@ def with_transverse(axial: PhaseTransport, transverse: PhaseTransport) -> PhaseT
     return PhaseTransport(rates, switching, axial.entry, axial.interval_s, attrs)
 
 
+def steady_transverse(table, steady_time_s: float) -> PhaseTransport:
+    """The one-phase transverse rates of the table's grid: its measured ``rate_y_pos`` and
+    ``rate_y_neg`` (:mod:`dem.rates`, fitted to the same particles' moves window by window)
+    averaged over the windows from ``steady_time_s`` on, weighted by the particles each
+    window saw; a compartment measured in none of them takes its slice's mean. Its axial
+    rates are 0 (:func:`with_transverse` reads only the transverse ones). A maximum-
+    likelihood fit on the full grid would give the same rates at a cost that grows with the
+    cube of NX * NY (201 x 201 matrix exponentials at NX = 20, minutes per fit)."""
+    if not table.has_rates:
+        raise ValueError("the table carries no measured rates to take the transverse rates from")
+    steady = table.t >= steady_time_s - 1e-9 * table.window_s
+    if not steady.any():
+        raise ValueError(f"no velocity window starts after the steady-state time {steady_time_s:g} s")
+    weight = (table.count_A + table.count_B)[steady]
+    rates = np.zeros((1, len(phase_model.DIRECTIONS), table.nx, table.ny))
+    for d, name in ((2, "rate_y_pos"), (3, "rate_y_neg")):
+        values = getattr(table, name)[steady]
+        known = np.isfinite(values)
+        total = np.where(known, weight, 0.0).sum(axis=0)
+        mean = np.where(known, values * weight, 0.0).sum(axis=0) / np.where(total > 0, total, 1.0)
+        mean = np.where(total > 0, mean, np.nan)
+        by_slice = np.array([np.nanmean(row) if np.isfinite(row).any() else 0.0 for row in mean])[:, None]
+        rates[0, d] = np.where(np.isfinite(mean), mean, by_slice)
+    return PhaseTransport(rates, np.zeros((1, 1, table.nx, table.ny)), np.ones((2, 1)), float("nan"))
+
+
 def axial_part(model: PhaseTransport) -> PhaseTransport:
     """The NX x 1 chain of a :func:`with_transverse` model (its lumping onto the slices)."""
     if np.ptp(model.rates[:, :2], axis=3).max(initial=0.0) > 0 or np.ptp(model.switching, axis=3).max(initial=0.0) > 0:
@@ -1099,7 +1125,8 @@ def table_with_phases(
     and to the moves after it of those already inside (:func:`prepare`'s residents: without
     them the slow particles of the last slices are missing from the window's first mean
     residence times, and the outlet slice's hold-up came out 10 % low), observed every
-    :data:`PHASE_LAG_S`: the phases on the axial slices, the transverse rates from the full grid
+    :data:`PHASE_LAG_S`: the phases on the axial slices, the table's measured transverse
+    rates over the steady windows (:func:`steady_transverse`) in every phase
     (:func:`with_transverse`); a schema-3 table that ``pbm`` runs with ``rates =
     "phases"``. ``entered_s`` = (t0, t1): fit to the particles first seen then instead
     (and those inside at t0). Returns (table, fit of the axial phases). Raises ValueError
@@ -1110,7 +1137,7 @@ def table_with_phases(
     lag = max(1, round(PHASE_LAG_S / sequences.interval_s))
     axial_data = prepare(sequences, window, grid=(sequences.nx, 1), lag=lag, residents=True)
     axial = fit(axial_data, n_phases, starts, seed, max_iterations, tol=1e-5)
-    transverse = one_phase(prepare(sequences, window, lag=lag, residents=True)) if sequences.ny > 1 else None
+    transverse = steady_transverse(table, window[0]) if sequences.ny > 1 else None
     model = axial.transport if transverse is None else with_transverse(axial.transport, transverse)
     return table.replace(phases=model), axial
 
