@@ -1,0 +1,45 @@
+"""The memory check on the shipped validation baseline: the phase model against the
+memoryless chain on the DEM's own particles, and its out-of-sample RTD."""
+
+import math
+
+import pytest
+
+from workflows.analysis.memory import memory_check
+from workflows.pipeline.stages import load_results, pbm_config_for, rtd_pulse
+from workflows.shipped import VALIDATION_DIR
+
+
+@pytest.fixture(scope="module")
+def baseline():
+    results, config = load_results(VALIDATION_DIR / "dem-aa093a229dfd2ce4.h5")
+    if results.sequences is None:
+        pytest.fail("the shipped validation baseline carries no compartment sequences")
+    return results, config
+
+
+def test_the_phase_model_is_nearer_markov_than_the_memoryless_chain(baseline):
+    results, config = baseline
+    check = memory_check(results, pbm_config_for(config, results.table, rtd_pulse(results.summary)))
+    memoryless, model = check.chains
+    assert (memoryless.n_phases, model.n_phases) == (1, results.table.phases.n_phases)
+    # the same particles and observations judge both: the phases fit them better at every lag
+    assert model.log_likelihood_per_step > memoryless.log_likelihood_per_step
+    assert model.ck.max_abs_error() < memoryless.ck.max_abs_error() / 5
+    assert model.timescales_s[0] > memoryless.timescales_s[0]
+    held = check.out_of_sample
+    assert held is not None and held.entry_window_s[0] == pytest.approx(held.fit_window_s[1])
+    assert held.n_entered > 1000 and math.isfinite(held.pbm_variance_s2)
+    assert held.variance_inside == (held.dem_variance_s2.low <= held.pbm_variance_s2 <= held.dem_variance_s2.high)
+    record = check.record()
+    assert (
+        record["chains"][1]["ck_passed"] == model.ck.passed and record["out_of_sample"]["n_entered"] == held.n_entered
+    )
+
+
+def test_no_phase_model_no_check(baseline):
+    results, config = baseline
+    plain = results.table.replace(phases=None)
+    import dataclasses
+
+    assert memory_check(dataclasses.replace(results, table=plain), pbm_config_for(config, plain, None)) is None
