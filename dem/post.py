@@ -160,7 +160,7 @@ def fit_phases(
         return table, None, "no phase model: the run never reached the steady state it is fitted to"
     try:
         with_phases, fit = phases.table_with_phases(table, sequences, steady_time_s, phases.PHASES)
-    except ValueError as exc:
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:  # too few data to fit
         return table, None, f"no phase model: {exc}"
     return with_phases, phases.fit_record(fit), None
 

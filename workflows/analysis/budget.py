@@ -165,7 +165,7 @@ def refit_phases(results: DemResults, t_use_s: float, steady_time_s: float) -> P
         refit, _fit = phases.table_with_phases(
             results.table, results.sequences.until(t_use_s), steady_time_s, results.table.phases.n_phases
         )
-    except ValueError:
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
         return None
     return refit.phases
 

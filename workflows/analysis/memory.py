@@ -28,6 +28,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from dem import phases
 from dem.phases import CkTest
 from dem.post import DemResults
@@ -152,7 +154,7 @@ def memory_check(results: DemResults, pbm_config: PbmConfig) -> MemoryCheck | No
         )
     try:
         held_out, note = out_of_sample(results, pbm_config), ""
-    except ValueError as exc:
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:  # too few particles in a half
         held_out, note = None, f"no out-of-sample check: {exc}"
     return MemoryCheck(tuple(chains), window, data.n_particles, data.n_steps, held_out, note)
 
