@@ -158,8 +158,8 @@ def judge(
     ``calibration`` run (its self-built PBM against its DEM, default ``own``), relative to
     that DEM value and scaled to this one (absolute for the RTD overlap, whose ideal is 1),
     plus the half width of this DEM's interval (:class:`~workflows.analysis.agreement.Judged`).
-    The run's own self-built PBM (``own``) is reported beside it. Quantities missing
-    anywhere are left out and listed."""
+    The run's own self-built PBM (``own``) is reported beside it (NaN where it lacks the
+    mode). Quantities missing from the prediction or the calibration are left out and listed."""
     own_rows = {row.key: row for row in own}
     cal_rows = {row.key: row for row in (calibration if calibration is not None else own)}
     verdict: dict[str, ModePrediction] = {}
@@ -174,7 +174,9 @@ def judge(
             self_value = math.nan if mine is None else mine.value(mode)
             cal_dem, cal_pbm = (math.nan, math.nan) if cal is None else (cal.dem, cal.value(mode))
             half = row.half_width(mode)
-            values = (dem, pred, self_value, cal_dem, cal_pbm, half)
+            # the self-built PBM is only reported: a run whose own results lack a rate mode
+            # (results made before its phase model) is still judged in it
+            values = (dem, pred, cal_dem, cal_pbm, half)
             if not all(math.isfinite(v) for v in values) or (key != "rtd_overlap" and cal_dem == 0):
                 missing.append(key)
                 continue
