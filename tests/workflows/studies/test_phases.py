@@ -63,5 +63,13 @@ def test_bad_arguments_are_one_line(results_file, tmp_path, capsys, extra, messa
 
 
 def test_results_without_sequences_are_refused_by_name(tmp_path, capsys):
-    assert main(["study", "phases", "--results", str(REDUCED_RUN), "--out", str(tmp_path)]) == 2
+    """Results made before the sequences were recorded: the shipped run with them taken out."""
+    import dataclasses
+
+    from coupling.cache import load_entry, save_entry
+
+    entry = load_entry(REDUCED_RUN)
+    arrays = {k: v for k, v in entry.arrays.items() if not k.startswith("sequences_")}
+    old = save_entry(tmp_path / "old.h5", dataclasses.replace(entry, arrays=arrays))
+    assert main(["study", "phases", "--results", str(old), "--out", str(tmp_path / "out")]) == 2
     assert "no compartment sequences" in capsys.readouterr().err
