@@ -1,4 +1,5 @@
-"""Run BLAS single-threaded inside hot loops of small matrices (the PBM, the rate fits).
+"""Run BLAS single-threaded inside hot loops of small matrices (the PBM, the rate fits),
+and size the project's own thread pools to the cores that are free.
 
 Why: the PBM multiplies ~100 x 100 matrices a few thousand times. Threading cannot speed
 up products that small, but OpenBLAS's spinning worker threads can slow them down by two
@@ -8,11 +9,17 @@ situation. This module finds the OpenBLAS libraries already loaded in the proces
 and scipy's wheels bundle their own) and sets their thread count through their C API,
 restoring it afterwards -- what threadpoolctl does, without the dependency. Where no
 OpenBLAS is found (another BLAS, another OS) it does nothing.
+
+The parallelism the PBM does use is over independent work it schedules itself (the
+windows' exponentials, the columns of a march, blocks of ensemble members), on as many
+threads as :func:`free_cores` finds idle: a thread more than the free cores only takes
+time from LIGGGHTS or from its siblings. Results never depend on the thread count.
 """
 
 from __future__ import annotations
 
 import ctypes
+import os
 from contextlib import contextmanager
 from functools import lru_cache
 
@@ -62,3 +69,24 @@ def single_threaded_blas():
     finally:
         for (setter, _getter), count in zip(controls, previous):
             setter(count)
+
+
+def free_cores(limit: int | None = None) -> int:
+    """The cores no other task is running on now, between 1 and ``limit``.
+
+    The CPUs this process may run on, minus the runnable tasks other than the calling
+    thread (the fourth field of /proc/loadavg, "running/total", counts it too): unlike the
+    load averages it is current, so a LIGGGHTS run started a second ago counts. Where
+    /proc/loadavg does not exist, every CPU counts as free.
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    try:
+        with open("/proc/loadavg") as handle:
+            running = int(handle.read().split()[3].split("/")[0])
+    except (OSError, IndexError, ValueError):
+        running = 1
+    free = max(1, cpus - max(0, running - 1))
+    return free if limit is None else max(1, min(free, limit))

@@ -97,7 +97,7 @@ def noise_ensemble(
     check_ensemble_memory(members, t_end, config.noise_interval_s, config.output_interval_s, table.nx)
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    props = Propagators(filled, feed, config.rates)
+    props = Propagators(filled, feed, config.rates, config.kernel)
     # the compartments' populations: (NX, NY, K) in mode "phases", K = 1 otherwise
     grid = (table.nx, table.ny, n_phases(table, config.rates))
 

@@ -284,7 +284,7 @@ def transfer_rates(table: VelocityTable, k, rates: str = "velocity") -> dict[str
 
 
 def _phase_triplets(table: VelocityTable, k):
-    """:func:`_generator_triplets` of mode "phases": the phase model's generator (the same
+    """:func:`generator_triplets` of mode "phases": the phase model's generator (the same
     in every window) transposed to the column convention, with the accumulators."""
     require_rates(table, "phases")
     q = table.phases.generator()  # row = from, last state discharged
@@ -301,7 +301,7 @@ def _phase_triplets(table: VelocityTable, k):
     return rows, cols, np.broadcast_to(values, (*lead, values.size)).copy(), n + N_ACCUMULATORS
 
 
-def _generator_triplets(table: VelocityTable, k, rates: str):
+def generator_triplets(table: VelocityTable, k, rates: str):
     """Row, column and value arrays of the generator entries; values carry the leading
     window axis of ``k`` (if any), rows and columns are the same for every window."""
     if rates == "phases":
@@ -337,7 +337,7 @@ def generator_matrix(table: VelocityTable, k, rates: str = "velocity") -> np.nda
 
     With an index array ``k`` of windows: the stack (len(k), n+3, n+3), built at once.
     """
-    rows, cols, vals, m = _generator_triplets(table, k, rates)
+    rows, cols, vals, m = generator_triplets(table, k, rates)
     g = np.zeros((*vals.shape[:-1], m, m))
     # Every (destination, source) pair occurs once (the stencil's neighbours, the
     # diagonal and the accumulator rows are distinct), so plain assignment is exact.
@@ -347,5 +347,5 @@ def generator_matrix(table: VelocityTable, k, rates: str = "velocity") -> np.nda
 
 def generator_sparse(table: VelocityTable, k: int, rates: str = "velocity") -> sp.csr_matrix:
     """The same generator as a sparse CSR matrix (for the BDF Jacobian)."""
-    rows, cols, vals, m = _generator_triplets(table, k, rates)
+    rows, cols, vals, m = generator_triplets(table, k, rates)
     return sp.csr_matrix((vals, (rows, cols)), shape=(m, m))

@@ -100,7 +100,7 @@ def pooled_rtd(
 
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    props = Propagators(filled, feed, config.rates)
+    props = Propagators(filled, feed, config.rates, config.kernel)
     n = n_populations(table, config.rates)
     m = props.n_states
     amount, vector = tracer_pulse(feed, np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s]), m)

@@ -179,7 +179,7 @@ def simulate(
         raise ConfigError(f"RTD pulse time {pulse} s must lie in [0, {t_end}) s, the simulated time")
     filled, filled_mask = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    props = Propagators(filled, feed, config.rates)
+    props = Propagators(filled, feed, config.rates, config.kernel)
     # populations: NX*NY compartments, times K phases in mode "phases" (collapsed below)
     n, k_phases = n_populations(table, config.rates), n_phases(table, config.rates)
     m = props.n_states

@@ -11,12 +11,18 @@ and both blocks come from one matrix exponential of the augmented matrix
 on h, so they are computed once per (window, h) and reused by every step, every species
 and every ensemble member: a step is then one small dense matrix product.
 
+That dense path costs the cube of the states per window. :mod:`pbm.action` applies the
+same exact steps to the state's few columns by uniformization over the generator's
+diagonals instead, at a cost of non-zeros x columns x (leaving rate x step); a march takes
+whichever of the two :func:`kernel_costs` finds cheaper (results agree to ~1e-12, tested).
+
 ``method="bdf"`` integrates the same system with scipy's ``solve_ivp`` (BDF, sparse
 analytic Jacobian) instead; it is the independent cross-check of the exact path.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -26,9 +32,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.integrate import solve_ivp
 
+from coupling.blas import free_cores
 from coupling.errors import ConfigError, PbmDemError
 from coupling.tables import VelocityTable
-from pbm.model import N_ACCUMULATORS, generator_matrix, generator_sparse
+from pbm.action import Diagonals, diagonals, march_action, series_terms
+from pbm.model import N_ACCUMULATORS, generator_triplets, generator_matrix, generator_sparse
 
 # Times closer than this are the same breakpoint [s]: it absorbs the rounding of k * dt.
 TIME_TOLERANCE_S = 1e-9
@@ -71,6 +79,19 @@ _GENERATOR_CHUNK = 16
 _MAX_SHIFT = 300.0
 # Threads computing step operators concurrently (capped: the matrices are small).
 MAX_THREADS = 4
+# How a march applies the exact steps: "auto" takes the cheaper of the two by
+# kernel_costs; "dense" and "action" force one (tests, benchmarks).
+KERNELS = ("auto", "dense", "action")
+# Multiply-adds per ns of the two kernels, from `pbmdem bench pbm` (its "kernels" rows) on
+# the 2-core benchmark machine: dense products of ~100-600 states (BLAS), the dense
+# operator applied to a few columns, and the uniformization's diagonal loops. Only their
+# ratios matter, and only for which kernel runs: both give the same numbers.
+DENSE_PRODUCT_RATE = 20.0
+DENSE_APPLY_RATE = 5.0
+ACTION_RATE = 3.0
+# The action kernel keeps every breakpoint's state: above this many bytes the dense path
+# runs instead (it streams).
+ACTION_MAX_BYTES = 2**28
 
 
 class SolverError(PbmDemError):
@@ -152,8 +173,14 @@ class Propagators:
     table: VelocityTable
     feed: np.ndarray
     rates: str = "velocity"
+    kernel: str = "auto"
     _cache: dict = field(default_factory=dict, repr=False)
     _generators: dict = field(default_factory=dict, repr=False)
+    _diagonals: list = field(default_factory=list, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.kernel not in KERNELS:
+            raise ConfigError(f"unknown propagation kernel {self.kernel!r}; valid: {', '.join(KERNELS)}")
 
     @property
     def n_states(self) -> int:
@@ -163,6 +190,14 @@ class Propagators:
         """The window whose generator is in force: the phase model is the same in every
         window, so its operators are computed once, not once per window."""
         return 0 if self.rates == "phases" else k
+
+    def diagonals(self) -> Diagonals | None:
+        """Every window's uniformized generator by diagonals (:mod:`pbm.action`), built
+        once; None when the generator has a form the action kernel does not know."""
+        if not self._diagonals:
+            windows = np.arange(1 if self.rates == "phases" else self.table.n_windows)
+            self._diagonals.append(diagonals(*generator_triplets(self.table, windows, self.rates)))
+        return self._diagonals[0]
 
     def generator(self, k: int) -> np.ndarray:
         k = self._window(k)
@@ -181,8 +216,8 @@ class Propagators:
         """Compute the operators of every (window, step length) pair ahead, in parallel.
 
         Each matrix exponential is independent and numpy releases the GIL inside BLAS and
-        LAPACK, so a thread per core overlaps them (BLAS itself is single-threaded here:
-        see pbm._blas). Results are identical to computing them one by one.
+        LAPACK, so a thread per free core overlaps them (BLAS itself is single-threaded
+        here: see coupling.blas). Results are identical to computing them one by one.
         """
         todo = {}
         for k, h in zip(map(self._window, windows.tolist()), steps.tolist()):
@@ -196,7 +231,7 @@ class Propagators:
             chunk = missing[start : start + _GENERATOR_CHUNK]
             for k, g in zip(chunk, generator_matrix(self.table, np.array(chunk), self.rates)):
                 self._generators[k] = g
-        workers = min(len(todo), os.cpu_count() or 1, MAX_THREADS)
+        workers = free_cores(min(len(todo), MAX_THREADS))
         if workers <= 1:
             for key, (k, h) in todo.items():
                 self._cache[key] = self._compute(k, h)
@@ -213,6 +248,42 @@ class Propagators:
         aug[: self.feed.shape[0], m:] = self.feed
         e = expm_taylor18(aug * h)
         return np.ascontiguousarray(e[:m, :m]), np.ascontiguousarray(e[:m, m:])
+
+
+def kernel_costs(props: Propagators, windows: np.ndarray, steps: np.ndarray, columns: int) -> dict[str, float]:
+    """Estimated seconds of a march by each kernel (``inf`` where one cannot run it).
+
+    Dense: the operators not yet cached, each 5 products plus one squaring per halving of
+    its norm (lam h with the shift, as :func:`expm_taylor18`), then one operator-state
+    product per step. Action: per step a Poisson series of about lam h terms
+    (:func:`pbm.action.series_terms`), each a pass over the diagonals of every column.
+    """
+    m = props.n_states + 2
+    diag = props.diagonals()
+    if diag is None:
+        return {"dense": 0.0, "action": math.inf}
+    windows = np.zeros_like(windows) if props.rates == "phases" else np.asarray(windows)
+    ticks = np.round(steps / TIME_TOLERANCE_S).astype(np.int64)
+    ops = {(k, hk): h for k, hk, h in zip(windows.tolist(), ticks.tolist(), steps.tolist()) if (k, hk) not in props._cache}
+    norms = np.array([diag.rate[k] * h for (k, _hk), h in ops.items()])
+    squarings = np.ceil(np.log2(np.maximum(norms, _THETA18) / _THETA18))
+    dense = (5 * norms.size + squarings.sum()) * m**3 / DENSE_PRODUCT_RATE + steps.size * m * m * columns / DENSE_APPLY_RATE
+    costs = {"dense": dense * 1e-9, "action": math.inf}
+    if (steps.size + 1) * props.n_states * columns * 8 <= ACTION_MAX_BYTES:
+        means = diag.rate[windows] * steps
+        terms = series_terms(means).sum()
+        costs["action"] = terms * diag.nonzeros * columns / ACTION_RATE * 1e-9
+    return costs
+
+
+def choose_kernel(props: Propagators, windows: np.ndarray, steps: np.ndarray, columns: int) -> str:
+    """The kernel a march runs: ``props.kernel`` unless "auto", then the cheaper one."""
+    if props.kernel == "action" and props.diagonals() is None:
+        raise ConfigError("the action kernel needs a generator of populations and accumulators; use 'dense'")
+    if props.kernel != "auto":
+        return props.kernel
+    costs = kernel_costs(props, windows, steps, columns)
+    return min(costs, key=costs.get)
 
 
 def march(
@@ -244,6 +315,14 @@ def march(
     windows = np.clip(np.searchsorted(props.table.t, mids, side="right") - 1, 0, props.table.n_windows - 1)
     if method == "expm":
         steps = np.diff(times)
+        if choose_kernel(props, windows, steps, z.shape[1]) == "action":
+            keys, index = np.unique(feed_key, return_inverse=True)
+            rates = np.stack([feed_rates(int(key)) for key in keys])
+            windows = np.zeros_like(windows) if props.rates == "phases" else windows
+            states = _march_columns(props, windows, steps, rates, index, z, injections)
+            for b in range(1, times.size):
+                yield b, states[b]
+            return
         props.prepare(windows, steps)
         feed_cache: dict[int, np.ndarray] = {}
         for s in range(times.size - 1):
@@ -260,6 +339,22 @@ def march(
     if method != "bdf":
         raise ConfigError(f"unknown solver method {method!r}; valid: 'expm', 'bdf'")
     yield from _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol)
+
+
+def _march_columns(props, windows, steps, rates, feed_key, z, injections) -> np.ndarray:
+    """:func:`pbm.action.march_action` with the columns, which never mix, split over the
+    free cores (the kernel releases the GIL); the same numbers on any thread count."""
+    groups = np.array_split(np.arange(z.shape[1]), free_cores(min(MAX_THREADS, z.shape[1])))
+    diag = props.diagonals()
+
+    def run(cols: np.ndarray) -> np.ndarray:
+        own = {b: v[:, cols] for b, v in injections.items()}
+        return march_action(diag, props.feed, windows, steps, rates[:, :, cols], feed_key, z[:, cols], own)
+
+    if len(groups) == 1:
+        return run(groups[0])
+    with ThreadPoolExecutor(max_workers=len(groups)) as pool:
+        return np.concatenate(list(pool.map(run, groups)), axis=2)
 
 
 def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol):
