@@ -22,7 +22,8 @@ and tested at the function named):
 * Regridding: :func:`regrid` -- particle-flux weighted overlap averages (ratio of sums, as
   the DEM post-processing would bin), counts conserved.
 * Feed noise: factor N(1, sigma) per stream, clipped at 0, redrawn every
-  ``noise_interval_s``; member m seeded ``(seed, m)``.
+  ``noise_interval_s``; the members drawn one after the other from one generator seeded
+  ``seed`` (member 0 is the single run).
 """
 
 from pbm.config import PbmConfig

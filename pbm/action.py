@@ -32,9 +32,11 @@ import numpy as np
 
 # Poisson mass left out of each series: the result's error relative to its norm.
 TAIL = 1e-14
-# Largest lam h of one series: exp(-MAX_MEAN) must stay far above underflow (1e-308);
-# longer steps are cut into equal sub-steps.
-MAX_MEAN = 200.0
+# Largest lam h of one series: exp(-MAX_MEAN) must stay far above underflow (1e-308).
+# Consecutive steps under one window and feed share a series up to it (each step's end
+# weights the same powers of B by its own Poisson probabilities), and a longer step is cut
+# into equal sub-steps.
+MAX_MEAN = 600.0
 # Smallest uniformization rate [1/s]: a generator that moves nothing still needs a
 # positive rate for its feed and accumulator terms (any rate is exact; small is cheap).
 MIN_RATE = 1.0
@@ -104,8 +106,9 @@ def diagonals(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, m: int) -> D
 
 
 def series_terms(mean: np.ndarray) -> np.ndarray:
-    """About the products B v a series of Poisson mean ``mean`` takes (its sub-steps
-    included): the mean plus the 8 standard deviations of the tail :data:`TAIL` leaves."""
+    """About the products B v a series of Poisson mean ``mean`` takes (cut into series of
+    at most :data:`MAX_MEAN`): the mean plus the 8 standard deviations of the tail
+    :data:`TAIL` leaves, per series."""
     count = np.maximum(1, np.ceil(np.asarray(mean) / MAX_MEAN))
     sub = np.asarray(mean) / count
     return count * np.floor(sub + 8.0 * np.sqrt(sub) + 10.0)
@@ -175,25 +178,33 @@ def _product(offsets, values_w, outflow_w, rate, v, t, source, pad, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _series(offsets, values_w, outflow_w, rate, mean, v, t, result, source, pad, n, tail):
-    """result = exp(G h) applied to the padded state v (lam h = ``mean``); v and t are
-    work buffers (v is overwritten)."""
-    weight = math.exp(-mean)
-    left = 1.0 - weight
-    for i in range(result.size):
-        result[i] = weight * v[i]
+def _series(offsets, values_w, outflow_w, rate, means, v, t, results, source, pad, n, tail):
+    """results[j] = exp(G tau_j) applied to the padded state v, for lam tau_j = ``means[j]``
+    (increasing): one series serves every output, each weighting the same powers B^k v
+    by its own Poisson probabilities. v and t are work buffers (v is overwritten)."""
+    g = means.size
+    size = v.size
+    weights = np.empty(g)
+    left = np.empty(g)
+    for j in range(g):
+        weights[j] = math.exp(-means[j])
+        left[j] = 1.0 - weights[j]
+        for i in range(size):
+            results[j, i] = weights[j] * v[i]
     k = 0
-    while left > tail:
+    while left[g - 1] > tail and k < 1000000:
         k += 1
         _product(offsets, values_w, outflow_w, rate, v, t, source, pad, n)
         v, t = t, v
-        weight *= mean / k
-        left -= weight
-        if weight > 1e-300:
-            for i in range(result.size):
-                result[i] += weight * v[i]
-        if k > 100000:  # a Poisson series of mean <= MAX_MEAN ends long before
-            break
+        for j in range(g):
+            if left[j] <= tail:
+                continue
+            weights[j] *= means[j] / k
+            left[j] -= weights[j]
+            w = weights[j]
+            if w > 1e-300:
+                for i in range(size):
+                    results[j, i] += w * v[i]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -204,38 +215,70 @@ def _march(
     n = m - 3
     size = pad + n + pad + 3
     a = pad + n + pad
-    out = np.empty((steps.size + 1, m, c))
+    n_steps = steps.size
+    out = np.empty((n_steps + 1, m, c))
     z = z0.copy()
     if inject_at[0] >= 0:
         z += inject[inject_at[0]]
     out[0] = z
     v = np.zeros(size)
     t = np.zeros(size)
-    result = np.zeros(size)
+    start = np.zeros(size)
     source = np.zeros(n)
-    for s in range(steps.size):
+    s = 0
+    while s < n_steps:
+        # a group: the steps that share the window and the feed, with no pulse between
+        # them, up to a Poisson mean of max_mean: one series gives all their ends
         w = windows[s]
         rate = rates[w]
-        mean = rate * steps[s]
-        count = max(1, int(math.ceil(mean / max_mean)))
+        e = s + 1
+        total = rate * steps[s]
+        while (
+            e < n_steps
+            and windows[e] == w
+            and feed_key[e] == feed_key[s]
+            and inject_at[e] < 0
+            and total + rate * steps[e] <= max_mean
+        ):
+            total += rate * steps[e]
+            e += 1
+        g = e - s
+        count = 1
+        if g == 1:
+            count = max(1, int(math.ceil(total / max_mean)))
+        means = np.empty(g)
+        acc = 0.0
+        for j in range(g):
+            acc += rate * steps[s + j]
+            means[j] = acc / count
+        results = np.zeros((g, size))
         for q in range(c):
             r_a = feed_rates[feed_key[s], 0, q]
             r_b = feed_rates[feed_key[s], 1, q]
             for i in range(n):
                 source[i] = (feed[i, 0] * r_a + feed[i, 1] * r_b) / rate
             for i in range(n):
-                result[pad + i] = z[i, q]
+                start[pad + i] = z[i, q]
             for j in range(3):
-                result[a + j] = z[n + j, q]
+                start[a + j] = z[n + j, q]
             for _sub in range(count):
                 for i in range(size):
-                    v[i] = result[i]
-                _series(offsets, values[w], outflow[w], rate, mean / count, v, t, result, source, pad, n, tail)
-            for i in range(n):
-                z[i, q] = result[pad + i]
-            for j in range(3):
-                z[n + j, q] = result[a + j]
-        if inject_at[s + 1] >= 0:
-            z += inject[inject_at[s + 1]]
-        out[s + 1] = z
+                    v[i] = start[i]
+                _series(offsets, values[w], outflow[w], rate, means, v, t, results, source, pad, n, tail)
+                for i in range(size):
+                    start[i] = results[g - 1, i]
+            for j in range(g):
+                for i in range(n):
+                    out[s + 1 + j, i, q] = results[j, pad + i]
+                for i in range(3):
+                    out[s + 1 + j, n + i, q] = results[j, a + i]
+        for j in range(g):
+            if inject_at[s + 1 + j] >= 0:
+                for i in range(m):
+                    for q in range(c):
+                        out[s + 1 + j, i, q] += inject[inject_at[s + 1 + j], i, q]
+        for i in range(m):
+            for q in range(c):
+                z[i, q] = out[e, i, q]
+        s = e
     return out

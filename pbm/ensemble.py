@@ -68,7 +68,13 @@ def _bands(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         sub = values[:, any_finite]
         count = np.isfinite(sub).sum(axis=0)
         mean[any_finite] = np.where(np.isfinite(sub), sub, 0.0).sum(axis=0) / count
-        q = np.nanquantile(sub, BAND_QUANTILES, axis=0)
+        # nanquantile is ~10x slower than quantile: only where some member is NaN
+        q = np.empty((2, sub.shape[1]))
+        partial = count < sub.shape[0]
+        if (~partial).any():
+            q[:, ~partial] = np.quantile(sub[:, ~partial], BAND_QUANTILES, axis=0)
+        if partial.any():
+            q[:, partial] = np.nanquantile(sub[:, partial], BAND_QUANTILES, axis=0)
         lo[any_finite], hi[any_finite] = q[0], q[1]
     return mean, lo, hi
 
@@ -81,8 +87,8 @@ def noise_ensemble(
 
     ``sigma`` (default ``config.noise_sigma``) is the relative SD of the feed-rate factor
     N(1, sigma), clipped at 0 and redrawn every ``config.noise_interval_s``, independently
-    for A and B; member m draws from a generator seeded ``(config.seed, m)`` -- the same
-    factors :func:`pbm.simulate.simulate` uses for m = 0. Exact propagation only (the BDF
+    for A and B (:func:`pbm.simulate.noise_factors`); member 0 has the factors
+    :func:`pbm.simulate.simulate` uses. Exact propagation only (the BDF
     path is a cross-check of single runs). No tracer: the RTD does not depend on the feed.
     """
     config = config or PbmConfig()
@@ -104,7 +110,7 @@ def noise_ensemble(
     # With sigma = 0 every member is the same run: propagate one and replicate it.
     distinct = members if sigma > 0 else 1
     n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
-    factors = np.stack([feed_factors(config, n_noise, member=m, sigma=sigma) for m in range(distinct)], axis=1)
+    factors = feed_factors(config, n_noise, distinct, sigma)
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
 
     out_times = multiples(config.output_interval_s, config.output_interval_s, t_end)

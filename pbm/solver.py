@@ -270,7 +270,9 @@ def kernel_costs(props: Propagators, windows: np.ndarray, steps: np.ndarray, col
     dense = (5 * norms.size + squarings.sum()) * m**3 / DENSE_PRODUCT_RATE + steps.size * m * m * columns / DENSE_APPLY_RATE
     costs = {"dense": dense * 1e-9, "action": math.inf}
     if (steps.size + 1) * props.n_states * columns * 8 <= ACTION_MAX_BYTES:
-        means = diag.rate[windows] * steps
+        # consecutive steps under one window share a series (pbm.action)
+        runs = np.flatnonzero(np.diff(windows, prepend=-1, append=-1))
+        means = np.add.reduceat(diag.rate[windows] * steps, runs[:-1])
         terms = series_terms(means).sum()
         costs["action"] = terms * diag.nonzeros * columns / ACTION_RATE * 1e-9
     return costs

@@ -76,9 +76,9 @@ def test_action_equals_dense_on_long_steps_and_a_still_window():
     """Steps whose lam h exceeds MAX_MEAN (cut into sub-steps) and a window where nothing
     moves (the rate floor carries the feed and the accumulators)."""
     table = synthetic_table(n_windows=4)
-    table = table.replace(vx_pos=table.vx_pos * np.array([1, 1, 0, 1])[:, None, None])
-    table = table.replace(vx_neg=table.vx_neg * 0, vy_pos=table.vy_pos * np.array([1, 1, 0, 1])[:, None, None])
-    table = table.replace(vy_neg=table.vy_neg * np.array([1, 1, 0, 1])[:, None, None])
+    scale = np.array([4, 4, 0, 4])[:, None, None]
+    table = table.replace(vx_pos=table.vx_pos * scale, vx_neg=table.vx_neg * 0)
+    table = table.replace(vy_pos=table.vy_pos * scale, vy_neg=table.vy_neg * scale)
     m = table.nx * table.ny + 3
     props = Propagators(table, feed_distribution(table, None, None), "velocity")
     rate = props.diagonals().rate
