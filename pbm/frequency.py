@@ -41,7 +41,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm, schur, solve_triangular
+from scipy.linalg import expm, schur
 
 from coupling.errors import ConfigError, TableError
 from coupling.tables import VelocityTable
@@ -148,18 +148,19 @@ def system_response(system: StationarySystem, frequencies_hz, feeder: str = "A")
     rhs = u.conj().T @ b
     left = system.outlet @ u
     diagonal = np.diag(t)
-    out = np.empty(omegas.size, dtype=complex)
-    shifted = -t
-    for k, w in enumerate(omegas):
-        pivots = 1j * w - diagonal
-        if np.min(np.abs(pivots)) <= 1e-13 * max(1.0, np.abs(diagonal).max()):
-            raise TableError(
-                f"sI - G is singular at {freqs.ravel()[k]} Hz for windows {system.windows.tolist()}: some "
-                "compartment never drains to the outlet"
-            )
-        np.fill_diagonal(shifted, pivots)
-        out[k] = left @ solve_triangular(shifted, rhs, check_finite=False)
-    return out.reshape(freqs.shape)
+    pivots = 1j * omegas[:, None] - diagonal[None, :]
+    singular = np.min(np.abs(pivots), axis=1) <= 1e-13 * max(1.0, np.abs(diagonal).max())
+    if singular.any():
+        raise TableError(
+            f"sI - G is singular at {freqs.ravel()[np.argmax(singular)]} Hz for windows {system.windows.tolist()}: "
+            "some compartment never drains to the outlet"
+        )
+    # Back substitution for every frequency at once: row i of (i w I - T) x = rhs.
+    n = diagonal.size
+    x = np.empty((omegas.size, n), dtype=complex)
+    for i in range(n - 1, -1, -1):
+        x[:, i] = (rhs[i] + x[:, i + 1 :] @ t[i, i + 1 :]) / pivots[:, i]
+    return (x @ left).reshape(freqs.shape)
 
 
 def transfer_function_from_rtd(t_s, E_per_s, frequencies_hz) -> np.ndarray:

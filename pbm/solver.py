@@ -321,7 +321,8 @@ def march(
             keys, index = np.unique(feed_key, return_inverse=True)
             rates = np.stack([feed_rates(int(key)) for key in keys])
             windows = np.zeros_like(windows) if props.rates == "phases" else windows
-            states = _march_columns(props, windows, steps, rates, index, z, injections)
+            later = {b: value for b, value in injections.items() if b > 0}  # the one at 0 is in z
+            states = _march_columns(props, windows, steps, rates, index, z, later)
             for b in range(1, times.size):
                 yield b, states[b]
             return

@@ -37,7 +37,7 @@ def _march(table, rates, kernel, times, z0, feed_rates, feed_key, injections):
 
 def _scenario(table, m, columns=3, seed=0):
     """Breakpoints off every grid (windows, outputs at 0.7 s, a 1.3-s noise grid), a noisy
-    feed per column, and a pulse in the last column at a breakpoint mid-run."""
+    feed per column, and pulses in the last column at the start and at a breakpoint mid-run."""
     rng = np.random.default_rng(seed)
     t_end = table.t_end
     times = breakpoints(0.0, t_end, table.t, multiples(0.7, 0.0, t_end), multiples(1.3, 0.0, t_end))
@@ -54,7 +54,7 @@ def _scenario(table, m, columns=3, seed=0):
     z0[: m - 3, 0] = rng.uniform(0, 5, m - 3)
     pulse = np.zeros((m, columns))
     pulse[:5, -1] = 7.0
-    return times, z0, feed_rates, feed_key, {times.size // 3: pulse}
+    return times, z0, feed_rates, feed_key, {0: 0.5 * pulse, times.size // 3: pulse}
 
 
 def _relative(a, b):
