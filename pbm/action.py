@@ -186,9 +186,11 @@ def _series(offsets, values_w, outflow_w, rate, means, v, t, results, source, pa
     size = v.size
     weights = np.empty(g)
     left = np.empty(g)
+    used = np.empty(g)
     for j in range(g):
         weights[j] = math.exp(-means[j])
         left[j] = 1.0 - weights[j]
+        used[j] = weights[j]
         for i in range(size):
             results[j, i] = weights[j] * v[i]
     k = 0
@@ -203,13 +205,34 @@ def _series(offsets, values_w, outflow_w, rate, means, v, t, results, source, pa
             left[j] -= weights[j]
             w = weights[j]
             if w > 1e-300:
+                used[j] += w
                 for i in range(size):
                     results[j, i] += w * v[i]
+    # Divided by the weight summed, as if the tail left out were spread like the terms
+    # kept: the error stays below TAIL, and the populations plus the discharge keep their
+    # total to rounding (B conserves it), so a still blender loses no tracer to the cut.
+    for j in range(g):
+        for i in range(size):
+            results[j, i] /= used[j]
 
 
 @numba.njit(cache=True, nogil=True)
 def _march(
-    offsets, values, outflow, rates, pad, feed, windows, steps, feed_rates, feed_key, z0, inject_at, inject, tail, max_mean
+    offsets,
+    values,
+    outflow,
+    rates,
+    pad,
+    feed,
+    windows,
+    steps,
+    feed_rates,
+    feed_key,
+    z0,
+    inject_at,
+    inject,
+    tail,
+    max_mean,
 ):
     m, c = z0.shape
     n = m - 3

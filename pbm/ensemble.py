@@ -13,13 +13,12 @@ M full state histories.
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
-from coupling.blas import single_threaded_blas
+from coupling.blas import free_cores, single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
@@ -216,9 +215,9 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
             discharged[out] = z[n]
     final = _compartments(z, grid).reshape(nx * ny, -1)
     fed = [rates[s] * factors[:, :, s] for s in (0, 1)]  # (J, M) feed rate of each member
-    # Member blocks on threads: numpy releases the GIL in its products, and each thread's
-    # BLAS stays single-threaded (see coupling.blas), so a busy machine is not oversubscribed.
-    blocks = np.array_split(np.arange(factors.shape[1]), min(MAX_THREADS, os.cpu_count() or 1, factors.shape[1]))
+    # Member blocks on a thread per free core: numpy releases the GIL in its products, and
+    # each thread's BLAS stays single-threaded (see coupling.blas).
+    blocks = np.array_split(np.arange(factors.shape[1]), free_cores(min(MAX_THREADS, factors.shape[1])))
     kernels = (outlet, discharged, final, n_int, nx, ny, chunk)
     with ThreadPoolExecutor(max_workers=len(blocks)) as pool:
         parts = list(pool.map(lambda idx: _combine(*kernels, fed[0][:, idx], fed[1][:, idx]), blocks))

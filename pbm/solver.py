@@ -23,7 +23,6 @@ analytic Jacobian) instead; it is the independent cross-check of the exact path.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -36,7 +35,7 @@ from coupling.blas import free_cores
 from coupling.errors import ConfigError, PbmDemError
 from coupling.tables import VelocityTable
 from pbm.action import Diagonals, diagonals, march_action, series_terms
-from pbm.model import N_ACCUMULATORS, generator_triplets, generator_matrix, generator_sparse
+from pbm.model import N_ACCUMULATORS, generator_matrix, generator_sparse, generator_triplets
 
 # Times closer than this are the same breakpoint [s]: it absorbs the rounding of k * dt.
 TIME_TOLERANCE_S = 1e-9
@@ -264,10 +263,14 @@ def kernel_costs(props: Propagators, windows: np.ndarray, steps: np.ndarray, col
         return {"dense": 0.0, "action": math.inf}
     windows = np.zeros_like(windows) if props.rates == "phases" else np.asarray(windows)
     ticks = np.round(steps / TIME_TOLERANCE_S).astype(np.int64)
-    ops = {(k, hk): h for k, hk, h in zip(windows.tolist(), ticks.tolist(), steps.tolist()) if (k, hk) not in props._cache}
+    ops = {
+        (k, hk): h for k, hk, h in zip(windows.tolist(), ticks.tolist(), steps.tolist()) if (k, hk) not in props._cache
+    }
     norms = np.array([diag.rate[k] * h for (k, _hk), h in ops.items()])
     squarings = np.ceil(np.log2(np.maximum(norms, _THETA18) / _THETA18))
-    dense = (5 * norms.size + squarings.sum()) * m**3 / DENSE_PRODUCT_RATE + steps.size * m * m * columns / DENSE_APPLY_RATE
+    dense = (
+        5 * norms.size + squarings.sum()
+    ) * m**3 / DENSE_PRODUCT_RATE + steps.size * m * m * columns / DENSE_APPLY_RATE
     costs = {"dense": dense * 1e-9, "action": math.inf}
     if (steps.size + 1) * props.n_states * columns * 8 <= ACTION_MAX_BYTES:
         # consecutive steps under one window share a series (pbm.action)

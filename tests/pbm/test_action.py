@@ -144,7 +144,11 @@ def test_the_cheaper_kernel_is_chosen(shipped):
     for rates, columns, expected in (("measured", 3, "action"), ("measured", 500, "dense"), ("phases", 3, "dense")):
         filled, _ = filled_table(shipped, rates)
         props = Propagators(filled, feed_distribution(shipped, None, None, rates), rates)
-        assert choose_kernel(props, windows, steps, columns) == expected, (rates, columns, kernel_costs(props, windows, steps, columns))
+        assert choose_kernel(props, windows, steps, columns) == expected, (
+            rates,
+            columns,
+            kernel_costs(props, windows, steps, columns),
+        )
 
 
 def test_unknown_kernel_is_refused():

@@ -228,7 +228,9 @@ def test_bench_main_writes_json(tmp_path, capsys):
     assert "speed-up vs BDF" in out and "products alone" in out
     profile = report["profile"]
     assert profile["exponentials"] == 52 and profile["dense_products"] >= 5 * 52
-    kernels = sum(seconds for stage, seconds in profile["stages_s"].items() if "kernel" in stage or "operators" in stage)
+    kernels = sum(
+        seconds for stage, seconds in profile["stages_s"].items() if "kernel" in stage or "operators" in stage
+    )
     assert 0 < kernels <= profile["total_s"]
     rows = report["kernels"]["rows"]
     assert set(rows) >= {"10x10 measured", "20x10 measured", "10x10 phases K=1", "10x10 phases K=3"}

@@ -236,8 +236,10 @@ def run_kernels(repeats: int = 7, loaded: bool = True) -> dict:
     base = rows["10x10 measured"]["auto"]["median_s"]
     ratios = {
         "20x10 / 10x10 (measured)": rows["20x10 measured"]["auto"]["median_s"] / base,
-        "K=2 / K=1 (phases)": rows["10x10 phases K=2"]["auto"]["median_s"] / rows["10x10 phases K=1"]["auto"]["median_s"],
-        "K=3 / K=1 (phases)": rows["10x10 phases K=3"]["auto"]["median_s"] / rows["10x10 phases K=1"]["auto"]["median_s"],
+        "K=2 / K=1 (phases)": rows["10x10 phases K=2"]["auto"]["median_s"]
+        / rows["10x10 phases K=1"]["auto"]["median_s"],
+        "K=3 / K=1 (phases)": rows["10x10 phases K=3"]["auto"]["median_s"]
+        / rows["10x10 phases K=1"]["auto"]["median_s"],
     }
     out = {"tables": KERNEL_TABLES, "pulse_s": PULSE_S, "rows": rows, "ratios": ratios}
     if loaded:
@@ -417,9 +419,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bdf-repeats", type=int, default=3)
     parser.add_argument("--members", type=int, default=10000)
     parser.add_argument("--kernel-repeats", type=int, default=7, help="timed runs per kernel and shipped table")
-    parser.add_argument(
-        "--no-loaded", action="store_true", help="skip the run with a CPU-bound process on every core"
-    )
+    parser.add_argument("--no-loaded", action="store_true", help="skip the run with a CPU-bound process on every core")
     parser.add_argument("--out", default="results/bench/pbm.json")
 
 
