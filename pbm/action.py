@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from pbm.model import N_ACCUMULATORS
+
 # Poisson mass left out of each series: the result's error relative to its norm.
 TAIL = 1e-14
 # Largest lam h of one series: exp(-MAX_MEAN) must stay far above underflow (1e-308).
@@ -40,7 +42,6 @@ MAX_MEAN = 600.0
 # Smallest uniformization rate [1/s]: a generator that moves nothing still needs a
 # positive rate for its feed and accumulator terms (any rate is exact; small is cheap).
 MIN_RATE = 1.0
-N_ACCUMULATORS = 3
 
 
 @dataclass(frozen=True)

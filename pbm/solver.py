@@ -26,6 +26,7 @@ import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -175,7 +176,6 @@ class Propagators:
     kernel: str = "auto"
     _cache: dict = field(default_factory=dict, repr=False)
     _generators: dict = field(default_factory=dict, repr=False)
-    _diagonals: list = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         if self.kernel not in KERNELS:
@@ -190,13 +190,16 @@ class Propagators:
         window, so its operators are computed once, not once per window."""
         return 0 if self.rates == "phases" else k
 
+    def operator_windows(self, windows: np.ndarray) -> np.ndarray:
+        """:meth:`_window` of every entry of ``windows``."""
+        return np.zeros_like(windows) if self.rates == "phases" else np.asarray(windows)
+
+    @cached_property
     def diagonals(self) -> Diagonals | None:
-        """Every window's uniformized generator by diagonals (:mod:`pbm.action`), built
-        once; None when the generator has a form the action kernel does not know."""
-        if not self._diagonals:
-            windows = np.arange(1 if self.rates == "phases" else self.table.n_windows)
-            self._diagonals.append(diagonals(*generator_triplets(self.table, windows, self.rates)))
-        return self._diagonals[0]
+        """Every operator window's uniformized generator by diagonals (:mod:`pbm.action`);
+        None when the generator has a form the action kernel does not know."""
+        windows = np.arange(1 if self.rates == "phases" else self.table.n_windows)
+        return diagonals(*generator_triplets(self.table, windows, self.rates))
 
     def generator(self, k: int) -> np.ndarray:
         k = self._window(k)
@@ -249,46 +252,76 @@ class Propagators:
         return np.ascontiguousarray(e[:m, :m]), np.ascontiguousarray(e[:m, m:])
 
 
-def kernel_costs(props: Propagators, windows: np.ndarray, steps: np.ndarray, columns: int) -> dict[str, float]:
-    """Estimated seconds of a march by each kernel (``inf`` where one cannot run it).
+@dataclass(frozen=True)
+class KernelWork:
+    """What a march asks of each kernel, in multiply-adds (:func:`kernel_work`).
+
+    ``products``: the dense path's products of the augmented state (its operators not yet
+    cached); ``dense_products`` their multiply-adds and ``dense_apply`` those of applying
+    the operators to the columns; ``action`` the uniformization's (None where it cannot run).
+    """
+
+    products: int
+    dense_products: float
+    dense_apply: float
+    action: float | None
+
+    def seconds(self) -> dict[str, float]:
+        """Estimated seconds of each kernel at the measured rates (``inf`` where it cannot run)."""
+        dense = self.dense_products / DENSE_PRODUCT_RATE + self.dense_apply / DENSE_APPLY_RATE
+        action = math.inf if self.action is None else self.action / ACTION_RATE
+        return {"dense": dense * 1e-9, "action": action * 1e-9}
+
+
+def kernel_work(props: Propagators, windows: np.ndarray, steps: np.ndarray, columns: int) -> KernelWork:
+    """The work of a march of ``steps`` under ``windows`` for ``columns`` state columns.
 
     Dense: the operators not yet cached, each 5 products plus one squaring per halving of
     its norm (lam h with the shift, as :func:`expm_taylor18`), then one operator-state
-    product per step. Action: per step a Poisson series of about lam h terms
-    (:func:`pbm.action.series_terms`), each a pass over the diagonals of every column.
+    product per step and column. Action: a Poisson series per run of steps under one window
+    (they share it, :mod:`pbm.action`), each term a pass over the diagonals of every column.
     """
     m = props.n_states + 2
-    diag = props.diagonals()
+    diag = props.diagonals
+    windows = props.operator_windows(windows)
     if diag is None:
-        return {"dense": 0.0, "action": math.inf}
-    windows = np.zeros_like(windows) if props.rates == "phases" else np.asarray(windows)
+        rate = np.array([-np.diag(props.generator(k)).min() for k in range(windows.max() + 1)])
+    else:
+        rate = diag.rate
     ticks = np.round(steps / TIME_TOLERANCE_S).astype(np.int64)
     ops = {
         (k, hk): h for k, hk, h in zip(windows.tolist(), ticks.tolist(), steps.tolist()) if (k, hk) not in props._cache
     }
-    norms = np.array([diag.rate[k] * h for (k, _hk), h in ops.items()])
-    squarings = np.ceil(np.log2(np.maximum(norms, _THETA18) / _THETA18))
-    dense = (
-        5 * norms.size + squarings.sum()
-    ) * m**3 / DENSE_PRODUCT_RATE + steps.size * m * m * columns / DENSE_APPLY_RATE
-    costs = {"dense": dense * 1e-9, "action": math.inf}
-    if (steps.size + 1) * props.n_states * columns * 8 <= ACTION_MAX_BYTES:
-        # consecutive steps under one window share a series (pbm.action)
-        runs = np.flatnonzero(np.diff(windows, prepend=-1, append=-1))
-        means = np.add.reduceat(diag.rate[windows] * steps, runs[:-1])
-        terms = series_terms(means).sum()
-        costs["action"] = terms * diag.nonzeros * columns / ACTION_RATE * 1e-9
-    return costs
+    norms = np.array([rate[k] * h for (k, _hk), h in ops.items()])
+    products = int(5 * norms.size + np.ceil(np.log2(np.maximum(norms, _THETA18) / _THETA18)).sum())
+    action = None
+    if diag is not None and (steps.size + 1) * props.n_states * columns * 8 <= ACTION_MAX_BYTES:
+        runs = np.flatnonzero(np.diff(windows, prepend=-1, append=-1))[:-1]
+        means = np.add.reduceat(rate[windows] * steps, runs)
+        action = float(series_terms(means).sum() * diag.nonzeros * columns)
+    return KernelWork(products, float(products) * m**3, float(steps.size * columns) * m * m, action)
+
+
+def kernel_costs(props: Propagators, windows: np.ndarray, steps: np.ndarray, columns: int) -> dict[str, float]:
+    """Estimated seconds of a march by each kernel (:func:`kernel_work` at the measured rates)."""
+    return kernel_work(props, windows, steps, columns).seconds()
 
 
 def choose_kernel(props: Propagators, windows: np.ndarray, steps: np.ndarray, columns: int) -> str:
     """The kernel a march runs: ``props.kernel`` unless "auto", then the cheaper one."""
-    if props.kernel == "action" and props.diagonals() is None:
+    if props.kernel == "action" and props.diagonals is None:
         raise ConfigError("the action kernel needs a generator of populations and accumulators; use 'dense'")
     if props.kernel != "auto":
         return props.kernel
     costs = kernel_costs(props, windows, steps, columns)
     return min(costs, key=costs.get)
+
+
+def step_windows(table: VelocityTable, times: np.ndarray) -> np.ndarray:
+    """The window in force during each step between the breakpoints ``times``, read at its
+    midpoint (the last one beyond the table's end), as VelocityTable.window_index."""
+    mids = 0.5 * (times[:-1] + times[1:])
+    return np.clip(np.searchsorted(table.t, mids, side="right") - 1, 0, table.n_windows - 1)
 
 
 def march(
@@ -315,17 +348,14 @@ def march(
     z = np.array(z0, dtype=float, copy=True)
     if 0 in injections:
         z += injections[0]
-    mids = 0.5 * (times[:-1] + times[1:])
-    # The window in force (the last one beyond the table's end), as VelocityTable.window_index.
-    windows = np.clip(np.searchsorted(props.table.t, mids, side="right") - 1, 0, props.table.n_windows - 1)
+    windows = step_windows(props.table, times)
     if method == "expm":
         steps = np.diff(times)
         if choose_kernel(props, windows, steps, z.shape[1]) == "action":
             keys, index = np.unique(feed_key, return_inverse=True)
             rates = np.stack([feed_rates(int(key)) for key in keys])
-            windows = np.zeros_like(windows) if props.rates == "phases" else windows
-            later = {b: value for b, value in injections.items() if b > 0}  # the one at 0 is in z
-            states = _march_columns(props, windows, steps, rates, index, z, later)
+            windows = props.operator_windows(windows)
+            states = _march_columns(props, windows, steps, rates, index, np.asarray(z0, dtype=float), injections)
             for b in range(1, times.size):
                 yield b, states[b]
             return
@@ -351,7 +381,7 @@ def _march_columns(props, windows, steps, rates, feed_key, z, injections) -> np.
     """:func:`pbm.action.march_action` with the columns, which never mix, split over the
     free cores (the kernel releases the GIL); the same numbers on any thread count."""
     groups = np.array_split(np.arange(z.shape[1]), free_cores(min(MAX_THREADS, z.shape[1])))
-    diag = props.diagonals()
+    diag = props.diagonals
 
     def run(cols: np.ndarray) -> np.ndarray:
         own = {b: v[:, cols] for b, v in injections.items()}

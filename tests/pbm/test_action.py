@@ -81,7 +81,7 @@ def test_action_equals_dense_on_long_steps_and_a_still_window():
     table = table.replace(vy_pos=table.vy_pos * scale, vy_neg=table.vy_neg * scale)
     m = table.nx * table.ny + 3
     props = Propagators(table, feed_distribution(table, None, None), "velocity")
-    rate = props.diagonals().rate
+    rate = props.diagonals.rate
     assert rate[2] == 1.0 and rate.max() * table.window_s > MAX_MEAN
     times = breakpoints(0.0, table.t_end, table.t)
     z0 = np.ones((m, 2))

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import math
 import multiprocessing
 import os
 import platform
@@ -47,12 +46,11 @@ import numpy as np
 from coupling.jsonable import write_json
 from coupling.phases import PhaseTransport
 from coupling.tables import read_table
-from pbm.action import series_terms
 from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
 from pbm.model import feed_distribution, filled_table
 from pbm.simulate import simulate
-from pbm.solver import _THETA18, Propagators, breakpoints, multiples
+from pbm.solver import Propagators, breakpoints, kernel_work, multiples, step_windows
 from pbm.synthetic import synthetic_table
 from workflows.shipped import REFERENCE_DIR
 
@@ -107,24 +105,18 @@ def profile_simulate(table, config: PbmConfig, rtd_pulse_s: float) -> dict:
     stages["the rest (CQAs, RTD, checks)"] = (
         total - kernels - stages["march (state updates, kernel choice)"] - stages["filled_table (fill rule)"]
     )
-    # the products one run's exponentials need: 5 each, plus the squarings its norm asks for
-    props = Propagators(table, np.zeros((table.nx * table.ny, 2)), config.rates)
-    m = props.n_states + 2
-    squarings = []
-    for k in range(table.n_windows):
-        g = props.generator(k)
-        shift = max(0.0, -float(np.diag(g).min()))
-        norm = np.abs(g + shift * np.eye(g.shape[0])).sum(axis=0).max() * config.output_interval_s
-        squarings.append(max(0, int(np.ceil(np.log2(norm / _THETA18)))) if norm > 0 else 0)
+    # the products the dense path would need: 5 per exponential, plus its squarings
+    work = scenario_work(table, config)
+    m = work["states"] + 2
     a = np.random.default_rng(0).standard_normal((m, m))
     product_s = statistics.median(_timed(lambda: a @ a, 200)[0])
-    products = sum(5 + s for s in squarings)
+    products = work["dense_products"]
     return {
         "total_s": total,
         "stages_s": stages,
         "matrix_size": m,
-        "exponentials": table.n_windows,
-        "mean_squarings": float(np.mean(squarings)),
+        "exponentials": work["dense_exponentials"],
+        "mean_squarings": products / work["dense_exponentials"] - 5,
         "dense_products": products,
         "one_product_s": product_s,
         "product_bound_s": products * product_s,
@@ -151,38 +143,28 @@ def fastest_phases(table, k: int):
     )
 
 
-def kernel_work(table, config: PbmConfig) -> dict:
-    """What one run of the paper scenario (pulse at PULSE_S, outputs and bins every second)
-    asks of each kernel: the dense path's exponentials and products, and the action's
-    multiply-adds over its three columns (A, B, tracer)."""
+def scenario_work(table, config: PbmConfig) -> dict:
+    """What one run of the paper scenario (pulse at PULSE_S, outputs and bins every second,
+    A, B and tracer as three columns) asks of each kernel (:func:`pbm.solver.kernel_work`)."""
     filled, _ = filled_table(table, config.rates)
     props = Propagators(filled, feed_distribution(table, None, None, config.rates), config.rates)
-    times = breakpoints(0.0, table.t_end, table.t, multiples(1.0, 0.0, table.t_end), [PULSE_S])
-    steps = np.diff(times)
-    windows = np.clip(np.searchsorted(table.t, 0.5 * (times[:-1] + times[1:]), side="right") - 1, 0, None)
-    if config.rates == "phases":
-        windows = np.zeros_like(windows)
-    diag = props.diagonals()
-    m = props.n_states + 2
-    ops = {(int(k), round(h * 1e9)): h for k, h in zip(windows, steps)}
-    products = sum(
-        5 + max(0, math.ceil(math.log2(max(diag.rate[k] * h, _THETA18) / _THETA18))) for (k, _), h in ops.items()
-    )
-    columns = np.where(times[:-1] >= PULSE_S - 1e-9, 3, 2)
+    times = breakpoints(0.0, table.t_end, table.t, multiples(config.output_interval_s, 0.0, table.t_end), [PULSE_S])
+    windows = step_windows(table, times)
+    work = kernel_work(props, windows, np.diff(times), 3)
     return {
         "states": props.n_states,
-        "dense_exponentials": len(ops),
-        "dense_products": products,
-        "dense_multiply_adds": products * m**3 + int(columns.sum()) * m * m,
-        "action_multiply_adds": float((series_terms(diag.rate[windows] * steps) * columns).sum() * diag.nonzeros),
-        "diagonals": int(diag.offsets.size),
-        "max_leaving_rate_per_s": float(diag.rate.max()),
+        "dense_exponentials": int(np.unique(props.operator_windows(windows)).size),
+        "dense_products": work.products,
+        "dense_multiply_adds": work.dense_products + work.dense_apply,
+        "action_multiply_adds": work.action,
+        "diagonals": int(props.diagonals.offsets.size),
+        "max_leaving_rate_per_s": float(props.diagonals.rate.max()),
     }
 
 
 def time_kernels(table, rates: str, repeats: int) -> dict:
     """Median seconds of the paper scenario on ``table`` with each kernel, and the work."""
-    row = {"rates": rates, **kernel_work(table, PbmConfig(rates=rates))}
+    row = {"rates": rates, **scenario_work(table, PbmConfig(rates=rates))}
     reference = None
     for kernel in ("dense", "action", "auto"):
         config = PbmConfig(rates=rates, kernel=kernel)
