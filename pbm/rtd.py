@@ -73,8 +73,13 @@ def pooled_rtd(
     """The PBM's RTD of tracer entering uniformly during ``entry_window`` = (t0, t1] [s],
     recovered within ``horizon_s`` = H [s] of entry: the DEM's pooled RTD, like for like.
 
-    Pulses sit at the centres of n equal sub-intervals of (t0, t1], n = ceil((t1 - t0) /
-    ``pulse_interval_s``) (default ``config.rtd_bin_s``). Uses ``config``'s feed rates and
+    n = round((t1 - t0) / s) pulses (at least one), s = ``pulse_interval_s`` (default
+    ``config.rtd_bin_s``), spaced exactly s apart and centred in (t0, t1]: the centres of n
+    equal sub-intervals when t1 - t0 is a multiple of s, and otherwise a comb that misses or
+    overhangs the window by less than s / 2 in all. Exactly s apart so that, with 1-s bins,
+    every pulse is read on one grid of times: an uneven spacing made each pulse's bin edges
+    breakpoints of their own, and the march 44 times longer (11 381 steps instead of 256 on
+    the reduced reference's 126 pulses). Uses ``config``'s feed rates and
     weights (the tracer's inlet distribution), ``rates``, ``method``, ``rtd_bin_s`` and
     ``duration_s``; the A and B populations themselves do not enter (the system is linear).
     Raises ConfigError unless 0 <= t0 < t1, H > 0, pulse_interval_s > 0 and t1 + H lies
@@ -105,8 +110,8 @@ def pooled_rtd(
     m = props.n_states
     amount, vector = tracer_pulse(feed, np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s]), m)
 
-    n_pulses = max(1, math.ceil((t1 - t0) / spacing - 1e-9))
-    entries = t0 + (t1 - t0) / n_pulses * (np.arange(n_pulses) + 0.5)
+    n_pulses = max(1, round((t1 - t0) / spacing))
+    entries = 0.5 * (t0 + t1) + spacing * (np.arange(n_pulses) - 0.5 * (n_pulses - 1))
     edges = multiples(config.rtd_bin_s, 0.0, horizon)
     if horizon - edges[-1] > TIME_TOLERANCE_S:
         edges = np.append(edges, horizon)

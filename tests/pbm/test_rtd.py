@@ -186,6 +186,19 @@ def test_pooled_rtd_of_a_time_varying_table_averages_the_pulse_responses_at_thei
     assert pooled.mean_s == pytest.approx(np.sum(weights * means) / weights.sum(), rel=1e-9)
 
 
+def test_pooled_rtd_pulses_are_one_spacing_apart_in_any_window():
+    """A window that is not a whole number of spacings (the DEM's never is) still gets a
+    comb exactly one spacing apart, centred in it, so every pulse is read on one time grid."""
+    table = synthetic_table(nx=3, ny=2, n_windows=12, window_s=5.0, seed=13)
+    for window, count in (((10.0, 22.6), 13), ((10.0, 22.4), 12), ((10.0, 10.3), 1)):
+        pooled = pooled_rtd(table, PbmConfig(), entry_window=window, horizon_s=20.0)
+        entries = pooled.entry_times_s
+        assert pooled.n_pulses == count
+        np.testing.assert_allclose(np.diff(entries), 1.0, rtol=0, atol=1e-12)
+        assert entries.mean() == pytest.approx(0.5 * sum(window), abs=1e-12)
+        assert entries[0] > window[0] and entries[-1] <= window[1]
+
+
 def test_pooled_rtd_matches_the_bdf_cross_check():
     table = synthetic_table(nx=3, ny=2, n_windows=4, window_s=5.0, seed=17)
     exact = pooled_rtd(table, PbmConfig(), entry_window=(1.0, 4.0), horizon_s=12.0)
