@@ -27,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 from coupling.errors import SolverNotFoundError, SolverRunError
@@ -88,11 +89,19 @@ def _mpi_session_failure(output: str) -> str | None:
 def liggghts_version(liggghts: str = "liggghts") -> str:
     """The banner of ``liggghts -h`` (e.g. 'LIGGGHTS-PUBLIC 3.8.0, compiled ...').
 
-    Raises SolverNotFoundError when the executable is missing."""
+    Raises SolverNotFoundError when the executable is missing. The banner is asked once
+    per executable file (its path and modification time) in a process: a run's key needs
+    it, and starting LIGGGHTS takes seconds on a busy machine."""
     exe = shlex.split(liggghts)
-    if not exe or shutil.which(exe[0]) is None:
+    found = shutil.which(exe[0]) if exe else None
+    if found is None:
         raise SolverNotFoundError(f"LIGGGHTS executable {liggghts!r} not found on PATH; {INSTALL_HINT}")
     check_tmpdir()
+    return _version((found, *exe[1:]), os.stat(found).st_mtime_ns, liggghts)
+
+
+@lru_cache(maxsize=16)
+def _version(exe: tuple[str, ...], _mtime_ns: int, liggghts: str) -> str:
     try:
         # -log none: otherwise `liggghts -h` leaves a log.liggghts in the caller's directory
         out = subprocess.run(
