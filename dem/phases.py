@@ -653,14 +653,16 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
     error = np.zeros_like(observed)
     starts = np.zeros((n_lags, nx))
     particles = np.zeros((n_lags, nx))
+    # every start point (row, t) in a compartment
+    all_rows, all_ts = np.nonzero((obs >= 0) & (obs < s))
     for n, lag in enumerate(lags):
         p = expm(q * lag * data.interval_s)
         aggregate = np.zeros((s * k + 1, nx + 1))
         aggregate[np.arange(s * k + 1), np.append(np.repeat(slice_of[:-1], k), nx)] = 1.0
         from_cell = (p @ aggregate)[:-1].reshape(s, k, nx + 1)
         from_cell = (from_cell * phase_given_cell[:, :, None]).sum(axis=1)  # (S, NX+1)
-        # every start point (row, t) in a compartment, with its outcome
-        rows, ts = np.nonzero((obs >= 0) & (obs < s))
+        # the start points' outcomes at this lag
+        rows, ts = all_rows, all_ts
         ahead = ts + lag
         followed = data.start[rows] + ahead <= data.last_dump
         in_range = ahead < lengths[rows]
@@ -677,8 +679,9 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
                 continue
             weights = cell_counts[i * ny : (i + 1) * ny]
             predicted[n, i] = weights @ from_cell[i * ny : (i + 1) * ny] / weights.sum()
-            hits = np.zeros((obs.shape[0], nx + 1))
-            np.add.at(hits, (rows[in_i], end_slice[in_i]), 1.0)
+            # (particle, end slice) counts; bincount rather than np.add.at, ~20x faster
+            cell = rows[in_i] * (nx + 1) + end_slice[in_i]
+            hits = np.bincount(cell, minlength=obs.shape[0] * (nx + 1)).reshape(obs.shape[0], nx + 1).astype(float)
             per_particle = np.bincount(rows[in_i], minlength=obs.shape[0]).astype(float)
             particles[n, i] = np.count_nonzero(per_particle)
             fraction = hits.sum(axis=0) / total
