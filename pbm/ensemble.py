@@ -113,7 +113,7 @@ def noise_ensemble(
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
 
     out_times = multiples(config.output_interval_s, config.output_interval_s, t_end)
-    switch_sets = [table.t]
+    switch_sets = [props.schedule.t]
     if sigma > 0:
         switch_sets.append(multiples(config.noise_interval_s, 0.0, t_end))
     if config.feed_step_s is not None:

@@ -337,7 +337,11 @@ def generator_matrix(table: VelocityTable, k, rates: str = "velocity") -> np.nda
 
     With an index array ``k`` of windows: the stack (len(k), n+3, n+3), built at once.
     """
-    rows, cols, vals, m = generator_triplets(table, k, rates)
+    return dense_generator(*generator_triplets(table, k, rates))
+
+
+def dense_generator(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, m: int) -> np.ndarray:
+    """The dense generator(s) of triplets; ``vals`` may carry leading window axes."""
     g = np.zeros((*vals.shape[:-1], m, m))
     # Every (destination, source) pair occurs once (the stencil's neighbours, the
     # diagonal and the accumulator rows are distinct), so plain assignment is exact.

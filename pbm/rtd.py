@@ -116,7 +116,7 @@ def pooled_rtd(
     if horizon - edges[-1] > TIME_TOLERANCE_S:
         edges = np.append(edges, horizon)
     record = entries[:, None] + edges[None, :]  # (pulse, edge): absolute times to read
-    times = breakpoints(entries[0], entries[-1] + horizon, record.ravel(), table.t)
+    times = breakpoints(entries[0], entries[-1] + horizon, record.ravel(), props.schedule.t)
     at = np.clip(np.searchsorted(times, record - TIME_TOLERANCE_S), 0, times.size - 1)
 
     injections = {}

@@ -377,10 +377,9 @@ def _choose_pulse(times, holdup, steady_time, steady: SteadyStateRule) -> tuple[
 
 def _run_columns(props, config, t_start, t_end, columns, z0, factors, rates, record_times, pulse_at, tracer_vector):
     """March the columns (species 0 = A, 1 = B, 2 = tracer) and record every breakpoint."""
-    table = props.table
     noise = config.noise_sigma > 0
     step = config.feed_step_s is not None
-    switch_sets = [table.t]
+    switch_sets = [props.schedule.t]
     if noise:
         switch_sets.append(multiples(config.noise_interval_s, t_start, t_end))
     if step:

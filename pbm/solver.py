@@ -36,7 +36,7 @@ from coupling.blas import free_cores
 from coupling.errors import ConfigError, PbmDemError
 from coupling.tables import VelocityTable
 from pbm.action import Diagonals, diagonals, march_action, series_terms
-from pbm.model import N_ACCUMULATORS, generator_matrix, generator_sparse, generator_triplets
+from pbm.model import N_ACCUMULATORS, dense_generator, generator_triplets
 
 # Times closer than this are the same breakpoint [s]: it absorbs the rounding of k * dt.
 TIME_TOLERANCE_S = 1e-9
@@ -161,54 +161,88 @@ def multiples(step: float, t_start: float, t_end: float) -> np.ndarray:
     return step * np.arange(k0, k1 + 1, dtype=float)
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """Piecewise-constant generators: entry ``w`` is in force from ``t[w]`` to ``t[w + 1]``
+    (the first from the start of time, the last for ever after). ``vals[w]`` holds its
+    entries at ``rows``, ``cols`` (the same pattern in every entry), ``m`` states.
+
+    A table's windows are one schedule (:func:`table_schedule`); a fill law's rates that
+    follow the hold-up are another (:mod:`pbm.fill`), on a grid of its own.
+    """
+
+    t: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    vals: np.ndarray
+    m: int
+
+    @property
+    def n_windows(self) -> int:
+        return self.t.size
+
+    def dense(self, w) -> np.ndarray:
+        """The (m, m) generator of entry ``w``, or the stack for an index array."""
+        return dense_generator(self.rows, self.cols, self.vals[w], self.m)
+
+    def sparse(self, w: int) -> sp.csr_matrix:
+        return sp.csr_matrix((self.vals[w], (self.rows, self.cols)), shape=(self.m, self.m))
+
+    def windows(self, times: np.ndarray) -> np.ndarray:
+        """The entry in force during each step between the breakpoints ``times``, read at
+        its midpoint, so entry switches must be breakpoints."""
+        return step_windows(self.t, times)
+
+
+def table_schedule(table: VelocityTable, rates: str) -> Schedule:
+    """The generators of ``table``'s windows in mode ``rates``; the phase model is the same
+    in every window, so it is one entry."""
+    windows = np.arange(1 if rates == "phases" else table.n_windows)
+    rows, cols, vals, m = generator_triplets(table, windows, rates)
+    return Schedule(np.asarray(table.t[windows], dtype=float), rows, cols, vals, m)
+
+
 @dataclass
 class Propagators:
-    """Exact step operators of one (filled) table and one feed distribution, cached.
+    """Exact step operators of one generator schedule and one feed distribution, cached.
 
     ``feed`` is (n, 2): the inlet distribution of one particle/s of A and of B. ``rates``
-    is the rate mode of the generators (:data:`pbm.model.RATE_MODES`).
-    :meth:`step` returns ``(P, Q)`` with P (m, m) and Q (m, 2), m = n + 3.
+    is the rate mode of the generators (:data:`pbm.model.RATE_MODES`); ``schedule``
+    defaults to the (filled) table's windows. :meth:`step` returns ``(P, Q)`` with
+    P (m, m) and Q (m, 2), m = n + 3.
     """
 
     table: VelocityTable
     feed: np.ndarray
     rates: str = "velocity"
     kernel: str = "auto"
+    schedule: Schedule | None = None
     _cache: dict = field(default_factory=dict, repr=False)
     _generators: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if self.kernel not in KERNELS:
             raise ConfigError(f"unknown propagation kernel {self.kernel!r}; valid: {', '.join(KERNELS)}")
+        if self.schedule is None:
+            self.schedule = table_schedule(self.table, self.rates)
 
     @property
     def n_states(self) -> int:
         return self.feed.shape[0] + N_ACCUMULATORS
 
-    def _window(self, k: int) -> int:
-        """The window whose generator is in force: the phase model is the same in every
-        window, so its operators are computed once, not once per window."""
-        return 0 if self.rates == "phases" else k
-
-    def operator_windows(self, windows: np.ndarray) -> np.ndarray:
-        """:meth:`_window` of every entry of ``windows``."""
-        return np.zeros_like(windows) if self.rates == "phases" else np.asarray(windows)
-
     @cached_property
     def diagonals(self) -> Diagonals | None:
-        """Every operator window's uniformized generator by diagonals (:mod:`pbm.action`);
+        """Every schedule entry's uniformized generator by diagonals (:mod:`pbm.action`);
         None when the generator has a form the action kernel does not know."""
-        windows = np.arange(1 if self.rates == "phases" else self.table.n_windows)
-        return diagonals(*generator_triplets(self.table, windows, self.rates))
+        s = self.schedule
+        return diagonals(s.rows, s.cols, s.vals, s.m)
 
     def generator(self, k: int) -> np.ndarray:
-        k = self._window(k)
         if k not in self._generators:
-            self._generators[k] = generator_matrix(self.table, k, self.rates)
+            self._generators[k] = self.schedule.dense(k)
         return self._generators[k]
 
     def step(self, k: int, h: float) -> tuple[np.ndarray, np.ndarray]:
-        k = self._window(k)
         key = (k, round(h / TIME_TOLERANCE_S))
         if key not in self._cache:
             self._cache[key] = self._compute(k, h)
@@ -222,7 +256,7 @@ class Propagators:
         here: see coupling.blas). Results are identical to computing them one by one.
         """
         todo = {}
-        for k, h in zip(map(self._window, windows.tolist()), steps.tolist()):
+        for k, h in zip(windows.tolist(), steps.tolist()):
             key = (k, round(h / TIME_TOLERANCE_S))
             if key not in self._cache and key not in todo:
                 todo[key] = (k, h)
@@ -231,7 +265,7 @@ class Propagators:
         missing = sorted({k for k, _h in todo.values()} - self._generators.keys())
         for start in range(0, len(missing), _GENERATOR_CHUNK):
             chunk = missing[start : start + _GENERATOR_CHUNK]
-            for k, g in zip(chunk, generator_matrix(self.table, np.array(chunk), self.rates)):
+            for k, g in zip(chunk, self.schedule.dense(np.array(chunk))):
                 self._generators[k] = g
         workers = free_cores(min(len(todo), MAX_THREADS))
         if workers <= 1:
@@ -283,7 +317,6 @@ def kernel_work(props: Propagators, windows: np.ndarray, steps: np.ndarray, colu
     """
     m = props.n_states + 2
     diag = props.diagonals
-    windows = props.operator_windows(windows)
     if diag is None:
         rate = np.array([-np.diag(props.generator(k)).min() for k in range(windows.max() + 1)])
     else:
@@ -317,11 +350,12 @@ def choose_kernel(props: Propagators, windows: np.ndarray, steps: np.ndarray, co
     return min(costs, key=costs.get)
 
 
-def step_windows(table: VelocityTable, times: np.ndarray) -> np.ndarray:
-    """The window in force during each step between the breakpoints ``times``, read at its
-    midpoint (the last one beyond the table's end), as VelocityTable.window_index."""
+def step_windows(starts: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """The window (of those starting at ``starts``) in force during each step between the
+    breakpoints ``times``, read at its midpoint (the last one beyond the end), as
+    VelocityTable.window_index."""
     mids = 0.5 * (times[:-1] + times[1:])
-    return np.clip(np.searchsorted(table.t, mids, side="right") - 1, 0, table.n_windows - 1)
+    return np.clip(np.searchsorted(starts, mids, side="right") - 1, 0, starts.size - 1)
 
 
 def march(
@@ -348,13 +382,12 @@ def march(
     z = np.array(z0, dtype=float, copy=True)
     if 0 in injections:
         z += injections[0]
-    windows = step_windows(props.table, times)
+    windows = props.schedule.windows(times)
     if method == "expm":
         steps = np.diff(times)
         if choose_kernel(props, windows, steps, z.shape[1]) == "action":
             keys, index = np.unique(feed_key, return_inverse=True)
             rates = np.stack([feed_rates(int(key)) for key in keys])
-            windows = props.operator_windows(windows)
             states = _march_columns(props, windows, steps, rates, index, np.asarray(z0, dtype=float), injections)
             for b in range(1, times.size):
                 yield b, states[b]
@@ -405,7 +438,7 @@ def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol,
         e = s + 1
         while e < n_steps and windows[e] == windows[s] and feed_key[e] == feed_key[s] and e not in injections:
             e += 1
-        gen = generator_sparse(props.table, int(windows[s]), props.rates)
+        gen = props.schedule.sparse(int(windows[s]))
         jac = sp.kron(sp.identity(c, format="csr"), gen, format="csr")
         source = (feed @ feed_rates(int(feed_key[s]))).T.ravel()
 

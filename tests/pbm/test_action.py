@@ -140,10 +140,10 @@ def test_the_cheaper_kernel_is_chosen(shipped):
     t_end = shipped.t_end
     times = breakpoints(0.0, t_end, shipped.t, multiples(1.0, 0.0, t_end))
     steps = np.diff(times)
-    windows = np.clip(np.searchsorted(shipped.t, 0.5 * (times[:-1] + times[1:]), side="right") - 1, 0, None)
     for rates, columns, expected in (("measured", 3, "action"), ("measured", 500, "dense"), ("phases", 3, "dense")):
         filled, _ = filled_table(shipped, rates)
         props = Propagators(filled, feed_distribution(shipped, None, None, rates), rates)
+        windows = props.schedule.windows(times)
         assert choose_kernel(props, windows, steps, columns) == expected, (
             rates,
             columns,

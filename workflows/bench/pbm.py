@@ -50,7 +50,7 @@ from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
 from pbm.model import feed_distribution, filled_table
 from pbm.simulate import simulate
-from pbm.solver import Propagators, breakpoints, kernel_work, multiples, step_windows
+from pbm.solver import Propagators, breakpoints, kernel_work, multiples
 from pbm.synthetic import synthetic_table
 from workflows.shipped import REFERENCE_DIR
 
@@ -149,11 +149,11 @@ def scenario_work(table, config: PbmConfig) -> dict:
     filled, _ = filled_table(table, config.rates)
     props = Propagators(filled, feed_distribution(table, None, None, config.rates), config.rates)
     times = breakpoints(0.0, table.t_end, table.t, multiples(config.output_interval_s, 0.0, table.t_end), [PULSE_S])
-    windows = step_windows(table, times)
+    windows = props.schedule.windows(times)
     work = kernel_work(props, windows, np.diff(times), 3)
     return {
         "states": props.n_states,
-        "dense_exponentials": int(np.unique(props.operator_windows(windows)).size),
+        "dense_exponentials": int(np.unique(windows).size),
         "dense_products": work.products,
         "dense_multiply_adds": work.dense_products + work.dense_apply,
         "action_multiply_adds": work.action,
