@@ -56,6 +56,17 @@ class PbmConfig(BaseModel):
         "'phases' = the table's hidden-phase transport model (schema 3, fitted to the DEM's compartment "
         "sequences by dem.phases)",
     )
+    rate_law: Literal["table", "fill"] = Field(
+        "table",
+        description="'table' = the rates of the table's windows whatever the blender holds (the paper's linear "
+        "PBM); 'fill' = the axial rates follow each slice's hold-up (pbm.fill), from the table's steady rates "
+        "and the law of fill_exponents, else one fitted to the table's own windows",
+    )
+    fill_exponents: list[list[float]] | None = Field(
+        None,
+        description="the fill law's exponents, one [forward, backward] pair per axial slice (pbm.fill.fit_fill_law "
+        "on a run library); None = fitted to the table's windows",
+    )
     method: Literal["expm", "bdf"] = Field("expm", description="exact propagation or the solve_ivp BDF cross-check")
     kernel: Literal["auto", "dense", "action"] = Field(
         "auto",
@@ -78,6 +89,18 @@ class PbmConfig(BaseModel):
         if sum(weights) <= 0:
             raise ValueError("at least one weight must be > 0")
         return weights
+
+    @field_validator("fill_exponents")
+    @classmethod
+    def _exponents_valid(cls, exponents: list[list[float]] | None) -> list[list[float]] | None:
+        if exponents is None:
+            return None
+        if not exponents or any(len(row) != 2 for row in exponents):
+            raise ValueError("must hold one [forward, backward] pair per axial slice")
+        bad = [v for row in exponents for v in row if not math.isfinite(v) or v < 0]
+        if bad:
+            raise ValueError(f"exponents must be finite and >= 0, got {bad[0]}")
+        return exponents
 
     @model_validator(mode="after")
     def _step_on_the_feed_grid(self) -> PbmConfig:

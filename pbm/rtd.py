@@ -26,8 +26,9 @@ from coupling.errors import ConfigError
 from coupling.metrics import residence_moments
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.fill import config_schedule
 from pbm.model import feed_distribution, filled_table, n_populations
-from pbm.simulate import BDF_ATOL_PARTICLES, check_run, recovered_moments, tracer_pulse
+from pbm.simulate import BDF_ATOL_PARTICLES, check_run, feed_factors, recovered_moments, tracer_pulse
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 
@@ -105,7 +106,9 @@ def pooled_rtd(
 
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    props = Propagators(filled, feed, config.rates, config.kernel)
+    n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
+    schedule, _law = config_schedule(table, config, feed, feed_factors(config, n_noise)[:, 0], t_end)
+    props = Propagators(filled, feed, config.rates, config.kernel, schedule)
     n = n_populations(table, config.rates)
     m = props.n_states
     amount, vector = tracer_pulse(feed, np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s]), m)

@@ -24,7 +24,8 @@ from coupling.errors import ConfigError
 from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, residence_moments, rsd
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
-from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases, n_populations
+from pbm.fill import config_schedule
+from pbm.model import N_ACCUMULATORS, collapse_phases, feed_distribution, filled_table, n_phases, n_populations
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 BDF_ATOL_PARTICLES = 1e-9
@@ -156,6 +157,10 @@ def simulate(
     ``initial_counts`` (2, NX, NY) [particles]: A and B already in the blender at t = 0
     (default empty).
 
+    With ``config.rate_law`` = "fill" the axial rates follow each slice's hold-up
+    (:mod:`pbm.fill`): the table's steady rates scaled by the law of
+    ``config.fill_exponents``, by default fitted to the table's own windows.
+
     ``config.rates`` chooses the transfer rates (:func:`pbm.model.transfer_rates`); the fields
     it reads are filled where missing by :func:`pbm.model.filled_table` (velocities of
     compartment-windows without enough samples, or unmeasured rates). The tracer pulse holds as many particles
@@ -181,10 +186,9 @@ def simulate(
         raise ConfigError(f"RTD pulse time {pulse} s must lie in [0, {t_end}) s, the simulated time")
     filled, filled_mask = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    props = Propagators(filled, feed, config.rates, config.kernel)
     # populations: NX*NY compartments, times K phases in mode "phases" (collapsed below)
     n, k_phases = n_populations(table, config.rates), n_phases(table, config.rates)
-    m = props.n_states
+    m = n + N_ACCUMULATORS
 
     z0 = np.zeros((m, 2))
     if initial_counts is not None:
@@ -203,6 +207,8 @@ def simulate(
     factors = feed_factors(config, n_noise)[:, 0]
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
     tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)
+    schedule, law = config_schedule(table, config, feed, factors, t_end, z0[:n, 0] + z0[:n, 1], steady)
+    props = Propagators(filled, feed, config.rates, config.kernel, schedule)
 
     def run(t_start, columns, pulse_at, record):
         return _run_columns(
@@ -288,6 +294,9 @@ def simulate(
         "ny": table.ny,
         "duration_s": t_end,
         "method": config.method,
+        "rate_law": config.rate_law,
+        "fill_law_form": None if law is None else law.form,
+        "fill_exponents": None if law is None else law.beta.tolist(),
     }
     summary["wall_time_s"] = time.perf_counter() - wall0
     return PbmResult(

@@ -16,6 +16,7 @@ STUDIES = (
     ("phases", "workflows.studies.phases"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),
+    ("fill", "workflows.studies.fill"),
     ("paper-scale", "workflows.studies.paper_scale"),
 )
 

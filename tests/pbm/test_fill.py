@@ -1,0 +1,156 @@
+"""The fill law (pbm.fill): identity at the reference fill, the bulk against scipy's BDF on
+the full nonlinear system, conservation, fits that recover known exponents, and refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from coupling.errors import ConfigError, TableError
+from coupling.tables import read_table
+from pbm.config import PbmConfig
+from pbm.fill import (
+    FillLaw,
+    FillSamples,
+    config_schedule,
+    fill_reference,
+    fill_samples,
+    fit_fill_law,
+)
+from pbm.model import feed_distribution
+from pbm.simulate import simulate
+from workflows.shipped import REDUCED_RUN
+
+FEED = 600.0
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return read_table(REDUCED_RUN)
+
+
+def _config(table, rates="measured", **kw) -> PbmConfig:
+    settings = {"feed_rate_a_per_s": FEED, "feed_rate_b_per_s": FEED, "duration_s": 120.0, **kw}
+    return PbmConfig(rates=rates, rate_law="fill", **settings)
+
+
+@pytest.mark.parametrize("rates", ["velocity", "measured", "phases"])
+def test_law_is_the_identity_at_the_reference_fill(shipped, rates):
+    ref = fill_reference(shipped, rates)
+    values = ref.values(np.ones((1, shipped.nx, 2)))
+    np.testing.assert_allclose(values[0], ref.schedule.vals[0], rtol=1e-12, atol=1e-12)
+    # and a factor moves only the axial moves of its slice, keeping the columns' balance
+    factors = np.ones((1, shipped.nx, 2))
+    factors[0, 3, 0] = 2.0
+    g = ref.schedule.dense(0)
+    g2 = type(ref.schedule)(ref.schedule.t, ref.schedule.rows, ref.schedule.cols, ref.values(factors), ref.schedule.m)
+    changed = np.argwhere(~np.isclose(g2.dense(0), g))
+    n = ref.n_populations
+    assert changed.size > 0
+    assert np.all(ref.slice_of[changed[:, 1]] == 3)
+    np.testing.assert_allclose(g2.dense(0)[: n + 1, :n].sum(axis=0), 0.0, atol=1e-9)
+
+
+def test_bulk_and_composition_against_bdf_on_the_nonlinear_system(shipped):
+    """A and B marched on the law's schedule against scipy's BDF on the full nonlinear
+    system (each species moved by rates that follow the total), from empty to steady."""
+    law = FillLaw(np.tile([1.5, 0.5], (shipped.nx, 1)), "given", {}, 0, 0)
+    config = _config(shipped, fill_exponents=law.beta.tolist(), output_interval_s=5.0)
+    result = simulate(shipped, config)
+    ref = fill_reference(shipped, "measured")
+    feed = feed_distribution(shipped, config.feed_weights_a, config.feed_weights_b, "measured")
+    n = ref.n_populations
+
+    def rhs(_t, y):
+        z = y.reshape(2, n)
+        fill = np.bincount(ref.slice_of, z.sum(axis=0), shipped.nx)
+        g = type(ref.schedule)(
+            ref.schedule.t,
+            ref.schedule.rows,
+            ref.schedule.cols,
+            ref.values(law.factors(fill, ref.fill)[None]),
+            ref.schedule.m,
+        ).dense(0)[:n, :n]
+        return (g @ z.T + feed * FEED).T.ravel()
+
+    sol = solve_ivp(rhs, (0.0, 120.0), np.zeros(2 * n), method="BDF", t_eval=result.times, rtol=1e-9, atol=1e-9)
+    assert sol.success
+    held = sol.y.reshape(2, n, -1).sum(axis=1)  # (2, T)
+    np.testing.assert_allclose(result.holdup_A, held[0], rtol=2e-3, atol=0.5)
+    np.testing.assert_allclose(result.holdup_B, held[1], rtol=2e-3, atol=0.5)
+    # conservation: what came in is held or gone, to rounding
+    balance = (
+        result.fed_A + result.fed_B - result.discharged_A - result.discharged_B - result.holdup_A - result.holdup_B
+    )
+    assert np.abs(balance).max() <= 1e-9 * (result.fed_A[-1] + result.fed_B[-1])
+    assert result.summary["rate_law"] == "fill" and result.summary["fill_law_form"] == "given"
+
+
+def test_more_feed_holds_less_than_proportionally_more(shipped):
+    """With forward exponents > 0 doubling the feed raises the hold-up by less than 2x;
+    with none (the linear PBM under its steady rates) by 2x."""
+    held = {}
+    for beta in (0.0, 1.5):
+        exps = np.tile([beta, 0.0], (shipped.nx, 1)).tolist()
+        for f in (1.0, 2.0):
+            cfg = _config(shipped, fill_exponents=exps, duration_s=min(250.0, shipped.t_end)).model_copy(
+                update={"feed_rate_a_per_s": FEED * f, "feed_rate_b_per_s": FEED * f}
+            )
+            held[beta, f] = simulate(shipped, cfg).summary["holdup_final"]
+    assert held[0.0, 2.0] / held[0.0, 1.0] == pytest.approx(2.0, rel=1e-3)
+    assert 1.05 < held[1.5, 2.0] / held[1.5, 1.0] < 1.6
+
+
+def _synthetic_samples(beta, fills, intercept, windows=40, seed=0, noise=0.0):
+    """Runs whose slice rates follow exp(intercept) * fill^beta exactly (plus log noise)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for level in fills:
+        ramp = np.minimum(1.0, (np.arange(windows) + 1) / 10.0)[:, None] * level
+        fill = np.broadcast_to(ramp, (windows, beta.shape[0])).copy()
+        rates = np.exp(intercept[None] + beta[None] * np.log(fill)[..., None])
+        rates *= np.exp(noise * rng.standard_normal(rates.shape))
+        out.append(FillSamples(fill, rates, fill[..., None] * rates, np.arange(windows) >= 12))
+    return out
+
+
+def test_fits_recover_known_exponents():
+    nx = 4
+    beta = np.array([[1.0, 0.2], [1.5, 0.0], [2.0, 0.5], [4.0, 1.0]])
+    intercept = np.zeros((nx, 2))
+    # several runs: the steady points
+    law = fit_fill_law(_synthetic_samples(beta, [100.0, 150.0, 200.0], intercept))
+    np.testing.assert_allclose(law.beta, beta, atol=1e-9)
+    assert law.form == "per-slice" and law.runs == 3
+    # one run: its filling transient
+    law = fit_fill_law(_synthetic_samples(beta, [150.0], intercept))
+    np.testing.assert_allclose(law.beta, beta, atol=1e-9)
+    # slices that differ, through noise: the held-out error keeps an exponent per slice
+    for seed in range(5):
+        law = fit_fill_law(_synthetic_samples(beta, [100.0, 130.0, 160.0, 200.0], intercept, seed=seed, noise=0.05))
+        assert law.form == "per-slice"
+        assert law.scores["per-slice"] < law.scores["per-direction"] < law.scores["none"]
+        np.testing.assert_allclose(law.beta, beta, atol=0.15)
+
+
+def test_refusals(shipped):
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        PbmConfig(fill_exponents=[[1.0, -1.0]])
+    with pytest.raises(ValueError, match="forward, backward"):
+        PbmConfig(fill_exponents=[[1.0]])
+    cfg = _config(shipped, fill_exponents=[[1.0, 0.0]] * 3)
+    with pytest.raises(ConfigError, match="NX = 10"):
+        simulate(shipped, cfg)
+    filling = shipped.replace(
+        t=shipped.t[:4],
+        **{
+            name: getattr(shipped, name)[:4]
+            for name in ("vx_pos", "vx_neg", "vy_pos", "vy_neg", "count_A", "count_B", "n_samples")
+        },
+        **{name: getattr(shipped, name)[:4] for name in ("rate_x_pos", "rate_x_neg", "rate_y_pos", "rate_y_neg")},
+    )
+    with pytest.raises(TableError, match="never becomes steady"):
+        fill_samples(filling, "measured")
+    table_law = PbmConfig(rates="measured")
+    assert config_schedule(shipped, table_law, None, np.ones((1, 2)), 10.0) == (None, None)

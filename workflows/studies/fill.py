@@ -1,0 +1,117 @@
+"""Does flow that follows the fill predict a new feed rate? The feed library, each run
+predicted without it (``pbmdem study fill``).
+
+The runs are the validation campaign's that differ from its baseline only in the feed
+rate (shipped or cached). Each is predicted three ways, in every rate mode, and judged
+against its own DEM's 95 % intervals:
+
+* ``linear``: the baseline's table, the rates of its windows (the paper's PBM);
+* ``baseline law``: the baseline's steady rates under the law fitted to the baseline's
+  own windows (its filling transient: one DEM run, no other);
+* ``library law``: the steady rates of the nearest other run in feed under the law fitted
+  to the steady points of all the other runs (leave one out).
+
+Prints the hold-up, the outflow and the pooled RTD's mean and variance against the DEM's,
+and writes ``results/bench/fill.json`` (every value, interval and the laws' exponents).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from coupling.jsonable import json_ready, write_json
+from pbm.fill import fill_samples, fit_fill_law
+from pbm.rtd import pooled_rtd
+from pbm.simulate import simulate
+from workflows.analysis.agreement import PbmMode, agreement_rows
+from workflows.config import config_without
+from workflows.pipeline.stages import pbm_config_for, rtd_pulse, stderr_log
+from workflows.products.validate import campaign_configs, run_campaign
+
+HELP = "the feed library: each feed rate predicted by the linear PBM and the fill law, leave one out"
+OUT = Path("results/bench/fill.json")
+FEED_KEY = "dem.operation.feed_rate_total_per_s"
+QUANTITIES = ("holdup", "outflow_per_s", "mean_residence_time_s", "rtd_variance_s2")
+MODES = ("measured", "velocity", "phases")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--runs-root", default="runs/validation", help="campaign runs and cache (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=OUT, help="JSON written (default: %(default)s)")
+    parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+
+
+def feed_library(runs_root: str) -> tuple[dict, dict]:
+    """(sides, configs) of the campaign runs that differ from the baseline only in feed."""
+    configs = campaign_configs()
+    base = config_without(configs["baseline"], FEED_KEY)
+    library = {name: c for name, c in configs.items() if config_without(c, FEED_KEY) == base}
+    sides = run_campaign(runs_root, configs=library, solver=False, log=lambda _m: None)
+    return sides, {name: library[name] for name in sides}
+
+
+def predict(table, config, dem, mode: str, exponents=None, rate_law: str = "table"):
+    cfg = pbm_config_for(config, table, rtd_pulse(dem.summary)).model_copy(
+        update={"rates": mode, "rate_law": rate_law, "fill_exponents": exponents}
+    )
+    result = simulate(table, cfg, steady=config.steady_state)
+    spec = dem.summary.pooled_rtd
+    pooled = pooled_rtd(table, cfg, entry_window=spec.entry_window_s, horizon_s=spec.horizon_s)
+    rows = agreement_rows(dem.summary, dem.particles, {mode: PbmMode(mode, result, pooled)})
+    return {r.key: r for r in rows}
+
+
+def run(args: argparse.Namespace) -> int:
+    sides, configs = feed_library(args.runs_root)
+    if "baseline" not in sides or len(sides) < 3:
+        stderr_log(f"the feed library needs the baseline and two other feed rates; found {sorted(sides)}")
+        return 1
+    feed = {name: c.dem.operation.feed_rate_total_per_s for name, c in configs.items()}
+    record: dict = {"runs": feed, "predictions": [], "laws": {}}
+    base = sides["baseline"].table
+    for mode in args.modes:
+        samples = {name: fill_samples(side.table, mode) for name, side in sides.items()}
+        own = fit_fill_law([samples["baseline"]])
+        record["laws"][f"{mode}/baseline"] = {"form": own.form, "beta": own.beta.tolist(), "scores": own.scores}
+        for target in sorted(sides, key=feed.get):
+            if target == "baseline":
+                continue
+            others = [n for n in sides if n != target]
+            lib = fit_fill_law([samples[n] for n in others])
+            record["laws"][f"{mode}/without {target}"] = {"form": lib.form, "beta": lib.beta.tolist()}
+            nearest = min(others, key=lambda n: abs(np.log(feed[n] / feed[target])))
+            dem, cfg = sides[target].results, configs[target]
+            sources = {
+                "linear": predict(base, cfg, dem, mode),
+                "baseline law": predict(base, cfg, dem, mode, own.beta.tolist(), "fill"),
+                f"library law ({nearest})": predict(sides[nearest].table, cfg, dem, mode, lib.beta.tolist(), "fill"),
+            }
+            for source, rows in sources.items():
+                line = [f"{mode:9s} {target:10s} {source:24s}"]
+                for q in QUANTITIES:
+                    r = rows.get(q)
+                    if r is None:
+                        continue
+                    v = r.value(mode)
+                    line.append(
+                        f"{q} {v:7.1f} [{r.dem_ci_low:.1f}, {r.dem_ci_high:.1f}]{'*' if r.inside(mode) else ' '}"
+                    )
+                    record["predictions"].append(
+                        {
+                            "mode": mode,
+                            "run": target,
+                            "source": source,
+                            "quantity": q,
+                            "pbm": v,
+                            "dem": r.dem,
+                            "dem_ci": [r.dem_ci_low, r.dem_ci_high],
+                            "inside": r.inside(mode),
+                        }
+                    )
+                print("  ".join(line), flush=True)
+    write_json(args.out, json_ready(record))
+    print(f"(* inside the DEM's 95 % interval) written {args.out}")
+    return 0
