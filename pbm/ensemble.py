@@ -100,6 +100,11 @@ def noise_ensemble(
     t_end = check_run(table, config)
     # refused up front with the estimate, not killed by the kernel halfway (pbm.resources)
     check_ensemble_memory(members, t_end, config.noise_interval_s, config.output_interval_s, table.nx)
+    if config.rate_law != "table":
+        raise ConfigError(
+            f"the noise ensemble needs rate_law = 'table', got {config.rate_law!r}: under the fill law each "
+            "member's rates follow its own fill, so members do not superpose"
+        )
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
     props = Propagators(filled, feed, config.rates, config.kernel)

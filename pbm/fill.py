@@ -502,3 +502,96 @@ def config_schedule(
     y0 = np.zeros(reference.n_populations) if y0 is None else y0
     bulk = solve_bulk(reference, law, feed, feed_times, feed_rates, t_end, y0)
     return fill_schedule(reference, law, bulk, t_end), law
+
+
+def steady_bulk(reference: FillReference, law: FillLaw, source: np.ndarray, tol: float = 1e-10) -> np.ndarray:
+    """The bulk populations (n,) at which the law's flows balance the constant feed
+    ``source`` (n,) [particles/s]: Newton's method with the analytic Jacobian, started
+    from the reference rates' steady state and halving a step that would empty a
+    population or raise the residual. Raises SolverError when it does not converge."""
+    rhs, jac = _bulk_rhs_and_jacobian(reference, law)
+    n = reference.n_populations
+    g0 = reference.schedule.dense(0)[:n, :n]
+    y = np.maximum(np.linalg.solve(-g0, source), FILL_FLOOR)
+    res = rhs(y) + source
+    scale = max(float(np.abs(source).sum()), 1.0)
+    for _ in range(100):
+        if np.abs(res).max() <= tol * scale:
+            return y
+        step = np.linalg.solve(jac(y), -res)
+        size = 1.0
+        while size > 1e-6:
+            trial = y + size * step
+            if np.all(trial > 0):
+                trial_res = rhs(trial) + source
+                if np.abs(trial_res).max() < np.abs(res).max():
+                    y, res = trial, trial_res
+                    break
+            size *= 0.5
+        else:
+            break
+    raise SolverError(
+        f"no steady bulk under the fill law: Newton stalled at a residual of {np.abs(res).max():.3g} particles/s"
+    )
+
+
+@dataclass(frozen=True)
+class Linearised:
+    """The fill-law PBM linearised about its steady state under a constant feed: the
+    deviations x = (dz_A, dz_B) (2n) of the two species obey dx/dt = ``generator`` x +
+    ``feed`` dF (dF = (dF_A, dF_B) [particles/s]), and the outlet fluxes are (dq_A, dq_B) =
+    ``outlet`` x. ``species`` (2, n) is the steady state of A and B, and ``fill`` its slice
+    hold-ups."""
+
+    generator: np.ndarray
+    feed: np.ndarray
+    outlet: np.ndarray
+    species: np.ndarray
+    fill: np.ndarray
+
+
+def linearised(reference: FillReference, law: FillLaw, feed: np.ndarray, rates: np.ndarray) -> Linearised:
+    """:class:`Linearised` at the steady state of the feed ``rates`` (2,) distributed by
+    ``feed`` (n, 2). A feeder's noise moves the fill, which moves every rate of its slice
+    for both species: dz_s/dt = G* dz_s + D_s S (dz_A + dz_B) + b_s dF_s, with G* the law's
+    generator at the steady fill, S the slice sums and D_s the derivative of species s's
+    flows with respect to each slice's fill (beta phi r z_s / N_i per move)."""
+    n = reference.n_populations
+    nx = reference.fill.size
+    rates = np.asarray(rates, dtype=float)
+    bulk = steady_bulk(reference, law, feed[:n] @ rates)
+    fill = np.bincount(reference.slice_of, bulk, nx)
+    vals = reference.values(law.factors(fill, reference.fill)[None])[0]
+    s = reference.schedule
+    g = np.zeros((s.m, s.m))
+    g[s.rows, s.cols] = vals
+    g_star, c_star = g[:n, :n], g[n, :n]
+    slices = np.zeros((nx, n))
+    slices[reference.slice_of, np.arange(n)] = 1.0
+    moves = reference.moves
+    scaled = reference.move_dir >= 0
+    src, dst = s.cols[moves][scaled], s.rows[moves][scaled]
+    sl = reference.move_slice[scaled]
+    beta = law.beta[sl, reference.move_dir[scaled]]
+    rate = vals[moves][scaled]  # base x phi at the steady fill
+    big = np.zeros((2 * n, 2 * n))
+    out = np.zeros((2, 2 * n))
+    species = np.zeros((2, n))
+    for sp in range(2):
+        z = species[sp] = np.linalg.solve(-g_star, feed[:n, sp] * rates[sp])
+        dflux = beta * rate * z[src] / fill[sl]  # d flow / d fill of the source slice
+        d = np.zeros((n + 1, nx))
+        np.add.at(d, (src, sl), -dflux)
+        np.add.at(d, (np.minimum(dst, n), sl), dflux)  # row n: the discharge
+        coupling = d[:n] @ slices
+        block = slice(sp * n, (sp + 1) * n)
+        big[block, block] = g_star
+        big[block, :n] += coupling
+        big[block, n:] += coupling
+        out[sp, block] = c_star
+        out[sp, :n] += d[n] @ slices
+        out[sp, n:] += d[n] @ slices
+    inputs = np.zeros((2 * n, 2))
+    inputs[:n, 0] = feed[:n, 0]
+    inputs[n:, 1] = feed[:n, 1]
+    return Linearised(big, inputs, out, species, fill)

@@ -46,6 +46,7 @@ from scipy.linalg import expm, schur
 from coupling.errors import ConfigError, TableError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.fill import fill_reference, law_for, linearised
 from pbm.model import feed_distribution, filled_table, generator_matrix, n_populations
 
 #: Correlation times [s] of the first-order feeder noises studied (0: white noise).
@@ -57,11 +58,17 @@ _SAMPLES_PER_PERIOD = 64
 
 @dataclass(frozen=True)
 class StationarySystem:
-    """dN/dt = generator N + feed F(t), outlet flux outlet . N, for one time-invariant window.
+    """dN/dt = generator N + feed F(t) for one time-invariant window, and what reaches the
+    outlet composition.
 
-    ``generator`` (n, n) [1/s]: the compartment block; ``feed`` (n, 2): the inlet
-    distribution of one particle/s of A (column 0) and B (column 1); ``outlet`` (n,) [1/s]:
-    the discharge rate of each compartment; ``windows``: the table windows averaged.
+    ``generator`` (m, m) [1/s]: the compartment block; ``feed`` (m, 2): the inlet
+    distribution of one particle/s of A (column 0) and B (column 1); ``outlet`` (2, m):
+    row f, applied to the state, is feeder f's transfer to the outlet composition (per unit
+    of its rate, normalised as its own outlet flux): for the linear PBM both rows are the
+    compartments' discharge rates; under the fill law (:func:`pbm.fill.linearised`, m =
+    2n: both species, since a feeder's noise moves the fill and so the other species' flow
+    too) row A is dq_A - (F_A / F_B) dq_B and row B is dq_B - (F_B / F_A) dq_A.
+    ``windows``: the table windows averaged.
     """
 
     generator: np.ndarray
@@ -74,6 +81,11 @@ class StationarySystem:
         if feeder not in FEEDERS:
             raise ConfigError(f"unknown feeder {feeder!r}; valid: {', '.join(map(repr, FEEDERS))}")
         return self.feed[:, FEEDERS.index(feeder)]
+
+    def outlet_row(self, feeder: str) -> np.ndarray:
+        """The outlet functional of ``feeder``'s transfer (see the class)."""
+        self.feed_column(feeder)  # names a bad feeder
+        return self.outlet[FEEDERS.index(feeder)]
 
 
 def stationary_system(
@@ -102,6 +114,8 @@ def stationary_system(
                 f"t_start_s = {t_start_s} s is after the last window's start {table.t[-1]} s; "
                 f"valid: t_start_s <= {table.t[-1]} s"
             )
+    if config.rate_law == "fill":
+        return _fill_law_system(table, config, windows)
     filled, _ = filled_table(table, config.rates)
     n = n_populations(table, config.rates)  # NX*NY, times K phases in mode "phases"
     g = generator_matrix(filled, windows, config.rates).mean(axis=0)
@@ -109,9 +123,26 @@ def stationary_system(
         generator=g[:n, :n].copy(),
         feed=feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates),
         # Row n is the OUT accumulator: its entries are the compartments' discharge rates.
-        outlet=g[n, :n].copy(),
+        outlet=np.stack([g[n, :n], g[n, :n]]),
         windows=windows,
     )
+
+
+def _fill_law_system(table: VelocityTable, config: PbmConfig, windows: np.ndarray) -> StationarySystem:
+    """The fill-law PBM linearised about its steady state at the config's feed rates
+    (:func:`pbm.fill.linearised`); the law's reference is the table's steady windows."""
+    rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
+    if not np.all(rates > 0):
+        raise ConfigError(
+            f"the fill law's frequency response needs both feed rates > 0 (the composition's response mixes "
+            f"them), got A = {rates[0]:g}, B = {rates[1]:g} particles/s"
+        )
+    feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
+    lin = linearised(fill_reference(table, config.rates), law_for(table, config), feed, rates)
+    rows = np.stack(
+        [lin.outlet[0] - rates[0] / rates[1] * lin.outlet[1], lin.outlet[1] - rates[1] / rates[0] * lin.outlet[0]]
+    )
+    return StationarySystem(generator=lin.generator, feed=lin.feed, outlet=rows, windows=windows)
 
 
 def transfer_function(
@@ -146,7 +177,7 @@ def system_response(system: StationarySystem, frequencies_hz, feeder: str = "A")
     # Jordan block) and their eigenvectors too ill-conditioned to trust.
     t, u = schur(system.generator.astype(complex), output="complex")
     rhs = u.conj().T @ b
-    left = system.outlet @ u
+    left = system.outlet_row(feeder) @ u
     diagonal = np.diag(t)
     pivots = 1j * omegas[:, None] - diagonal[None, :]
     singular = np.min(np.abs(pivots), axis=1) <= 1e-13 * max(1.0, np.abs(diagonal).max())
@@ -338,7 +369,7 @@ def sinusoid_response(system: StationarySystem, frequencies_hz, feeder: str = "A
         samples = periods * _SAMPLES_PER_PERIOD
         flux = np.empty(samples)
         for k in range(samples):
-            flux[k] = system.outlet @ z[:n]
+            flux[k] = system.outlet_row(feeder) @ z[:n]
             z = step @ z
         phase = omega * period / _SAMPLES_PER_PERIOD * np.arange(samples)
         out[idx] = 2.0 / samples * (flux @ np.sin(phase) + 1j * (flux @ np.cos(phase)))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
+from scipy.linalg import expm
 
 from coupling.errors import ConfigError, TableError
 from coupling.tables import read_table
@@ -17,9 +18,11 @@ from pbm.fill import (
     fill_reference,
     fill_samples,
     fit_fill_law,
+    linearised,
 )
+from pbm.frequency import sinusoid_response, stationary_system, system_response
 from pbm.model import feed_distribution
-from pbm.simulate import simulate
+from pbm.simulate import feed_factors, simulate
 from workflows.shipped import REDUCED_RUN
 
 FEED = 600.0
@@ -154,3 +157,56 @@ def test_refusals(shipped):
         fill_samples(filling, "measured")
     table_law = PbmConfig(rates="measured")
     assert config_schedule(shipped, table_law, None, np.ones((1, 2)), 10.0) == (None, None)
+
+
+def test_linearised_response_matches_the_nonlinear_run_under_small_noise(shipped):
+    """The frequency domain's linearisation against the nonlinear PBM itself: from the
+    law's steady state, 1 % feeder noise each second; the outlet C_A's deviation per
+    second from the nonlinear run and from the linearised system driven by the same noise."""
+    beta = np.tile([1.5, 0.3], (shipped.nx, 1)).tolist()
+    cfg = _config(shipped, fill_exponents=beta, duration_s=40.0, noise_sigma=0.01, output_interval_s=1.0)
+    feed = feed_distribution(shipped, None, None, "measured")
+    rates = np.array([FEED, FEED])
+    lin = linearised(fill_reference(shipped, "measured"), FillLaw(np.array(beta), "given", {}, 0, 0), feed, rates)
+    counts = lin.species.reshape(2, shipped.nx, shipped.ny)
+    run = simulate(shipped, cfg, initial_counts=counts)
+    # the deviation system with the dq integrals as two more states, stepped 1 s at a time
+    n2 = lin.generator.shape[0]
+    m = np.zeros((n2 + 4, n2 + 4))
+    m[:n2, :n2] = lin.generator
+    m[:n2, n2 : n2 + 2] = lin.feed
+    m[n2 + 2 :, :n2] = lin.outlet
+    step = expm(m)
+    factors = feed_factors(cfg, 40)[:, 0]
+    x = np.zeros(n2 + 4)
+    dq = []
+    for k in range(40):
+        x[n2 : n2 + 2] = rates * (factors[k] - 1.0)
+        x[n2 + 2 :] = 0.0
+        x = step @ x
+        dq.append(x[n2 + 2 :].copy())
+    dq = np.array(dq)
+    q0 = rates  # at steady state all that is fed leaves
+    linear_ca = (q0[0] + dq[:, 0]) / (q0.sum() + dq.sum(axis=1)) - 0.5
+    nonlinear_ca = run.C_A - 0.5
+    assert np.abs(nonlinear_ca).max() > 1e-4  # the noise does move the outlet
+    np.testing.assert_allclose(nonlinear_ca, linear_ca, atol=0.03 * np.abs(nonlinear_ca).max())
+
+
+def test_frequency_response_under_the_fill_law(shipped):
+    """H(0) = 1 for either feeder (what a feeder adds leaves, and the other species'
+    outflow returns to its feed); the filter still damps fast noise; sinusoids in the
+    time domain agree with the transfer function of the linearised system."""
+    beta = np.tile([1.5, 0.3], (shipped.nx, 1)).tolist()
+    cfg = _config(shipped, fill_exponents=beta)
+    system = stationary_system(shipped, cfg)
+    assert system.generator.shape[0] == 2 * shipped.nx * shipped.ny
+    for feeder in ("A", "B"):
+        h = system_response(system, np.array([0.0, 0.01, 0.2]), feeder)
+        assert h[0] == pytest.approx(1.0, abs=1e-8)
+        assert abs(h[2]) < 0.5
+    np.testing.assert_allclose(
+        sinusoid_response(system, np.array([0.05]), "A"), system_response(system, np.array([0.05]), "A"), atol=1e-6
+    )
+    with pytest.raises(ConfigError, match="both feed rates > 0"):
+        stationary_system(shipped, cfg.model_copy(update={"feed_rate_b_per_s": 0.0}))

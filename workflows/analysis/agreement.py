@@ -57,19 +57,24 @@ class PbmMode:
 
 
 def run_modes(
-    table: VelocityTable, config: PbmConfig, steady: SteadyStateRule, dem_summary: DemSummary
+    table: VelocityTable,
+    config: PbmConfig,
+    steady: SteadyStateRule,
+    dem_summary: DemSummary,
+    mode_updates: dict[str, dict[str, Any]] | None = None,
 ) -> dict[str, PbmMode]:
     """The PBM in each rate mode the table supports (``measured`` needs its rates,
     ``phases`` its phase model; the mode ``config`` asks for runs in any case, so a table
     without what it needs raises ConfigError), with the pooled RTD over the DEM's entry
-    window and horizon when the DEM has one."""
+    window and horizon when the DEM has one. ``mode_updates``: per mode, further
+    PbmConfig fields (a fill law's exponents fitted in that mode's rates)."""
     pooled_spec = dem_summary.pooled_rtd
     available = supported_modes(table)
     modes = {}
     for mode in MODES:
         if mode not in available and config.rates != mode:
             continue
-        cfg = config.model_copy(update={"rates": mode})
+        cfg = config.model_copy(update={"rates": mode, **(mode_updates or {}).get(mode, {})})
         result = simulate(table, cfg, steady=steady)
         pooled = None
         if dem_summary.has_pooled_rtd:

@@ -58,8 +58,11 @@ def dem_counts(timeseries: pd.DataFrame, interval_s: float) -> pd.DataFrame:
     return pd.DataFrame({"t_s": timeseries["t_s"].to_numpy(), "n_A": n_a, "n_B": n_b})
 
 
-def pbm_response(table, config: Config, rates: str, step_s: float, t_end: float) -> pd.DataFrame:
-    """The PBM's outlet C_A per sampling interval for ``table`` under the config's step."""
+def pbm_response(
+    table, config: Config, rates: str, step_s: float, t_end: float, fill_exponents: list[list[float]] | None = None
+) -> pd.DataFrame:
+    """The PBM's outlet C_A per sampling interval for ``table`` under the config's step;
+    with ``fill_exponents``, its rates follow the fill by that law (:mod:`pbm.fill`)."""
     op = config.dem.operation
     interval = float(config.dem.tables.sample_interval_s)
     pbm_config = pbm_config_for(config, table, None).model_copy(
@@ -70,6 +73,8 @@ def pbm_response(table, config: Config, rates: str, step_s: float, t_end: float)
             "output_interval_s": interval,
             "noise_interval_s": interval,
             "duration_s": min(t_end, table.t_end),
+            "rate_law": "table" if fill_exponents is None else "fill",
+            "fill_exponents": fill_exponents,
         }
     )
     result = simulate(table, pbm_config)
@@ -276,22 +281,33 @@ class StepComparison:
         }
 
 
-def step_comparison(step: DemSide, baseline: DemSide | None, config: Config) -> StepComparison:
+def step_comparison(
+    step: DemSide,
+    baseline: DemSide | None,
+    config: Config,
+    fill_law: dict[str, list[list[float]]] | None = None,
+) -> StepComparison:
     """Every PBM (own tables / the baseline's, each rate mode the table carries) judged
-    against the step run's DEM; with the series for the figure."""
+    against the step run's DEM; with the series for the figure. ``fill_law``: per rate
+    mode, the exponents of a fill law (the feed library's): the baseline's tables are then
+    also judged with rates that follow the fill ("baseline + fill law")."""
     op = config.dem.operation
     interval = float(config.dem.tables.sample_interval_s)
     # the PBM's feed changes on its interval grid; the DEM's second feeder starts 0.025 s later
     step_s = math.floor(op.step_time_s / interval + 1e-9) * interval
     t_end = float(step.results.timeseries["t_s"].max())
     dem = dem_counts(step.results.timeseries, interval)
-    sources = {"self": step.table}
+    sources = {"self": (step.table, {})}
     if baseline is not None:
-        sources["baseline"] = baseline.table
+        sources["baseline"] = (baseline.table, {})
+        if fill_law:
+            sources["baseline + fill law"] = (baseline.table, fill_law)
     rows, series = [], {}
-    for source, table in sources.items():
+    for source, (table, law) in sources.items():
         for mode in supported_modes(table):
-            pbm = pbm_response(table, config, mode, step_s, t_end)
+            if source == "baseline + fill law" and mode not in law:
+                continue
+            pbm = pbm_response(table, config, mode, step_s, t_end, law.get(mode))
             series[(source, mode)] = pbm
             rows.append(StepRow(source, mode, judge_step(dem, pbm, step_s, interval, feed_levels(config))))
     return StepComparison(

@@ -10,6 +10,8 @@ from typing import Any
 
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
+from pbm.fill import fill_samples, fit_fill_law
+from pbm.model import supported_modes
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
 from workflows.config import Config, config_without
@@ -20,21 +22,67 @@ from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse, s
 NOT_JUDGED = ("rtd_recovered_fraction",)
 
 
+FEED_KEY = "dem.operation.feed_rate_total_per_s"
+#: a slower feed needs longer to fill and to pool an RTD: the feed library's runs may differ in it too
+DURATION_KEY = "dem.operation.duration_s"
+#: the sources that predict with flow that follows the fill (pbm.fill)
+FILL_SOURCES = ("baseline + fill law", "library + fill law")
+
+
+def feed_library(configs: dict[str, Config], baseline: str = "baseline") -> list[str]:
+    """The runs that differ from the baseline only in the feed rate (and the duration), the
+    baseline included: the runs a fill law is fitted from."""
+    same = config_without(configs[baseline], FEED_KEY, DURATION_KEY)
+    return [name for name, c in configs.items() if config_without(c, FEED_KEY, DURATION_KEY) == same]
+
+
+@dataclass(frozen=True)
+class Source:
+    """What a PBM prediction is built from: a ``table``, and with ``rate_law`` = "fill" the
+    law's exponents per rate mode (``exponents``; a mode missing: the law fitted to the
+    table's own windows)."""
+
+    table: VelocityTable
+    rate_law: str = "table"
+    exponents: dict[str, list[list[float]]] = field(default_factory=dict)
+
+    def mode_updates(self) -> dict[str, dict[str, Any]]:
+        """Per rate mode, the PbmConfig fields this source sets."""
+        return {mode: {"rate_law": self.rate_law, "fill_exponents": self.exponents.get(mode)} for mode in MODES}
+
+
+def library_law(sides: dict[str, DemSide], runs: list[str]) -> dict[str, list[list[float]]]:
+    """Per rate mode, the fill law's exponents fitted to the steady points of ``runs``."""
+    out = {}
+    for mode in MODES:
+        tables = [sides[r].table for r in runs]
+        if mode == "phases" or all(mode in supported_modes(t) for t in tables):
+            out[mode] = fit_fill_law([fill_samples(t, mode) for t in tables]).beta.tolist()
+    return out
+
+
 def prediction_tables(
     sides: dict[str, DemSide], configs: dict[str, Config], baseline: str = "baseline"
-) -> dict[str, dict[str, VelocityTable | str]]:
+) -> dict[str, dict[str, Source | str]]:
     """For every run: its own table ("self"), the prediction from the baseline alone
     ("baseline": compartments rescaled to a new length, velocities and rates scaled by the
     rpm ratio, a new feed rate with the velocities unchanged), and from the table library
-    ("library": interpolated in rpm between the other runs that differ only in rpm). A
-    prediction that cannot be made is a string saying why."""
+    ("library": interpolated in rpm between the other runs that differ only in rpm). A run
+    of the feed library also gets two predictions with flow that follows the fill
+    (:mod:`pbm.fill`): "baseline + fill law", the baseline's steady rates under the law of
+    its own windows (its filling transient: one DEM run); and "library + fill law", the
+    steady rates of the nearest other run in feed (one with a phase model if any) under
+    the law of the other runs' steady points (leave one out). A prediction that cannot be
+    made is a string saying why."""
     base_cfg, base_table = configs[baseline], sides[baseline].table
     rpm_key = "dem.operation.impeller_rpm"
-    out: dict[str, dict[str, VelocityTable | str]] = {}
+    feed_runs = [r for r in feed_library(configs, baseline) if r in sides]
+    feed = {r: configs[r].dem.operation.feed_rate_total_per_s for r in feed_runs}
+    out: dict[str, dict[str, Source | str]] = {}
     for name, config in configs.items():
         if name not in sides:  # a run the campaign does not have (yet)
             continue
-        tables: dict[str, VelocityTable | str] = {"self": sides[name].table}
+        tables: dict[str, Source | str] = {"self": Source(sides[name].table)}
         if name != baseline:
             table = base_table
             length_factor = config.dem.geometry.length_m / base_cfg.dem.geometry.length_m
@@ -43,7 +91,7 @@ def prediction_tables(
             speed = config.dem.operation.impeller_rpm / base_cfg.dem.operation.impeller_rpm
             if not math.isclose(speed, 1.0):
                 table = scale_speed(table, speed)
-            tables["baseline"] = table
+            tables["baseline"] = Source(table)
         same_but_rpm = config_without(config, rpm_key)
         library = [
             (other.dem.operation.impeller_rpm, sides[o].table)
@@ -52,9 +100,18 @@ def prediction_tables(
         ]
         if len(library) >= 2:
             try:
-                tables["library"] = interpolate_tables(library, config.dem.operation.impeller_rpm)
+                tables["library"] = Source(interpolate_tables(library, config.dem.operation.impeller_rpm))
             except ConfigError as exc:
                 tables["library"] = str(exc)
+        if name in feed_runs and name != baseline:
+            tables[FILL_SOURCES[0]] = Source(base_table, "fill")
+            others = [r for r in feed_runs if r != name]
+            if len(others) >= 2:
+                with_phases = [r for r in others if sides[r].table.phases is not None] or others
+                nearest = min(with_phases, key=lambda r: abs(math.log(feed[r] / feed[name])))
+                tables[FILL_SOURCES[1]] = Source(sides[nearest].table, "fill", library_law(sides, others))
+            else:
+                tables[FILL_SOURCES[1]] = f"the feed library holds {len(others)} other run(s); a law needs two"
         out[name] = tables
     return out
 
@@ -75,13 +132,22 @@ def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log 
     out = []
     for name, tables in prediction_tables(sides, configs).items():
         config, dem = configs[name], sides[name].results
-        for source, table in tables.items():
-            if isinstance(table, str):
-                out.append(Prediction(name, source, note=table))
+        for source, built in tables.items():
+            if isinstance(built, str):
+                out.append(Prediction(name, source, note=built))
                 continue
             log(f"PBM of {name} from {source}")
+            table = built.table
+            pbm = pbm_config_for(config, table, rtd_pulse(dem.summary))
+            if table.t_end < config.dem.operation.duration_s:
+                # a longer run (a slower feed) than the source's: its last window holds on
+                pbm = pbm.model_copy(update={"duration_s": config.dem.operation.duration_s})
             modes = run_modes(
-                table, pbm_config_for(config, table, rtd_pulse(dem.summary)), config.steady_state, dem.summary
+                table,
+                pbm,
+                config.steady_state,
+                dem.summary,
+                built.mode_updates(),
             )
             out.append(Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes)))
     return out

@@ -31,7 +31,7 @@ def plot_step(comparison: StepComparison, path: str | Path) -> Path:
     block = np.floor((t - 1e-9) / 5.0)
     pooled = pd.DataFrame({"b": block, "k": dem["n_A"].to_numpy()[keep], "n": n[keep]}).groupby("b").sum()
     ax.plot(5.0 * pooled.index + 2.5, pooled["k"] / pooled["n"], "ko", ms=4, label="DEM, 5-s pooled")
-    colours = {"self": "#3182bd", "baseline": "#e6550d"}
+    colours = {"self": "#3182bd", "baseline": "#e6550d", "baseline + fill law": "#756bb1"}
     for (source, mode), pbm in comparison.series.items():
         colour, ls = colours.get(source, "#31a354"), MODE_STYLES.get(mode, ("-", ""))[0]
         ax.plot(pbm["t_s"], pbm["C_A"], color=colour, ls=ls, lw=1.5, label=f"PBM, {source} tables, {mode} rates")
@@ -57,7 +57,9 @@ def step_html(comparison: StepComparison, figure: str | None) -> str:
         "<h2>A dynamic check: a step in feeder A</h2>",
         f"<p>One LIGGGHTS run of the validation preset in which feeder A's rate is multiplied by "
         f"{comparison.factor_a:g} at {comparison.step_s:g} s, predicted by PBMs on the run's own tables "
-        "(<i>self</i>) and on the steady baseline's (<i>baseline</i>: the flow unchanged by the step). A PBM predicts "
+        "(<i>self</i>), on the steady baseline's (<i>baseline</i>: the flow unchanged by the step) and on the "
+        "baseline's with rates that follow each slice's fill (<i>baseline + fill law</i>: the law of the feed "
+        "library's steady points, pbm.fill). A PBM predicts "
         "the step when the DEM's response runs at its speed (the fitted time-scale factor's 95 % interval holds 1) "
         f"and the DEM's counts of A per {comparison.interval_s:g}-s interval are consistent with it (binomial "
         f"deviance, p &ge; {P_MIN:g}). The mean delay (for a linear blender the mean residence time of A) is shown "

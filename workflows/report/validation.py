@@ -15,7 +15,13 @@ from workflows.analysis.budget import BudgetStudy
 from workflows.analysis.validation import Prediction, PredictionVerdict
 from workflows.report.comparison import MODE_STYLES, fmt
 
-SOURCE_COLOURS = {"self": "#636363", "baseline": "#e6550d", "library": "#31a354"}
+SOURCE_COLOURS = {
+    "self": "#636363",
+    "baseline": "#e6550d",
+    "library": "#31a354",
+    "baseline + fill law": "#fdae6b",
+    "library + fill law": "#3182bd",
+}
 
 
 MODE_MARKERS = {"velocity": "o", "measured": "s", "phases": "^"}

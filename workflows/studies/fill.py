@@ -24,16 +24,16 @@ import numpy as np
 
 from coupling.jsonable import json_ready, write_json
 from pbm.fill import fill_samples, fit_fill_law
+from pbm.model import supported_modes
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import PbmMode, agreement_rows
-from workflows.config import config_without
+from workflows.analysis.validation import feed_library
 from workflows.pipeline.stages import pbm_config_for, rtd_pulse, stderr_log
 from workflows.products.validate import campaign_configs, run_campaign
 
 HELP = "the feed library: each feed rate predicted by the linear PBM and the fill law, leave one out"
 OUT = Path("results/bench/fill.json")
-FEED_KEY = "dem.operation.feed_rate_total_per_s"
 QUANTITIES = ("holdup", "outflow_per_s", "mean_residence_time_s", "rtd_variance_s2")
 MODES = ("measured", "velocity", "phases")
 
@@ -44,11 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
 
 
-def feed_library(runs_root: str) -> tuple[dict, dict]:
-    """(sides, configs) of the campaign runs that differ from the baseline only in feed."""
+def library_runs(runs_root: str) -> tuple[dict, dict]:
+    """(sides, configs) of the campaign's feed library (shipped or cached)."""
     configs = campaign_configs()
-    base = config_without(configs["baseline"], FEED_KEY)
-    library = {name: c for name, c in configs.items() if config_without(c, FEED_KEY) == base}
+    library = {name: configs[name] for name in feed_library(configs)}
     sides = run_campaign(runs_root, configs=library, solver=False, log=lambda _m: None)
     return sides, {name: library[name] for name in sides}
 
@@ -65,7 +64,7 @@ def predict(table, config, dem, mode: str, exponents=None, rate_law: str = "tabl
 
 
 def run(args: argparse.Namespace) -> int:
-    sides, configs = feed_library(args.runs_root)
+    sides, configs = library_runs(args.runs_root)
     if "baseline" not in sides or len(sides) < 3:
         stderr_log(f"the feed library needs the baseline and two other feed rates; found {sorted(sides)}")
         return 1
@@ -82,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
             others = [n for n in sides if n != target]
             lib = fit_fill_law([samples[n] for n in others])
             record["laws"][f"{mode}/without {target}"] = {"form": lib.form, "beta": lib.beta.tolist()}
-            nearest = min(others, key=lambda n: abs(np.log(feed[n] / feed[target])))
+            # the nearest other run whose table carries this mode (the phase model needs sequences)
+            usable = [n for n in others if mode in supported_modes(sides[n].table)]
+            nearest = min(usable, key=lambda n: abs(np.log(feed[n] / feed[target])))
             dem, cfg = sides[target].results, configs[target]
             sources = {
                 "linear": predict(base, cfg, dem, mode),

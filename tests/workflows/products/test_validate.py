@@ -12,7 +12,7 @@ from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.studies import interpolate_tables, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, ModeValue
-from workflows.analysis.validation import judge, prediction_tables, verdict_text
+from workflows.analysis.validation import feed_library, judge, prediction_tables, verdict_text
 from workflows.products.validate import CHANGES, campaign_configs
 
 X, Y = np.linspace(0, 0.33, 6), np.linspace(-0.05, 0.05, 5)
@@ -83,12 +83,19 @@ def test_prediction_tables_from_the_baseline_and_the_library():
     sides = {name: SimpleNamespace(table=table(v)) for name, v in speeds.items()}
     tables = prediction_tables(sides, configs)
     assert set(tables["baseline"]) == {"self", "library"}  # 250 rpm left out, from 150 and 350
-    assert np.allclose(tables["baseline"]["library"].vx_pos, 0.04)
-    assert np.allclose(tables["rpm_150"]["baseline"].vx_pos, 0.04 * 150 / 250)
+    assert np.allclose(tables["baseline"]["library"].table.vx_pos, 0.04)
+    assert np.allclose(tables["rpm_150"]["baseline"].table.vx_pos, 0.04 * 150 / 250)
     assert "outside the table library's range" in tables["rpm_150"]["library"]
-    assert np.allclose(tables["length_x1.25"]["baseline"].x_edges, 1.25 * X)
-    assert np.allclose(tables["feed_x2"]["baseline"].vx_pos, 0.04)  # the paper's linear assumption
+    assert np.allclose(tables["length_x1.25"]["baseline"].table.x_edges, 1.25 * X)
+    assert np.allclose(tables["feed_x2"]["baseline"].table.vx_pos, 0.04)  # the paper's linear assumption
+    assert tables["feed_x2"]["baseline"].rate_law == "table"
     assert "library" not in tables["feed_x2"]  # no other run differs from it only in rpm
+    # the feed library: the baseline's own law, and no library law from one other run
+    own_law = tables["feed_x2"]["baseline + fill law"]
+    assert own_law.rate_law == "fill" and own_law.table is sides["baseline"].table and not own_law.exponents
+    assert "a law needs two" in tables["feed_x2"]["library + fill law"]
+    assert "baseline + fill law" not in tables["rpm_150"]
+    assert set(feed_library(configs)) == {"baseline", "feed_x2", "feed_x0.5", "feed_x1.5"}
 
 
 def row(key, dem, low, high, velocity, measured):
