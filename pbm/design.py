@@ -42,6 +42,7 @@ from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.fill import fill_samples, fit_fill_law, steady_table, steady_windows
 from pbm.frequency import noise_frequencies, noise_spectrum, stationary_system, system_response, vrr_spectrum
 from pbm.studies import interpolate_tables, scale_blender
 
@@ -165,6 +166,7 @@ class Evaluation:
     ca_rsd: float | None
     vrr: float | None
     margins: dict[str, float]
+    feed_per_s: float | None = None
 
     @property
     def feasible(self) -> bool:
@@ -180,6 +182,7 @@ class Evaluation:
             "vrr": self.vrr,
             "margins": dict(self.margins),
             "feasible": self.feasible,
+            "feed_per_s": self.feed_per_s,
         }
 
 
@@ -190,12 +193,20 @@ def evaluate(library: TableLibrary, spec: DesignSpec, rpm: float, length_factor:
     config = library.pbm_config
     table = scale_blender(library.table_at(rpm), length_factor=length_factor)
     system = stationary_system(table, config, t_start_s=library.steady_time_s)
+    return _judged(spec, system, config, float(rpm), float(length_factor))
+
+
+def _judged(spec: DesignSpec, system, config: PbmConfig, rpm: float, length_factor: float, feed=None) -> Evaluation:
+    """The :class:`Evaluation` of a stationary system fed at ``config``'s rates."""
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
     if not rates.sum() > 0:
         raise ConfigError("the library's feed rates are both 0: nothing flows through the blender")
-    # Little's law: the hold-up of one particle/s of each feeder is its mean residence time.
-    per_feeder = np.linalg.solve(system.generator, -system.feed).sum(axis=0)
-    mrt = float(per_feeder @ rates / rates.sum())
+    if system.steady_holdup is not None:  # the fill law's steady state
+        mrt = system.steady_holdup / float(rates.sum())
+    else:
+        # Little's law: the hold-up of one particle/s of each feeder is its mean residence time.
+        per_feeder = np.linalg.solve(system.generator, -system.feed).sum(axis=0)
+        mrt = float(per_feeder @ rates / rates.sum())
     margins: dict[str, float] = {}
     if spec.mrt_min_s is not None:
         margins["mrt_min_s"] = mrt - spec.mrt_min_s
@@ -213,7 +224,7 @@ def evaluate(library: TableLibrary, spec: DesignSpec, rpm: float, length_factor:
             margins["ca_tolerance"] = spec.ca_tolerance - spec.coverage_sigmas * sd
         if spec.rsd_max is not None:
             margins["rsd_max"] = spec.rsd_max - rsd
-    return Evaluation(float(rpm), float(length_factor), mrt, sd, rsd, vrr, margins)
+    return Evaluation(rpm, length_factor, mrt, sd, rsd, vrr, margins, feed)
 
 
 #: Margins that grow with the blender's length; the others shrink with it.
@@ -394,3 +405,121 @@ def design(library: TableLibrary, spec: DesignSpec) -> DesignResult:
     if len(feasible) < len(rows):
         notes.append("no length meets the spec at " + ", ".join(f"{r.rpm:g}" for r in rows if not r.feasible) + " rpm")
     return DesignResult(spec, library_rpm, library.length_m, rows, best, ranges, notes)
+
+
+# --------------------------------------------------------------------------- throughput
+#: Total feed rates scanned over the feed library's range before the edge is refined.
+FEED_SCAN_POINTS = 9
+
+
+@dataclass(frozen=True)
+class FeedLibrary:
+    """DEM runs of one blender at one speed and several total feed rates: each run's
+    steady reference (one window, :func:`pbm.fill.steady_table`) keyed by its total feed
+    [particles/s], and the fill law of their steady points (``exponents``). A feed between
+    two runs takes their references interpolated (:func:`pbm.studies.interpolate_tables`)
+    under the one law. ``pbm_config``: the feed weights, the rate mode and the A share
+    (its feed rates); ``rpm``, ``length_m``: the blender."""
+
+    points: tuple[tuple[float, VelocityTable], ...]
+    exponents: tuple[tuple[float, float], ...]
+    pbm_config: PbmConfig
+    rpm: float
+    length_m: float
+
+    @property
+    def feed_range(self) -> tuple[float, float]:
+        return self.points[0][0], self.points[-1][0]
+
+    def config_at(self, total: float) -> PbmConfig:
+        """The PBM configuration at the total feed ``total`` [particles/s], same A share."""
+        a, b = self.pbm_config.feed_rate_a_per_s, self.pbm_config.feed_rate_b_per_s
+        share = a / (a + b)
+        return self.pbm_config.model_copy(
+            update={
+                "feed_rate_a_per_s": total * share,
+                "feed_rate_b_per_s": total * (1 - share),
+                "rate_law": "fill",
+                "fill_exponents": [list(e) for e in self.exponents],
+            }
+        )
+
+
+def feed_library(
+    runs: list[tuple[float, VelocityTable]], pbm_config: PbmConfig, rpm: float, length_m: float
+) -> FeedLibrary:
+    """The :class:`FeedLibrary` of ``runs`` (total feed, table), its law fitted in
+    ``pbm_config.rates``' rates. Raises ConfigError for fewer than two distinct feeds."""
+    feeds = sorted(float(f) for f, _ in runs)
+    if len(runs) < 2 or len(set(feeds)) != len(feeds):
+        raise ConfigError(f"a feed library needs >= 2 runs at distinct feed rates, got {feeds}")
+    if not pbm_config.feed_rate_a_per_s + pbm_config.feed_rate_b_per_s > 0:
+        raise ConfigError("the feed library's configuration feeds nothing: its A share is undefined")
+    law = fit_fill_law([fill_samples(t, pbm_config.rates) for _, t in runs])
+    points = tuple(
+        sorted(
+            ((float(f), steady_table(t, steady_windows(t)).replace(t=np.zeros(1))) for f, t in runs),
+            key=lambda p: p[0],
+        )
+    )
+    return FeedLibrary(points, tuple(map(tuple, law.beta.tolist())), pbm_config, float(rpm), float(length_m))
+
+
+@single_threaded_blas()
+def evaluate_feed(feeds: FeedLibrary, spec: DesignSpec, total: float) -> Evaluation:
+    """The outlet quantities and margins of the library's blender fed ``total``
+    [particles/s] (inside the library's range), its rates following the fill."""
+    config = feeds.config_at(total)
+    system = stationary_system(interpolate_tables(feeds.points, total), config)
+    return _judged(spec, system, config, feeds.rpm, 1.0, float(total))
+
+
+@dataclass(frozen=True)
+class ThroughputResult:
+    """The largest total feed [particles/s] in the library's range at which its blender
+    meets the spec (``best``: None when no feed does), the feeds scanned, and notes."""
+
+    feed_range: tuple[float, float]
+    best: Evaluation | None
+    scanned: list[Evaluation]
+    notes: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "feed_range_per_s": list(self.feed_range),
+            "best": None if self.best is None else self.best.to_dict(),
+            "scanned": [e.to_dict() for e in self.scanned],
+            "notes": list(self.notes),
+        }
+
+
+def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
+    """The largest total feed inside the feed library's range at which its blender meets
+    ``spec``: a log-spaced scan, then the edge refined by root finding on the least margin
+    between the last feasible feed and the next. Higher feeds are outside the library:
+    refused, never extrapolated (a note says when the top of the range still meets it)."""
+    lo, hi = feeds.feed_range
+    grid = np.geomspace(lo, hi, FEED_SCAN_POINTS)
+    scanned = [evaluate_feed(feeds, spec, f) for f in grid]
+    ok = [e.feasible for e in scanned]
+    notes: list[str] = []
+    if not any(ok):
+        notes.append(f"no feed in the library's range {lo:g}-{hi:g} /s meets the spec")
+        return ThroughputResult((lo, hi), None, scanned, notes)
+    last = max(k for k, good in enumerate(ok) if good)
+    if last == len(grid) - 1:
+        notes.append(
+            f"the library's highest feed ({hi:g} /s) still meets the spec: a higher one may too, but it is "
+            "outside the runs the law was fitted to (a DEM run there is needed)"
+        )
+        return ThroughputResult((lo, hi), scanned[-1], scanned, notes)
+
+    def least(f: float) -> float:
+        return min(evaluate_feed(feeds, spec, f).margins.values())
+
+    edge = _feasible_root(least, float(grid[last + 1]), float(grid[last]))
+    if not all(ok[: last + 1]):
+        notes.append(
+            "not met at the lower feeds scanned: " + ", ".join(f"{g:.4g}" for g, k in zip(grid, ok) if not k) + " /s"
+        )
+    return ThroughputResult((lo, hi), evaluate_feed(feeds, spec, edge), scanned, notes)

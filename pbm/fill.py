@@ -72,11 +72,14 @@ FILL_FLOOR = 1e-6
 class FillSamples:
     """One run's slice-level windows: ``fill`` (K, NX) particles, ``rates`` (K, NX, 2)
     flux-weighted forward and backward rates [1/s] (NaN where unmeasured), ``weight``
-    (K, NX, 2) the moves behind each rate, ``steady`` (K,) the steady windows."""
+    (K, NX, 2) the moves behind each rate, ``exposure`` (K, NX, 2) the particle-seconds
+    behind it (its compartments' particles x the window), ``steady`` (K,) the steady
+    windows."""
 
     fill: np.ndarray
     rates: np.ndarray
     weight: np.ndarray
+    exposure: np.ndarray
     steady: np.ndarray
 
     @property
@@ -104,12 +107,12 @@ class FillLaw:
 
 def steady_windows(table: VelocityTable, steady: SteadyStateRule = SteadyStateRule()) -> np.ndarray:
     """(K,) the windows from the steady-state time on, by ``steady`` on the table's
-    hold-up per window. Raises TableError when the table never becomes steady."""
+    hold-up per window (a table of one window is steady). Raises TableError when the
+    table never becomes steady."""
+    if table.n_windows == 1:  # one window: time-invariant, its own steady state
+        return np.ones(1, dtype=bool)
     holdup = (table.count_A + table.count_B).sum(axis=(1, 2))
-    if table.n_windows >= 2:
-        start = steady.time(table.t, holdup)
-    else:
-        start = None
+    start = steady.time(table.t, holdup)
     if start is None:
         raise TableError(
             f"the table's hold-up never becomes steady ({table.n_windows} windows of {table.window_s:g} s, "
@@ -130,6 +133,7 @@ def fill_samples(table: VelocityTable, rates: str, steady: SteadyStateRule = Ste
     fill = counts.sum(axis=2)
     out = np.full((table.n_windows, table.nx, 2), np.nan)
     weight = np.zeros_like(out)
+    exposure = np.zeros_like(out)
     for d, name in enumerate(names):
         values = np.asarray(getattr(table, name), dtype=float)
         if mode == "velocity":
@@ -139,8 +143,9 @@ def fill_samples(table: VelocityTable, rates: str, steady: SteadyStateRule = Ste
         flux = np.where(known, values * counts, 0.0).sum(axis=2)
         out[..., d] = np.where(held > 0, flux / np.where(held > 0, held, 1.0), np.nan)
         weight[..., d] = flux * table.window_s  # moves seen: rate x particle-seconds
+        exposure[..., d] = held * table.window_s
     out[:, 0, 1] = np.nan  # the inlet wall: no backward moves to learn from
-    return FillSamples(fill, out, weight, steady_windows(table, steady))
+    return FillSamples(fill, out, weight, exposure, steady_windows(table, steady))
 
 
 def _window_points(samples: list[FillSamples]) -> tuple[np.ndarray, ...]:
@@ -170,10 +175,9 @@ def _steady_points(samples: list[FillSamples]) -> tuple[np.ndarray, ...]:
     the runs."""
     cols: dict[str, list] = {k: [] for k in ("fold", "slice", "dir", "x", "y", "w")}
     for r, s in enumerate(samples):
-        w = s.weight[s.steady]
         known = np.isfinite(s.rates[s.steady])
-        moves = np.where(known, w, 0.0).sum(axis=0)
-        seconds = np.where(known, w / np.where(known, s.rates[s.steady], 1.0), 0.0).sum(axis=0)
+        moves = np.where(known, s.weight[s.steady], 0.0).sum(axis=0)
+        seconds = np.where(known, s.exposure[s.steady], 0.0).sum(axis=0)
         rate = np.divide(moves, seconds, out=np.zeros_like(moves), where=seconds > 0)
         i, d = np.nonzero(rate > 0)
         cols["fold"].append(np.full(i.size, r))

@@ -68,13 +68,16 @@ class StationarySystem:
     compartments' discharge rates; under the fill law (:func:`pbm.fill.linearised`, m =
     2n: both species, since a feeder's noise moves the fill and so the other species' flow
     too) row A is dq_A - (F_A / F_B) dq_B and row B is dq_B - (F_B / F_A) dq_A.
-    ``windows``: the table windows averaged.
+    ``windows``: the table windows averaged. ``steady_holdup`` [particles]: under the fill
+    law, the hold-up of the steady state it is linearised about (None for the linear PBM,
+    whose hold-up is Little's law on ``generator``).
     """
 
     generator: np.ndarray
     feed: np.ndarray
     outlet: np.ndarray
     windows: np.ndarray
+    steady_holdup: float | None = None
 
     def feed_column(self, feeder: str) -> np.ndarray:
         """The inlet distribution of ``feeder`` ("A" or "B")."""
@@ -142,7 +145,7 @@ def _fill_law_system(table: VelocityTable, config: PbmConfig, windows: np.ndarra
     rows = np.stack(
         [lin.outlet[0] - rates[0] / rates[1] * lin.outlet[1], lin.outlet[1] - rates[1] / rates[0] * lin.outlet[0]]
     )
-    return StationarySystem(generator=lin.generator, feed=lin.feed, outlet=rows, windows=windows)
+    return StationarySystem(lin.generator, lin.feed, rows, windows, float(lin.species.sum()))
 
 
 def transfer_function(

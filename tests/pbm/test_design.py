@@ -13,7 +13,7 @@ from scipy.optimize import brentq
 from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.config import PbmConfig
-from pbm.design import TableLibrary, design, design_spec, evaluate, speed_grid
+from pbm.design import TableLibrary, design, design_spec, evaluate, evaluate_feed, feed_library, max_feed, speed_grid
 from workflows.cli.main import main
 
 L = 0.33
@@ -117,6 +117,9 @@ def test_cli_on_the_shipped_library(tmp_path, capsys):
     assert code == 0, out.err
     assert "150 rpm" in out.err and "350 rpm" in out.err  # the library found: the campaign's speed runs
     assert re.search(r"smallest blender: \d+\.\d mm", out.out)
+    # the campaign's feed runs are a feed library: the largest feed the 330-mm blender takes
+    assert "feed library: 36.85 /s" in out.err
+    assert re.search(r"largest feed meeting the spec .*: \d+\.\d particles/s", out.out)
     assert (tmp_path / "design.json").is_file() and (tmp_path / "feasible.png").stat().st_size > 10_000
 
 
@@ -125,3 +128,52 @@ def test_cli_bad_library_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2
     assert err.count("\n") == 1 and "nowhere" in err
+
+
+def steady_tanks(feed: float, n: int = 5, a: float = 0.05, beta: float = 1.0, windows: int = 6):
+    """Tanks in series at steady state under the flow law r = a N^beta: each holds
+    N = (feed / a)^(1 / (1 + beta)) and passes feed particles/s on."""
+    held = (feed / a) ** (1.0 / (1.0 + beta))
+    rate = a * held**beta
+    zeros = np.zeros((windows, n, 1))
+    return make_table(
+        t=5.0 * np.arange(windows),
+        x_edges=np.linspace(0, L, n + 1),
+        y_edges=[-0.05, 0.05],
+        vx_pos=rate * L / n,
+        vx_neg=0.0,
+        vy_pos=0.0,
+        vy_neg=0.0,
+        count_A=held / 2 + zeros,
+        count_B=held / 2 + zeros,
+        n_samples=100 + zeros.astype(int),
+        rate_x_pos=rate + zeros,
+        rate_x_neg=zeros,
+        rate_y_pos=zeros,
+        rate_y_neg=zeros,
+        window_s=5.0,
+    )
+
+
+def test_largest_feed_follows_the_flow_law():
+    """Tanks whose rates follow r = a N^beta: the library's law is fitted exactly, and the
+    largest feed with a mean residence time >= T is where n N(F) / F = T."""
+    n, a, beta = 5, 0.05, 1.0
+    config = CONFIG.model_copy(update={"rates": "measured", "feed_rate_a_per_s": 50.0, "feed_rate_b_per_s": 50.0})
+    feeds = feed_library([(f, steady_tanks(f, n, a, beta)) for f in (50.0, 100.0, 200.0)], config, 250.0, L)
+    np.testing.assert_allclose(np.array(feeds.exponents)[:, 0], beta, atol=1e-9)
+    mrt = {f: n * (f / a) ** (1 / (1 + beta)) / f for f in (50.0, 100.0, 200.0)}
+    for f, expected in mrt.items():  # at the runs themselves: their own steady state
+        assert evaluate_feed(feeds, design_spec(mrt_min_s=1.0), f).mean_residence_time_s == pytest.approx(
+            expected, rel=1e-6
+        )
+    result = max_feed(feeds, design_spec(mrt_min_s=mrt[100.0]))
+    assert result.best.feed_per_s == pytest.approx(100.0, rel=1e-4)
+    assert result.best.margins["mrt_min_s"] >= 0
+    # met up to the library's top: said, and nothing beyond it is claimed
+    top = max_feed(feeds, design_spec(mrt_min_s=0.1 * mrt[200.0]))
+    assert top.best.feed_per_s == 200.0 and "outside the runs" in top.notes[0]
+    none = max_feed(feeds, design_spec(mrt_min_s=2 * mrt[50.0]))
+    assert none.best is None and "no feed" in none.notes[0]
+    with pytest.raises(ConfigError, match="distinct feed rates"):
+        feed_library([(50.0, steady_tanks(50.0))], config, 250.0, L)

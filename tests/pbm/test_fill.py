@@ -114,7 +114,9 @@ def _synthetic_samples(beta, fills, intercept, windows=40, seed=0, noise=0.0):
         fill = np.broadcast_to(ramp, (windows, beta.shape[0])).copy()
         rates = np.exp(intercept[None] + beta[None] * np.log(fill)[..., None])
         rates *= np.exp(noise * rng.standard_normal(rates.shape))
-        out.append(FillSamples(fill, rates, fill[..., None] * rates, np.arange(windows) >= 12))
+        out.append(
+            FillSamples(fill, rates, fill[..., None] * rates, fill[..., None] + 0 * rates, np.arange(windows) >= 12)
+        )
     return out
 
 

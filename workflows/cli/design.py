@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from pbm.design import design_spec
-    from workflows.products.design import answer_lines, run_design
+    from workflows.products.design import answer_lines, run_design, throughput_lines
     from workflows.shipped import VALIDATION_DIR
 
     given = {
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         "length_factor_max": args.length_max,
     }
     spec = design_spec(**{k: v for k, v in given.items() if v is not None})
-    result, out = run_design(spec, args.out, args.library or VALIDATION_DIR, args.rates, log=stderr_log)
-    print("\n".join(answer_lines(result)))
+    result, throughput, out = run_design(spec, args.out, args.library or VALIDATION_DIR, args.rates, log=stderr_log)
+    print("\n".join(answer_lines(result) + throughput_lines(throughput)))
     print(f"design.json and feasible.png: {out}")
     return 0 if result.best is not None else 1

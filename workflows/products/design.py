@@ -13,7 +13,7 @@ from typing import Any
 
 from coupling.errors import ConfigError, OutputError, os_reason
 from coupling.jsonable import json_ready, write_json
-from pbm.design import DesignResult, DesignSpec, TableLibrary, design
+from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult, design, feed_library, max_feed
 from workflows.config import config_without
 from workflows.pipeline.stages import Log, load_results, pbm_config_for, writable_directory
 from workflows.report.design import plot_feasible
@@ -58,19 +58,50 @@ def load_library(
     )
 
 
+FEED_KEYS = ("dem.operation.feed_rate_total_per_s", "dem.operation.duration_s")
+
+
+def load_feed_library(directory: str | Path = VALIDATION_DIR, rates: str = "measured", log: Log | None = None):
+    """The feed library in ``directory``: the largest group of DEM results files whose
+    configurations differ only in the feed rate (and the duration), when it holds at least
+    two runs with a steady state; else None (the answer then has no throughput)."""
+    groups: dict[str, list] = {}
+    for path in sorted(Path(directory).glob("dem-*.h5")):
+        results, config = load_results(path)
+        if results.summary.steady_time is None or not results.table.has_rates:
+            continue
+        groups.setdefault(repr(config_without(config, *FEED_KEYS)), []).append((results, config, path))
+    members = max(groups.values(), key=len, default=[])
+    if len(members) < 2:
+        return None
+    members.sort(key=lambda m: m[1].dem.operation.feed_rate_total_per_s)
+    (log or (lambda _: None))(
+        "feed library: " + ", ".join(f"{m[1].dem.operation.feed_rate_total_per_s:g} /s ({m[2].name})" for m in members)
+    )
+    results, config, _ = members[0]
+    pbm_config = pbm_config_for(config, results.table, None).model_copy(update={"rates": rates})
+    runs = [(m[1].dem.operation.feed_rate_total_per_s, m[0].table) for m in members]
+    return feed_library(runs, pbm_config, config.dem.operation.impeller_rpm, config.dem.geometry.length_m)
+
+
 def run_design(
     spec: DesignSpec,
     out_dir: str | Path = "results/design",
     library_dir: str | Path = VALIDATION_DIR,
     rates: str = "velocity",
     log: Log | None = None,
-) -> tuple[DesignResult, Path]:
-    """``pbmdem design``: the answer, ``design.json`` and ``feasible.png`` in ``out_dir``."""
+) -> tuple[DesignResult, ThroughputResult | None, Path]:
+    """``pbmdem design``: the answer (the smallest blender; the largest feed its own blender
+    takes, when the directory holds a feed library), ``design.json`` and ``feasible.png``
+    in ``out_dir``."""
     out_dir = writable_directory(out_dir, "design output directory")
     library = load_library(library_dir, rates, log)
     result = design(library, spec)
+    feeds = load_feed_library(library_dir, rates, log)
+    throughput = None if feeds is None else max_feed(feeds, spec)
     data: dict[str, Any] = {
         **result.to_dict(),
+        "throughput": None if throughput is None else throughput.to_dict(),
         "library_dir": str(library_dir),
         "rates": rates,
         "steady_time_s": library.steady_time_s,
@@ -80,7 +111,29 @@ def run_design(
         plot_feasible(result, out_dir / "feasible.png")
     except OSError as exc:
         raise OutputError(f"cannot write the design results in {out_dir}: {os_reason(exc)}") from exc
-    return result, out_dir
+    return result, throughput, out_dir
+
+
+def throughput_lines(throughput: ThroughputResult | None) -> list[str]:
+    """The throughput answer in words."""
+    if throughput is None:
+        return ["largest feed: no feed library (two or more steady runs differing only in feed rate) in the directory"]
+    lo, hi = throughput.feed_range
+    if throughput.best is None:
+        return [f"largest feed: none in the feed library's {lo:g}-{hi:g} /s meets the spec"] + [
+            f"note: {n}" for n in throughput.notes
+        ]
+    best = throughput.best
+    line = (
+        f"largest feed meeting the spec at the library's own blender ({best.rpm:g} rpm, rates following the fill): "
+        f"{best.feed_per_s:.1f} particles/s (feed library {lo:g}-{hi:g} /s); mean residence time "
+        f"{best.mean_residence_time_s:.1f} s"
+    )
+    if best.ca_sd is not None:
+        line += f", outlet C_A SD {best.ca_sd:.4f}"
+    return [line, "  margins: " + ", ".join(f"{k} {v:+.4g}" for k, v in best.margins.items())] + [
+        f"note: {n}" for n in throughput.notes
+    ]
 
 
 def answer_lines(result: DesignResult) -> list[str]:
