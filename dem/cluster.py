@@ -104,12 +104,40 @@ def slurm_script(
     ``mpirun`` takes its hosts from the Slurm allocation), not by ``srun``: ``srun`` can
     start MPI ranks only when the MPI library was built with Slurm's PMI, and Debian's
     Open MPI is not (measured on a one-node Slurm 22.05 cluster: "OMPI was not built with
-    SLURM's PMI support"; ``srun --mpi=pmix`` could not load a PMIx library either). The
-    wall-time request carries a 30 % margin and is at least 10 minutes, so that start-up
-    on a busy node does not kill a short job.
+    SLURM's PMI support"; ``srun --mpi=pmix`` could not load a PMIx library either).
     """
+    check_tasks(np)
+    return batch_script(
+        mpi_command(config, np, MAIN_DECK),
+        run_dir,
+        np,
+        wall_hours,
+        job_name,
+        partition,
+        f"# LIGGGHTS reads its input while it runs: do not edit {MAIN_DECK} during the job.",
+    )
+
+
+def check_tasks(np) -> None:
     if isinstance(np, bool) or int(np) != np or np < 1:
         raise ConfigError(f"np must be >= 1, got {np!r} (an integer number of MPI tasks)")
+
+
+def batch_script(
+    command: list[str],
+    work_dir: str,
+    np: int,
+    wall_hours: float,
+    job_name: str = "pbmdem",
+    partition: str | None = None,
+    comment: str | None = None,
+    output: str | None = None,
+) -> str:
+    """A Slurm batch script that runs ``command`` in ``work_dir`` on an allocation of
+    ``np`` tasks, its output in ``output`` (default ``<job_name>-<job id>.out`` where it is
+    submitted). The wall-time request carries a 30 % margin and is at least 10 minutes,
+    so that start-up on a busy node does not kill a short job."""
+    check_tasks(np)
     check_positive_finite(wall_hours, "the wall time", "hours")
     minutes = max(10, math.ceil(wall_hours * 1.3 * 60))
     lines = [
@@ -118,15 +146,12 @@ def slurm_script(
         f"#SBATCH --ntasks={np}",
         "#SBATCH --cpus-per-task=1",
         f"#SBATCH --time={minutes // 60:02d}:{minutes % 60:02d}:00",
-        f"#SBATCH --output={job_name}-%j.out",
+        f"#SBATCH --output={output or f'{job_name}-%j.out'}",
     ]
     if partition:
         lines.append(f"#SBATCH --partition={partition}")
-    lines += [
-        "set -euo pipefail",
-        f"cd {shlex.quote(run_dir)}",
-        f"# LIGGGHTS reads its input while it runs: do not edit {MAIN_DECK} during the job.",
-        shlex.join(mpi_command(config, np, MAIN_DECK)),
-        "",
-    ]
+    lines += ["set -euo pipefail", f"cd {shlex.quote(work_dir)}"]
+    if comment:
+        lines.append(comment)
+    lines += [shlex.join(command), ""]
     return "\n".join(lines)

@@ -228,3 +228,54 @@ def test_the_batch_script_runs_under_slurm(slurm_cluster, tmp_path, capsys):
     summary = load_entry(tmp_path / "r.h5").summary
     assert summary["t_end_s"] == pytest.approx(2.0, abs=0.1) and summary["lost"] == 0
     assert summary["inserted"] > 50
+
+
+def _tiny(name: str, feed: float, duration: float = 6.0):
+    from workflows.config import config_from_dict
+
+    data = load_preset("smoke").to_dict()
+    data["name"] = name
+    data["dem"]["operation"]["duration_s"] = duration
+    data["dem"]["operation"]["feed_rate_total_per_s"] = feed
+    data["dem"]["tables"]["window_s"] = 1.0
+    data["dem"]["numerics"]["restart_interval_s"] = 0.5
+    return config_from_dict(data)
+
+
+@pytest.mark.liggghts
+@pytest.mark.slow
+def test_a_campaign_runs_on_slurm_and_a_killed_run_is_resumed(slurm_cluster, tmp_path, monkeypatch):
+    """Two runs as Slurm jobs; one is cancelled once it has a restart file, and the follower
+    resubmits it with --resume; both end completed and cached, as a local run would."""
+    import subprocess
+
+    from dem.run import prepare_run, read_status
+    from workflows.pipeline.cluster import run_campaign_on_slurm
+    from workflows.pipeline.stages import dem_stage
+
+    monkeypatch.chdir(tmp_path)
+    configs = {"slow": _tiny("slurm-slow", 73.7), "fast": _tiny("slurm-fast", 110.0)}
+    runs = tmp_path / "runs"
+    key = prepare_run(configs["slow"].dem).key
+    cancelled = []
+
+    def watch(jobs):
+        job = jobs["slow"]
+        if not cancelled and job.state == "queued" and list((runs / key / "restart").glob("restart.*.bin")):
+            subprocess.run(["scancel", job.job_id], env=slurm_cluster, check=True)
+            cancelled.append(job.job_id)
+
+    lines = []
+    jobs = run_campaign_on_slurm(
+        configs, runs, 1, lines.append, env=slurm_cluster, poll_s=0.5, reference_dir=(), watch=watch
+    )
+    assert cancelled, "the slow run finished before a restart file was seen: nothing was cancelled"
+    assert {j.state for j in jobs.values()} == {"completed"}, lines
+    assert jobs["slow"].attempts == 2 and jobs["fast"].attempts == 1
+    assert any("resuming" in line for line in lines)
+    assert read_status(runs / key)["resumed_from"], "the second job did not continue from the restart file"
+    for config in configs.values():
+        assert dem_stage(config, runs, solver=False, reference_dir=()).source == "cache"
+    # a second call finds everything done: no job
+    again = run_campaign_on_slurm(configs, runs, 1, lines.append, env=slurm_cluster, poll_s=0.5, reference_dir=())
+    assert {j.state for j in again.values()} == {"ready"}

@@ -10,6 +10,7 @@ from typing import Any
 
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
+from pbm.config import PbmConfig
 from pbm.fill import fill_samples, fit_fill_law
 from pbm.model import supported_modes
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
@@ -138,19 +139,25 @@ def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log 
                 continue
             log(f"PBM of {name} from {source}")
             table = built.table
-            pbm = pbm_config_for(config, table, rtd_pulse(dem.summary))
-            if table.t_end < config.dem.operation.duration_s:
-                # a longer run (a slower feed) than the source's: its last window holds on
-                pbm = pbm.model_copy(update={"duration_s": config.dem.operation.duration_s})
             modes = run_modes(
                 table,
-                pbm,
+                prediction_config(config, table, dem.summary),
                 config.steady_state,
                 dem.summary,
                 built.mode_updates(),
             )
             out.append(Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes)))
     return out
+
+
+def prediction_config(config: Config, table: VelocityTable, dem_summary) -> PbmConfig:
+    """The PBM configuration that predicts the run of ``config`` from ``table``: the run's
+    feed and RTD pulse, and its duration when the run is longer than the table (a slower
+    feed): the table's last window then holds on."""
+    pbm = pbm_config_for(config, table, rtd_pulse(dem_summary))
+    if table.t_end < config.dem.operation.duration_s:
+        pbm = pbm.model_copy(update={"duration_s": config.dem.operation.duration_s})
+    return pbm
 
 
 @dataclass(frozen=True)

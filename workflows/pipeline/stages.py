@@ -135,6 +135,22 @@ def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], lo
     return None
 
 
+def results_available(
+    config: Config,
+    runs_root: str | Path = "runs",
+    reference_dir: Path | tuple[Path, ...] = SHIPPED_RESULTS_DIRS,
+) -> bool:
+    """Whether :func:`dem_stage` can serve ``config`` without running LIGGGHTS: cached or
+    shipped results, or a completed run to post-process (which this does not do)."""
+    inputs = prepare_run(config.dem)
+    runs_root = Path(runs_root)
+    shipped = (reference_dir,) if isinstance(reference_dir, (str, Path)) else reference_dir
+    roots = [(runs_root / "cache", "cache"), *((Path(d), "reference") for d in shipped)]
+    if _find_cached(inputs, post_hash(config), roots, _quiet) is not None:
+        return True
+    return completed_run(inputs, runs_root) is not None
+
+
 def dem_stage(
     config: Config,
     runs_root: str | Path = "runs",

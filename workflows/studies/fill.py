@@ -28,8 +28,8 @@ from pbm.model import supported_modes
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import PbmMode, agreement_rows
-from workflows.analysis.validation import feed_library
-from workflows.pipeline.stages import pbm_config_for, rtd_pulse, stderr_log
+from workflows.analysis.validation import feed_library, prediction_config
+from workflows.pipeline.stages import stderr_log
 from workflows.products.validate import campaign_configs, run_campaign
 
 HELP = "the feed library: each feed rate predicted by the linear PBM and the fill law, leave one out"
@@ -53,7 +53,7 @@ def library_runs(runs_root: str) -> tuple[dict, dict]:
 
 
 def predict(table, config, dem, mode: str, exponents=None, rate_law: str = "table"):
-    cfg = pbm_config_for(config, table, rtd_pulse(dem.summary)).model_copy(
+    cfg = prediction_config(config, table, dem.summary).model_copy(
         update={"rates": mode, "rate_law": rate_law, "fill_exponents": exponents}
     )
     result = simulate(table, cfg, steady=config.steady_state)
