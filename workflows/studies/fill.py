@@ -11,6 +11,9 @@ against its own DEM's 95 % intervals:
 * ``library law``: the steady rates of the nearest other run in feed under the law fitted
   to the steady points of all the other runs (leave one out).
 
+``--unseen FILE ...``: DEM results of the same blender and speed at feeds outside the
+campaign, each predicted the same three ways from the whole library.
+
 Prints the hold-up, the outflow and the pooled RTD's mean and variance against the DEM's,
 and writes ``results/bench/fill.json`` (every value, interval and the laws' exponents).
 """
@@ -22,26 +25,36 @@ from pathlib import Path
 
 import numpy as np
 
+from coupling.errors import ConfigError
 from coupling.jsonable import json_ready, write_json
 from pbm.fill import fill_samples, fit_fill_law
 from pbm.model import supported_modes
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import PbmMode, agreement_rows
-from workflows.analysis.validation import feed_library, prediction_config
-from workflows.pipeline.stages import stderr_log
+from workflows.analysis.validation import DURATION_KEY, FEED_KEY, feed_library, prediction_config
+from workflows.config import config_without
+from workflows.pipeline.stages import load_results, stderr_log
 from workflows.products.validate import campaign_configs, run_campaign
 
 HELP = "the feed library: each feed rate predicted by the linear PBM and the fill law, leave one out"
 OUT = Path("results/bench/fill.json")
 QUANTITIES = ("holdup", "outflow_per_s", "mean_residence_time_s", "rtd_variance_s2")
 MODES = ("measured", "velocity", "phases")
+FEED_KEYS = (FEED_KEY, DURATION_KEY)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs-root", default="runs/validation", help="campaign runs and cache (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=OUT, help="JSON written (default: %(default)s)")
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    parser.add_argument(
+        "--unseen",
+        nargs="*",
+        default=[],
+        metavar="FILE",
+        help="DEM results files of the same blender and speed at other feeds, predicted from the whole library",
+    )
 
 
 def library_runs(runs_root: str) -> tuple[dict, dict]:
@@ -69,13 +82,23 @@ def run(args: argparse.Namespace) -> int:
         stderr_log(f"the feed library needs the baseline and two other feed rates; found {sorted(sides)}")
         return 1
     feed = {name: c.dem.operation.feed_rate_total_per_s for name, c in configs.items()}
+    # targets: every library run (predicted from the others), then the unseen runs (from all)
+    targets = [(name, sides[name].results, configs[name]) for name in sorted(sides, key=feed.get)]
+    same = config_without(configs["baseline"], *FEED_KEYS)
+    for path in args.unseen:
+        results, config = load_results(path)
+        if config_without(config, *FEED_KEYS) != same:
+            raise ConfigError(f"{path}: not a run of the feed library's blender and speed (it differs beyond the feed)")
+        targets.append(
+            (f"{Path(path).name} ({config.dem.operation.feed_rate_total_per_s:g} /s)", results, config, False)
+        )
     record: dict = {"runs": feed, "predictions": [], "laws": {}}
     base = sides["baseline"].table
     for mode in args.modes:
         samples = {name: fill_samples(side.table, mode) for name, side in sides.items()}
         own = fit_fill_law([samples["baseline"]])
         record["laws"][f"{mode}/baseline"] = {"form": own.form, "beta": own.beta.tolist(), "scores": own.scores}
-        for target in sorted(sides, key=feed.get):
+        for target, dem, cfg in targets:
             if target == "baseline":
                 continue
             others = [n for n in sides if n != target]
@@ -83,8 +106,8 @@ def run(args: argparse.Namespace) -> int:
             record["laws"][f"{mode}/without {target}"] = {"form": lib.form, "beta": lib.beta.tolist()}
             # the nearest other run whose table carries this mode (the phase model needs sequences)
             usable = [n for n in others if mode in supported_modes(sides[n].table)]
-            nearest = min(usable, key=lambda n: abs(np.log(feed[n] / feed[target])))
-            dem, cfg = sides[target].results, configs[target]
+            wanted = cfg.dem.operation.feed_rate_total_per_s
+            nearest = min(usable, key=lambda n: abs(np.log(feed[n] / wanted)))
             sources = {
                 "linear": predict(base, cfg, dem, mode),
                 "baseline law": predict(base, cfg, dem, mode, own.beta.tolist(), "fill"),
