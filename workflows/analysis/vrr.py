@@ -679,9 +679,10 @@ def vrr_comparison(
         pbm = {
             mode: replace(
                 m,
-                ensemble_check=tuple(
-                    ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)
-                ),
+                # under the fill law members do not superpose: the linearised response stands alone
+                ensemble_check=()
+                if pbm_config.rate_law == "fill"
+                else tuple(ensemble_check(table, pbm_config.model_copy(update={"rates": mode}), steady_time_s)),
             )
             for mode, m in pbm.items()
         }
