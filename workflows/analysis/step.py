@@ -289,7 +289,7 @@ def step_comparison(
 ) -> StepComparison:
     """Every PBM (own tables / the baseline's, each rate mode the table carries) judged
     against the step run's DEM; with the series for the figure. ``fill_law``: per rate
-    mode, the exponents of a fill law (the feed library's): the baseline's tables are then
+    mode, the exponents of a fill law (e.g. the baseline's own): the baseline's tables are then
     also judged with rates that follow the fill ("baseline + fill law")."""
     op = config.dem.operation
     interval = float(config.dem.tables.sample_interval_s)

@@ -53,7 +53,8 @@ class Source:
 
 
 def library_law(sides: dict[str, DemSide], runs: list[str]) -> dict[str, list[list[float]]]:
-    """Per rate mode, the fill law's exponents fitted to the steady points of ``runs``."""
+    """Per rate mode, the fill law's exponents fitted to ``runs`` (their steady points; one
+    run: its filling transient, :func:`pbm.fill.fit_fill_law`)."""
     out = {}
     for mode in MODES:
         tables = [sides[r].table for r in runs]

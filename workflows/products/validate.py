@@ -36,7 +36,7 @@ from coupling.jsonable import json_ready, write_json
 from dem.run import can_resume, prepare_run
 from workflows.analysis.budget import budget_study
 from workflows.analysis.step import step_comparison
-from workflows.analysis.validation import campaign_span_s, feed_library, library_law, predictions, verdicts
+from workflows.analysis.validation import campaign_span_s, library_law, predictions, verdicts
 from workflows.config import Config, load_preset, override
 from workflows.pipeline.stages import DemSide, Log, dem_stage, stderr_log, writable_directory
 from workflows.report.budget import plot_budget
@@ -156,9 +156,8 @@ def validation_report(
     log("the dynamic check: the feed-step run")
     try:
         step_side = run_step(runs_root, fresh=fresh, nprocs=nprocs, log=log, solver=solver)
-        library = [r for r in feed_library(configs) if r in sides]
-        law = library_law(sides, library) if len(library) >= 2 else None
-        step = step_comparison(step_side, sides["baseline"], step_config(), law)
+        # the baseline's own law: the step predicted from that one steady DEM run alone
+        step = step_comparison(step_side, sides["baseline"], step_config(), library_law(sides, ["baseline"]))
     except LookupError as exc:  # neither shipped nor cached, and the solver may not run
         log(f"no dynamic check: {exc}")
         step = None
