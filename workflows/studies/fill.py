@@ -15,7 +15,8 @@ against its own DEM's 95 % intervals:
 campaign, each predicted the same three ways from the whole library.
 
 Prints the hold-up, the outflow and the pooled RTD's mean and variance against the DEM's,
-and writes ``results/bench/fill.json`` (every value, interval and the laws' exponents).
+and writes ``results/bench/fill.json`` (every value, interval and the laws' exponents) and
+``fill.png`` beside it (hold-up and mean residence time against the feed).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from workflows.analysis.validation import DURATION_KEY, FEED_KEY, feed_library, 
 from workflows.config import config_without
 from workflows.pipeline.stages import load_results, stderr_log
 from workflows.products.validate import campaign_configs, run_campaign
+from workflows.report.fill import plot_fill
 
 HELP = "the feed library: each feed rate predicted by the linear PBM and the fill law, leave one out"
 OUT = Path("results/bench/fill.json")
@@ -127,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
                         {
                             "mode": mode,
                             "run": target,
+                            "feed_per_s": wanted,
                             "source": source,
                             "quantity": q,
                             "pbm": v,
@@ -137,5 +140,6 @@ def run(args: argparse.Namespace) -> int:
                     )
                 print("  ".join(line), flush=True)
     write_json(args.out, json_ready(record))
-    print(f"(* inside the DEM's 95 % interval) written {args.out}")
+    figure = plot_fill(record, args.out.with_suffix(".png"))
+    print(f"(* inside the DEM's 95 % interval) written {args.out} and {figure}")
     return 0

@@ -10,6 +10,7 @@ def test_study_fill_predicts_each_feed_from_the_others(tmp_path, capsys):
     out = tmp_path / "fill.json"
     assert main(["study", "fill", "--modes", "measured", "--runs-root", str(tmp_path / "runs"), "--out", str(out)]) == 0
     record = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
     assert set(record["runs"]) == {"baseline", "feed_x0.5", "feed_x1.5", "feed_x2"}
     held = {
         (p["run"], p["source"].split(" (")[0]): p
