@@ -40,9 +40,8 @@ def run(args: argparse.Namespace) -> int:
         from workflows.pipeline.cluster import run_campaign_on_slurm
         from workflows.products.validate import campaign_configs, step_config
 
-        np = args.np or 2
         jobs = run_campaign_on_slurm(
-            {**campaign_configs(), "step": step_config()}, args.runs_dir, np, stderr_log, partition=args.partition
+            {**campaign_configs(), "step": step_config()}, args.runs_dir, args.np, stderr_log, partition=args.partition
         )
         failed = [j for j in jobs.values() if j.state == "failed"]
         for job in failed:

@@ -156,7 +156,7 @@ def _submit(job: CampaignJob, runs_root: Path, np: int, partition: str | None, e
 def run_campaign_on_slurm(
     configs: dict[str, Config],
     runs_root: str | Path,
-    np: int,
+    np: int | None,
     log: Log,
     partition: str | None = None,
     env: dict[str, str] | None = None,
@@ -166,7 +166,7 @@ def run_campaign_on_slurm(
     watch: Callable[[dict[str, CampaignJob]], None] | None = None,
 ) -> dict[str, CampaignJob]:
     """Every run of ``configs`` that is neither cached, shipped nor completed under
-    ``runs_root``, as a Slurm job of ``np`` tasks; follows them until none is left in the
+    ``runs_root``, as a Slurm job of ``np`` tasks (default: each config's ``dem.run.np``); follows them until none is left in the
     queue, resubmitting (``--resume``) a run that ended incomplete with restart files, up to
     ``max_attempts`` submissions. ``env``: the environment of the Slurm commands (e.g.
     SLURM_CONF); ``watch``: called with the jobs after every look at the queue. Returns
@@ -183,7 +183,7 @@ def run_campaign_on_slurm(
             log(f"slurm: {name} needs no job (cached, shipped or completed)")
             continue
         job.config_file.write_text(dump_toml(config))
-        _submit(job, runs_root, np, partition, env, log)
+        _submit(job, runs_root, np or config.dem.run.np, partition, env, log)
     while any(j.state == "queued" for j in jobs.values()):
         time.sleep(poll_s)
         ids = [j.job_id for j in jobs.values() if j.state == "queued"]
@@ -197,7 +197,7 @@ def run_campaign_on_slurm(
                 log(f"slurm: {job.name} completed (job {job.job_id})")
             elif job.attempts < max_attempts and can_resume(inputs, runs_root):
                 log(f"slurm: {job.name} ended incomplete (job {job.job_id}); resuming from its restart files")
-                _submit(job, runs_root, np, partition, env, log)
+                _submit(job, runs_root, np or job.config.dem.run.np, partition, env, log)
             else:
                 job.state = "failed"
                 job.reason = (
