@@ -631,9 +631,11 @@ def diagnose_stale_status(
     state, why = _liveness(status)
     if state == "alive" or (state == "unknown" and not resume):
         return status
-    reason = (
-        f"killed without a trace ({why}: SIGKILL, a node failure or a lost terminal); "
+    has_restarts = Path(run_dir).is_dir() and bool(_restart_files(Path(run_dir)))
+    reason = f"killed without a trace ({why}: SIGKILL, a node failure or a lost terminal); " + (
         "its restart files can be continued with --resume"
+        if has_restarts
+        else "it wrote no restart file: only --fresh starts it again"
     )
     stale = {**status, "state": "crashed", "error": reason, "diagnosed": _now()}
     _write_status(Path(run_dir), stale)
