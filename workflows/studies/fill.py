@@ -91,9 +91,7 @@ def run(args: argparse.Namespace) -> int:
         results, config = load_results(path)
         if config_without(config, *FEED_KEYS) != same:
             raise ConfigError(f"{path}: not a run of the feed library's blender and speed (it differs beyond the feed)")
-        targets.append(
-            (f"{Path(path).name} ({config.dem.operation.feed_rate_total_per_s:g} /s)", results, config, False)
-        )
+        targets.append((f"{Path(path).name} ({config.dem.operation.feed_rate_total_per_s:g} /s)", results, config))
     record: dict = {"runs": feed, "predictions": [], "laws": {}}
     base = sides["baseline"].table
     for mode in args.modes:

@@ -8,7 +8,10 @@ from workflows.shipped import VALIDATION_DIR
 
 def test_study_fill_predicts_each_feed_from_the_others(tmp_path, capsys):
     out = tmp_path / "fill.json"
-    assert main(["study", "fill", "--modes", "measured", "--runs-root", str(tmp_path / "runs"), "--out", str(out)]) == 0
+    # a run of the same blender given as unseen is predicted from the whole library
+    unseen = VALIDATION_DIR / "dem-26a744879a705d14.h5"  # feed x1.5
+    args = ["study", "fill", "--modes", "measured", "--runs-root", str(tmp_path / "runs"), "--out", str(out)]
+    assert main([*args, "--unseen", str(unseen)]) == 0
     record = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert set(record["runs"]) == {"baseline", "feed_x0.5", "feed_x1.5", "feed_x2"}
@@ -17,6 +20,7 @@ def test_study_fill_predicts_each_feed_from_the_others(tmp_path, capsys):
         for p in record["predictions"]
         if p["quantity"] == "holdup" and p["mode"] == "measured"
     }
+    assert any(p["run"].startswith(unseen.name) for p in record["predictions"])
     for run in ("feed_x0.5", "feed_x1.5", "feed_x2"):
         library, linear = held[run, "library law"], held[run, "linear"]
         # the law of the other feeds' steady points holds the hold-up to 2 %; the linear PBM misses by 35-70 %
