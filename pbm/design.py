@@ -520,6 +520,8 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
     edge = _feasible_root(least, float(grid[last + 1]), float(grid[last]))
     if not all(ok[: last + 1]):
         notes.append(
-            "not met at the lower feeds scanned: " + ", ".join(f"{g:.4g}" for g, k in zip(grid, ok) if not k) + " /s"
+            "not met at the lower feeds scanned: "
+            + ", ".join(f"{g:.4g}" for g, k in zip(grid[: last + 1], ok[: last + 1]) if not k)
+            + " /s"
         )
     return ThroughputResult((lo, hi), evaluate_feed(feeds, spec, edge), scanned, notes)

@@ -173,6 +173,10 @@ def test_largest_feed_follows_the_flow_law():
     # met up to the library's top: said, and nothing beyond it is claimed
     top = max_feed(feeds, design_spec(mrt_min_s=0.1 * mrt[200.0]))
     assert top.best.feed_per_s == 200.0 and "outside the runs" in top.notes[0]
+    # a residence-time window met only in the middle: the lower feeds that fail are named
+    window = max_feed(feeds, design_spec(mrt_min_s=mrt[100.0], mrt_max_s=0.999 * mrt[50.0]))
+    assert window.best.feed_per_s == pytest.approx(100.0, rel=1e-4)
+    assert window.notes == ["not met at the lower feeds scanned: 50 /s"]
     none = max_feed(feeds, design_spec(mrt_min_s=2 * mrt[50.0]))
     assert none.best is None and "no feed" in none.notes[0]
     with pytest.raises(ConfigError, match="distinct feed rates"):
