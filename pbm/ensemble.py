@@ -25,7 +25,7 @@ from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases
 from pbm.resources import check_ensemble_memory
-from pbm.simulate import check_run, feed_factors
+from pbm.simulate import check_run, feed_factors, noise_intervals
 from pbm.solver import MAX_THREADS, TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 BAND_QUANTILES = (0.05, 0.95)
@@ -113,7 +113,7 @@ def noise_ensemble(
 
     # With sigma = 0 every member is the same run: propagate one and replicate it.
     distinct = members if sigma > 0 else 1
-    n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
+    n_noise = noise_intervals(config, t_end)
     factors = feed_factors(config, n_noise, distinct, sigma)
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
 

@@ -47,7 +47,7 @@ from coupling.errors import ConfigError, TableError
 from coupling.metrics import SteadyStateRule
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from pbm.config import PbmConfig
-from pbm.model import filled_table, n_phases, transfer_rates
+from pbm.model import dense_generator, filled_table, n_phases, transfer_rates
 from pbm.solver import Schedule, SolverError, table_schedule
 
 #: the directions the law moves: 0 = forward (to i + 1, the discharge from the last slice), 1 = backward
@@ -64,8 +64,9 @@ MAX_EXPONENT = 8.0
 SCHEDULE_LOG_TOL = 0.005
 #: the fill history is read at this spacing [s] to place the schedule's entries
 SCHEDULE_SAMPLE_S = 0.05
-#: the bulk's integrator: LSODA switches to its stiff method where the flows are fast and
-#: took a third of BDF's time under 1-s feeder noise (NX = 20, the same states to 1e-7)
+#: the bulk's integrator: LSODA switches to its stiff method only where the flows are fast
+#: (`pbmdem bench fill`: 1.2x to 2.4x faster than BDF under 1-s feeder noise at 20 x 10,
+#: the phase model gaining most; hold-ups within 1e-3 particles)
 BULK_METHOD = "LSODA"
 #: a slice's fill never counts below this many particles in the law (a power of 0 is 0,
 #: but its derivative is not finite for exponents below 1)
@@ -90,18 +91,23 @@ class FillSamples:
     def steady_fill(self) -> np.ndarray:
         return self.fill[self.steady].mean(axis=0)
 
+    def steady_rates(self) -> tuple[np.ndarray, np.ndarray]:
+        """((NX, 2) rates over the steady windows, as moves over particle-seconds (0 where
+        none was measured), (NX, 2) the moves behind them)."""
+        known = np.isfinite(self.rates[self.steady])
+        moves = np.where(known, self.weight[self.steady], 0.0).sum(axis=0)
+        seconds = np.where(known, self.exposure[self.steady], 0.0).sum(axis=0)
+        return np.divide(moves, seconds, out=np.zeros_like(moves), where=seconds > 0), moves
+
 
 @dataclass(frozen=True)
 class FillLaw:
     """Exponents ``beta`` (NX, 2) of the law, the ``form`` chosen and the held-out error
-    of every form tried (``scores``: weighted mean squared log residual), from ``runs``
-    runs and ``points`` slice-windows."""
+    of every form tried (``scores``: weighted mean squared log residual)."""
 
     beta: np.ndarray
     form: str
     scores: dict[str, float]
-    runs: int
-    points: int
 
     def factors(self, fill: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """(…, NX, 2) rate factors for slice fills ``fill`` (…, NX)."""
@@ -157,10 +163,11 @@ def _window_points(samples: list[FillSamples]) -> tuple[np.ndarray, ...]:
     log rate, weight), the folds four consecutive blocks of windows per run.
 
     The backward rates are left out, so their exponents stay 0: in a filling transient they
-    rise with the fill twice as steeply as the forward ones (exponents 1.2-2.3 on the
-    validation baseline), while across the feed library's steady states they hardly move
-    (0-0.8 but for the last two slices). Fitted, they predicted feed x2 from the baseline
-    alone with 49 % too much hold-up; without them, 1.8 % (`pbmdem study fill`)."""
+    rise with the fill more steeply than the forward ones (exponents 1.2-2.3 on the
+    validation baseline), while across the feed library's steady states most move by less
+    than a fifth for a quarter more fill. Fitted, they predicted feed x2 from the baseline
+    alone with 49 % too much hold-up; without them, 1.9 % (`pbmdem study fill`, before and
+    at commit f85a006)."""
     cols: dict[str, list] = {k: [] for k in ("fold", "slice", "dir", "x", "y", "w")}
     for s in samples:
         ok = (
@@ -186,10 +193,7 @@ def _steady_points(samples: list[FillSamples]) -> tuple[np.ndarray, ...]:
     the runs."""
     cols: dict[str, list] = {k: [] for k in ("fold", "slice", "dir", "x", "y", "w")}
     for r, s in enumerate(samples):
-        known = np.isfinite(s.rates[s.steady])
-        moves = np.where(known, s.weight[s.steady], 0.0).sum(axis=0)
-        seconds = np.where(known, s.exposure[s.steady], 0.0).sum(axis=0)
-        rate = np.divide(moves, seconds, out=np.zeros_like(moves), where=seconds > 0)
+        rate, moves = s.steady_rates()
         i, d = np.nonzero(rate > 0)
         cols["fold"].append(np.full(i.size, r))
         cols["slice"].append(i)
@@ -233,9 +237,9 @@ def fit_fill_law(samples: list[FillSamples], forms: tuple[str, ...] = FORMS) -> 
     """The law fitted to one or more runs of one vessel and speed (module docstring).
 
     Several runs: from their steady points (a run's steady fill and rates per slice),
-    which is what a change of throughput moves; every window as a point, the slices'
-    window-to-window noise in fill flattens the exponents (on the validation feed library
-    the discharge's from 4.6 to 2.7). The form by leave-one-run-out from
+    which is what a change of throughput moves; with every window as a point, the slices'
+    window-to-window noise in fill (as large as the fill's change between feeds) would
+    flatten the exponents towards 0. The form by leave-one-run-out from
     three runs on; with two, one exponent per slice and direction (nothing is left to hold
     out). One run: from its windows (the filling transient), the form by leaving out
     blocks of windows, the forward rates only (:func:`_window_points` says why)."""
@@ -262,7 +266,7 @@ def fit_fill_law(samples: list[FillSamples], forms: tuple[str, ...] = FORMS) -> 
             scores[form] = err / float(w.sum())
     best = min(scores, key=scores.get) if scores else "per-slice"
     _a, beta = _fit(best, slc, d, x, y, w, nx)
-    return FillLaw(beta, best, scores, len(samples), int(fold.size))
+    return FillLaw(beta, best, scores)
 
 
 @dataclass(frozen=True)
@@ -344,11 +348,9 @@ def fill_reference(table: VelocityTable, rates: str, steady: SteadyStateRule = S
 
 @dataclass(frozen=True)
 class BulkSolution:
-    """The bulk populations at ``t`` (T,) as ``populations`` (T, n), and the dense
-    interpolants of each feed piece (for :func:`fill_schedule`)."""
+    """The bulk's history: per feed piece (start, end, dense interpolant of the
+    populations)."""
 
-    t: np.ndarray
-    populations: np.ndarray
     pieces: list
 
     def slice_fill(self, times: np.ndarray, reference: FillReference) -> np.ndarray:
@@ -364,44 +366,53 @@ class BulkSolution:
         return out
 
 
+def _flow_derivative(reference: FillReference, law: FillLaw, rate: np.ndarray, z: np.ndarray, fill: np.ndarray):
+    """(n + 1, NX): the derivative of the flows of populations ``z`` with respect to each
+    slice's fill, row n the discharge. ``rate`` holds every move's current rate (of
+    ``reference.moves``): a move out of slice i scaled by the law changes by
+    beta * rate * z[source] / N_i per particle of fill, out of its source, into its target."""
+    n, nx = reference.n_populations, reference.fill.size
+    s = reference.schedule
+    src, dst = s.cols[reference.moves], s.rows[reference.moves]
+    slices, direction = reference.move_slice, reference.move_dir
+    beta = np.where(direction >= 0, law.beta[slices, np.maximum(direction, 0)], 0.0)
+    dflux = beta * rate * z[src] / np.maximum(fill[slices], FILL_FLOOR)
+    d = np.zeros((n + 1, nx))
+    np.add.at(d, (src, slices), -dflux)
+    np.add.at(d, (dst, slices), dflux)
+    return d
+
+
 def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw):
     """The bulk ODE's right-hand side without the feed, and its Jacobian."""
     n = reference.n_populations
     nx = reference.fill.size
     s = reference.schedule
-    base = s.vals[0]
-    moves = reference.moves
-    src, dst = s.cols[moves], s.rows[moves]
+    base = s.vals[0][reference.moves]
+    src, dst = s.cols[reference.moves], s.rows[reference.moves]
     internal = dst < n
     kept = reference.move_dir < 0
-    exps = np.where(kept, 0.0, law.beta[reference.move_slice, np.maximum(reference.move_dir, 0)])
-    slices = reference.move_slice
+    slices, direction = reference.move_slice, np.maximum(reference.move_dir, 0)
 
     def factors(y):
         fill = np.bincount(reference.slice_of, y, nx)
-        f = law.factors(fill, reference.fill)
-        per_move = np.where(kept, 1.0, f[slices, np.maximum(reference.move_dir, 0)])
-        return fill, per_move
+        per_move = np.where(kept, 1.0, law.factors(fill, reference.fill)[slices, direction])
+        return fill, base * per_move
 
     def rhs(y):
-        _fill, per_move = factors(y)
-        flux = base[moves] * per_move * y[src]
+        _fill, rate = factors(y)
+        flux = rate * y[src]
         out = -np.bincount(src, flux, n)
         out += np.bincount(dst[internal], flux[internal], n)
         return out
 
     def jac(y):
-        fill, per_move = factors(y)
-        rate = base[moves] * per_move
+        fill, rate = factors(y)
         j = np.zeros((n, n))
         np.add.at(j, (src, src), -rate)
         np.add.at(j, (dst[internal], src[internal]), rate[internal])
-        # d flux / d fill of the source slice: beta * flux / fill, spread over its populations
-        dflux = exps * rate * y[src] / np.maximum(fill[slices], FILL_FLOOR)
-        u = np.zeros((n, nx))
-        np.add.at(u, (src, slices), -dflux)
-        np.add.at(u, (dst[internal], slices[internal]), dflux[internal])
-        j += u[:, reference.slice_of]
+        # the rates' own change with the source slice's fill, spread over its populations
+        j += _flow_derivative(reference, law, rate, y, fill)[:n][:, reference.slice_of]
         return j
 
     return rhs, jac
@@ -426,7 +437,7 @@ def solve_bulk(
     n = reference.n_populations
     edges = np.concatenate([np.asarray(feed_times, dtype=float), [t_end]])
     y = np.asarray(y0, dtype=float).copy()
-    pieces, ts, ys = [], [0.0], [y.copy()]
+    pieces = []
     for q in range(edges.size - 1):
         t0, t1 = max(edges[q], 0.0), min(edges[q + 1], t_end)
         if t1 <= t0:
@@ -446,9 +457,7 @@ def solve_bulk(
             raise SolverError(f"the bulk under the fill law failed between {t0:.6g} s and {t1:.6g} s: {sol.message}")
         pieces.append((t0, t1, sol.sol))
         y = sol.y[:, -1].copy()
-        ts.append(t1)
-        ys.append(y.copy())
-    return BulkSolution(np.array(ts), np.array(ys), pieces)
+    return BulkSolution(pieces)
 
 
 def fill_schedule(reference: FillReference, law: FillLaw, bulk: BulkSolution, t_end: float) -> Schedule:
@@ -498,7 +507,7 @@ def law_for(table: VelocityTable, config: PbmConfig, steady: SteadyStateRule = S
         raise ConfigError(
             f"fill_exponents has {beta.shape[0]} [forward, backward] pairs; the table has NX = {table.nx} slices"
         )
-    return FillLaw(beta, "given", {}, 0, 0)
+    return FillLaw(beta, "given", {})
 
 
 def config_schedule(
@@ -560,14 +569,12 @@ class Linearised:
     """The fill-law PBM linearised about its steady state under a constant feed: the
     deviations x = (dz_A, dz_B) (2n) of the two species obey dx/dt = ``generator`` x +
     ``feed`` dF (dF = (dF_A, dF_B) [particles/s]), and the outlet fluxes are (dq_A, dq_B) =
-    ``outlet`` x. ``species`` (2, n) is the steady state of A and B, and ``fill`` its slice
-    hold-ups."""
+    ``outlet`` x. ``species`` (2, n) is the steady state of A and B."""
 
     generator: np.ndarray
     feed: np.ndarray
     outlet: np.ndarray
     species: np.ndarray
-    fill: np.ndarray
 
 
 def linearised(reference: FillReference, law: FillLaw, feed: np.ndarray, rates: np.ndarray) -> Linearised:
@@ -583,35 +590,25 @@ def linearised(reference: FillReference, law: FillLaw, feed: np.ndarray, rates: 
     fill = np.bincount(reference.slice_of, bulk, nx)
     vals = reference.values(law.factors(fill, reference.fill)[None])[0]
     s = reference.schedule
-    g = np.zeros((s.m, s.m))
-    g[s.rows, s.cols] = vals
+    g = dense_generator(s.rows, s.cols, vals, s.m)
     g_star, c_star = g[:n, :n], g[n, :n]
     slices = np.zeros((nx, n))
     slices[reference.slice_of, np.arange(n)] = 1.0
-    moves = reference.moves
-    scaled = reference.move_dir >= 0
-    src, dst = s.cols[moves][scaled], s.rows[moves][scaled]
-    sl = reference.move_slice[scaled]
-    beta = law.beta[sl, reference.move_dir[scaled]]
-    rate = vals[moves][scaled]  # base x phi at the steady fill
+    rate = vals[reference.moves]  # each move's rate at the steady fill
     big = np.zeros((2 * n, 2 * n))
     out = np.zeros((2, 2 * n))
     species = np.zeros((2, n))
     for sp in range(2):
-        z = species[sp] = np.linalg.solve(-g_star, feed[:n, sp] * rates[sp])
-        dflux = beta * rate * z[src] / fill[sl]  # d flow / d fill of the source slice
-        d = np.zeros((n + 1, nx))
-        np.add.at(d, (src, sl), -dflux)
-        np.add.at(d, (np.minimum(dst, n), sl), dflux)  # row n: the discharge
-        coupling = d[:n] @ slices
+        species[sp] = np.linalg.solve(-g_star, feed[:n, sp] * rates[sp])
+        d = _flow_derivative(reference, law, rate, species[sp], fill) @ slices  # (n + 1, n)
         block = slice(sp * n, (sp + 1) * n)
         big[block, block] = g_star
-        big[block, :n] += coupling
-        big[block, n:] += coupling
+        big[block, :n] += d[:n]
+        big[block, n:] += d[:n]
         out[sp, block] = c_star
-        out[sp, :n] += d[n] @ slices
-        out[sp, n:] += d[n] @ slices
+        out[sp, :n] += d[n]
+        out[sp, n:] += d[n]
     inputs = np.zeros((2 * n, 2))
     inputs[:n, 0] = feed[:n, 0]
     inputs[n:, 1] = feed[:n, 1]
-    return Linearised(big, inputs, out, species, fill)
+    return Linearised(big, inputs, out, species)

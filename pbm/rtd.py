@@ -28,7 +28,14 @@ from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.fill import config_schedule
 from pbm.model import feed_distribution, filled_table, n_populations
-from pbm.simulate import BDF_ATOL_PARTICLES, check_run, feed_factors, recovered_moments, tracer_pulse
+from pbm.simulate import (
+    BDF_ATOL_PARTICLES,
+    check_run,
+    feed_factors,
+    noise_intervals,
+    recovered_moments,
+    tracer_pulse,
+)
 from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
 
 
@@ -106,8 +113,8 @@ def pooled_rtd(
 
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
-    schedule, _law = config_schedule(table, config, feed, feed_factors(config, n_noise)[:, 0], t_end)
+    factors = feed_factors(config, noise_intervals(config, t_end))[:, 0]
+    schedule, _law = config_schedule(table, config, feed, factors, t_end)
     props = Propagators(filled, feed, config.rates, config.kernel, schedule)
     n = n_populations(table, config.rates)
     m = props.n_states

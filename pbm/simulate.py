@@ -114,6 +114,11 @@ def feed_factors(config: PbmConfig, n_intervals: int, members: int = 1, sigma: f
     return factors
 
 
+def noise_intervals(config: PbmConfig, t_end: float) -> int:
+    """How many feed intervals (``config.noise_interval_s``) a run to ``t_end`` spans."""
+    return max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
+
+
 def cumulative_feed(times: np.ndarray, rate_per_s: float, factors: np.ndarray, interval_s: float) -> np.ndarray:
     """Particles fed by ``times`` [s] at ``rate_per_s`` x the piecewise-constant factors."""
     edges = interval_s * np.arange(factors.size + 1)
@@ -203,7 +208,7 @@ def simulate(
 
     dt_out = config.output_interval_s
     out_times = multiples(dt_out, dt_out, t_end)
-    n_noise = max(1, math.ceil(t_end / config.noise_interval_s - 1e-9))
+    n_noise = noise_intervals(config, t_end)
     factors = feed_factors(config, n_noise)[:, 0]
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
     tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)

@@ -58,7 +58,7 @@ def test_law_is_the_identity_at_the_reference_fill(shipped, rates):
 def test_bulk_and_composition_against_bdf_on_the_nonlinear_system(shipped):
     """A and B marched on the law's schedule against scipy's BDF on the full nonlinear
     system (each species moved by rates that follow the total), from empty to steady."""
-    law = FillLaw(np.tile([1.5, 0.5], (shipped.nx, 1)), "given", {}, 0, 0)
+    law = FillLaw(np.tile([1.5, 0.5], (shipped.nx, 1)), "given", {})
     config = _config(shipped, fill_exponents=law.beta.tolist(), output_interval_s=5.0)
     result = simulate(shipped, config)
     ref = fill_reference(shipped, "measured")
@@ -127,7 +127,7 @@ def test_fits_recover_known_exponents():
     # several runs: the steady points
     law = fit_fill_law(_synthetic_samples(beta, [100.0, 150.0, 200.0], intercept))
     np.testing.assert_allclose(law.beta, beta, atol=1e-9)
-    assert law.form == "per-slice" and law.runs == 3
+    assert law.form == "per-slice" and set(law.scores) == {"per-slice", "per-direction", "none"}
     # one run: its filling transient, the forward rates only (the backward stay fixed)
     law = fit_fill_law(_synthetic_samples(beta, [150.0], intercept))
     np.testing.assert_allclose(law.beta[:, 0], beta[:, 0], atol=1e-9)
@@ -170,7 +170,7 @@ def test_linearised_response_matches_the_nonlinear_run_under_small_noise(shipped
     cfg = _config(shipped, fill_exponents=beta, duration_s=40.0, noise_sigma=0.01, output_interval_s=1.0)
     feed = feed_distribution(shipped, None, None, "measured")
     rates = np.array([FEED, FEED])
-    lin = linearised(fill_reference(shipped, "measured"), FillLaw(np.array(beta), "given", {}, 0, 0), feed, rates)
+    lin = linearised(fill_reference(shipped, "measured"), FillLaw(np.array(beta), "given", {}), feed, rates)
     counts = lin.species.reshape(2, shipped.nx, shipped.ny)
     run = simulate(shipped, cfg, initial_counts=counts)
     # the deviation system with the dq integrals as two more states, stepped 1 s at a time
@@ -213,3 +213,18 @@ def test_frequency_response_under_the_fill_law(shipped):
     )
     with pytest.raises(ConfigError, match="both feed rates > 0"):
         stationary_system(shipped, cfg.model_copy(update={"feed_rate_b_per_s": 0.0}))
+
+
+@pytest.mark.parametrize("rates", ["measured", "phases"])
+def test_bulk_jacobian_is_the_derivative_of_the_flows(shipped, rates):
+    """The analytic Jacobian (the rates' change with each slice's fill included) against
+    central differences, at a fill away from the reference's."""
+    from pbm.fill import _bulk_rhs_and_jacobian
+
+    ref = fill_reference(shipped, rates)
+    law = FillLaw(np.tile([1.5, 0.7], (shipped.nx, 1)), "given", {})
+    rhs, jac = _bulk_rhs_and_jacobian(ref, law)
+    y = np.random.default_rng(3).uniform(0.5, 30.0, ref.n_populations)
+    h = 1e-5
+    numeric = np.stack([(rhs(y + h * e) - rhs(y - h * e)) / (2 * h) for e in np.eye(y.size)], axis=1)
+    np.testing.assert_allclose(jac(y), numeric, rtol=1e-5, atol=1e-7)

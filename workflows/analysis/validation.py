@@ -23,18 +23,23 @@ from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse, s
 NOT_JUDGED = ("rtd_recovered_fraction",)
 
 
-FEED_KEY = "dem.operation.feed_rate_total_per_s"
-#: a slower feed needs longer to fill and to pool an RTD: the feed library's runs may differ in it too
-DURATION_KEY = "dem.operation.duration_s"
+#: what the runs of a feed library may differ in: the feed rate, and the duration (a slower
+#: feed needs longer to fill and to pool an RTD)
+FEED_LIBRARY_KEYS = ("dem.operation.feed_rate_total_per_s", "dem.operation.duration_s")
 #: the sources that predict with flow that follows the fill (pbm.fill)
 FILL_SOURCES = ("baseline + fill law", "library + fill law")
+
+
+def same_but_feed(config: Config) -> dict[str, Any]:
+    """What two runs of one feed library share: ``config`` less :data:`FEED_LIBRARY_KEYS`."""
+    return config_without(config, *FEED_LIBRARY_KEYS)
 
 
 def feed_library(configs: dict[str, Config], baseline: str = "baseline") -> list[str]:
     """The runs that differ from the baseline only in the feed rate (and the duration), the
     baseline included: the runs a fill law is fitted from."""
-    same = config_without(configs[baseline], FEED_KEY, DURATION_KEY)
-    return [name for name, c in configs.items() if config_without(c, FEED_KEY, DURATION_KEY) == same]
+    same = same_but_feed(configs[baseline])
+    return [name for name, c in configs.items() if same_but_feed(c) == same]
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ HELP = "benchmarks: speed, accuracy and cost of every stage (results/bench/*.jso
 BENCHMARKS = (
     ("pbm", "workflows.bench.pbm", "PBM solver and ensembles"),
     ("frequency", "workflows.bench.frequency", "Frequency response against the noise ensemble"),
+    ("fill", "workflows.bench.fill", "What the fill law costs: table rates, the law with LSODA and BDF"),
     ("dem-post", "workflows.bench.dem_post", "DEM dump reader and post-processing"),
     ("rates", "workflows.bench.rates", "Transfer-rate estimators on a known chain"),
     ("dem-deck", "workflows.bench.dem_deck", "DEM deck efficiency and core-hours"),

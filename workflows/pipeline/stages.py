@@ -110,6 +110,12 @@ def results_key(run_key: str, post: str) -> str:
     return stable_hash({"run": run_key, "post": post})
 
 
+def _roots(cache_root: Path, reference_dir: Path | tuple[Path, ...]) -> list[tuple[Path, str]]:
+    """Where results are looked for, in order: the cache, then the shipped folder(s)."""
+    shipped = (reference_dir,) if isinstance(reference_dir, (str, Path)) else reference_dir
+    return [(Path(cache_root), "cache"), *((Path(d), "reference") for d in shipped)]
+
+
 def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], log: Log) -> DemSide | None:
     """A valid cached entry for these inputs: by key when the solver's version is known,
     else (no solver here) the newest entry made from the same deck and post-processing."""
@@ -144,9 +150,7 @@ def results_available(
     shipped results, or a completed run to post-process (which this does not do)."""
     inputs = prepare_run(config.dem)
     runs_root = Path(runs_root)
-    shipped = (reference_dir,) if isinstance(reference_dir, (str, Path)) else reference_dir
-    roots = [(runs_root / "cache", "cache"), *((Path(d), "reference") for d in shipped)]
-    if _find_cached(inputs, post_hash(config), roots, _quiet) is not None:
+    if _find_cached(inputs, post_hash(config), _roots(runs_root / "cache", reference_dir), _quiet) is not None:
         return True
     return completed_run(inputs, runs_root) is not None
 
@@ -182,8 +186,7 @@ def dem_stage(
     inputs = prepare_run(config.dem)
     post = post_hash(config)
     if not fresh:
-        shipped = (reference_dir,) if isinstance(reference_dir, (str, Path)) else reference_dir
-        found = _find_cached(inputs, post, [(cache_root, "cache"), *((Path(d), "reference") for d in shipped)], log)
+        found = _find_cached(inputs, post, _roots(cache_root, reference_dir), log)
         if found is not None and found.results.sequences is None and completed_run(inputs, runs_root):
             # made before the compartment sequences were recorded: the run's dumps are here,
             # so post-process them again for the sequences and the phase model

@@ -14,6 +14,7 @@ from typing import Any
 from coupling.errors import ConfigError, OutputError, os_reason
 from coupling.jsonable import json_ready, write_json
 from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult, design, feed_library, max_feed
+from workflows.analysis.validation import same_but_feed
 from workflows.config import config_without
 from workflows.pipeline.stages import Log, load_results, pbm_config_for, writable_directory
 from workflows.report.design import plot_feasible
@@ -58,9 +59,6 @@ def load_library(
     )
 
 
-FEED_KEYS = ("dem.operation.feed_rate_total_per_s", "dem.operation.duration_s")
-
-
 def load_feed_library(directory: str | Path = VALIDATION_DIR, rates: str = "measured", log: Log | None = None):
     """The feed library in ``directory``: the largest group of DEM results files whose
     configurations differ only in the feed rate (and the duration), when it holds at least
@@ -70,7 +68,7 @@ def load_feed_library(directory: str | Path = VALIDATION_DIR, rates: str = "meas
         results, config = load_results(path)
         if results.summary.steady_time is None or not results.table.has_rates:
             continue
-        groups.setdefault(repr(config_without(config, *FEED_KEYS)), []).append((results, config, path))
+        groups.setdefault(repr(same_but_feed(config)), []).append((results, config, path))
     members = max(groups.values(), key=len, default=[])
     if len(members) < 2:
         return None

@@ -15,7 +15,8 @@ against its own DEM's 95 % intervals:
 campaign, each predicted the same three ways from the whole library.
 
 Prints the hold-up, the outflow and the pooled RTD's mean and variance against the DEM's,
-and writes ``results/bench/fill.json`` (every value, interval and the laws' exponents) and
+and writes ``results/bench/fill.json`` (every value, interval, the laws' exponents and each
+library run's steady slice fills and rates) and
 ``fill.png`` beside it (hold-up and mean residence time against the feed).
 """
 
@@ -33,8 +34,7 @@ from pbm.model import supported_modes
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import PbmMode, agreement_rows
-from workflows.analysis.validation import DURATION_KEY, FEED_KEY, feed_library, prediction_config
-from workflows.config import config_without
+from workflows.analysis.validation import feed_library, prediction_config, same_but_feed
 from workflows.pipeline.stages import load_results, stderr_log
 from workflows.products.validate import campaign_configs, run_campaign
 from workflows.report.fill import plot_fill
@@ -43,7 +43,6 @@ HELP = "the feed library: each feed rate predicted by the linear PBM and the fil
 OUT = Path("results/bench/fill.json")
 QUANTITIES = ("holdup", "outflow_per_s", "mean_residence_time_s", "rtd_variance_s2")
 MODES = ("measured", "velocity", "phases")
-FEED_KEYS = (FEED_KEY, DURATION_KEY)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,16 +85,20 @@ def run(args: argparse.Namespace) -> int:
     feed = {name: c.dem.operation.feed_rate_total_per_s for name, c in configs.items()}
     # targets: every library run (predicted from the others), then the unseen runs (from all)
     targets = [(name, sides[name].results, configs[name]) for name in sorted(sides, key=feed.get)]
-    same = config_without(configs["baseline"], *FEED_KEYS)
+    same = same_but_feed(configs["baseline"])
     for path in args.unseen:
         results, config = load_results(path)
-        if config_without(config, *FEED_KEYS) != same:
+        if same_but_feed(config) != same:
             raise ConfigError(f"{path}: not a run of the feed library's blender and speed (it differs beyond the feed)")
         targets.append((f"{Path(path).name} ({config.dem.operation.feed_rate_total_per_s:g} /s)", results, config))
-    record: dict = {"runs": feed, "predictions": [], "laws": {}}
+    record: dict = {"runs": feed, "predictions": [], "laws": {}, "steady_points": {}}
     base = sides["baseline"].table
     for mode in args.modes:
         samples = {name: fill_samples(side.table, mode) for name, side in sides.items()}
+        record["steady_points"][mode] = {
+            name: {"slice_fill": s.steady_fill.tolist(), "forward_backward_rates": s.steady_rates()[0].tolist()}
+            for name, s in samples.items()
+        }
         own = fit_fill_law([samples["baseline"]])
         record["laws"][f"{mode}/baseline"] = {"form": own.form, "beta": own.beta.tolist(), "scores": own.scores}
         for target, dem, cfg in targets:

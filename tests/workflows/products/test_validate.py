@@ -12,7 +12,7 @@ from coupling.errors import ConfigError
 from coupling.tables import make_table
 from pbm.studies import interpolate_tables, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, ModeValue
-from workflows.analysis.validation import feed_library, judge, prediction_tables, verdict_text
+from workflows.analysis.validation import FILL_SOURCES, feed_library, judge, prediction_tables, verdict_text
 from workflows.products.validate import CHANGES, campaign_configs
 
 X, Y = np.linspace(0, 0.33, 6), np.linspace(-0.05, 0.05, 5)
@@ -185,6 +185,14 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
         for mode in MODES:
             for row in (v["judged"] or {}).get(mode, {}).get("rows", []):
                 assert row["ok"] == (row["error"] <= row["tolerance"])
+    # the feed library: both fill-law sources judged for every other feed; feed x1.5 predicted
+    # from the others' law, and the step from the steady baseline's own law in every mode
+    feeds = [name for name in ("feed_x0.5", "feed_x1.5", "feed_x2") if name in shipped]
+    assert {(name, source) for name in feeds for source in FILL_SOURCES} <= judged
+    verdict = {(v["run"], v["source"]): v["verdict"] for v in summary["verdicts"]}
+    assert verdict["feed_x1.5", "library + fill law"].startswith("the hybrid predicts this")
+    step_rows = [r for r in summary["step_response"]["rows"] if r["source"] == "baseline + fill law"]
+    assert {r["mode"] for r in step_rows} == set(MODES) and all(r["predicted"] for r in step_rows)
     assert {"velocity", "measured"} <= summary["dem_budget"]["smallest_T"].keys() <= set(MODES)
     for name in ("parity.png", "profiles.png", "budget.png"):
         assert (page.parent / name).stat().st_size > 10_000
