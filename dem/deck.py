@@ -101,6 +101,15 @@ MESH_FILES = {name: f"{MESH_DIR}/{name}.stl" for name in ("impeller", "weir", "d
 DUMP_DIR = "dumps"
 DUMP_PATTERN = "dumps/dump.*.txt"  # as given to LIGGGHTS' dump command
 DUMP_GLOB = "dumps/dump.*.txt"
+
+
+def dump_step(path: Path) -> int:
+    """The step of a dump file of :data:`DUMP_PATTERN`, from its name (LIGGGHTS puts the
+    step where the pattern has its ``*``): what was written before a solver line is known
+    without opening a file that may still be being written."""
+    return int(Path(path).name.split(".")[1])
+
+
 DUMP_COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
 RESTART_DIR = "restart"
 RESTART_PATTERN = "restart/restart.*.bin"

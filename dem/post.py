@@ -59,7 +59,7 @@ import pandas as pd
 
 from coupling.cache import CacheEntry
 from coupling.compartments import grid_edges
-from coupling.errors import ConfigError
+from coupling.errors import ConfigError, DumpFormatError
 from coupling.files import input_directory
 from coupling.metrics import SteadyStateRule, outflow_fraction_a, random_mixture_rsd, rsd
 from coupling.tables import VELOCITY_NAMES, VelocityTable
@@ -77,14 +77,14 @@ from dem.tracking import (
     SUM_ROWS,
     Accumulation,
     CompartmentSequences,
+    DumpStream,
     Exits,
-    accumulate,
     compartment_sequences,
     find_exits,
     transition_counts,
 )
 
-__all__ = ["DemResults", "postprocess"]
+__all__ = ["DemResults", "Postprocessor", "postprocess"]
 
 #: names of the compartment sequences' arrays in a results file start with this
 SEQUENCE_PREFIX = "sequences_"
@@ -403,17 +403,20 @@ def particle_records(acc: Accumulation, exits: Exits) -> pd.DataFrame:
 
 
 # ----------------------------------------------------------------------------- 9. rates
-def measured_rates(acc: Accumulation, exits: Exits, table: VelocityTable) -> tuple[VelocityTable, np.ndarray]:
+def measured_rates(
+    acc: Accumulation, exits: Exits, table: VelocityTable, memo: dict | None = None
+) -> tuple[VelocityTable, np.ndarray]:
     """The table with its measured rates (:mod:`dem.rates`, fitted per window to the moves
     between consecutive dumps), and the transition counts they were fitted to. A run with
-    a single dump has no moves: its table is returned without rates."""
+    a single dump has no moves: its table is returned without rates. ``memo``: the fits of
+    earlier calls (:func:`dem.rates.fit_windows`)."""
     nx, ny = table.nx, table.ny
     counts = transition_counts(acc, exits, table.n_windows, nx * ny)
     if not math.isfinite(acc.transition_interval_s) or not counts.any():
         return table, counts
     # the velocities' own threshold: below min_samples observations a compartment-window
     # carries no information, and the PBM fills it by the velocities' rule
-    fits = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples)
+    fits = fit_windows(counts, nx, ny, acc.transition_interval_s, min_observations=table.min_samples, memo=memo)
     if not fits.any_finite:
         return table, counts
     attrs = {
@@ -450,7 +453,8 @@ def postprocess(
     between dumps; the discharge cross-check). ``solver_counters``: the solver's totals,
     e.g. {"discharged": n, "inserted": n, "step": s} from thermo. ``provenance``:
     attributes stored on the velocity table. ``rtd_tag_time_s``: start of the RTD tag
-    window; default the steady-state time.
+    window; default the steady-state time. ``types_a``/``types_b``: the atom types of A
+    and B (default the deck's).
 
     ``summary`` keys: mean_residence_time_s, rtd_variance_s2, rtd_recovered_fraction,
     rtd_recovered_ok, rtd_tagged, rtd_tag_time_s, rtd_tag_window_s, steady_state_time_s,
@@ -458,17 +462,73 @@ def postprocess(
     final_rsd_blender(_floor), holdup_final, t_end_s, last_dump_step, n_snapshots, the
     :func:`accounting` keys and warnings (list of text; flags for the caller to show).
     """
-    types_a = tuple(types_a if types_a is not None else (deck.ATOM_TYPES["A"],))
-    types_b = tuple(types_b if types_b is not None else (deck.ATOM_TYPES["B"],))
+    post = Postprocessor(config, types_a, types_b)
+    if massflow_dir is not None:  # refused before reading: the pass can be long
+        input_directory(massflow_dir, "massflow directory (the solver's discharge files)", ConfigError)
+    if not post.add(dump_paths):
+        raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
+    return post.results(steady, massflow_dir, solver_counters, provenance, rtd_tag_time_s=rtd_tag_time_s)
+
+
+class Postprocessor:
+    """:func:`postprocess` kept open while a run writes its dumps: :meth:`add` reads further
+    dumps (each snapshot once, in time order across calls), :meth:`results` gives what the
+    dumps read so far give, exactly what :func:`postprocess` of them in one pass gives, and
+    leaves it open to read on. Window rate fits are kept between calls
+    (:func:`dem.rates.fit_windows`' memo), so a window whose moves have not changed is not
+    fitted again: a convergence check while the run goes costs the new dumps and windows."""
+
+    def __init__(
+        self, config: DemConfig, types_a: Sequence[int] | None = None, types_b: Sequence[int] | None = None
+    ) -> None:
+        types_a = tuple(types_a if types_a is not None else (deck.ATOM_TYPES["A"],))
+        types_b = tuple(types_b if types_b is not None else (deck.ATOM_TYPES["B"],))
+        check_postprocess_resources(config)  # a grid that cannot be held or fitted: refused before reading
+        self.stream = DumpStream(config, types_a, types_b, record_sequences=True)
+        self._window_fits: dict = {}
+
+    @property
+    def last_step(self) -> int:
+        """The step of the last snapshot read; -1 before any."""
+        return self.stream.last_step
+
+    def add(self, dump_paths: str | os.PathLike | Iterable[str | os.PathLike]) -> int:
+        """Read the snapshots of ``dump_paths``; returns how many."""
+        return self.stream.add(dump_paths)
+
+    def results(
+        self,
+        steady: SteadyStateRule = SteadyStateRule(),
+        massflow_dir: str | os.PathLike | None = None,
+        solver_counters: dict[str, float] | None = None,
+        provenance: dict[str, Any] | None = None,
+        *,
+        rtd_tag_time_s: float | None = None,
+    ) -> DemResults:
+        """The results of the dumps read so far; the arguments are :func:`postprocess`'s."""
+        return _results(
+            self.stream, self._window_fits, steady, massflow_dir, solver_counters, provenance, rtd_tag_time_s
+        )
+
+
+def _results(
+    stream: DumpStream,
+    window_fits: dict,
+    steady: SteadyStateRule,
+    massflow_dir: str | os.PathLike | None,
+    solver_counters: dict[str, float] | None,
+    provenance: dict[str, Any] | None,
+    rtd_tag_time_s: float | None,
+) -> DemResults:
+    config, types_a, types_b = stream.config, stream.types_a, stream.types_b
     tol = 0.5 * float(config.timestep_s)
-    check_postprocess_resources(config)  # a grid that cannot be held or fitted: refused before reading
     if massflow_dir is not None:  # given and missing would silently drop the discharge cross-check
         input_directory(massflow_dir, "massflow directory (the solver's discharge files)", ConfigError)
-    acc = accumulate(dump_paths, config, types_a, types_b, record_sequences=True)
+    acc = stream.accumulation()
     check_windows_covered(acc.snapshot_t, config)
     table = velocity_table(acc, config, dict(provenance or {}))
     exits = find_exits(acc, config, massflow_files(massflow_dir))
-    table, transitions = measured_rates(acc, exits, table)
+    table, transitions = measured_rates(acc, exits, table, window_fits)
     sequences = compartment_sequences(acc, exits, table.nx, table.ny)
     acc.visits.clear()  # the per-dump states now live, encoded, in ``sequences``
     records = particle_records(acc, exits)

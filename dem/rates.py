@@ -61,6 +61,7 @@ expm and one expm_frechet per evaluation. On the DEM's own windows (reduced pres
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -399,25 +400,36 @@ def fit_windows(
     min_observations: int = 100,
     max_iterations: int = 500,
     max_rate_x_interval: float = MAX_RATE_X_INTERVAL,
+    memo: dict[bytes, RateFit] | None = None,
 ) -> WindowFits:
     """:func:`fit_rates` for each window of ``counts`` (K, S+1, S+1), each warm-started from
-    the previous window's fit."""
+    the previous window's fit.
+
+    ``memo``: a dict kept by the caller between calls on growing data (a run's windows as
+    its dumps arrive): a window whose counts and warm start are those of an earlier call
+    takes that call's fit, which is what refitting it would give, without the fit."""
     _check_grid(nx, ny)
     counts = _check_counts(counts, nx, ny, windows=True)
     rates = {f"rate_{key}": np.full((counts.shape[0], nx, ny), np.nan) for key in RATE_KEYS}
     capped, unconverged = 0, []
     previous = None
+    settings = (nx, ny, float(interval_s), min_observations, max_iterations, float(max_rate_x_interval))
     for k, window in enumerate(counts):
-        fit = fit_rates(
-            window,
-            nx,
-            ny,
-            interval_s,
-            min_observations=min_observations,
-            initial=previous,
-            max_iterations=max_iterations,
-            max_rate_x_interval=max_rate_x_interval,
-        )
+        key = _fit_key(window, previous, settings) if memo is not None else None
+        fit = memo.get(key) if memo is not None else None
+        if fit is None:
+            fit = fit_rates(
+                window,
+                nx,
+                ny,
+                interval_s,
+                min_observations=min_observations,
+                initial=previous,
+                max_iterations=max_iterations,
+                max_rate_x_interval=max_rate_x_interval,
+            )
+            if memo is not None:
+                memo[key] = fit
         if not fit.converged:
             unconverged.append(k)
         for key in RATE_KEYS:
@@ -427,6 +439,15 @@ def fit_windows(
         # than this window's own naive estimate.
         previous = fit.rates()
     return WindowFits(rates, capped, tuple(unconverged))
+
+
+def _fit_key(window: np.ndarray, initial: dict[str, np.ndarray] | None, settings: tuple) -> bytes:
+    """Everything a window's fit depends on, digested."""
+    digest = hashlib.blake2b(repr(settings).encode(), digest_size=20)
+    digest.update(np.ascontiguousarray(window, dtype=float).tobytes())
+    for key in RATE_KEYS:
+        digest.update(b"-" if initial is None else np.ascontiguousarray(initial[key], dtype=float).tobytes())
+    return digest.digest()
 
 
 def simulate_observations(

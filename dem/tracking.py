@@ -1,5 +1,6 @@
 """Following every particle through the dumps: the one streaming pass of the
-post-processing (:func:`accumulate`) and when each particle left (:func:`find_exits`).
+post-processing (:func:`accumulate`, or :class:`DumpStream` kept open while a run
+writes its dumps) and when each particle left (:func:`find_exits`).
 
 Memory is flat in the number of snapshots: per-particle state is a few arrays indexed by
 particle ID (IDs are bounded by the number of particles seen, :func:`id_bound`), the
@@ -91,6 +92,13 @@ class ParticleLog:
     def seen(self) -> np.ndarray:
         return ~np.isnan(self.first_t)
 
+    def copy(self) -> ParticleLog:
+        twin = ParticleLog()
+        twin.size, twin.outside_vessel = self.size, self.outside_vessel
+        for name in (*self.FLOATS, *self.INTS, "kind", "scratch"):
+            setattr(twin, name, getattr(self, name).copy())
+        return twin
+
 
 def id_bound(particles_seen: int) -> int:
     """Largest particle ID accepted once ``particles_seen`` particles are known (an ID listed
@@ -159,125 +167,172 @@ def accumulate(
 ) -> Accumulation:
     """Stream every snapshot once into an :class:`Accumulation`; with ``record_sequences``
     also keep every particle's state at every dump (:attr:`Accumulation.visits`)."""
-    g, tables = config.geometry, config.tables
-    dt = float(config.timestep_s)
-    length, diameter, nx, ny = float(g.length_m), float(g.diameter_m), int(tables.nx), int(tables.ny)
-    window, tol, ncell = float(tables.window_s), 0.5 * dt, nx * ny
-    log = ParticleLog()
-    window_sums: dict[int, np.ndarray] = {}
-    window_snapshots: dict[int, int] = {}
-    transitions: dict[int, np.ndarray] = {}
-    n_states = ncell + 1
-    interval, irregular, prev_t, prev_k = float("nan"), 0, float("nan"), -1
-    times: list[float] = []
-    counts: list[np.ndarray] = []
-    prev_ids = np.zeros(0, np.int64)
-    last_step, reappeared, other_types = -1, 0, set()
-    visits: list[tuple[np.ndarray, np.ndarray]] = []
-    n_seen = 0
-    max_t = MAX_SAMPLING_INTERVALS * float(tables.sample_interval_s)
-    # The reader has checked that ids and types are integers >= 1 and that the columns used
-    # here are finite.
-    for snap in iter_snapshots(dump_paths, columns=REQUIRED_COLUMNS):
+    stream = DumpStream(config, types_a, types_b, record_sequences)
+    if not stream.add(dump_paths):
+        raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
+    return stream.accumulation()
+
+
+class DumpStream:
+    """The streaming pass, kept between calls: :meth:`add` reads further dumps (each
+    snapshot once, in time order across calls), :meth:`accumulation` is what the dumps read
+    so far give, as :func:`accumulate` would give it from all of them in one pass.
+
+    This is what makes a convergence check while the solver runs cost the dumps written
+    since the last check, not every dump again."""
+
+    def __init__(
+        self, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int], record_sequences: bool = False
+    ) -> None:
+        g, tables = config.geometry, config.tables
+        self.config = config
+        self.types_a, self.types_b = tuple(types_a), tuple(types_b)
+        self.record_sequences = record_sequences
+        self.dt = float(config.timestep_s)
+        self.length, self.nx, self.ny = float(g.length_m), int(tables.nx), int(tables.ny)
+        self.diameter = float(g.diameter_m)
+        self.window, self.tol, self.ncell = float(tables.window_s), 0.5 * self.dt, self.nx * self.ny
+        self.max_t = MAX_SAMPLING_INTERVALS * float(tables.sample_interval_s)
+        self.log = ParticleLog()
+        self.window_sums: dict[int, np.ndarray] = {}
+        self.window_snapshots: dict[int, int] = {}
+        self.transitions: dict[int, np.ndarray] = {}
+        self.interval, self.irregular = float("nan"), 0
+        self.prev_t, self.prev_k = float("nan"), -1
+        self.times: list[float] = []
+        self.counts: list[np.ndarray] = []
+        self.prev_ids = np.zeros(0, np.int64)
+        self.last_step, self.reappeared = -1, 0
+        self.other_types: set[int] = set()
+        self.visits: list[tuple[np.ndarray, np.ndarray]] = []
+        self.n_seen = 0
+
+    def add(self, dump_paths) -> int:
+        """Read the snapshots of ``dump_paths`` (glob, path or sequence), which must all
+        come after the ones read before; returns how many were read."""
+        n = 0
+        for snap in iter_snapshots(dump_paths, columns=REQUIRED_COLUMNS):
+            if snap.step <= self.last_step:
+                raise DumpFormatError(
+                    f"{snap.source}: snapshot step {snap.step} does not follow the step {self.last_step} "
+                    "already read; dumps must be added in time order without duplicates"
+                )
+            self._snapshot(snap)
+            n += 1
+        return n
+
+    def _snapshot(self, snap) -> None:
+        log, dt, tol, ncell = self.log, self.dt, self.tol, self.ncell
         t = snap.time_s(dt)
-        if t > max_t:
+        if t > self.max_t:
             raise DumpFormatError(
                 f"{snap.source}: snapshot at step {snap.step} is at t = {t:.6g} s (timestep {dt:.6g} s), beyond "
-                f"{MAX_SAMPLING_INTERVALS} sampling intervals ({max_t:.6g} s); a corrupted step, or a timestep "
-                "that is not the run's"
+                f"{MAX_SAMPLING_INTERVALS} sampling intervals ({self.max_t:.6g} s); a corrupted step, or a "
+                "timestep that is not the run's"
             )
-        last_step = snap.step
+        # The reader has checked that ids and types are integers >= 1 and that the columns
+        # used here are finite.
         ids = snap["id"].astype(np.int64)
         ptype = snap["type"].astype(np.int64)
         x, y, vx, vy = snap["x"], snap["y"], snap["vx"], snap["vy"]
         if ids.size:
             top = int(ids.max())
-            bound = id_bound(n_seen + ids.size)
+            bound = id_bound(self.n_seen + ids.size)
             if top > bound:
                 row = int(np.argmax(ids))
                 raise DumpFormatError(
                     f"{snap.source}: snapshot at step {snap.step}, atom {row + 1} (column 'id'): particle id {top} "
-                    f"is implausible; with {n_seen} particles seen before and {ids.size} in this snapshot, ids up "
-                    f"to {bound} ({ID_FACTOR} x particles + {ID_HEADROOM}) are accepted (LIGGGHTS numbers "
+                    f"is implausible; with {self.n_seen} particles seen before and {ids.size} in this snapshot, "
+                    f"ids up to {bound} ({ID_FACTOR} x particles + {ID_HEADROOM}) are accepted (LIGGGHTS numbers "
                     "particles 1, 2, 3, ...)"
                 )
             log.ensure(top)
-        log.outside_vessel += int(np.count_nonzero(outside_vessel(x, y, snap["z"] if "z" in snap else None, config)))
-        is_a, is_b = np.isin(ptype, types_a), np.isin(ptype, types_b)
+        # a snapshot refused above leaves the stream as it was
+        self.last_step = snap.step
+        log.outside_vessel += int(
+            np.count_nonzero(outside_vessel(x, y, snap["z"] if "z" in snap else None, self.config))
+        )
+        is_a, is_b = np.isin(ptype, self.types_a), np.isin(ptype, self.types_b)
         if not (is_a | is_b).all():
-            other_types.update(int(v) for v in np.unique(ptype[~(is_a | is_b)]))
+            self.other_types.update(int(v) for v in np.unique(ptype[~(is_a | is_b)]))
 
         new = np.isnan(log.first_t[ids])
         log.first_t[ids[new]] = t
         log.first_y[ids[new]] = y[new]
-        n_seen += int(np.count_nonzero(new))  # an id listed twice counts twice: a looser bound, no sort
+        self.n_seen += int(np.count_nonzero(new))  # an id listed twice counts twice: a looser bound, no sort
         log.kind[ids] = np.where(is_a, 1, np.where(is_b, 2, 3))
         back = ~new & ~np.isnan(log.vanish_t[ids])
         if back.any():
-            reappeared += int(back.sum())
+            self.reappeared += int(back.sum())
             log.vanish_t[ids[back]] = np.nan
-        k = int(math.floor((t + tol) / window))
-        gap = t - prev_t
-        if math.isnan(interval) and gap > tol:
-            interval = gap
+        k = int(math.floor((t + tol) / self.window))
+        gap = t - self.prev_t
+        if math.isnan(self.interval) and gap > tol:
+            self.interval = gap
         # dumps every N steps are exactly periodic; 1 % admits step rounding, not a missed dump
-        regular = abs(gap - interval) <= max(tol, 0.01 * interval)
-        irregular += int(bool(prev_ids.size) and not regular)
+        regular = abs(gap - self.interval) <= max(tol, 0.01 * self.interval)
+        prev_ids, prev_k = self.prev_ids, self.prev_k
+        self.irregular += int(bool(prev_ids.size) and not regular)
         log.scratch[ids] = True
         gone = prev_ids[~log.scratch[prev_ids]]
         log.vanish_t[gone] = t
         log.vanish_state[gone] = log.last_state[gone]
         log.vanish_window[gone] = prev_k if regular else -1
         log.scratch[ids] = False
-        prev_ids = ids
+        self.prev_ids = ids
         log.last_t[ids] = t
         log.last_x[ids] = x
-        past = (x > length) & np.isnan(log.exit_t[ids])
+        past = (x > self.length) & np.isnan(log.exit_t[ids])
         log.exit_t[ids[past]] = t
 
-        inside, cell = bin_particles(x, y, length, diameter, nx, ny)
+        inside, cell = bin_particles(x, y, self.length, self.diameter, self.nx, self.ny)
         state = np.full(ids.size, -1, np.int32)
         state[inside] = cell
-        state[x > length] = ncell
+        state[x > self.length] = ncell
+        n_states = ncell + 1
         if regular:
             was = log.last_state[ids]
-            moved = (log.last_snapshot[ids] == len(times) - 1) & (was >= 0) & (was < ncell) & (state >= 0)
+            moved = (log.last_snapshot[ids] == len(self.times) - 1) & (was >= 0) & (was < ncell) & (state >= 0)
             pairs = np.bincount(was[moved].astype(np.int64) * n_states + state[moved], minlength=n_states**2)
-            if prev_k in transitions:
-                transitions[prev_k] += pairs
+            if prev_k in self.transitions:
+                self.transitions[prev_k] += pairs
             else:
-                transitions[prev_k] = pairs
+                self.transitions[prev_k] = pairs
         log.last_state[ids] = state
-        log.last_snapshot[ids] = len(times)
-        if record_sequences:
-            visits.append((ids.astype(np.int32), state.astype(np.int16)))
+        log.last_snapshot[ids] = len(self.times)
+        if self.record_sequences:
+            self.visits.append((ids.astype(np.int32), state.astype(np.int16)))
         log.last_cell[ids[inside]] = cell
-        prev_t, prev_k = t, k
+        self.prev_t, self.prev_k = t, k
         sums = snapshot_sums(cell, vx[inside], vy[inside], is_a[inside], is_b[inside], ncell)
-        if k in window_sums:
-            window_sums[k] += sums
-            window_snapshots[k] += 1
+        if k in self.window_sums:
+            self.window_sums[k] += sums
+            self.window_snapshots[k] += 1
         else:
-            window_sums[k], window_snapshots[k] = sums, 1
-        times.append(t)
-        counts.append(sums[COMPONENT_ROWS].reshape(2, nx, ny).copy())  # the window sums grow in place
-    if not times:
-        raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
-    return Accumulation(
-        log,
-        window_sums,
-        transitions,
-        interval,
-        irregular,
-        window_snapshots,
-        np.asarray(times),
-        np.stack(counts),
-        prev_ids,
-        last_step,
-        reappeared,
-        other_types,
-        visits,
-    )
+            self.window_sums[k], self.window_snapshots[k] = sums, 1
+        self.times.append(t)
+        self.counts.append(sums[COMPONENT_ROWS].reshape(2, self.nx, self.ny).copy())  # the sums grow in place
+
+    def accumulation(self) -> Accumulation:
+        """What the dumps read so far give; a copy, so reading on leaves it as it is (and
+        what a caller does to it leaves the stream as it is)."""
+        if not self.times:
+            raise DumpFormatError("no complete snapshot read yet")
+        return Accumulation(
+            self.log.copy(),
+            {k: v.copy() for k, v in self.window_sums.items()},
+            {k: v.copy() for k, v in self.transitions.items()},
+            self.interval,
+            self.irregular,
+            dict(self.window_snapshots),
+            np.asarray(self.times),
+            np.stack(self.counts),
+            self.prev_ids.copy(),
+            self.last_step,
+            self.reappeared,
+            set(self.other_types),
+            list(self.visits),  # the per-dump arrays themselves are never written after being read
+        )
 
 
 @dataclass

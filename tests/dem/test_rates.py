@@ -143,6 +143,29 @@ def test_fit_windows_warm_start_tracks_changing_rates(rng):
         assert _relative_errors(window, truth, np.isfinite(window["x_pos"])).max() < 0.05
 
 
+def test_fit_windows_memo_refits_only_what_changed(rng, monkeypatch):
+    """Windows as a run's dumps arrive: the first two, then the second grown and a third.
+    The memo serves the unchanged first window and only it; every fit equals a fit without it."""
+    import dem.rates as rates
+
+    nx, ny = 3, 2
+    truth = blender_rates(nx, ny, 5.0, rng)
+    counts = np.stack([_observe(truth, nx, ny, 50_000, 10, rng) for _ in range(3)])
+    early = counts[:2].copy()
+    early[1] //= 2  # the second window half observed at the first call
+    fitted = []
+    real = rates.fit_rates
+    monkeypatch.setattr(rates, "fit_rates", lambda window, *a, **k: fitted.append(window) or real(window, *a, **k))
+    memo: dict = {}
+    fit_windows(early, nx, ny, DT, min_observations=100, memo=memo)
+    assert len(fitted) == 2
+    grown = fit_windows(counts, nx, ny, DT, min_observations=100, memo=memo)
+    assert len(fitted) == 4 and len(memo) == 4  # windows 1 (grown) and 2 fitted, window 0 served
+    plain = fit_windows(counts, nx, ny, DT, min_observations=100)
+    for key, values in plain.rates.items():
+        np.testing.assert_array_equal(grown.rates[key], values)
+
+
 def test_simulation_counts_every_live_particle_once_per_step(rng):
     nx, ny = 2, 2
     q = generator(blender_rates(nx, ny, 5.0, rng), nx, ny)

@@ -161,6 +161,11 @@ def refit_phases(results: DemResults, t_use_s: float, steady_time_s: float) -> P
     to fit one (the budget's PBM then runs without the phases mode)."""
     if not results.table.has_phases or results.sequences is None:
         return None
+    seen = results.sequences.snapshot_t
+    if t_use_s >= seen[-1] and steady_time_s == results.summary.steady_time:
+        # the same sequences and steady time as the post-processing's own fit, which is
+        # deterministic: its model, without fitting it again
+        return results.table.phases
     try:
         refit, _fit = phases.table_with_phases(
             results.table, results.sequences.until(t_use_s), steady_time_s, results.table.phases.n_phases

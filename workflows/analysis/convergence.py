@@ -2,7 +2,7 @@
 
 The criterion is the DEM budget's (:mod:`workflows.analysis.budget`) asked while the run goes:
 every :data:`CHECK_EVERY_S` seconds of simulated time T, the dumps written so far are
-post-processed, and the PBMs built from their first T and T - dT seconds
+post-processed (each dump read once over all checks, :class:`RunDirectoryCheck`), and the PBMs built from their first T and T - dT seconds
 (:func:`workflows.analysis.budget.table_from_first`, both rate modes the table carries) are
 compared quantity by quantity on the agreement table. The run has converged when no
 quantity moved by more than half the width of the DEM's 95 % interval at T: more DEM would
@@ -21,14 +21,16 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from coupling.errors import DumpFormatError
 from dem import deck
 from dem.dumps import dump_paths
 from dem.liggghts_log import ThermoParser
-from dem.post import DemResults, postprocess
+from dem.post import DemResults, Postprocessor
 from dem.run import StopRun
 from workflows.analysis.agreement import MODES, AgreementRow, agreement_rows, run_modes
 from workflows.analysis.budget import Verdict, judge, table_from_first, verdict
@@ -86,17 +88,60 @@ def converged(results: DemResults, config: Config, t_s: float, step_s: float = C
     )
 
 
-def check_run_directory(run_dir: Path, config: Config, t_s: float, step_s: float = CHECK_EVERY_S) -> Convergence:
-    """:func:`converged` on the dumps of ``run_dir`` up to ``t_s`` (and its discharge files)."""
-    last = round(t_s / config.dem.timestep_s)
-    files = [p for p in dump_paths(str(run_dir / deck.DUMP_GLOB)) if int(p.name.split(".")[1]) <= last]
-    results = postprocess(files, config.dem, config.steady_state, massflow_dir=run_dir)
-    return converged(results, config, t_s, step_s)
+@dataclass(frozen=True)
+class CheckCost:
+    """What one :class:`RunDirectoryCheck` cost: the dumps it read and the seconds spent
+    reading them, finishing the results and judging the PBMs."""
+
+    t_s: float
+    dumps_read: int
+    read_s: float
+    results_s: float
+    criterion_s: float
+
+    @property
+    def total_s(self) -> float:
+        return self.read_s + self.results_s + self.criterion_s
+
+
+class RunDirectoryCheck:
+    """:func:`converged` on the dumps of ``run_dir`` up to T (and its discharge files), as
+    ``check(T)``: the dumps are read once, by a :class:`dem.post.Postprocessor` kept
+    between calls, so a check costs the dumps (and rate windows) written since the one
+    before (the results equal a post-processing of every dump up to T in one pass). Calls must come with
+    increasing T; they are, from :class:`ConvergenceWatch`, one at a time. ``costs`` keeps
+    what each check cost."""
+
+    def __init__(self, run_dir: Path, config: Config, step_s: float = CHECK_EVERY_S) -> None:
+        self.run_dir, self.config, self.step_s = Path(run_dir), config, float(step_s)
+        self.post = Postprocessor(config.dem)
+        self.costs: list[CheckCost] = []
+
+    def __call__(self, t_s: float) -> Convergence:
+        last = round(t_s / self.config.dem.timestep_s)
+        read = self.post.last_step
+        t0 = time.perf_counter()
+        n_read = self.post.add([p for p in _dumps(self.run_dir) if read < deck.dump_step(p) <= last])
+        t1 = time.perf_counter()
+        if self.post.last_step < 0:
+            return Convergence(False, t_s, f"no dump written up to {t_s:g} s in {self.run_dir}")
+        results = self.post.results(self.config.steady_state, massflow_dir=self.run_dir)
+        t2 = time.perf_counter()
+        answer = converged(results, self.config, t_s, self.step_s)
+        self.costs.append(CheckCost(t_s, n_read, t1 - t0, t2 - t1, time.perf_counter() - t2))
+        return answer
+
+
+def _dumps(run_dir: Path) -> list[Path]:
+    try:
+        return dump_paths(str(run_dir / deck.DUMP_GLOB))
+    except DumpFormatError:  # none written yet
+        return []
 
 
 class ConvergenceWatch:
     """The ``on_line`` callback of :func:`dem.run.run_dem` that stops the run once
-    ``check(T)`` (default :func:`check_run_directory`) says converged. ``history`` keeps
+    ``check(T)`` (default :class:`RunDirectoryCheck`) says converged. ``history`` keeps
     every check's answer; ``log`` is told each one."""
 
     def __init__(
@@ -111,23 +156,36 @@ class ConvergenceWatch:
             raise ValueError(f"the check interval must be > 0 s, got {every_s}")
         self.dt = float(config.dem.timestep_s)
         self.every_s = float(every_s)
-        self.check = check or (lambda t: check_run_directory(Path(run_dir), config, t, self.every_s))
+        self.check = check or RunDirectoryCheck(Path(run_dir), config, self.every_s)
         self.log = log
         self.parser = ThermoParser(deck.THERMO_DISCHARGED, deck.THERMO_INSERTED, deck.THERMO_COLUMNS)
         self.next_s = 2 * self.every_s  # the first comparison needs T - dT > 0
         self.history: list[Convergence] = []
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
+        self._failed = False
 
     @property
     def converged_at(self) -> float | None:
         with self._lock:
             return next((h.t_s for h in self.history if h.converged), None)
 
+    def postprocessor(self) -> Postprocessor | None:
+        """The dumps the checks have read, for the run's own post-processing to finish
+        (it then reads only the dumps written after the last check, and its results are
+        the one-pass results all the same); None when the checks were not
+        :class:`RunDirectoryCheck` or one of them failed part-way. Waits for a running check."""
+        if self._thread is not None:
+            self._thread.join()
+        if self._failed or not isinstance(self.check, RunDirectoryCheck):
+            return None
+        return self.check.post
+
     def _run(self, t_s: float) -> None:
         try:
             answer = self.check(t_s)
         except Exception as exc:  # a failed check is a check that did not converge, said so
+            self._failed = True
             answer = Convergence(False, t_s, f"check failed: {exc}")
         with self._lock:
             self.history.append(answer)

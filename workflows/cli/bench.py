@@ -21,12 +21,13 @@ BENCHMARKS = (
     ("dem-deck", "workflows.bench.dem_deck", "DEM deck efficiency and core-hours"),
     ("machine", "workflows.bench.machine", "What two ranks can gain on this machine at all"),
     ("scatter", "workflows.bench.scatter", "A deck change against the seed-to-seed scatter"),
+    ("convergence", "workflows.bench.convergence", "What --stop-when-converged costs and saves on a completed run"),
     ("reference", "workflows.bench.reference", "Post-processing vs DEM wall time of the shipped runs"),
     ("same-numbers", "workflows.bench.same_numbers", "Did a refactoring change any number? Two captures compared"),
 )
 #: benchmarks ``all`` leaves out: they have no defaults to run with (an output directory,
-#: two trees) or take minutes without measuring this checkout's speed or accuracy
-NOT_IN_ALL = frozenset({"same-numbers"})
+#: two trees, a completed run directory) or take minutes without measuring this checkout's speed or accuracy
+NOT_IN_ALL = frozenset({"same-numbers", "convergence"})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

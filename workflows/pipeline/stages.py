@@ -20,18 +20,18 @@ import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from coupling.cache import cache_path, load_entry, save_entry, stable_hash, try_load_entry
 from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
 from coupling.files import output_directory_path, refuse_output_over_inputs
 from coupling.tables import VelocityTable, read_table
-from dem.deck import DECK_INFO, MESH_DIR, build_deck, deck_hash, write_deck
+from dem.deck import DECK_INFO, MESH_DIR, build_deck, deck_hash, dump_step, write_deck
 from dem.dumps import dump_paths
 from dem.geometry import build_geometry, feed_zones, write_stl
 from dem.massflow import massflow_files
-from dem.post import DemResults, postprocess
+from dem.post import DemResults, Postprocessor, postprocess
 from dem.resources import check_postprocess_resources
 from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem, solver_counters
 from dem.summary import DemSummary
@@ -155,6 +155,16 @@ def results_available(
     return completed_run(inputs, runs_root) is not None
 
 
+class RunWatch(Protocol):
+    """What :func:`dem_stage`'s ``watch`` returns: the solver's line callback (raising
+    :class:`dem.run.StopRun` stops the run) and the dumps it has read, if any, for the
+    run's post-processing to finish instead of reading them again."""
+
+    def __call__(self, line: str) -> None: ...
+
+    def postprocessor(self) -> Postprocessor | None: ...
+
+
 def dem_stage(
     config: Config,
     runs_root: str | Path = "runs",
@@ -166,7 +176,7 @@ def dem_stage(
     log: Log = _quiet,
     reference_dir: Path | tuple[Path, ...] = SHIPPED_RESULTS_DIRS,
     solver: bool = True,
-    watch: Callable[[Path], Callable[[str], None]] | None = None,
+    watch: Callable[[Path], RunWatch] | None = None,
 ) -> DemSide:
     """The DEM's velocity table and CQAs for ``config``.
 
@@ -177,8 +187,9 @@ def dem_stage(
     built and the input hash computed once, here. Without LIGGGHTS installed, cached or
     shipped results made from the same deck are still found. ``solver=False`` never starts
     LIGGGHTS: only cached or shipped results, or the dumps of a completed run, serve, else
-    LookupError. ``watch``: called with the run directory, returns the solver's line
-    callback, which may stop the run early (:class:`workflows.analysis.convergence.ConvergenceWatch`);
+    LookupError. ``watch``: called with the run directory, returns a :class:`RunWatch`,
+    which may stop the run early (:class:`workflows.analysis.convergence.ConvergenceWatch`)
+    and hands over the dumps it has read;
     a stopped run's results are cached under a key of their own, never served as the
     complete run's."""
     runs_root = writable_directory(runs_root, "runs directory").resolve()  # absolute: recorded in the cache
@@ -195,6 +206,7 @@ def dem_stage(
             if found.source == "reference":
                 log(f"DEM results for inputs {found.key} taken from the shipped reference data")
             return found
+    on_line = None
     if solver:
         check_postprocess_resources(config.dem)  # before an hour of LIGGGHTS, not after
         on_line = None if watch is None else watch(runs_root / str(inputs.key))
@@ -236,14 +248,24 @@ def dem_stage(
         "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
     }
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
-    results = postprocess(
-        record.dump_glob,
-        config.dem,
-        config.steady_state,
-        massflow_dir=record.massflow_dir,
-        solver_counters=record.solver_counters,
-        provenance=table_attrs,
-    )
+    reader = on_line.postprocessor() if on_line is not None else None
+    if reader is None:
+        results = postprocess(
+            record.dump_glob,
+            config.dem,
+            config.steady_state,
+            massflow_dir=record.massflow_dir,
+            solver_counters=record.solver_counters,
+            provenance=table_attrs,
+        )
+    else:  # the watch's checks have read the dumps up to the last one: the rest only
+        reader.add([p for p in dump_paths(record.dump_glob) if dump_step(p) > reader.last_step])
+        results = reader.results(
+            config.steady_state,
+            massflow_dir=record.massflow_dir,
+            solver_counters=record.solver_counters,
+            provenance=table_attrs,
+        )
     results = dataclasses.replace(
         results,
         summary=dataclasses.replace(

@@ -1,0 +1,162 @@
+"""What ``--stop-when-converged`` costs and saves: ``pbmdem bench convergence``.
+
+Replays, on a completed run directory, the checks :class:`workflows.analysis.convergence.ConvergenceWatch`
+would have made while the run went (every ``--every`` simulated seconds from 2 x that,
+until the first converged one), with the check the product uses
+(:class:`~workflows.analysis.convergence.RunDirectoryCheck`: each dump read once over all
+checks). Per check: the dumps it read, the seconds spent reading them, finishing the
+results and judging the PBMs, and the DEM's own wall time between checks, from the
+dumps' modification times. At the stop it also times the earlier check, which
+post-processed every dump up to T again.
+
+The wall time a stopped run would have taken is the DEM's wall time to the stop T, plus
+the converged check (the run goes on meanwhile and stops at the next solver line after
+it), plus the post-processing of the dumps up to T; the complete run's is its wall time
+plus the post-processing of all its dumps. The DEM's wall time to T is its total in
+proportion to the particle-steps done by T (the hold-up integrated over time; a contact
+solver's cost grows with its particles), since the dumps' own times do not survive a
+resumed or copied run. A check that takes longer than the DEM needs for ``--every``
+simulated seconds delays the stop; the table shows whether they kept up. Writes
+``results/bench/convergence.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from coupling.errors import ConfigError
+from coupling.jsonable import json_ready, write_json
+from dem import deck
+from dem.dumps import dump_paths
+from dem.post import postprocess
+from dem.run import prepare_run, read_status
+from workflows.analysis.convergence import CHECK_EVERY_S, RunDirectoryCheck
+from workflows.config import add_config_arguments, resolve_config
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser, required=False)
+    parser.add_argument(
+        "--run-dir", help="the completed run directory (default: <runs-dir>/<the config's key>)", default=None
+    )
+    parser.add_argument("--runs-dir", default="runs", help="where runs live (default runs)")
+    parser.add_argument("--every", type=float, default=CHECK_EVERY_S, help="simulated seconds between checks")
+    parser.add_argument("--out", default="results/bench/convergence.json")
+
+
+def _dem_wall_to(t_s: float, holdup: pd.DataFrame, wall_s: float) -> float:
+    """The DEM's wall time to ``t_s`` [s]: ``wall_s`` in proportion to the particle-steps."""
+    t = holdup["t_s"].to_numpy()
+    n = (holdup["holdup_A"] + holdup["holdup_B"]).to_numpy()
+    done = np.concatenate([[0.0], np.cumsum(0.5 * (n[1:] + n[:-1]) * np.diff(t))])
+    return wall_s * float(np.interp(t_s, t, done)) / float(done[-1])
+
+
+def run(args: argparse.Namespace) -> int:
+    config = resolve_config(args.preset, args.config) if (args.preset or args.config) else resolve_config("validation")
+    key = prepare_run(config.dem).key
+    run_dir = Path(args.run_dir) if args.run_dir else Path(args.runs_dir) / key
+    status = read_status(run_dir)
+    if not status or status.get("state") != "completed":
+        raise ConfigError(
+            f"{run_dir}: not a completed run directory (status {status and status.get('state')!r}); "
+            f"run it first: pbmdem dem run {'--preset ' + args.preset if args.preset else '--config FILE'}"
+        )
+    if status.get("key") != key:
+        raise ConfigError(f"{run_dir} holds run {status.get('key')!r}, but the configuration's run is {key!r}")
+    if not (math.isfinite(args.every) and args.every > 0):
+        raise ConfigError(f"--every must be a number of seconds > 0, got {args.every}")
+    dem_wall = float(status["wall_time_s"])
+    files = dump_paths(str(run_dir / deck.DUMP_GLOB))
+    dt = config.dem.timestep_s
+    steps = [deck.dump_step(p) for p in files]
+    t_last = steps[-1] * dt
+    print(f"run {key} in {run_dir}: {len(files)} dumps to {t_last:g} s, DEM wall time {dem_wall:.0f} s", flush=True)
+    t0 = time.perf_counter()
+    whole = postprocess(files, config.dem, config.steady_state, massflow_dir=run_dir)
+    post_all = time.perf_counter() - t0
+    print(f"post-processing every dump in one pass: {post_all:.0f} s", flush=True)
+
+    check = RunDirectoryCheck(run_dir, config, args.every)
+    rows, stop = [], None
+    t, t_prev_wall = 2 * args.every, 0.0
+    while t <= t_last + 0.5 * dt and stop is None:
+        upto = [p for p, s in zip(files, steps) if s <= round(t / dt)]
+        answer = check(t)
+        cost = check.costs[-1]
+        wall_t = _dem_wall_to(t, whole.holdup, dem_wall)
+        row = {
+            "t_s": t,
+            "dumps_read": cost.dumps_read,
+            "read_s": cost.read_s,
+            "results_s": cost.results_s,
+            "criterion_s": cost.criterion_s,
+            "check_s": cost.total_s,
+            "dem_wall_since_last_check_s": wall_t - t_prev_wall,
+            "converged": answer.converged,
+            "why": answer.why,
+        }
+        rows.append(row)
+        print(
+            f"T = {t:6.1f} s: {row['dumps_read']:4d} dumps read in {row['read_s']:5.1f} s, results "
+            f"{row['results_s']:5.1f} s, PBMs judged in {row['criterion_s']:5.1f} s; the DEM took "
+            f"{row['dem_wall_since_last_check_s']:6.0f} s since the last check -> "
+            + ("converged" if answer.converged else f"not yet ({answer.why})"),
+            flush=True,
+        )
+        if answer.converged:
+            stop = (t, upto, wall_t, row["check_s"])
+        t_prev_wall = wall_t
+        t += args.every
+
+    record = {
+        "run": key,
+        "run_dir": str(run_dir),
+        "dem_wall_s": dem_wall,
+        "every_s": args.every,
+        "checks": rows,
+        "post_all_dumps_s": post_all,
+        "complete_run_wall_s": dem_wall + post_all,
+        "load_average": os.getloadavg(),
+    }
+    print(f"complete run: DEM {dem_wall:.0f} s + post-processing {post_all:.0f} s")
+    if stop is None:
+        print("never converged: the run would have gone to its end (plus the checks' cost)")
+    else:
+        t_stop, upto, wall_stop, check_stop = stop
+        # the run's own post-processing finishes what the checks read (dem_stage)
+        t0 = time.perf_counter()
+        check.post.results(config.steady_state, massflow_dir=run_dir)
+        post_stop = time.perf_counter() - t0
+        # before, every check and the stopped run's post-processing read every dump again
+        t0 = time.perf_counter()
+        postprocess(upto, config.dem, config.steady_state, massflow_dir=run_dir)
+        scratch_post = time.perf_counter() - t0
+        stopped = wall_stop + check_stop + post_stop
+        record.update(
+            stop_t_s=t_stop,
+            dem_wall_to_stop_s=wall_stop,
+            post_at_stop_s=post_stop,
+            post_at_stop_from_scratch_s=scratch_post,
+            last_check_from_scratch_s=scratch_post + rows[-1]["criterion_s"],
+            checks_total_s=sum(r["check_s"] for r in rows),
+            stopped_run_wall_s=stopped,
+            saved_fraction=1 - stopped / record["complete_run_wall_s"],
+        )
+        print(
+            f"stopped at T = {t_stop:g} s: DEM {wall_stop:.0f} s + the converged check {check_stop:.0f} s + "
+            f"post-processing {post_stop:.0f} s = {stopped:.0f} s against {record['complete_run_wall_s']:.0f} s "
+            f"for the complete run ({record['saved_fraction']:.0%} saved). All checks: "
+            f"{record['checks_total_s']:.0f} s; the last one reading every dump again would take "
+            f"{record['last_check_from_scratch_s']:.0f} s, not {check_stop:.0f} s"
+        )
+    out = write_json(args.out, json_ready(record))
+    print(f"wrote {out}")
+    return 0
