@@ -36,7 +36,7 @@ from pbm.simulate import (
     recovered_moments,
     tracer_pulse,
 )
-from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
+from pbm.solver import TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,7 @@ def pooled_rtd(
     entry_window: tuple[float, float] = (0.0, 1.0),
     horizon_s: float = 60.0,
     pulse_interval_s: float | None = None,
+    schedule: Schedule | None = None,
 ) -> PooledRtd:
     """The PBM's RTD of tracer entering uniformly during ``entry_window`` = (t0, t1] [s],
     recovered within ``horizon_s`` = H [s] of entry: the DEM's pooled RTD, like for like.
@@ -92,7 +93,10 @@ def pooled_rtd(
     ``duration_s``; the A and B populations themselves do not enter (the system is linear).
     Raises ConfigError unless 0 <= t0 < t1, H > 0, pulse_interval_s > 0 and t1 + H lies
     within the run (``duration_s``, or the table's end): a pulse must be followed for all
-    of H.
+    of H. ``schedule``: the generators of the run the tracer joins, when that run has been
+    simulated under the fill law (:attr:`pbm.simulate.PbmResult.schedule`: its bulk is
+    not solved again, and the tracer sees that run's fill); default the one ``config``
+    gives (:func:`pbm.fill.config_schedule`).
     """
     config = config or PbmConfig()
     t_end = check_run(table, config)
@@ -114,7 +118,8 @@ def pooled_rtd(
     filled, _ = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
     factors = feed_factors(config, noise_intervals(config, t_end))[:, 0]
-    schedule, _law = config_schedule(table, config, feed, factors, t_end)
+    if schedule is None:
+        schedule, _law = config_schedule(table, config, feed, factors, t_end)
     props = Propagators(filled, feed, config.rates, config.kernel, schedule)
     n = n_populations(table, config.rates)
     m = props.n_states

@@ -26,7 +26,7 @@ from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.fill import config_schedule
 from pbm.model import N_ACCUMULATORS, collapse_phases, feed_distribution, filled_table, n_phases, n_populations
-from pbm.solver import TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
+from pbm.solver import TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
 
 BDF_ATOL_PARTICLES = 1e-9
 
@@ -47,6 +47,8 @@ class PbmResult:
     RTD: ``rtd_t`` [s, residence-time bin centres], ``rtd_E`` [1/s] (tracer discharged in
     the bin / tracer fed / bin width), ``rtd_pulse_s`` [s] the pulse time.
     ``summary``: JSON-ready dict of scalars (see :func:`simulate`).
+    ``schedule``: under ``rate_law`` = "fill", the generators the run marched on (its bulk
+    solved once; :func:`pbm.rtd.pooled_rtd` of the same run takes it); None otherwise.
     """
 
     times: np.ndarray
@@ -68,6 +70,7 @@ class PbmResult:
     rtd_E: np.ndarray
     rtd_pulse_s: float
     summary: dict[str, Any] = field(default_factory=dict)
+    schedule: Schedule | None = None
 
     def timeseries(self) -> pd.DataFrame:
         """The CQA series in :data:`coupling.metrics.TIMESERIES_COLUMNS`."""
@@ -324,6 +327,7 @@ def simulate(
         rtd_E=rtd_E,
         rtd_pulse_s=float(pulse),
         summary=summary,
+        schedule=schedule,
     )
 
 

@@ -228,3 +228,18 @@ def test_bulk_jacobian_is_the_derivative_of_the_flows(shipped, rates):
     h = 1e-5
     numeric = np.stack([(rhs(y + h * e) - rhs(y - h * e)) / (2 * h) for e in np.eye(y.size)], axis=1)
     np.testing.assert_allclose(jac(y), numeric, rtol=1e-5, atol=1e-7)
+
+
+def test_pooled_rtd_takes_the_runs_own_schedule(shipped):
+    """The pooled RTD on the schedule simulate marched on is the one it builds itself (the
+    bulk solved once, not twice), and under table rates there is none to hand over."""
+    from pbm.rtd import pooled_rtd
+
+    cfg = _config(shipped, fill_exponents=np.tile([1.0, 0.0], (shipped.nx, 1)).tolist())
+    result = simulate(shipped, cfg)
+    assert result.schedule is not None and result.schedule.n_windows > 1
+    window, horizon = (40.0, 50.0), 60.0
+    handed = pooled_rtd(shipped, cfg, window, horizon, schedule=result.schedule)
+    built = pooled_rtd(shipped, cfg, window, horizon)
+    assert handed.mean_s == built.mean_s and handed.variance_s2 == built.variance_s2
+    assert simulate(shipped, cfg.model_copy(update={"rate_law": "table"})).schedule is None

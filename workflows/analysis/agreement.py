@@ -78,7 +78,13 @@ def run_modes(
         result = simulate(table, cfg, steady=steady)
         pooled = None
         if dem_summary.has_pooled_rtd:
-            pooled = pooled_rtd(table, cfg, entry_window=pooled_spec.entry_window_s, horizon_s=pooled_spec.horizon_s)
+            pooled = pooled_rtd(
+                table,
+                cfg,
+                entry_window=pooled_spec.entry_window_s,
+                horizon_s=pooled_spec.horizon_s,
+                schedule=result.schedule,
+            )
         modes[mode] = PbmMode(mode, result, pooled)
     return modes
 

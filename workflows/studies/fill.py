@@ -72,7 +72,9 @@ def predict(table, config, dem, mode: str, exponents=None, rate_law: str = "tabl
     )
     result = simulate(table, cfg, steady=config.steady_state)
     spec = dem.summary.pooled_rtd
-    pooled = pooled_rtd(table, cfg, entry_window=spec.entry_window_s, horizon_s=spec.horizon_s)
+    pooled = pooled_rtd(
+        table, cfg, entry_window=spec.entry_window_s, horizon_s=spec.horizon_s, schedule=result.schedule
+    )
     rows = agreement_rows(dem.summary, dem.particles, {mode: PbmMode(mode, result, pooled)})
     return {r.key: r for r in rows}
 
