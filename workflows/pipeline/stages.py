@@ -248,24 +248,15 @@ def dem_stage(
         "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
     }
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
-    reader = on_line.postprocessor() if on_line is not None else None
-    if reader is None:
-        results = postprocess(
-            record.dump_glob,
-            config.dem,
-            config.steady_state,
-            massflow_dir=record.massflow_dir,
-            solver_counters=record.solver_counters,
-            provenance=table_attrs,
-        )
-    else:  # the watch's checks have read the dumps up to the last one: the rest only
-        reader.add([p for p in dump_paths(record.dump_glob) if dump_step(p) > reader.last_step])
-        results = reader.results(
-            config.steady_state,
-            massflow_dir=record.massflow_dir,
-            solver_counters=record.solver_counters,
-            provenance=table_attrs,
-        )
+    # a watch's checks have read the dumps up to their last one: only the rest is read here
+    reader = (on_line.postprocessor() if on_line is not None else None) or Postprocessor(config.dem)
+    reader.add([p for p in dump_paths(record.dump_glob) if dump_step(p) > reader.last_step])
+    results = reader.results(
+        config.steady_state,
+        massflow_dir=record.massflow_dir,
+        solver_counters=record.solver_counters,
+        provenance=table_attrs,
+    )
     results = dataclasses.replace(
         results,
         summary=dataclasses.replace(
