@@ -189,7 +189,11 @@ class ConvergenceWatch:
             answer = Convergence(False, t_s, f"check failed: {exc}")
         with self._lock:
             self.history.append(answer)
-        self.log(f"convergence check at {t_s:g} s: " + ("converged" if answer.converged else f"not yet ({answer.why})"))
+        verdict = "converged" if answer.converged else f"not yet ({answer.why})"
+        costs = self.check.costs if isinstance(self.check, RunDirectoryCheck) else []
+        if costs and costs[-1].t_s == t_s:
+            verdict += f"; {costs[-1].dumps_read} new dumps, {costs[-1].total_s:.0f} s"
+        self.log(f"convergence check at {t_s:g} s: {verdict}")
 
     def __call__(self, line: str) -> None:
         t_stop = self.converged_at
