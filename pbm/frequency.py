@@ -41,7 +41,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm, schur
+from scipy.linalg import expm, rsf2csf, schur
 
 from coupling.errors import ConfigError, TableError
 from coupling.tables import VelocityTable
@@ -178,7 +178,9 @@ def system_response(system: StationarySystem, frequencies_hz, feeder: str = "A")
     # frequency at a fraction of its cost; an eigendecomposition would be cheaper still, but
     # advection-dominated generators are nearly defective (a chain of equal tanks is a
     # Jordan block) and their eigenvectors too ill-conditioned to trust.
-    t, u = schur(system.generator.astype(complex), output="complex")
+    # The real Schur form and its conversion cost half the complex Schur form of the same
+    # real matrix (5 against 10 ms at 100 states): the generator is real.
+    t, u = rsf2csf(*schur(system.generator, output="real"))
     rhs = u.conj().T @ b
     left = system.outlet_row(feeder) @ u
     diagonal = np.diag(t)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pbm.resources import check_ensemble_memory
 from workflows.config import add_config_arguments, resolve_config
-from workflows.pipeline.stages import stderr_log
+from workflows.pipeline.log import stderr_log
 
 HELP = "DEM (or its cached / shipped results) -> velocity tables -> PBM -> side-by-side report"
 

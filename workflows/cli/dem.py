@@ -25,7 +25,7 @@ from coupling.errors import ConfigError
 from coupling.files import refuse_output_over_inputs
 from dem.summary import DemSummary
 from workflows.config import add_config_arguments, resolve_config
-from workflows.pipeline.stages import stderr_log
+from workflows.pipeline.log import stderr_log
 
 SUMMARY_KEYS = (
     "t_end_s",

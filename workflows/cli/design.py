@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from workflows.pipeline.stages import stderr_log
+from workflows.pipeline.log import stderr_log
 
 HELP = "the smallest blender and the impeller speeds that meet a spec, from a table library of DEM runs"
 

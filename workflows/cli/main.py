@@ -30,23 +30,30 @@ COMMANDS = (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``argv``, only the command it names gets its options
+    (every command is still listed with its help), so a command does not import the
+    libraries of every other (a study or a benchmark imports most of the product)."""
     parser = argparse.ArgumentParser(
         prog="pbmdem", description="Hybrid DEM-PBM pipeline for continuous powder blenders (Sen et al. 2013)."
     )
     parser.add_argument("--traceback", action="store_true", help="on an error, show the whole traceback")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    named = {name for name, _ in COMMANDS}
+    chosen = None if argv is None else next((a for a in argv if a in named), None)
     for name, module_name in COMMANDS:
         module = importlib.import_module(module_name)
         command = sub.add_parser(name, help=module.HELP, description=module.HELP)
         if hasattr(module, "run"):
             command.set_defaults(func=module.run)
-        module.add_arguments(command)
+        if argv is None or name == chosen:
+            module.add_arguments(command)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except (PbmDemError, OSError) as exc:  # OSError: the file system said no (a path, the disk, a permission)

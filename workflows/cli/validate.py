@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from coupling.errors import ConfigError
-from workflows.pipeline.stages import stderr_log
+from workflows.pipeline.log import stderr_log
 
 HELP = "the validation campaign: DEM runs with one factor changed, predicted by PBMs built without them"
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import math
-import sys
 import tempfile
 import time
 import tomllib
@@ -41,6 +40,7 @@ from pbm.outputs import write_outputs
 from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, config_from_dict, dump_toml, load_preset
+from workflows.pipeline.log import Log, quiet
 from workflows.shipped import SHIPPED_RESULTS_DIRS
 
 #: Bump when the post-processing computes anything differently: cached results are redone.
@@ -48,17 +48,6 @@ from workflows.shipped import SHIPPED_RESULTS_DIRS
 #: model) do not bump it: results without them are post-processed again by
 #: :func:`dem_stage` when the run's dumps are at hand, and otherwise serve without them.
 POST_VERSION = 3
-
-Log = Callable[[str], None]
-
-
-def _quiet(message: str) -> None:
-    pass
-
-
-def stderr_log(message: str) -> None:
-    """The command line's log: one line per message on stderr."""
-    print(f"pbmdem: {message}", file=sys.stderr, flush=True)
 
 
 def _now() -> str:
@@ -150,7 +139,7 @@ def results_available(
     shipped results, or a completed run to post-process (which this does not do)."""
     inputs = prepare_run(config.dem)
     runs_root = Path(runs_root)
-    if _find_cached(inputs, post_hash(config), _roots(runs_root / "cache", reference_dir), _quiet) is not None:
+    if _find_cached(inputs, post_hash(config), _roots(runs_root / "cache", reference_dir), quiet) is not None:
         return True
     return completed_run(inputs, runs_root) is not None
 
@@ -173,7 +162,7 @@ def dem_stage(
     resume: bool = False,
     fresh: bool = False,
     progress: bool = True,
-    log: Log = _quiet,
+    log: Log = quiet,
     reference_dir: Path | tuple[Path, ...] = SHIPPED_RESULTS_DIRS,
     solver: bool = True,
     watch: Callable[[Path], RunWatch] | None = None,

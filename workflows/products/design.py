@@ -23,22 +23,27 @@ from workflows.shipped import VALIDATION_DIR
 RPM_KEY = "dem.operation.impeller_rpm"
 
 
-def load_library(
-    directory: str | Path = VALIDATION_DIR, rates: str = "velocity", log: Log | None = None
-) -> TableLibrary:
-    """The table library in ``directory``: its DEM results files grouped by configuration
-    less the impeller speed; the largest group (ties: the one with the widest speed range)
-    is the library. Raises ConfigError when the directory holds no results file."""
+def library_runs(directory: str | Path = VALIDATION_DIR) -> list[tuple[Path, Any, Any]]:
+    """(path, results, configuration) of every DEM results file in ``directory``, each read
+    (and its digest checked) once for both libraries. Raises ConfigError when the
+    directory is none or holds no results file."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ConfigError(f"table library {directory}: not a directory of DEM results files (dem-*.h5)")
+    runs = [(path, *load_results(path)) for path in sorted(directory.glob("dem-*.h5"))]
+    if not runs:
+        raise ConfigError(f"table library {directory}: no DEM results files (dem-*.h5) in it")
+    return runs
+
+
+def load_library(runs: list[tuple[Path, Any, Any]], rates: str = "velocity", log: Log | None = None) -> TableLibrary:
+    """The table library among ``runs`` (:func:`library_runs`): grouped by configuration
+    less the impeller speed, the largest group (ties: the one with the widest speed range)."""
+    directory = runs[0][0].parent
     groups: dict[str, list] = {}
-    for path in sorted(directory.glob("dem-*.h5")):
-        results, config = load_results(path)
+    for path, results, config in runs:
         key = repr(config_without(config, RPM_KEY))
         groups.setdefault(key, []).append((config.dem.operation.impeller_rpm, results, config, path))
-    if not groups:
-        raise ConfigError(f"table library {directory}: no DEM results files (dem-*.h5) in it")
     members = max(groups.values(), key=lambda g: (len(g), max(m[0] for m in g) - min(m[0] for m in g)))
     speeds = [m[0] for m in members]
     if len(set(speeds)) != len(speeds):
@@ -59,13 +64,12 @@ def load_library(
     )
 
 
-def load_feed_library(directory: str | Path = VALIDATION_DIR, rates: str = "measured", log: Log | None = None):
-    """The feed library in ``directory``: the largest group of DEM results files whose
+def load_feed_library(runs: list[tuple[Path, Any, Any]], rates: str = "measured", log: Log | None = None):
+    """The feed library among ``runs`` (:func:`library_runs`): the largest group whose
     configurations differ only in the feed rate (and the duration), when it holds at least
     two runs with a steady state; else None (the answer then has no throughput)."""
     groups: dict[str, list] = {}
-    for path in sorted(Path(directory).glob("dem-*.h5")):
-        results, config = load_results(path)
+    for path, results, config in runs:
         if results.summary.steady_time is None or not results.table.has_rates:
             continue
         groups.setdefault(repr(same_but_feed(config)), []).append((results, config, path))
@@ -93,9 +97,10 @@ def run_design(
     takes, when the directory holds a feed library), ``design.json`` and ``feasible.png``
     in ``out_dir``."""
     out_dir = writable_directory(out_dir, "design output directory")
-    library = load_library(library_dir, rates, log)
+    runs = library_runs(library_dir)
+    library = load_library(runs, rates, log)
     result = design(library, spec)
-    feeds = load_feed_library(library_dir, rates, log)
+    feeds = load_feed_library(runs, rates, log)
     throughput = None if feeds is None else max_feed(feeds, spec)
     data: dict[str, Any] = {
         **result.to_dict(),

@@ -35,7 +35,8 @@ from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import PbmMode, agreement_rows
 from workflows.analysis.validation import feed_library, prediction_config, same_but_feed
-from workflows.pipeline.stages import load_results, stderr_log
+from workflows.pipeline.log import stderr_log
+from workflows.pipeline.stages import load_results
 from workflows.products.validate import campaign_configs, run_campaign
 from workflows.report.fill import plot_fill
 
