@@ -243,3 +243,22 @@ def test_pooled_rtd_takes_the_runs_own_schedule(shipped):
     built = pooled_rtd(shipped, cfg, window, horizon)
     assert handed.mean_s == built.mean_s and handed.variance_s2 == built.variance_s2
     assert simulate(shipped, cfg.model_copy(update={"rate_law": "table"})).schedule is None
+
+
+@pytest.mark.parametrize("rates", ["velocity", "measured", "phases"])
+def test_bulk_jacobian_lies_in_the_band_lsoda_is_told(shipped, rates):
+    """LSODA factorises only the band: every entry of the Jacobian must lie in it, and the
+    packed storage must put each where LSODA reads it."""
+    from pbm.fill import _bulk_rhs_and_jacobian, _packed, bulk_bandwidth
+
+    rng = np.random.default_rng(3)
+    ref = fill_reference(shipped, rates)
+    law = FillLaw(rng.uniform(0.0, 3.0, (shipped.nx, 2)), "given", {})
+    _, jac = _bulk_rhs_and_jacobian(ref, law)
+    j = jac(rng.uniform(1.0, 50.0, ref.n_populations))
+    band = bulk_bandwidth(ref)
+    rows, cols = np.nonzero(j)
+    assert np.abs(rows - cols).max() <= band < ref.n_populations - 1
+    packed = _packed(j, band)
+    inside = np.abs(rows - cols) <= band
+    np.testing.assert_array_equal(packed[band + rows[inside] - cols[inside], cols[inside]], j[rows, cols])
