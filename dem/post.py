@@ -7,9 +7,11 @@ Entry point::
 
 The steps, each a function of this module, in the order :func:`postprocess` runs them:
 
-1. :func:`dem.tracking.accumulate` -- one streaming pass over the dumps (memory flat in the number of
+1. :class:`dem.tracking.DumpStream` -- one streaming pass over the dumps (memory flat in the number of
    snapshots): the particle log (entry, last sight, first time past the weir, vanishing),
-   per-window velocity sums and the per-snapshot compartment counts.
+   per-window velocity sums and the per-snapshot compartment counts. :class:`Postprocessor`
+   keeps it open, so a run's dumps can be read as they are written and the steps below
+   taken whenever needed.
 2. :func:`velocity_table` -- the coupling table from the window sums.
 3. :func:`dem.tracking.find_exits` -- when each particle left.
 4. :func:`cqa_timeseries` -- outflow, inflow, C_A, RSDs and hold-up per sampling interval.

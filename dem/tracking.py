@@ -1,6 +1,6 @@
 """Following every particle through the dumps: the one streaming pass of the
-post-processing (:func:`accumulate`, or :class:`DumpStream` kept open while a run
-writes its dumps) and when each particle left (:func:`find_exits`).
+post-processing (:class:`DumpStream`, which can be kept open while a run writes its
+dumps) and when each particle left (:func:`find_exits`).
 
 Memory is flat in the number of snapshots: per-particle state is a few arrays indexed by
 particle ID (IDs are bounded by the number of particles seen, :func:`id_bound`), the
@@ -162,21 +162,10 @@ def snapshot_sums(
     return np.stack([rows[name].astype(float) for name in SUM_ROWS])
 
 
-def accumulate(
-    dump_paths, config: DemConfig, types_a: Sequence[int], types_b: Sequence[int], record_sequences: bool = False
-) -> Accumulation:
-    """Stream every snapshot once into an :class:`Accumulation`; with ``record_sequences``
-    also keep every particle's state at every dump (:attr:`Accumulation.visits`)."""
-    stream = DumpStream(config, types_a, types_b, record_sequences)
-    if not stream.add(dump_paths):
-        raise DumpFormatError(f"no complete snapshot in {dump_paths!r}")
-    return stream.accumulation()
-
-
 class DumpStream:
     """The streaming pass, kept between calls: :meth:`add` reads further dumps (each
     snapshot once, in time order across calls), :meth:`accumulation` is what the dumps read
-    so far give, as :func:`accumulate` would give it from all of them in one pass.
+    so far give, the same however the dumps were split between calls.
 
     This is what makes a convergence check while the solver runs cost the dumps written
     since the last check, not every dump again."""
@@ -554,7 +543,9 @@ def compartment_sequences(acc: Accumulation, exits: Exits, nx: int, ny: int) -> 
     """Run-length-encoded compartment sequences of every particle (:class:`CompartmentSequences`)
     from a pass made with ``record_sequences``. Raises ValueError if it was made without."""
     if not acc.visits:
-        raise ValueError("the accumulation holds no per-dump states: run accumulate(..., record_sequences=True)")
+        raise ValueError(
+            "the accumulation holds no per-dump states: read the dumps with DumpStream(..., record_sequences=True)"
+        )
     n_cells = nx * ny
     ids = np.concatenate([v[0] for v in acc.visits]).astype(np.int64)
     state = np.concatenate([v[1] for v in acc.visits])
