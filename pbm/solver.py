@@ -26,7 +26,7 @@ import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cache, cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -422,8 +422,18 @@ def _march_columns(props, windows, steps, rates, feed_key, z, injections) -> np.
 
     if len(groups) == 1:
         return run(groups[0])
-    with ThreadPoolExecutor(max_workers=len(groups)) as pool:
-        return np.concatenate(list(pool.map(run, groups)), axis=2)
+    # the first group on the calling thread, the others on the shared pool's: no thread is
+    # started per march (a start costs as much as a tenth of a 20-ms run)
+    others = [_pool().submit(run, cols) for cols in groups[1:]]
+    first = run(groups[0])
+    return np.concatenate([first, *(f.result() for f in others)], axis=2)
+
+
+@cache
+def _pool() -> ThreadPoolExecutor:
+    """The worker threads the marches share, started on first use; how many a march uses is
+    sized to the free cores at the time."""
+    return ThreadPoolExecutor(max_workers=MAX_THREADS, thread_name_prefix="pbm-march")
 
 
 def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol):
