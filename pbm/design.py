@@ -308,8 +308,17 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     [length_factor_min, length_factor_max], then each edge refined on the margin that
     binds there. Margins that grow with length set the lower edge, the others the upper;
     the first feasible stretch of the scan is returned."""
+    evaluated: dict[float, Evaluation] = {}
+
+    def at(f: float) -> Evaluation:
+        # the edges' root finding starts from the scanned points it brackets, and ends on one
+        f = float(f)
+        if f not in evaluated:
+            evaluated[f] = evaluate(library, spec, rpm, f)
+        return evaluated[f]
+
     factors = np.geomspace(spec.length_factor_min, spec.length_factor_max, SCAN_POINTS)
-    scanned = [evaluate(library, spec, rpm, f) for f in factors]
+    scanned = [at(f) for f in factors]
     ok = [e.feasible for e in scanned]
     if not any(ok):
         return SpeedRow(rpm, None, None, None, scanned)
@@ -320,7 +329,7 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
 
     def edge(outside: float, inside: float, kinds: tuple[str, ...]) -> float:
         def margin(f: float) -> float:
-            m = evaluate(library, spec, rpm, f).margins
+            m = at(f).margins
             return min(m[k] for k in kinds)
 
         if margin(outside) * margin(inside) > 0:  # not the margin that failed: keep the scanned point
@@ -335,7 +344,7 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     hi = factors[last]
     if last + 1 < len(factors) and shrinking:
         hi = edge(factors[last], factors[last + 1], shrinking)
-    return SpeedRow(rpm, float(lo), float(hi), evaluate(library, spec, rpm, lo), scanned)
+    return SpeedRow(rpm, float(lo), float(hi), at(lo), scanned)
 
 
 def speed_ranges(
@@ -348,9 +357,13 @@ def speed_ranges(
     ``spec``: the feasible stretches of ``speeds``, each open edge refined between its grid
     speeds by root finding on the smallest margin."""
     speeds = [float(v) for v in speeds]
+    evaluated: dict[float, float] = {}
 
     def margin(rpm: float) -> float:
-        return min(evaluate(library, spec, rpm, length_factor).margins.values())
+        # the root finding starts from the grid speeds it brackets
+        if rpm not in evaluated:
+            evaluated[rpm] = min(evaluate(library, spec, rpm, length_factor).margins.values())
+        return evaluated[rpm]
 
     values = [margin(v) for v in speeds]
     ranges = []
@@ -499,8 +512,17 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
     between the last feasible feed and the next. Higher feeds are outside the library:
     refused, never extrapolated (a note says when the top of the range still meets it)."""
     lo, hi = feeds.feed_range
+    evaluated: dict[float, Evaluation] = {}
+
+    def at(f: float) -> Evaluation:
+        # the root finding starts from the scanned feeds it brackets, and ends on one
+        f = float(f)
+        if f not in evaluated:
+            evaluated[f] = evaluate_feed(feeds, spec, f)
+        return evaluated[f]
+
     grid = np.geomspace(lo, hi, FEED_SCAN_POINTS)
-    scanned = [evaluate_feed(feeds, spec, f) for f in grid]
+    scanned = [at(f) for f in grid]
     ok = [e.feasible for e in scanned]
     notes: list[str] = []
     if not any(ok):
@@ -515,7 +537,7 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
         return ThroughputResult((lo, hi), scanned[-1], scanned, notes)
 
     def least(f: float) -> float:
-        return min(evaluate_feed(feeds, spec, f).margins.values())
+        return min(at(f).margins.values())
 
     edge = _feasible_root(least, float(grid[last + 1]), float(grid[last]))
     if not all(ok[: last + 1]):
@@ -524,4 +546,4 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
             + ", ".join(f"{g:.4g}" for g, k in zip(grid[: last + 1], ok[: last + 1]) if not k)
             + " /s"
         )
-    return ThroughputResult((lo, hi), evaluate_feed(feeds, spec, edge), scanned, notes)
+    return ThroughputResult((lo, hi), at(edge), scanned, notes)
