@@ -16,8 +16,8 @@ from pbm.model import supported_modes
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
 from workflows.config import Config, config_without
-from workflows.pipeline.log import stderr_log
-from workflows.pipeline.stages import DemSide, Log, pbm_config_for, rtd_pulse
+from workflows.pipeline.log import Log, stderr_log
+from workflows.pipeline.stages import DemSide, pbm_config_for, rtd_pulse
 
 # --------------------------------------------------------------------------- predictions
 #: Agreement rows that are diagnostics of the RTD's definition, not predictions to judge.

@@ -17,7 +17,8 @@ from dem.cluster import batch_script, estimate_cost, mpi_command, slurm_script
 from dem.deck import MAIN_DECK, build_deck, write_deck
 from dem.run import can_resume, completed_run, prepare_run
 from workflows.config import Config, dump_toml
-from workflows.pipeline.stages import Log, results_available, writable_directory
+from workflows.pipeline.log import Log
+from workflows.pipeline.stages import results_available, writable_directory
 from workflows.shipped import measured_throughput, reference_holdup
 
 #: Particle-steps per second per core of the blender deck when no benchmark result is

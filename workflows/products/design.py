@@ -16,7 +16,8 @@ from coupling.jsonable import json_ready, write_json
 from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult, design, feed_library, max_feed
 from workflows.analysis.validation import same_but_feed
 from workflows.config import config_without
-from workflows.pipeline.stages import Log, load_results, pbm_config_for, writable_directory
+from workflows.pipeline.log import Log
+from workflows.pipeline.stages import load_results, pbm_config_for, writable_directory
 from workflows.report.design import plot_feasible
 from workflows.shipped import VALIDATION_DIR
 

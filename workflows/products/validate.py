@@ -38,8 +38,8 @@ from workflows.analysis.budget import budget_study
 from workflows.analysis.step import step_comparison
 from workflows.analysis.validation import campaign_span_s, library_law, predictions, verdicts
 from workflows.config import Config, load_preset, override
-from workflows.pipeline.log import stderr_log
-from workflows.pipeline.stages import DemSide, Log, dem_stage, writable_directory
+from workflows.pipeline.log import Log, stderr_log
+from workflows.pipeline.stages import DemSide, dem_stage, writable_directory
 from workflows.report.budget import plot_budget
 from workflows.report.step import plot_step, step_html
 from workflows.report.validation import plot_parity, plot_profiles, render_report
