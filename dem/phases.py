@@ -114,7 +114,10 @@ PHASE_LAG_S = 0.4
 #: phase does cross a compartment within the observation interval, and the bound then
 #: holds the fast lane back, the more the finer the grid: on the validation baseline at
 #: 0.4 s, K = 3, 20 slices gave a mean residence time of 26.5 s at a bound of 2, 22.3 s at
-#: 6 and 22.1 s at 12, against 21.4-21.5 s on 10 slices at every bound (DEM 21.27 s).
+#: 6 and 22.1 s at 12, against 21.4-21.5 s on 10 slices at every bound (DEM 21.27 s). On
+#: the shipped reduced run's 20-slice file (``pbmdem study phases --results
+#: workflows/reference/dem-ac547c3f930c80c8.h5 --grids 20x1 --ks 3 --max-rate-x-interval B``):
+#: 21.2 s and a hold-up of 2712 at B = 2, 18.3 s and 2331 at B = 12 (DEM 17.2 s, 2250).
 PHASE_MAX_RATE_X_INTERVAL = 12.0
 
 
@@ -708,7 +711,12 @@ def _move_rates(model: PhaseTransport) -> dict[str, np.ndarray]:
     }
 
 
-def _initial(base: PhaseTransport, k: int, rng: np.random.Generator | None) -> PhaseTransport:
+def _initial(
+    base: PhaseTransport,
+    k: int,
+    rng: np.random.Generator | None,
+    max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
+) -> PhaseTransport:
     """A K-phase start from the one-phase fit ``base`` (module docstring, "Starts")."""
     nx, ny = base.nx, base.ny
     if rng is None:
@@ -724,7 +732,7 @@ def _initial(base: PhaseTransport, k: int, rng: np.random.Generator | None) -> P
         rates = rates * np.exp(rng.normal(0.0, 0.1, rates.shape))
     switching = np.broadcast_to(switch[:, :, None, None], (k, k, nx, ny)).copy()
     switching[np.arange(k), np.arange(k)] = 0.0
-    cap = PHASE_MAX_RATE_X_INTERVAL / base.interval_s
+    cap = max_rate_x_interval / base.interval_s
     return PhaseTransport(np.minimum(rates, cap), switching, np.stack([entry, entry]), base.interval_s)
 
 
@@ -741,7 +749,12 @@ def _ordered(model: PhaseTransport, occupancy: np.ndarray) -> tuple[PhaseTranspo
 
 
 def _ctmc_em_steps(
-    counts: np.ndarray, moves: dict, start: dict[str, np.ndarray], interval_s: float, steps: int
+    counts: np.ndarray,
+    moves: dict,
+    start: dict[str, np.ndarray],
+    interval_s: float,
+    steps: int,
+    max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
 ) -> np.ndarray:
     """``steps`` EM updates of the rates of a chain observed at ``counts`` (expected
     transitions per interval): each move's rate becomes its expected number of jumps over
@@ -749,13 +762,13 @@ def _ctmc_em_steps(
     :func:`dem.rates.log_likelihood` (for a move i -> j, rate * dL/dQ_ij is the expected
     number of jumps and dL/dQ_ii the expected time in i, given the endpoints of every
     interval). One Frechet derivative per update, against tens of evaluations for L-BFGS;
-    every update increases the likelihood. Capped at 2 / interval like the L-BFGS fit."""
+    every update increases the likelihood. Capped at ``max_rate_x_interval`` / interval."""
     src = np.concatenate([t[0] for t in moves.values()])
     dst = np.concatenate([t[1] for t in moves.values()])
     rates = np.concatenate([np.asarray(start[key], dtype=float) for key in moves])
     # EM never moves a rate off 0: start every move slightly off it
     rates = np.maximum(rates, 1e-4 / interval_s)
-    cap = PHASE_MAX_RATE_X_INTERVAL / interval_s
+    cap = max_rate_x_interval / interval_s
     n = counts.shape[0]
     for _ in range(steps):
         q = np.zeros((n, n))
@@ -769,7 +782,13 @@ def _ctmc_em_steps(
 
 
 def _em(
-    model: PhaseTransport, data: PhaseData, max_iterations: int, tol: float, m_step_iterations: int, m_step: str = "em"
+    model: PhaseTransport,
+    data: PhaseData,
+    max_iterations: int,
+    tol: float,
+    m_step_iterations: int,
+    m_step: str = "em",
+    max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
 ) -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
     """EM from ``model`` (module docstring); returns the model, its log-likelihood, the
     iterations, whether it converged and the expected time per (compartment, phase)."""
@@ -798,7 +817,7 @@ def _em(
         if m_step == "lbfgs":
             values, _fit = rate_fit.fit_pattern(counts, moves, _move_rates(model), interval, m_step_iterations)
         else:
-            values = _ctmc_em_steps(counts, moves, _move_rates(model), interval, m_step_iterations)
+            values = _ctmc_em_steps(counts, moves, _move_rates(model), interval, m_step_iterations, max_rate_x_interval)
         split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
         per_move = dict(zip(moves, np.split(values, split)))
         model = phase_model.from_move_rates(per_move, nx, ny, k, entry, interval, model.attrs)
@@ -817,24 +836,28 @@ def fit(
     m_step_iterations: int = 20,
     base: PhaseTransport | None = None,
     m_step: str = "em",
+    max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
 ) -> PhaseFit:
     """Fit the K = ``n_phases`` chain to ``data`` by EM from ``starts`` starts (module
     docstring); stop when the log-likelihood gains less than ``tol`` nats per
     particle-step, or after ``max_iterations``. ``base``: the one-phase fit to start from
-    (default: fitted here, by the same EM with K = 1). Raises ValueError for K < 1 or
-    starts < 1."""
+    (default: fitted here, by the same EM with K = 1). ``max_rate_x_interval``: the bound
+    on every rate x the observation interval (:data:`PHASE_MAX_RATE_X_INTERVAL`). Raises
+    ValueError for K < 1, starts < 1 or a bound that is not > 0."""
     if not isinstance(n_phases, (int, np.integer)) or n_phases < 1:
         raise ValueError(f"n_phases = {n_phases!r}: expected an integer >= 1")
     if starts < 1:
         raise ValueError(f"starts = {starts!r}: expected at least one start")
+    if not (math.isfinite(max_rate_x_interval) and max_rate_x_interval > 0):
+        raise ValueError(f"max_rate_x_interval = {max_rate_x_interval!r}: expected a finite bound > 0")
     wall0 = time.perf_counter()
     if base is None:
         base = one_phase(data)
     rng = np.random.default_rng(seed)
     results = []
     for start in range(starts if n_phases > 1 else 1):
-        first = _initial(base, n_phases, None if start == 0 else rng)
-        results.append(_em(first, data, max_iterations, tol, m_step_iterations, m_step))
+        first = _initial(base, n_phases, None if start == 0 else rng, max_rate_x_interval)
+        results.append(_em(first, data, max_iterations, tol, m_step_iterations, m_step, max_rate_x_interval))
     best = max(results, key=lambda r: r[1])
     model, log_likelihood, iterations, converged, dwell = best
     occupancy = dwell.reshape(data.nx, data.ny, n_phases).transpose(2, 0, 1)

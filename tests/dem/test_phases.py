@@ -393,3 +393,15 @@ def test_sequences_until_a_time_are_the_record_of_a_shorter_run(synthetic_two_ph
     ends = sequences.start + sequences.lengths - 1  # the dump of each full sequence's last state
     kept = sequences.start <= 700
     np.testing.assert_array_equal(short.discharged, sequences.discharged[kept] & (ends[kept] <= 700))
+
+
+def test_the_bound_on_rate_x_interval_holds_and_is_checked(synthetic_two_phase):
+    """The fast phase moves 7 /s x 0.1 s = 0.7 per interval: a bound of 0.3 holds every rate
+    at 3 /s, and the true rates are recovered under the product's bound; a bound that is
+    not > 0 is refused by name."""
+    _model, _sequences, data, fit = synthetic_two_phase
+    held = phases.fit(data, 2, starts=1, max_iterations=30, max_rate_x_interval=0.3)
+    assert held.transport.rates.max() <= 0.3 / INTERVAL * (1 + 1e-9)
+    assert fit.transport.rates.max() > 0.3 / INTERVAL  # the fast lane at 7 /s is not held back
+    with pytest.raises(ValueError, match="max_rate_x_interval"):
+        phases.fit(data, 2, max_rate_x_interval=0.0)

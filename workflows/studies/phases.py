@@ -195,6 +195,7 @@ def evaluate(
     seed: int = 0,
     residents: bool = True,
     lag: int = 1,
+    max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
 ) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
     the particles already inside when the window opens (:func:`dem.phases.prepare`); the
@@ -204,12 +205,13 @@ def evaluate(
     t0, t1 = fit_window
     data = phases.prepare(sequences, (t0, t1), grid, residents=residents, lag=lag)
     wall0 = time.perf_counter()
-    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5)
+    bound = {"max_rate_x_interval": max_rate_x_interval}
+    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
     train = phases.prepare(sequences, (t0, middle), grid, residents=residents, lag=lag)
     test = phases.prepare(sequences, (middle, t1), grid, lag=lag)
-    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=1e-5)
+    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
     ck = fit.chapman_kolmogorov(data, tuple(max(1, round(v / data.interval_s)) for v in (1.0, 2.0, 5.0, 10.0)))
     pbm = pbm_numbers(fit.transport, config, target)
     # slice hold-ups: the DEM's are on 10 slices; a coarser or finer PBM grid is compared
@@ -255,6 +257,7 @@ def phase_study(
     residents: bool = True,
     log=print,
     lag_s: float = phases.PHASE_LAG_S,
+    max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
@@ -286,7 +289,17 @@ def phase_study(
     for grid in grids:
         for k in ks:
             row = evaluate(
-                seq, config, goal, tuple(grid), k, window, starts, max_iterations, residents=residents, lag=lag
+                seq,
+                config,
+                goal,
+                tuple(grid),
+                k,
+                window,
+                starts,
+                max_iterations,
+                residents=residents,
+                lag=lag,
+                max_rate_x_interval=max_rate_x_interval,
             )
             log(
                 f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
@@ -481,6 +494,12 @@ def add_arguments(parser) -> None:
         help="instead of the K study: the outlet RSD of the results' phase model with its transverse rates "
         "fitted at these observation intervals [s], comma-separated (e.g. 0.4,1,2,3)",
     )
+    parser.add_argument(
+        "--max-rate-x-interval",
+        type=float,
+        default=phases.PHASE_MAX_RATE_X_INTERVAL,
+        help="the fit's bound on every rate x the observation interval (default %(default)s, the product's)",
+    )
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
 
@@ -549,7 +568,17 @@ def run(args) -> int:
         raise ConfigError(f"--ks {args.ks!r} and --starts {args.starts}: all must be >= 1")
     if not args.lag_s > 0:
         raise ConfigError(f"--lag-s {args.lag_s}: expected an interval > 0 s")
-    study = phase_study(args.results, args.target, _grids(args.grids), ks, starts=args.starts, lag_s=args.lag_s)
+    if not args.max_rate_x_interval > 0:
+        raise ConfigError(f"--max-rate-x-interval {args.max_rate_x_interval}: expected a bound > 0")
+    study = phase_study(
+        args.results,
+        args.target,
+        _grids(args.grids),
+        ks,
+        starts=args.starts,
+        lag_s=args.lag_s,
+        max_rate_x_interval=args.max_rate_x_interval,
+    )
     print(markdown(study))
     out = writable_directory(args.out, "--out")
     print(f"wrote {write_json(out / 'phases.json', record(study))} and {plot_study(study, out / 'phases.png')}")
