@@ -5,14 +5,13 @@ would have made while the run went (every ``--every`` simulated seconds from 2 x
 until the first converged one), with the check the product uses
 (:class:`~workflows.analysis.convergence.RunDirectoryCheck`: each dump read once over all
 checks). Per check: the dumps it read, the seconds spent reading them, finishing the
-results and judging the PBMs, and the DEM's own wall time between checks, from the
-dumps' modification times. At the stop it also times the earlier check, which
-post-processed every dump up to T again.
+results and judging the PBMs, and the DEM's own wall time between checks. At the stop it
+also times what the earlier check cost, post-processing every dump up to T again.
 
 The wall time a stopped run would have taken is the DEM's wall time to the stop T, plus
 the converged check (the run goes on meanwhile and stops at the next solver line after
-it), plus the post-processing of the dumps up to T; the complete run's is its wall time
-plus the post-processing of all its dumps. The DEM's wall time to T is its total in
+it), plus finishing the post-processing the checks kept open; the complete run's is its
+wall time plus the post-processing of all its dumps. The DEM's wall time to T is its total in
 proportion to the particle-steps done by T (the hold-up integrated over time; a contact
 solver's cost grows with its particles), since the dumps' own times do not survive a
 resumed or copied run. A check that takes longer than the DEM needs for ``--every``
