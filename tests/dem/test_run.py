@@ -283,7 +283,10 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
         sent = time.monotonic()
         while _solver_alive(solver_pid) and time.monotonic() - sent < 10:
             time.sleep(0.05)
-        assert time.monotonic() - sent <= 2.0, "the solver outlived SIGTERM by more than 2 s"
+        # handled, the solver is gone in milliseconds; 5 s leaves a loaded machine its
+        # scheduling delays and still tells it from an unhandled signal (the solver running
+        # on to its end) and from the 10-s grace before SIGKILL
+        assert time.monotonic() - sent <= 5.0, "the solver outlived SIGTERM by more than 5 s"
         child.wait(timeout=30)
     assert read_status(run_dir)["state"] == "interrupted"
     record = run_dem(prepare_run(config.dem), runs_root=tmp_path / "runs", resume=True, progress=False)
