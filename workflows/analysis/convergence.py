@@ -2,7 +2,8 @@
 
 The criterion is the DEM budget's (:mod:`workflows.analysis.budget`) asked while the run goes:
 every :data:`CHECK_EVERY_S` seconds of simulated time T, the dumps written so far are
-post-processed (each dump read once over all checks, :class:`RunDirectoryCheck`), and the PBMs built from their first T and T - dT seconds
+post-processed (each dump read once over all checks, :class:`RunDirectoryCheck`), and the
+PBMs built from their first T and T - dT seconds
 (:func:`workflows.analysis.budget.table_from_first`, both rate modes the table carries) are
 compared quantity by quantity on the agreement table. The run has converged when no
 quantity moved by more than half the width of the DEM's 95 % interval at T: more DEM would
@@ -108,9 +109,9 @@ class RunDirectoryCheck:
     """:func:`converged` on the dumps of ``run_dir`` up to T (and its discharge files), as
     ``check(T)``: the dumps are read once, by a :class:`dem.post.Postprocessor` kept
     between calls, so a check costs the dumps (and rate windows) written since the one
-    before (the results equal a post-processing of every dump up to T in one pass). Calls must come with
-    increasing T; they are, from :class:`ConvergenceWatch`, one at a time. ``costs`` keeps
-    what each check cost."""
+    before (the results equal a post-processing of every dump up to T in one pass). Calls
+    must come with increasing T; they do from :class:`ConvergenceWatch`, one at a time.
+    ``costs`` keeps what each check cost."""
 
     def __init__(self, run_dir: Path, config: Config, step_s: float = CHECK_EVERY_S) -> None:
         self.run_dir, self.config, self.step_s = Path(run_dir), config, float(step_s)
