@@ -4,7 +4,7 @@ The criterion is the DEM budget's (:mod:`workflows.analysis.budget`) asked while
 every :data:`CHECK_EVERY_S` seconds of simulated time T, the dumps written so far are
 post-processed (each dump read once over all checks, :class:`RunDirectoryCheck`), and the
 PBMs built from their first T and T - dT seconds
-(:func:`workflows.analysis.budget.table_from_first`, both rate modes the table carries) are
+(:func:`workflows.analysis.budget.table_from_first`, every rate mode the table carries) are
 compared quantity by quantity on the agreement table. The run has converged when no
 quantity moved by more than half the width of the DEM's 95 % interval at T: more DEM would
 not change the PBM by more than the DEM itself can resolve. A quantity the DEM cannot yet
