@@ -148,7 +148,8 @@ def test_a_watched_run_is_post_processed_from_what_its_checks_read(tmp_path):
 
     side = dem_stage(config, runs_root=tmp_path / "runs", progress=False, watch=watch)
     checks = watches[0].check
-    assert len(checks.costs) >= 2 and checks.costs[0].dumps_read > 0  # the checks read dumps
+    # a check still running when the next is due skips it: how many ran depends on the load
+    assert checks.costs and checks.costs[0].dumps_read > 0  # the checks read dumps
     assert side.provenance["run_state"] == "completed"
     record = completed_run(prepare_run(config.dem), tmp_path / "runs")
     once = postprocess(
