@@ -203,3 +203,24 @@ def test_smallest_budget_needs_every_larger_t_inside():
     assert smallest_budget({45.0: True, 260.0: True}) == 45.0
     assert smallest_budget({45.0: True, 260.0: False}) is None
     assert smallest_budget({}) is None
+
+
+def test_refit_at_the_end_is_the_post_processings_own_model():
+    """At T = the last dump, with the run's own steady time, the refit is skipped: the phase
+    model the post-processing fitted is what fitting again gives (the fit is deterministic),
+    and before the end the model is fitted again."""
+    from dem import phases
+    from workflows.analysis.budget import refit_phases
+    from workflows.pipeline.stages import load_results
+    from workflows.shipped import VALIDATION_DIR
+
+    results, _config = load_results(VALIDATION_DIR / "dem-aa093a229dfd2ce4.h5")
+    steady, end = results.summary.steady_time, float(results.sequences.snapshot_t[-1])
+    own = refit_phases(results, end, steady)
+    assert own is results.table.phases
+    again, _fit = phases.table_with_phases(
+        results.table, results.sequences.until(end), steady, results.table.phases.n_phases
+    )
+    np.testing.assert_array_equal(again.phases.rates, own.rates)
+    np.testing.assert_array_equal(again.phases.switching, own.switching)
+    assert refit_phases(results, end - 20.0, steady) is not results.table.phases
