@@ -13,9 +13,10 @@ from typing import Any
 
 from coupling.errors import ConfigError, OutputError, os_reason
 from coupling.jsonable import json_ready, write_json
+from dem.post import DemResults
 from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult, design, feed_library, max_feed
 from workflows.analysis.validation import same_but_feed
-from workflows.config import config_without
+from workflows.config import Config, config_without
 from workflows.pipeline.log import Log
 from workflows.pipeline.stages import load_results, pbm_config_for, writable_directory
 from workflows.report.design import plot_feasible
@@ -24,7 +25,7 @@ from workflows.shipped import VALIDATION_DIR
 RPM_KEY = "dem.operation.impeller_rpm"
 
 
-def library_runs(directory: str | Path = VALIDATION_DIR) -> list[tuple[Path, Any, Any]]:
+def library_runs(directory: str | Path = VALIDATION_DIR) -> list[tuple[Path, DemResults, Config]]:
     """(path, results, configuration) of every DEM results file in ``directory``, each read
     (and its digest checked) once for both libraries. Raises ConfigError when the
     directory is none or holds no results file."""
@@ -37,7 +38,9 @@ def library_runs(directory: str | Path = VALIDATION_DIR) -> list[tuple[Path, Any
     return runs
 
 
-def load_library(runs: list[tuple[Path, Any, Any]], rates: str = "velocity", log: Log | None = None) -> TableLibrary:
+def load_library(
+    runs: list[tuple[Path, DemResults, Config]], rates: str = "velocity", log: Log | None = None
+) -> TableLibrary:
     """The table library among ``runs`` (:func:`library_runs`): grouped by configuration
     less the impeller speed, the largest group (ties: the one with the widest speed range)."""
     directory = runs[0][0].parent
@@ -65,7 +68,7 @@ def load_library(runs: list[tuple[Path, Any, Any]], rates: str = "velocity", log
     )
 
 
-def load_feed_library(runs: list[tuple[Path, Any, Any]], rates: str = "measured", log: Log | None = None):
+def load_feed_library(runs: list[tuple[Path, DemResults, Config]], rates: str = "measured", log: Log | None = None):
     """The feed library among ``runs`` (:func:`library_runs`): the largest group whose
     configurations differ only in the feed rate (and the duration), when it holds at least
     two runs with a steady state; else None (the answer then has no throughput)."""
