@@ -78,12 +78,73 @@ def rsd(counts_a, counts_b, axis: int = 0) -> np.ndarray:
     remaining ``c``. NaN where fewer than two compartments remain or their mean is 0.
     Returns an array shaped like the input without ``axis`` (a 0-d array for 1-D input).
     """
+    a = np.asarray(counts_a, dtype=float)
+    b = np.asarray(counts_b, dtype=float)
+    if a.shape != b.shape:
+        raise ValueError(f"A and B counts must have one shape, got {a.shape} and {b.shape}")
+    axis = axis % a.ndim if a.ndim else 0
+    if _rsd_kernel is None or a.ndim == 0:
+        return _rsd_reference(a, b, axis)
+    # (before, compartments, after): a view of any C-ordered input, so nothing is copied
+    shape = (math.prod(a.shape[:axis]), a.shape[axis], math.prod(a.shape[axis + 1 :]))
+    a3 = np.ascontiguousarray(a).reshape(shape)
+    b3 = np.ascontiguousarray(b).reshape(shape)
+    return _rsd_kernel(a3, b3, EMPTY_BELOW).reshape(a.shape[:axis] + a.shape[axis + 1 :])
+
+
+def _rsd_reference(counts_a, counts_b, axis: int) -> np.ndarray:
+    """:func:`rsd` in numpy, the reference of the compiled kernel (tests hold them equal)."""
     _, occupied, frac = _fractions(counts_a, counts_b, axis)
     n = occupied.sum(axis=0)
     mean = np.divide(frac.sum(axis=0), n, out=np.full(n.shape, np.nan), where=n > 0)
     dev2 = np.where(occupied, (frac - mean) ** 2, 0.0).sum(axis=0)
     sd = np.sqrt(np.divide(dev2, n - 1, out=np.full(n.shape, np.nan), where=n > 1))
     return np.divide(sd, mean, out=np.full(n.shape, np.nan), where=(n > 1) & (mean > 0))
+
+
+def _rsd_columns(a, b, empty_below):
+    """:func:`rsd` over axis 1 of (P, C, Q) counts: two passes per compartment row, adding
+    in the reference's order (compartment after compartment), into (P, Q) sums. numpy's
+    version makes ~11 passes over temporaries as large as the input, which made the RSD
+    of a 10 000-member ensemble's outlets cost as much as their products."""
+    p_n, c_n, q_n = a.shape
+    out = np.empty((p_n, q_n))
+    n = np.empty(q_n)
+    total = np.empty(q_n)
+    dev2 = np.empty(q_n)
+    for p in range(p_n):
+        n[:] = 0.0
+        total[:] = 0.0
+        dev2[:] = 0.0
+        for c in range(c_n):
+            for q in range(q_n):
+                t = a[p, c, q] + b[p, c, q]
+                if t >= empty_below:
+                    n[q] += 1.0
+                    total[q] += a[p, c, q] / t
+        for q in range(q_n):
+            total[q] = total[q] / n[q] if n[q] > 0 else np.nan
+        for c in range(c_n):
+            for q in range(q_n):
+                t = a[p, c, q] + b[p, c, q]
+                if t >= empty_below:
+                    d = a[p, c, q] / t - total[q]
+                    dev2[q] += d * d
+        for q in range(q_n):
+            mean = total[q]
+            if n[q] > 1 and mean > 0:
+                out[p, q] = math.sqrt(dev2[q] / (n[q] - 1.0)) / mean
+            else:
+                out[p, q] = np.nan
+    return out
+
+
+try:  # compiled where numba is installed (a dependency); the numpy reference otherwise
+    import numba
+
+    _rsd_kernel = numba.njit(cache=True, nogil=True)(_rsd_columns)
+except ImportError:  # pragma: no cover
+    _rsd_kernel = None
 
 
 def random_mixture_rsd(counts_a, counts_b, axis: int = 0) -> np.ndarray:

@@ -26,7 +26,7 @@ from pbm.config import PbmConfig
 from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases
 from pbm.resources import check_ensemble_memory
 from pbm.simulate import check_run, feed_factors, noise_intervals
-from pbm.solver import MAX_THREADS, TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples
+from pbm.solver import MAX_THREADS, TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples, shared_pool
 
 BAND_QUANTILES = (0.05, 0.95)
 
@@ -56,25 +56,34 @@ class EnsembleResult:
     rsd_outlet_members: np.ndarray
 
 
-def _bands(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean and 5/95 % quantiles over axis 0, ignoring NaN; NaN where all are NaN."""
-    finite = np.isfinite(values)
-    any_finite = finite.any(axis=0)
-    mean = np.full(values.shape[1:], np.nan)
-    lo = np.full(values.shape[1:], np.nan)
-    hi = np.full(values.shape[1:], np.nan)
-    if any_finite.any():
-        sub = values[:, any_finite]
-        count = np.isfinite(sub).sum(axis=0)
-        mean[any_finite] = np.where(np.isfinite(sub), sub, 0.0).sum(axis=0) / count
-        # nanquantile is ~10x slower than quantile: only where some member is NaN
-        q = np.empty((2, sub.shape[1]))
-        partial = count < sub.shape[0]
-        if (~partial).any():
-            q[:, ~partial] = np.quantile(sub[:, ~partial], BAND_QUANTILES, axis=0)
-        if partial.any():
-            q[:, partial] = np.nanquantile(sub[:, partial], BAND_QUANTILES, axis=0)
-        lo[any_finite], hi[any_finite] = q[0], q[1]
+def _bands(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and 5/95 % quantiles of each row (a series' members along axis 1), ignoring
+    NaN; NaN where all are NaN. Row blocks run on the free cores: the quantiles' partitions
+    release the GIL, and each row's numbers do not depend on the blocks."""
+    blocks = np.array_split(np.arange(rows.shape[0]), free_cores(min(MAX_THREADS, max(1, rows.shape[0]))))
+    if len(blocks) == 1:
+        return _row_bands(rows)
+    parts = list(shared_pool().map(lambda idx: _row_bands(rows[idx]), blocks))
+    return tuple(np.concatenate([part[i] for part in parts]) for i in range(3))
+
+
+def _row_bands(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    finite = np.isfinite(rows)
+    count = finite.sum(axis=1)
+    mean = np.full(rows.shape[0], np.nan)
+    lo = np.full(rows.shape[0], np.nan)
+    hi = np.full(rows.shape[0], np.nan)
+    whole = count == rows.shape[1]
+    if whole.any():
+        sub = rows[whole]
+        mean[whole] = sub.mean(axis=1)
+        lo[whole], hi[whole] = np.quantile(sub, BAND_QUANTILES, axis=1)
+    # nanquantile is ~10x slower than quantile: only where some member is NaN
+    partial = ~whole & (count > 0)
+    if partial.any():
+        sub = rows[partial]
+        mean[partial] = np.where(finite[partial], sub, 0.0).sum(axis=1) / count[partial]
+        lo[partial], hi[partial] = np.nanquantile(sub, BAND_QUANTILES, axis=1)
     return mean, lo, hi
 
 
@@ -114,7 +123,8 @@ def noise_ensemble(
     # With sigma = 0 every member is the same run: propagate one and replicate it.
     distinct = members if sigma > 0 else 1
     n_noise = noise_intervals(config, t_end)
-    factors = feed_factors(config, n_noise, distinct, sigma)
+    # drawn on another core while the unit responses march: they need no factors
+    factors = shared_pool().submit(feed_factors, config, n_noise, distinct, sigma)
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
 
     out_times = multiples(config.output_interval_s, config.output_interval_s, t_end)
@@ -130,14 +140,13 @@ def noise_ensemble(
     out_index[np.searchsorted(times, out_times - TIME_TOLERANCE_S)] = np.arange(out_times.size)
 
     run = _by_superposition if distinct > n_noise else _by_columns
-    c_a, rsd_out, rsd_slices = run(props, times, feed_key, out_index, out_times.size, rates, factors, grid)
-
-    c_a_members = np.repeat(c_a.T, members // distinct, axis=0)
-    rsd_members = np.repeat(rsd_out.T, members // distinct, axis=0)
-    slice_members = np.repeat(rsd_slices.T, members // distinct, axis=0)
-    ca_stats = _bands(c_a_members)
-    rsd_stats = _bands(rsd_members)
-    slice_stats = _bands(slice_members)
+    series = run(props, times, feed_key, out_index, out_times.size, rates, factors, grid)
+    # each series' members along axis 1, every distinct run repeated for the members it stands for
+    reps = members // distinct
+    c_a_rows, rsd_rows, slice_rows = (x if reps == 1 else np.repeat(x, reps, axis=1) for x in series)
+    ca_stats = _bands(c_a_rows)
+    rsd_stats = _bands(rsd_rows)
+    slice_stats = _bands(slice_rows)
     return EnsembleResult(
         sigma=sigma,
         members=members,
@@ -151,8 +160,8 @@ def noise_ensemble(
         rsd_by_slice_mean=slice_stats[0],
         rsd_by_slice_p05=slice_stats[1],
         rsd_by_slice_p95=slice_stats[2],
-        C_A_members=c_a_members,
-        rsd_outlet_members=rsd_members,
+        C_A_members=c_a_rows.T,
+        rsd_outlet_members=rsd_rows.T,
     )
 
 
@@ -164,9 +173,11 @@ def _compartments(z: np.ndarray, grid: tuple[int, int, int]) -> np.ndarray:
 
 
 def _by_columns(props, times, feed_key, out_index, n_out, rates, factors, grid):
-    """Every member's A and B as two columns of one propagated state: cost ~ members."""
+    """Every member's A and B as two columns of one propagated state: cost ~ members.
+    ``factors`` is a future of the (J, M, 2) feed factors, as in :func:`_by_superposition`."""
     nx, ny, k = grid
     n = nx * ny * k
+    factors = factors.result()
     distinct = factors.shape[1]
 
     def feed_rates(key: int) -> np.ndarray:
@@ -199,10 +210,11 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     interval j alone are propagated once per feeder and interval (2 J columns), their
     outlet compartments and discharge recorded at every output; each member is then the
     sum over j of those responses times its feed rate in interval j (one matrix product
-    per block of outputs, reduced to C_A and RSD before the next block)."""
+    per block of outputs, reduced to C_A and RSD before the next block). ``factors`` is a
+    future of the (J, M, 2) feed factors, awaited only after the march."""
     nx, ny, k = grid
     n = nx * ny * k
-    n_int = factors.shape[0]
+    n_int = int(feed_key.max()) + 1  # the intervals a step feeds in; a later one feeds nothing
 
     def unit_feed(key: int) -> np.ndarray:
         r = np.zeros((2, 2 * n_int))
@@ -219,6 +231,7 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
             outlet[out] = _compartments(z, grid)[-1]
             discharged[out] = z[n]
     final = _compartments(z, grid).reshape(nx * ny, -1)
+    factors = factors.result()[:n_int]
     fed = [rates[s] * factors[:, :, s] for s in (0, 1)]  # (J, M) feed rate of each member
     # Member blocks on a thread per free core: numpy releases the GIL in its products, and
     # each thread's BLAS stays single-threaded (see coupling.blas).
@@ -233,26 +246,32 @@ def _combine(outlet, discharged, final, n_int, nx, ny, chunk, fed_a, fed_b):
     """C_A, outlet RSD and final slice RSDs of the members whose interval feed rates are
     the columns of ``fed_a`` / ``fed_b`` (J, M), from the unit responses."""
     n_out = outlet.shape[0]
+    members = fed_a.shape[1]
     fed = (fed_a, fed_b)
-    c_a = np.empty((n_out, fed_a.shape[1]))
+    c_a = np.empty((n_out, members))
     rsd_out = np.empty_like(c_a)
-    last = [np.zeros(fed_a.shape[1]), np.zeros(fed_a.shape[1])]
+    # One set of buffers for every block: a fresh array per product is fresh pages, and
+    # faulting them in cost as much as the products on these machines.
+    cells = np.empty((2, chunk * ny, members))
+    out = np.empty((2, chunk + 1, members))
+    out[:, 0] = 0.0  # the discharged before the first output: nothing
     for k0 in range(0, n_out, chunk):
         k1 = min(n_out, k0 + chunk)
+        rows = k1 - k0
         # nothing fed after the block's last output has arrived anywhere: drop those columns
         block = outlet[k0:k1]
         live = (np.any(block != 0, axis=(0, 1)) | np.any(discharged[k0:k1] != 0, axis=0)).reshape(2, n_int).any(axis=0)
         used = int(np.flatnonzero(live).max()) + 1 if live.any() else 1
-        cells = [
-            (block[:, :, s * n_int : s * n_int + used].reshape(-1, used) @ fed[s][:used]).reshape(k1 - k0, ny, -1)
-            for s in (0, 1)
-        ]
-        rsd_out[k0:k1] = rsd(cells[0], cells[1], axis=1)
-        out = [discharged[k0:k1, s * n_int : s * n_int + used] @ fed[s][:used] for s in (0, 1)]
-        for k in range(k1 - k0):
-            inc = [out[s][k] - last[s] for s in (0, 1)]
-            last = [out[0][k], out[1][k]]
-            c_a[k0 + k] = outflow_fraction_a(inc[0], inc[1])
+        for s in (0, 1):
+            np.matmul(
+                block[:, :, s * n_int : s * n_int + used].reshape(-1, used), fed[s][:used], out=cells[s, : rows * ny]
+            )
+            np.matmul(discharged[k0:k1, s * n_int : s * n_int + used], fed[s][:used], out=out[s, 1 : rows + 1])
+        shaped = cells[:, : rows * ny].reshape(2, rows, ny, members)
+        rsd_out[k0:k1] = rsd(shaped[0], shaped[1], axis=1)
+        inc = np.diff(out[:, : rows + 1], axis=1)
+        c_a[k0:k1] = outflow_fraction_a(inc[0], inc[1])
+        out[:, 0] = out[:, rows]
     state = [(final[:, s * n_int : (s + 1) * n_int] @ fed[s]).reshape(nx, ny, -1) for s in (0, 1)]
     return c_a, rsd_out, rsd(state[0], state[1], axis=1)
 

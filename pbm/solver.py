@@ -424,13 +424,13 @@ def _march_columns(props, windows, steps, rates, feed_key, z, injections) -> np.
         return run(groups[0])
     # the first group on the calling thread, the others on the shared pool's: no thread is
     # started per march (a start costs as much as a tenth of a 20-ms run)
-    others = [_pool().submit(run, cols) for cols in groups[1:]]
+    others = [shared_pool().submit(run, cols) for cols in groups[1:]]
     first = run(groups[0])
     return np.concatenate([first, *(f.result() for f in others)], axis=2)
 
 
 @cache
-def _pool() -> ThreadPoolExecutor:
+def shared_pool() -> ThreadPoolExecutor:
     """The worker threads the marches share, started on first use; how many a march uses is
     sized to the free cores at the time."""
     return ThreadPoolExecutor(max_workers=MAX_THREADS, thread_name_prefix="pbm-march")

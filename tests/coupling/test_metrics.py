@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from coupling import metrics
 from coupling.errors import ConfigError
 from coupling.metrics import (
     EMPTY_BELOW,
@@ -47,6 +48,31 @@ def test_rsd_along_an_axis_equals_one_call_per_row(rng):
     floors = random_mixture_rsd(a.T, b.T, axis=0)
     for k in range(7):
         assert floors[k] == pytest.approx(float(random_mixture_rsd(a[k], b[k])), nan_ok=True)
+
+
+@pytest.mark.parametrize(
+    ("shape", "axis"), [((10,), 0), ((6, 9), 0), ((6, 9), 1), ((3, 4, 5, 2), 2), ((3, 4, 5), -1), ((0, 4), 1)]
+)
+def test_compiled_rsd_is_the_numpy_definition(rng, shape, axis):
+    # integer and expected counts, empty compartments, compartments below one particle,
+    # all-B rows (mean 0) and rows with a single occupied compartment
+    a = rng.integers(0, 4, size=shape) * rng.random(shape)
+    b = rng.integers(0, 4, size=shape) * rng.random(shape)
+    if a.size:
+        a.flat[::5] = 0.0
+        b.flat[::7] = 0.4
+    got = rsd(a, b, axis=axis)
+    want = metrics._rsd_reference(a, b, axis % len(shape))
+    # the same sums in another order (numpy adds long rows pairwise): equal to rounding
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=1e-14, atol=0)
+    # a non-contiguous view reads the same
+    np.testing.assert_array_equal(rsd(np.asfortranarray(a), b, axis=axis), got)
+
+
+def test_rsd_refuses_counts_of_two_shapes():
+    with pytest.raises(ValueError, match=r"\(3,\) and \(4,\)"):
+        rsd(np.ones(3), np.ones(4))
 
 
 def test_random_mixture_floor_is_the_binomial_sampling_noise():
