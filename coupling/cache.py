@@ -150,7 +150,8 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
                 raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
             if isinstance(stored_digest, bytes):
                 stored_digest = stored_digest.decode("ascii")
-            actual = file_digest(h5)
+            values: dict = {}
+            actual = file_digest(h5, values)
             if stored_digest != actual:
                 raise CacheError(
                     f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} "
@@ -168,8 +169,8 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
             frames = {}
             for name, sub in group["frames"].items():
                 columns = json.loads(sub.attrs["columns"])
-                frames[name] = pd.DataFrame({c: sub[c][()] for c in columns}, columns=columns)
-            arrays = {name: data[()] for name, data in group["arrays"].items()}
+                frames[name] = pd.DataFrame({c: _read(values, sub[c]) for c in columns}, columns=columns)
+            arrays = {name: _read(values, data) for name, data in group["arrays"].items()}
     except CacheError:
         raise
     except Exception as exc:  # noqa: BLE001 - h5py and numpy raise many types on damaged files
@@ -180,10 +181,16 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
     return CacheEntry(table, summary, frames, arrays, provenance)
 
 
-def file_digest(h5: h5py.File) -> str:
+def file_digest(h5: h5py.File, values: dict | None = None) -> str:
     """SHA-256 (hex) of everything in an open cache file except its digest attribute
-    (:func:`coupling.files.h5_digest`, shared with the velocity-table files)."""
-    return h5_digest(h5)
+    (:func:`coupling.files.h5_digest`, shared with the velocity-table files; ``values``
+    receives the datasets it read)."""
+    return h5_digest(h5, values)
+
+
+def _read(values: dict, dataset: h5py.Dataset):
+    """The dataset's value as the digest check read it (read now if it was not)."""
+    return values[dataset.name] if dataset.name in values else dataset[()]
 
 
 def try_load_entry(path: str | os.PathLike, key: str | None = None) -> tuple[CacheEntry | None, str]:

@@ -230,7 +230,9 @@ if (
             with mock.patch.object(
                 coupling.cache,
                 "file_digest",
-                (lambda h5: h5.attrs.get(DIGEST_ATTR, "unchecked")) if check else coupling.cache.file_digest,
+                (lambda h5, values=None: h5.attrs.get(DIGEST_ATTR, "unchecked"))
+                if check
+                else coupling.cache.file_digest,
             ):
                 outcomes, changed, crashed = damaged_loads(sample, Path(tmp))
             print(f"{label:20s} {outcomes}, loaded changed data: {len(changed)}, other exceptions: {len(crashed)}")
