@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 from statistics import NormalDist
 
 import numpy as np
@@ -83,13 +84,14 @@ def rsd(counts_a, counts_b, axis: int = 0) -> np.ndarray:
     if a.shape != b.shape:
         raise ValueError(f"A and B counts must have one shape, got {a.shape} and {b.shape}")
     axis = axis % a.ndim if a.ndim else 0
-    if _rsd_kernel is None or a.ndim == 0:
+    kernel = _rsd_kernel()
+    if kernel is None or a.ndim == 0:
         return _rsd_reference(a, b, axis)
     # (before, compartments, after): a view of any C-ordered input, so nothing is copied
     shape = (math.prod(a.shape[:axis]), a.shape[axis], math.prod(a.shape[axis + 1 :]))
     a3 = np.ascontiguousarray(a).reshape(shape)
     b3 = np.ascontiguousarray(b).reshape(shape)
-    return _rsd_kernel(a3, b3, EMPTY_BELOW).reshape(a.shape[:axis] + a.shape[axis + 1 :])
+    return kernel(a3, b3, EMPTY_BELOW).reshape(a.shape[:axis] + a.shape[axis + 1 :])
 
 
 def _rsd_reference(counts_a, counts_b, axis: int) -> np.ndarray:
@@ -139,12 +141,15 @@ def _rsd_columns(a, b, empty_below):
     return out
 
 
-try:  # compiled where numba is installed (a dependency); the numpy reference otherwise
-    import numba
-
-    _rsd_kernel = numba.njit(cache=True, nogil=True)(_rsd_columns)
-except ImportError:  # pragma: no cover
-    _rsd_kernel = None
+@cache
+def _rsd_kernel():
+    """:func:`_rsd_columns` compiled, on first use (numba's import is a third of a second
+    that a command without an RSD need not pay); None without numba (a dependency)."""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover
+        return None
+    return numba.njit(cache=True, nogil=True)(_rsd_columns)
 
 
 def random_mixture_rsd(counts_a, counts_b, axis: int = 0) -> np.ndarray:
