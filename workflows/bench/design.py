@@ -1,0 +1,107 @@
+"""What the README's ``pbmdem design`` example costs, and where: ``pbmdem bench design``.
+
+Measures, each in a fresh interpreter as a user would meet it, ``--repeats`` times (median):
+
+* the command itself (:data:`EXAMPLE`), start to exit, written to a temporary directory;
+* the imports of the command's own modules (``workflows.products.design``);
+* the floor under both: importing only the libraries the command cannot do without
+  (:data:`LIBRARIES`: the linear algebra, the root finder, the table reader, HDF5 and the
+  figure's plotting library), with nothing of this project;
+
+and, in this process after those imports, the stages of :func:`workflows.products.design.run_design`:
+reading the library (every results file, its digest checked), the blender inversion (the
+frequency responses of the candidate lengths and speeds), the throughput inversion, and
+writing ``design.json`` and ``feasible.png``. Writes ``results/bench/design.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from coupling.jsonable import write_json
+
+OUT = Path("results/bench/design.json")
+#: the README's example spec
+EXAMPLE = ("--ca-within", "0.04", "--noise-sigma", "0.1", "--noise-tau", "5", "--mrt-max", "25")
+#: what any implementation of the command imports: numpy and scipy's linear algebra and
+#: root finding (the inversion), pandas and h5py (the results files), matplotlib (the figure)
+LIBRARIES = "import numpy, scipy.linalg, scipy.optimize, pandas, h5py, matplotlib; matplotlib.use('Agg'); import matplotlib.pyplot"
+TARGET_S = 2.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--repeats", type=int, default=3, help="fresh interpreters per measurement")
+    parser.add_argument("--out", default=str(OUT))
+
+
+def _fresh(code_or_args: list[str], repeats: int) -> list[float]:
+    """Wall times [s] of ``python <args>`` in a fresh interpreter; raises on a failure."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        done = subprocess.run([sys.executable, *code_or_args], capture_output=True, text=True)
+        times.append(time.perf_counter() - start)
+        if done.returncode not in (0, 1):  # 1: the spec is met nowhere, still an answer
+            raise RuntimeError(f"{' '.join(code_or_args)} failed ({done.returncode}): {done.stderr.strip()[-500:]}")
+    return times
+
+
+def _stages() -> dict[str, float]:
+    """Seconds of each stage of run_design, in this process (imports already paid)."""
+    from pbm.design import design, design_spec, max_feed
+    from workflows.products.design import library_runs, load_feed_library, load_library
+    from workflows.report.design import plot_feasible
+
+    spec = design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
+    out: dict[str, float] = {}
+    start = time.perf_counter()
+    runs = library_runs()
+    out["read the library (digests checked)"] = time.perf_counter() - start
+    start = time.perf_counter()
+    result = design(load_library(runs, "measured"), spec)
+    out["smallest blender (lengths x speeds)"] = time.perf_counter() - start
+    start = time.perf_counter()
+    feeds = load_feed_library(runs, "measured")
+    if feeds is not None:
+        max_feed(feeds, spec)
+    out["largest feed (fill law)"] = time.perf_counter() - start
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        plot_feasible(result, Path(tmp) / "feasible.png")
+    out["figure"] = time.perf_counter() - start
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    with tempfile.TemporaryDirectory() as tmp:
+        command = _fresh(["-m", "workflows.cli", "design", *EXAMPLE, "--out", tmp], args.repeats)
+    own = _fresh(["-c", "import workflows.products.design"], args.repeats)
+    floor = _fresh(["-c", LIBRARIES], args.repeats)
+    stages = _stages()
+    record = {
+        "command": ["pbmdem", "design", *EXAMPLE],
+        "command_s": command,
+        "command_median_s": statistics.median(command),
+        "imports_of_the_command_s": own,
+        "imports_of_the_libraries_alone_s": floor,
+        "stages_s": stages,
+        "target_s": TARGET_S,
+    }
+    write_json(Path(args.out), record)
+    rows = [
+        ("the README's `pbmdem design` example, fresh interpreter", statistics.median(command), f"<= {TARGET_S:g} s"),
+        ("  its imports (workflows.products.design)", statistics.median(own), ""),
+        ("  floor: numpy, scipy, pandas, h5py, matplotlib alone", statistics.median(floor), ""),
+        *((f"  {name}", seconds, "") for name, seconds in stages.items()),
+    ]
+    print(f"{'measurement':64s} {'median':>9s}  target")
+    for name, seconds, target in rows:
+        print(f"{name:64s} {seconds:8.2f}s  {target}")
+    print(f"wrote {args.out}")
+    return 0
