@@ -22,3 +22,20 @@ def test_superposition_equals_one_column_pair_per_member(monkeypatch, step):
         assert np.array_equal(np.isfinite(a), np.isfinite(b)), name
         np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], rtol=0, atol=1e-11, err_msg=name)
     assert np.nanstd(fast.C_A_members[:, -1]) > 0.005  # the members differ: the noise is there
+
+
+def test_bands_are_numpys_statistics_row_by_row_whatever_the_nans(monkeypatch):
+    """Mean and 5/95 % quantiles of each series over its members: rows without NaN, rows
+    with some NaN members (ignored) and all-NaN rows (NaN), the same on one block or several."""
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(9, 500))
+    rows[2, ::7] = np.nan
+    rows[5] = np.nan
+    want_mean = np.array([np.nan if np.isnan(r).all() else np.nanmean(r) for r in rows])
+    want = np.array([[np.nan, np.nan] if np.isnan(r).all() else np.nanquantile(r, (0.05, 0.95)) for r in rows])
+    for cores in (1, 3):
+        monkeypatch.setattr(ensemble, "free_cores", lambda cap, cores=cores: min(cap, cores))
+        mean, lo, hi = ensemble._bands(rows)
+        np.testing.assert_allclose(mean, want_mean, rtol=1e-12, equal_nan=True)
+        np.testing.assert_allclose(lo, want[:, 0], rtol=1e-12, equal_nan=True)
+        np.testing.assert_allclose(hi, want[:, 1], rtol=1e-12, equal_nan=True)
