@@ -60,14 +60,15 @@ def _bands(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean and 5/95 % quantiles of each row (a series' members along axis 1), ignoring
     NaN; NaN where all are NaN. Row blocks run on the free cores: the quantiles' partitions
     release the GIL, and each row's numbers do not depend on the blocks."""
-    blocks = np.array_split(np.arange(rows.shape[0]), free_cores(min(MAX_THREADS, max(1, rows.shape[0]))))
+    blocks = np.array_split(rows, free_cores(min(MAX_THREADS, max(1, rows.shape[0]))))
     if len(blocks) == 1:
         return _row_bands(rows)
-    parts = list(shared_pool().map(lambda idx: _row_bands(rows[idx]), blocks))
+    parts = list(shared_pool().map(_row_bands, blocks))
     return tuple(np.concatenate([part[i] for part in parts]) for i in range(3))
 
 
 def _row_bands(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_bands` of one block of rows, on the calling thread."""
     finite = np.isfinite(rows)
     count = finite.sum(axis=1)
     mean = np.full(rows.shape[0], np.nan)

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from coupling.cache import DIGEST_ATTR, cache_path, load_entry, save_entry, try_load_entry
+from coupling.cache import DIGEST_ATTR, RESULTS_GROUP, cache_path, load_entry, save_entry, try_load_entry
 from coupling.errors import CacheError, TableError
 from coupling.tables import read_table, write_table
 from dem.post import postprocess
@@ -368,3 +368,24 @@ def test_output_over_an_input_is_refused_before_writing(tmp_path):
     with pytest.raises(OutputError, match="is a file, not a directory"):
         output_directory_path(config / "runs", "--runs-dir")
     assert output_directory_path(tmp_path / "new" / "runs", "--runs-dir") == tmp_path / "new" / "runs"
+
+
+def test_a_cache_file_is_read_once_for_its_digest_and_its_data(tmp_path, entry, monkeypatch):
+    """The digest check hands the loader what it read: no results dataset is decompressed
+    twice, and what is loaded is what was saved."""
+    path = save_entry(tmp_path / "dem-k1.h5", entry)
+    reads: dict[str, int] = {}
+    original = h5py.Dataset.__getitem__
+
+    def counted(self, key):
+        reads[self.name] = reads.get(self.name, 0) + 1
+        return original(self, key)
+
+    monkeypatch.setattr(h5py.Dataset, "__getitem__", counted)
+    loaded = load_entry(path)
+    results = {name: count for name, count in reads.items() if name.startswith(f"/{RESULTS_GROUP}/")}
+    assert results and max(results.values()) == 1, results
+    for name, array in entry.arrays.items():
+        np.testing.assert_array_equal(loaded.arrays[name], array)
+    for name, frame in entry.frames.items():
+        np.testing.assert_array_equal(loaded.frames[name].to_numpy(), frame.to_numpy())
