@@ -4,6 +4,8 @@
   by resampling whole blocks (e.g. particles grouped by 5-s blocks of entry time, or dump
   snapshots grouped in 5-s blocks). Resampling single items would treat neighbours in
   time as independent and give intervals that are too narrow.
+* :func:`block_draw_counts` -- the same replicates as counts of each block, for statistics
+  that are one matrix product over all replicates; :func:`percentile_interval` -- their ends.
 * :func:`time_blocks` -- the block label of each item from its time.
 * :func:`overlap_noise_band` -- the RTD overlap that sampling noise alone leaves: what a
   sample of the DEM's size drawn from a density scores against that density.
@@ -103,17 +105,41 @@ def block_bootstrap(
     if n_blocks < 2:
         raise ValueError(f"data_blocks must hold at least two distinct blocks, got {n_blocks}")
     estimate = np.asarray(statistic(np.arange(labels.size)), dtype=float)
-    rng = np.random.default_rng(seed)
     replicates = np.empty((n_boot,) + estimate.shape)
-    for b in range(n_boot):
-        chosen = rng.integers(0, n_blocks, size=n_blocks)
+    for b, chosen in enumerate(_drawn_blocks(n_blocks, n_boot, seed)):
         size = lengths[chosen]
         # position within the replicate minus the start of its block in the replicate,
         # plus the block's start in `order`: the run of each chosen block, end to end
         offsets = np.repeat(starts[chosen] - (np.cumsum(size) - size), size)
         replicates[b] = statistic(order[offsets + np.arange(size.sum())])
+    return percentile_interval(estimate, replicates, level)
+
+
+def _drawn_blocks(n_blocks: int, n_boot: int, seed) -> np.ndarray:
+    """(n_boot, n_blocks): the blocks each replicate draws, with replacement."""
+    return np.random.default_rng(seed).integers(0, n_blocks, size=(n_boot, n_blocks))
+
+
+def block_draw_counts(n_blocks: int, n_boot: int = 2000, seed=0) -> np.ndarray:
+    """(n_boot, n_blocks): how many times each replicate of :func:`block_bootstrap` (same
+    ``n_blocks``, ``n_boot`` and ``seed``) draws each block. A statistic that is a ratio of
+    per-block sums (a mean over the items) is then one matrix product for all replicates:
+    the same replicates as :func:`block_bootstrap`'s, without a call per replicate."""
+    n_blocks = _check_count("n_blocks", n_blocks, minimum=2)
+    n_boot = _check_count("n_boot", n_boot)
+    chosen = _drawn_blocks(n_blocks, n_boot, seed)
+    flat = (chosen + n_blocks * np.arange(n_boot)[:, None]).ravel()
+    return np.bincount(flat, minlength=n_boot * n_blocks).reshape(n_boot, n_blocks).astype(float)
+
+
+def percentile_interval(estimate, replicates, level: float = 0.95) -> Interval:
+    """:class:`Interval` of ``estimate`` from bootstrap ``replicates`` (replicates first):
+    the (1 - level)/2 and (1 + level)/2 percentiles. A NaN replicate makes the interval
+    NaN rather than being dropped, since dropping it would bias the interval."""
+    level = _check_level(level)
     q = 100 * (1 - level) / 2
-    low, high = np.percentile(replicates, [q, 100 - q], axis=0)
+    low, high = np.percentile(np.asarray(replicates, dtype=float), [q, 100 - q], axis=0)
+    estimate = np.asarray(estimate, dtype=float)
     return Interval(estimate[()], low[()], high[()])
 
 

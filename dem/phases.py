@@ -192,10 +192,18 @@ def coarsen(states: np.ndarray, nx: int, ny: int, to_nx: int, to_ny: int) -> np.
     if nx % to_nx or ny % to_ny:
         raise ValueError(f"grid {to_nx}x{to_ny} does not divide {nx}x{ny}: its edges must be the finer grid's")
     s = nx * ny
+    cells = np.arange(s)
+    # one look-up per state (index 0 = -1, then every cell, then discharged): a gather
+    # rather than integer divisions over the whole (particles x dumps) array
+    table = np.concatenate(
+        [[-1], (cells // ny // (nx // to_nx)) * to_ny + cells % ny // (ny // to_ny), [to_nx * to_ny]]
+    ).astype(np.int16)
     states = np.asarray(states)
-    i, j = states // ny, states % ny
-    coarse = (i // (nx // to_nx)) * to_ny + j // (ny // to_ny)
-    return np.where(states == s, to_nx * to_ny, np.where(states < 0, -1, coarse)).astype(np.int16)
+    if states.size and (states.min() < -1 or states.max() > s):
+        raise ValueError(
+            f"states must lie in -1 ... {s} (the grid's cells and discharged), got {states.min()} ... {states.max()}"
+        )
+    return table[states + np.int16(1)] if states.dtype == np.int16 else table[states + 1]
 
 
 def prepare(
@@ -647,53 +655,86 @@ def chapman_kolmogorov(model: PhaseTransport, data: PhaseData, lags: tuple[int, 
     occupancy = steady_occupancy(model, first_compartments(data))
     phase_given_cell = occupancy / np.maximum(occupancy.sum(axis=1, keepdims=True), 1e-300)
     q = model.generator()
-    obs, lengths = data.obs, data.lengths
-    discharged = obs[np.arange(obs.shape[0]), np.maximum(lengths - 1, 0)] == s
     slice_of = np.append(np.arange(s) // ny, nx)  # discharged -> column NX
-    n_lags = len(lags)
-    observed = np.zeros((n_lags, nx, nx + 1))
-    predicted = np.zeros_like(observed)
-    error = np.zeros_like(observed)
-    starts = np.zeros((n_lags, nx))
-    particles = np.zeros((n_lags, nx))
-    # every start point (row, t) in a compartment
-    all_rows, all_ts = np.nonzero((obs >= 0) & (obs < s))
+    lag_array = np.asarray(lags, np.int64)
+    cell_counts, sums, n_squared, particles = _ck_counts(
+        data.flat, data.offsets, data.start.astype(np.int64), int(data.last_dump), slice_of, lag_array, nx, s
+    )
+    aggregate = np.zeros((s * k + 1, nx + 1))
+    aggregate[np.arange(s * k + 1), np.append(np.repeat(slice_of[:-1], k), nx)] = 1.0
+    # the model from each compartment in slice i, its phases at their steady distribution there
+    predicted = np.zeros((len(lags), nx, nx + 1))
     for n, lag in enumerate(lags):
-        p = expm(q * lag * data.interval_s)
-        aggregate = np.zeros((s * k + 1, nx + 1))
-        aggregate[np.arange(s * k + 1), np.append(np.repeat(slice_of[:-1], k), nx)] = 1.0
-        from_cell = (p @ aggregate)[:-1].reshape(s, k, nx + 1)
-        from_cell = (from_cell * phase_given_cell[:, :, None]).sum(axis=1)  # (S, NX+1)
-        # the start points' outcomes at this lag
-        rows, ts = all_rows, all_ts
-        ahead = ts + lag
-        followed = data.start[rows] + ahead <= data.last_dump
-        in_range = ahead < lengths[rows]
-        outcome = np.where(in_range, obs[rows, np.minimum(ahead, obs.shape[1] - 1)], np.where(discharged[rows], s, -1))
-        use = followed & (outcome >= 0)
-        rows, cells, outcome = rows[use], obs[rows[use], ts[use]].astype(np.int64), outcome[use].astype(np.int64)
-        start_slice, end_slice = slice_of[cells], slice_of[outcome]
-        cell_counts = np.bincount(cells, minlength=s)[:s].astype(float)
-        for i in range(nx):
-            in_i = start_slice == i
-            total = int(in_i.sum())
-            starts[n, i] = total
-            if not total:
-                continue
-            weights = cell_counts[i * ny : (i + 1) * ny]
-            predicted[n, i] = weights @ from_cell[i * ny : (i + 1) * ny] / weights.sum()
-            # (particle, end slice) counts; bincount rather than np.add.at, ~20x faster
-            cell = rows[in_i] * (nx + 1) + end_slice[in_i]
-            hits = np.bincount(cell, minlength=obs.shape[0] * (nx + 1)).reshape(obs.shape[0], nx + 1).astype(float)
-            per_particle = np.bincount(rows[in_i], minlength=obs.shape[0]).astype(float)
-            particles[n, i] = np.count_nonzero(per_particle)
-            fraction = hits.sum(axis=0) / total
-            observed[n, i] = fraction
-            residual = hits - per_particle[:, None] * fraction[None, :]
-            error[n, i] = np.sqrt((residual**2).sum(axis=0)) / total
+        from_cell = (expm(q * lag * data.interval_s) @ aggregate)[:-1].reshape(s, k, nx + 1)
+        from_cell = (from_cell * phase_given_cell[:, :, None]).sum(axis=1).reshape(nx, ny, nx + 1)
+        predicted[n] = np.einsum("ic,icj->ij", cell_counts[n].reshape(nx, ny), from_cell)
+    starts = cell_counts.reshape(len(lags), nx, ny).sum(axis=2)
+    safe = np.maximum(starts, 1.0)[:, :, None]
+    predicted /= safe
+    # cluster standard error (particles as clusters): with h[p, j] a particle's starts in
+    # slice i that end in j and n_p = sum_j h[p, j], sqrt(sum_p (h[p, j] - n_p f_j)^2) / N,
+    # expanded into the sums the kernel accumulates
+    observed = sums[:, 0] / safe
+    squares = sums[:, 1] - 2.0 * observed * sums[:, 2] + observed**2 * n_squared[:, :, None]
+    error = np.sqrt(np.maximum(squares, 0.0)) / safe
     return CkTest(
         np.asarray(lags, float) * data.interval_s, observed, predicted, error, starts, particles, float(z_limit)
     )
+
+
+def _ck_counts_python(flat, offsets, start, last_dump, slice_of, lags, nx, s):
+    """The Chapman-Kolmogorov test's tallies in one pass over the sequences (compiled by
+    numba), per lag n: start points per compartment (n, S); and over the particles, per
+    start slice i and end slice j, sum_p h, sum_p h^2 and sum_p h n_p (n, 3, NX, NX+1),
+    sum_p n_p^2 and the number of particles with a start in i (n, NX), where h[p, j] counts
+    particle p's start points in i that end in j and n_p = sum_j h[p, j]."""
+    n_lags = lags.size
+    width = nx + 1
+    cell_counts = np.zeros((n_lags, s))
+    sums = np.zeros((n_lags, 3, nx, width))
+    n_squared = np.zeros((n_lags, nx))
+    particles = np.zeros((n_lags, nx))
+    hits = np.zeros((nx, width))
+    per_slice = np.zeros(nx)
+    for p in range(offsets.size - 1):
+        a0, length = offsets[p], offsets[p + 1] - offsets[p]
+        discharged = length > 0 and flat[a0 + length - 1] == s
+        for n in range(n_lags):
+            lag = lags[n]
+            hits[:] = 0.0
+            per_slice[:] = 0.0
+            for t in range(length):
+                if start[p] + t + lag > last_dump:  # the run ends first: censored, and so are later t
+                    break
+                c = flat[a0 + t]
+                if c < 0 or c >= s:
+                    continue
+                if t + lag < length:
+                    outcome = flat[a0 + t + lag]
+                elif discharged:
+                    outcome = s
+                else:  # lost before t + lag
+                    continue
+                if outcome < 0:
+                    continue
+                i = slice_of[c]
+                hits[i, slice_of[outcome]] += 1.0
+                per_slice[i] += 1.0
+                cell_counts[n, c] += 1.0
+            for i in range(nx):
+                if per_slice[i] == 0.0:
+                    continue
+                particles[n, i] += 1.0
+                n_squared[n, i] += per_slice[i] * per_slice[i]
+                for j in range(width):
+                    h = hits[i, j]
+                    sums[n, 0, i, j] += h
+                    sums[n, 1, i, j] += h * h
+                    sums[n, 2, i, j] += h * per_slice[i]
+    return cell_counts, sums, n_squared, particles
+
+
+_ck_counts = numba.njit(cache=True, nogil=True)(_ck_counts_python) if numba is not None else _ck_counts_python
 
 
 # ----------------------------------------------------------------------------- the fit

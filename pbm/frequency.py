@@ -288,24 +288,26 @@ def noise_frequencies(f_max_hz: float, n_frequencies: int = 2001) -> np.ndarray:
     return np.concatenate([[0.0], np.geomspace(1e-5 * f_max_hz, f_max_hz, int(n_frequencies) - 1)])
 
 
-def vrr_spectrum(frequencies_hz, H, spectrum) -> float:
+def vrr_spectrum(frequencies_hz, H, spectrum) -> float | np.ndarray:
     """VRR = int S df / int S |H|^2 df over the grid ``frequencies_hz`` (trapezoid rule),
     for a feeder noise of spectrum ``spectrum`` and a transfer function ``H`` on that grid
-    (from the PBM or an RTD). Raises ConfigError for mismatched shapes, an unordered grid or
-    a spectrum that is negative or zero everywhere."""
+    (from the PBM or an RTD); ``H`` (..., F) gives one VRR per leading index (e.g. bootstrap
+    replicates), a 1-D ``H`` a float. Raises ConfigError for mismatched shapes, an unordered
+    grid or a spectrum that is negative or zero everywhere."""
     freqs = _frequencies(frequencies_hz)
     h = np.asarray(H)
     s = np.asarray(spectrum, dtype=float)
-    if not (freqs.ndim == 1 and freqs.shape == h.shape == s.shape and freqs.size >= 2):
+    if not (freqs.ndim == 1 and h.ndim >= 1 and freqs.shape == h.shape[-1:] == s.shape and freqs.size >= 2):
         raise ConfigError(
-            f"frequencies_hz, H and spectrum must be 1-D of one length >= 2, got shapes {freqs.shape}, {h.shape}, "
-            f"{s.shape}"
+            f"frequencies_hz and spectrum must be 1-D of one length >= 2 and H's last axis as long, got shapes "
+            f"{freqs.shape}, {h.shape}, {s.shape}"
         )
     if np.any(np.diff(freqs) <= 0):
         raise ConfigError("frequencies_hz must increase strictly")
     if np.any(s < 0) or not np.all(np.isfinite(s)) or not np.any(s > 0):
         raise ConfigError("spectrum must be finite, >= 0 and positive somewhere")
-    return float(np.trapezoid(s, freqs) / np.trapezoid(s * np.abs(h) ** 2, freqs))
+    vrr = np.trapezoid(s, freqs) / np.trapezoid(s * np.abs(h) ** 2, freqs, axis=-1)
+    return float(vrr) if h.ndim == 1 else vrr
 
 
 def vrr_noise(

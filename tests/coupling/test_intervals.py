@@ -7,7 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from coupling.intervals import Interval, NoiseBand, block_bootstrap, inside, overlap_noise_band, time_blocks
+from coupling.intervals import (
+    Interval,
+    NoiseBand,
+    block_bootstrap,
+    block_draw_counts,
+    inside,
+    overlap_noise_band,
+    percentile_interval,
+    time_blocks,
+)
 from coupling.metrics import rtd_density, rtd_overlap
 
 
@@ -78,6 +87,24 @@ def test_block_bootstrap_vector_statistic_and_determinism():
     assert np.array_equal(result.low, again.low) and np.array_equal(result.high, again.high)
     wider = block_bootstrap(moments, labels, n_boot=300, level=0.99, seed=9)
     assert np.all(wider.high - wider.low > result.high - result.low)
+
+
+def test_block_draw_counts_are_the_block_bootstraps_replicates():
+    """A mean over items, as a ratio of per-block sums under the draw counts, gives the
+    block bootstrap's interval (same seed): the same replicates, without a call each."""
+    rng = np.random.default_rng(5)
+    tau = rng.exponential(10.0, 700)
+    blocks = time_blocks(rng.uniform(0, 80, 700), 5.0)
+    _, block_of = np.unique(blocks, return_inverse=True)
+    n_blocks = block_of.max() + 1
+    sums, counts = np.bincount(block_of, weights=tau), np.bincount(block_of).astype(float)
+    direct = block_bootstrap(lambda idx: tau[idx].mean(), blocks, n_boot=400, seed=11)
+    draws = block_draw_counts(n_blocks, n_boot=400, seed=11)
+    assert draws.shape == (400, n_blocks) and np.all(draws.sum(axis=1) == n_blocks)
+    by_counts = percentile_interval(tau.mean(), draws @ sums / (draws @ counts))
+    np.testing.assert_allclose(by_counts, direct, rtol=1e-12)
+    with pytest.raises(ValueError, match="n_blocks"):
+        block_draw_counts(1)
 
 
 @pytest.mark.parametrize(

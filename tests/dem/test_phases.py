@@ -180,6 +180,65 @@ def test_chapman_kolmogorov_tells_markovian_from_hidden_phases(synthetic_two_pha
     assert test.passed and test.max_abs_error() < 0.02
 
 
+def _ck_tallies_by_hand(data: phases.PhaseData, lag: int):
+    """The Chapman-Kolmogorov test's observed fractions, cluster standard errors, starts
+    and particles per start slice, counted start point by start point."""
+    nx, s = data.nx, data.n_cells
+    hits = np.zeros((data.n_particles, nx, nx + 1))
+    for p in range(data.n_particles):
+        seq = data.flat[data.offsets[p] : data.offsets[p + 1]]
+        for t, c in enumerate(seq):
+            if c >= s or data.start[p] + t + lag > data.last_dump:
+                continue
+            if t + lag < seq.size:
+                end = seq[t + lag] // data.ny if seq[t + lag] < s else nx
+            elif seq[-1] == s:
+                end = nx
+            else:  # lost before t + lag
+                continue
+            hits[p, c // data.ny, end] += 1
+    n_p = hits.sum(axis=2)
+    starts = n_p.sum(axis=0)
+    fraction = hits.sum(axis=0) / np.maximum(starts, 1)[:, None]
+    residual = hits - n_p[:, :, None] * fraction[None]
+    error = np.sqrt((residual**2).sum(axis=0)) / np.maximum(starts, 1)[:, None]
+    return fraction, error, starts, (n_p > 0).sum(axis=0)
+
+
+def test_chapman_kolmogorov_tallies_equal_a_count_by_hand(synthetic_two_phase):
+    """The compiled one-pass tallies against a count start point by start point, on
+    particles lost before the end, discharged ones, and a run end that censors."""
+    import dataclasses
+
+    model, _seq, data, _fit = synthetic_two_phase
+    rows = np.arange(0, data.n_particles, 12)
+    pieces = [data.flat[data.offsets[p] : data.offsets[p + 1]] for p in rows]
+    pieces = [seq[: max(1, seq.size - 9)] if i % 3 == 0 else seq for i, seq in enumerate(pieces)]  # lost
+    lengths = np.array([seq.size for seq in pieces])
+    obs = np.full((rows.size, lengths.max()), -1, np.int16)
+    for i, seq in enumerate(pieces):
+        obs[i, : seq.size] = seq
+    subset = dataclasses.replace(
+        data,
+        obs=obs,
+        lengths=lengths,
+        group=data.group[rows],
+        start=data.start[rows],
+        last_dump=int(np.median(data.start[rows] + lengths)),  # many sequences outlast the run
+        flat=np.concatenate(pieces).astype(np.int64),
+        offsets=np.concatenate([[0], np.cumsum(lengths)]),
+    )
+    lags = (1, 7, 40)
+    test = phases.chapman_kolmogorov(model, subset, lags)
+    for n, lag in enumerate(lags):
+        fraction, error, starts, particles = _ck_tallies_by_hand(subset, lag)
+        assert starts.sum() > 1000
+        np.testing.assert_array_equal(test.starts[n], starts)
+        np.testing.assert_array_equal(test.particles[n], particles)
+        np.testing.assert_allclose(test.observed[n], fraction, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(test.standard_error[n], error, rtol=1e-9, atol=1e-12)
+
+
 def test_implied_timescales_and_generator_shape(synthetic_two_phase):
     _truth, _seq, _data, fit = synthetic_two_phase
     q = fit.generator()

@@ -55,7 +55,16 @@ import pandas as pd
 
 from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
-from coupling.intervals import LEVEL, N_BOOT, SEED, Interval, block_bootstrap, inside, time_blocks
+from coupling.intervals import (
+    LEVEL,
+    N_BOOT,
+    SEED,
+    Interval,
+    block_draw_counts,
+    inside,
+    percentile_interval,
+    time_blocks,
+)
 from coupling.metrics import rtd_pooled
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from dem.summary import DemSummary, PooledRtdSummary
@@ -449,18 +458,22 @@ def dem_transfer(
     spectra = [noise_spectrum(grid, t) for t in taus]
     n_f = freqs.size
 
-    def statistic(idx: np.ndarray) -> np.ndarray:
-        draws = np.bincount(idx, minlength=n_blocks).astype(float)
+    def statistic(draws: np.ndarray) -> np.ndarray:
+        """(R, n_f + taus) for (R, blocks) draw counts: |H| at ``freqs``, then each
+        noise VRR; NaN for a draw without a recovered particle."""
         n = draws @ counts
-        if n == 0:
-            return np.full(n_f + len(taus), np.nan)
-        h = (draws @ sums_re + 1j * (draws @ sums_im)) / n
-        noise = [vrr_spectrum(grid, _floor_corrected(h[n_f:], n), s) for s in spectra]
-        return np.concatenate([np.abs(h[:n_f]), noise])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            abs2 = ((draws @ sums_re) ** 2 + (draws @ sums_im) ** 2) / (n**2)[:, None]
+        corrected = _floor_corrected(abs2[:, n_f:], n[:, None])
+        noise = [vrr_spectrum(grid, corrected, s) for s in spectra]
+        out = np.column_stack([np.sqrt(abs2[:, :n_f]), *noise])
+        out[n == 0] = np.nan
+        return out
 
-    # Each block is one item of its own label: block_bootstrap draws blocks, and the
-    # statistic above turns the drawn block indices into the particles' phasor sums.
-    est, low, high = block_bootstrap(statistic, np.arange(n_blocks), n_boot=n_boot, level=level, seed=seed)
+    # a replicate's mean phasor is (draws per block) @ sums / (draws @ counts): every
+    # replicate of block_bootstrap's at once
+    draws = block_draw_counts(n_blocks, n_boot, seed)
+    est, low, high = percentile_interval(statistic(np.ones((1, n_blocks)))[0], statistic(draws), level)
     est, low, high = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (est, low, high))
     h = sums[:, :n_f].sum(axis=0) / counts.sum()
     n_rec = int(counts.sum())
@@ -502,15 +515,18 @@ def _block_phasor_sums(tau: np.ndarray, block_of: np.ndarray, n_blocks: int, fre
     return out
 
 
-def _floor_corrected(h: np.ndarray, n: float) -> np.ndarray:
-    """A transfer function whose |H|^2 is (n |h|^2 - 1) / (n - 1), clipped at 0: for n
-    independent particles E|h|^2 = |H|^2 + (1 - |H|^2) / n, so this is unbiased. The noise
-    VRR integrates |H|^2 over a band that reaches the floor, where the raw |h|^2 would add
-    ~ f_max / n to the output variance (0.3 % of the white-noise VRR on the reduced run)
-    and twice that inside every bootstrap replicate, shifting the percentile interval."""
-    if n <= 1:
-        return h
-    return np.sqrt(np.clip((n * np.abs(h) ** 2 - 1) / (n - 1), 0.0, None))
+def _floor_corrected(abs2: np.ndarray, n) -> np.ndarray:
+    """|H| from a measured |h|^2 over n particles: sqrt((n |h|^2 - 1) / (n - 1)), clipped
+    at 0. For n independent particles E|h|^2 = |H|^2 + (1 - |H|^2) / n, so this is
+    unbiased. The noise VRR integrates |H|^2 over a band that reaches the floor, where the
+    raw |h|^2 would add ~ f_max / n to the output variance (0.3 % of the white-noise VRR on
+    the reduced run) and twice that inside every bootstrap replicate, shifting the
+    percentile interval. ``n`` broadcasts against ``abs2`` (one count per replicate);
+    where n <= 1, |h| as it is."""
+    n = np.asarray(n, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corrected = np.clip((n * abs2 - 1) / (n - 1), 0.0, None)
+    return np.sqrt(np.where(n > 1, corrected, abs2))
 
 
 def default_frequencies(mean_residence_time_s: float, points: int = 25, f_max_hz: float = 1.0) -> np.ndarray:

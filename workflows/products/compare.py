@@ -24,6 +24,7 @@ import datetime as _dt
 import subprocess
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -150,6 +151,16 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     """The comparison's numbers for the DEM's results ``dem``; writes nothing (the grid
     sensitivity reads or post-processes the same run at 2 NX through ``runs_root``)."""
     pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=rtd_pulse(dem.results.summary))
+    # The memory check (a phase refit, mostly compiled code that releases the GIL) needs
+    # nothing of what follows, so it runs on the second core meanwhile.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="memory-check") as aside:
+        memory_future = aside.submit(memory_check, dem.results, pbm_config)
+        return _compare(config, dem, runs_root, pbm_config, memory_future, log)
+
+
+def _compare(
+    config: Config, dem: DemSide, runs_root: Path, pbm_config: PbmConfig, memory_future, log: Log
+) -> Comparison:
     log("running the PBM on the DEM's tables, in each rate mode the table supports")
     modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
     pbm_result = modes[pbm_config.rates].result
@@ -168,7 +179,7 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     vrr = feeder_filtering(dem, pbm_config, log)
-    memory = memory_check(dem.results, pbm_config)
+    memory = memory_future.result()
     return Comparison(config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, sensitivity, vrr, memory)
 
 
