@@ -111,6 +111,10 @@ class DemResults:
     * ``sequences``: every particle's compartment at every dump, run-length encoded
       (:class:`dem.tracking.CompartmentSequences`), what the hidden-phase model is fitted
       to (:mod:`dem.phases`); None in results made before they were recorded.
+    * ``outlet_counts``: (dumps, NY) particles of A and B in each compartment of the last
+      slice at every dump of ``holdup``: the counts the outlet RSD is taken over, at which
+      the PBM's composition is sampled (:meth:`steady_outlet_counts`); None in results
+      made before they were recorded (then read off ``sequences`` when the grids agree).
     """
 
     table: VelocityTable
@@ -124,6 +128,7 @@ class DemResults:
     transitions: np.ndarray
     summary: DemSummary = field(default_factory=DemSummary)
     sequences: CompartmentSequences | None = None
+    outlet_counts: np.ndarray | None = None
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
@@ -133,6 +138,8 @@ class DemResults:
             "residence_times_s": self.residence_times_s,
             "transitions": self.transitions,
         }
+        if self.outlet_counts is not None:
+            arrays["outlet_counts"] = self.outlet_counts
         if self.sequences is not None:
             arrays.update(self.sequences.to_arrays(SEQUENCE_PREFIX))
         return CacheEntry(self.table, self.summary.record(), frames, arrays, provenance)
@@ -142,13 +149,28 @@ class DemResults:
         arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
         sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
         plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
+        table = entry.table
+        if (
+            "outlet_counts" not in plain
+            and sequences is not None
+            and (sequences.nx, sequences.ny) == (table.nx, table.ny)
+        ):
+            plain["outlet_counts"] = sequences.slice_counts(table.nx - 1)
         return cls(
-            table=entry.table,
+            table=table,
             summary=DemSummary.from_record(entry.summary),
             **entry.frames,
             **plain,
             sequences=sequences,
         )
+
+    def steady_outlet_counts(self) -> np.ndarray | None:
+        """(steady dumps, NY) :attr:`outlet_counts` at the dumps after the steady state (the
+        dumps the DEM's outlet RSD averages over); None without them or a steady state."""
+        t_ss = self.summary.steady_time
+        if self.outlet_counts is None or t_ss is None or len(self.outlet_counts) != len(self.holdup):
+            return None
+        return self.outlet_counts[self.holdup["t_s"].to_numpy() > t_ss]
 
 
 def fit_phases(
@@ -620,4 +642,5 @@ def _results(
         transitions=transitions,
         summary=DemSummary.from_record(summary),
         sequences=sequences,
+        outlet_counts=acc.snapshot_counts[:, :, -1, :].sum(axis=1).astype(np.int32),
     )

@@ -490,6 +490,25 @@ class CompartmentSequences:
         out[element_owner, position] = np.repeat(self.run_state[run_index], lengths)
         return out
 
+    def slice_counts(self, i: int, components: tuple[int, ...] = (1, 2)) -> np.ndarray:
+        """(dumps, NY) int: how many particles of ``components`` are in each compartment
+        of axial slice ``i`` at every dump (from the run-length encoding: a +1 where a
+        run in the slice starts, a -1 where it ends, summed over the dumps)."""
+        if not 0 <= i < self.nx:
+            raise ValueError(f"slice {i} is not one of the grid's 0 ... {self.nx - 1}")
+        n_dumps = self.snapshot_t.size
+        n_runs = np.diff(self.run_offsets)
+        owner = np.repeat(np.arange(self.n_particles), n_runs)
+        before = np.cumsum(self.run_length) - self.run_length
+        first = self.start[owner] + before - before[self.run_offsets[:-1]][owner]
+        state = self.run_state.astype(np.int64)
+        chosen = (state >= i * self.ny) & (state < (i + 1) * self.ny) & np.isin(self.component[owner], components)
+        cell = state[chosen] - i * self.ny
+        change = np.zeros((n_dumps + 1) * self.ny, np.int64)
+        np.add.at(change, first[chosen] * self.ny + cell, 1)
+        np.add.at(change, (first[chosen] + self.run_length[chosen]) * self.ny + cell, -1)
+        return np.cumsum(change.reshape(n_dumps + 1, self.ny), axis=0)[:n_dumps]
+
     def until(self, t_end_s: float) -> CompartmentSequences:
         """The record a run stopped at ``t_end_s`` [s] would hold: the dumps after it
         dropped, the particles first seen after it left out, the sequences it cuts

@@ -11,9 +11,10 @@ each side over the time after its own steady state (one rule, :class:`SteadyStat
 * hold-up, hold-up per axial slice, outflow, C_A, Little's-law mean residence time:
   means over the output times after the PBM's steady-state time;
 * outlet RSD and Lacey index on one basis: the PBM's mean steady composition of each
-  last-slice compartment sampled binomially at the DEM's mean particle numbers there
-  (:func:`coupling.metrics.sampled_rsd`, :func:`~coupling.metrics.sampled_lacey`), against
-  the DEM's own (sampled by nature) values;
+  last-slice compartment sampled binomially at the DEM's particle numbers there, dump by
+  steady dump (:func:`coupling.metrics.sampled_rsd`, :func:`~coupling.metrics.sampled_lacey`;
+  at their means when the results carry no per-dump counts), against the DEM's own
+  (sampled by nature) values;
 * the pooled RTD: mean, variance and recovered fraction over the DEM's entry window and
   horizon (:func:`pbm.rtd.pooled_rtd`); the overlap of the two densities is judged against
   the noise band (:func:`coupling.intervals.overlap_noise_band`): what the DEM's number
@@ -43,7 +44,8 @@ from pbm.simulate import PbmResult, simulate
 
 #: the PBM's rate modes, in the order of every table and figure (:data:`pbm.model.RATE_MODES`)
 MODES = RATE_MODES
-#: binomial draws of the sampled RSD / Lacey index (their Monte-Carlo error is < 0.5 %)
+#: binomial draws of the sampled RSD / Lacey index (their Monte-Carlo error is < 0.5 %);
+#: at the DEM's per-dump counts, this many samplings in all, spread over the dumps
 SAMPLING_DRAWS = 2000
 
 
@@ -89,8 +91,13 @@ def run_modes(
     return modes
 
 
-def pbm_steady(result: PbmResult, dem_steady: dict[str, Any]) -> dict[str, Any]:
-    """The PBM's values of the :mod:`dem.steady` quantities (module docstring)."""
+def pbm_steady(
+    result: PbmResult, dem_steady: dict[str, Any], outlet_counts: np.ndarray | None = None
+) -> dict[str, Any]:
+    """The PBM's values of the :mod:`dem.steady` quantities (module docstring);
+    ``outlet_counts`` (steady dumps, NY): the DEM's particles in each outlet compartment at
+    each steady dump (:meth:`dem.post.DemResults.steady_outlet_counts`), the counts at
+    which the outlet RSD and Lacey index are sampled; None: the DEM's mean counts."""
     t_ss = result.summary.get("steady_state_time_s")
     after = result.times > (t_ss if t_ss is not None and math.isfinite(t_ss) else result.times[-1])
     if not after.any():
@@ -103,19 +110,35 @@ def pbm_steady(result: PbmResult, dem_steady: dict[str, Any]) -> dict[str, Any]:
     outlet = counts[:, :, -1, :].mean(axis=0)  # (2, NY)
     totals_pbm = outlet.sum(axis=0)
     fraction = np.divide(outlet[0], totals_pbm, out=np.full(totals_pbm.shape, np.nan), where=totals_pbm > 0)
-    dem_totals = np.asarray(dem_steady.get("outlet_totals", totals_pbm), dtype=float)
     # a compartment the DEM fills but the PBM leaves empty has no PBM composition of its
     # own: it is sampled at the PBM's composition of the whole outlet slice
     pooled = outlet[0].sum() / totals_pbm.sum() if totals_pbm.sum() > 0 else np.nan
-    fraction = np.where(dem_totals >= 1, np.where(np.isnan(fraction), pooled, fraction), np.nan)
+    fraction = np.where(np.isnan(fraction), pooled, fraction)
+    if outlet_counts is not None and len(outlet_counts) and np.isfinite(pooled):
+        # The DEM's RSD is a mean over dumps of the RSD at that dump's counts, which
+        # fluctuate: a compartment holding 0.7 particles on average is left out of the mean
+        # counts' RSD but holds 1-3 particles (fractions 0 or 1) at many dumps.
+        counts = np.asarray(outlet_counts, dtype=float)
+        draws = max(1, math.ceil(SAMPLING_DRAWS * 10 / len(counts)))
+        sampled = {
+            "rsd_outlet": sampled_rsd(fraction[None, :], counts, draws=draws),
+            "lacey_outlet": sampled_lacey(fraction[None, :], counts, draws=draws),
+        }
+        sampled = {k: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan for k, v in sampled.items()}
+    else:
+        dem_totals = np.asarray(dem_steady.get("outlet_totals", totals_pbm), dtype=float)
+        fraction = np.where(dem_totals >= 1, fraction, np.nan)
+        sampled = {
+            "rsd_outlet": float(sampled_rsd(fraction, dem_totals, draws=SAMPLING_DRAWS)),
+            "lacey_outlet": float(sampled_lacey(fraction, dem_totals, draws=SAMPLING_DRAWS)),
+        }
     return {
         "holdup": holdup,
         "holdup_by_slice": slices.tolist(),
         "outflow_per_s": outflow,
         "C_A": float(out_a.sum() / (out_a.sum() + out_b.sum())) if (out_a.sum() + out_b.sum()) > 0 else math.nan,
         "little_mean_residence_time_s": holdup / outflow if outflow > 0 else math.nan,
-        "rsd_outlet": float(sampled_rsd(fraction, dem_totals, draws=SAMPLING_DRAWS)),
-        "lacey_outlet": float(sampled_lacey(fraction, dem_totals, draws=SAMPLING_DRAWS)),
+        **sampled,
     }
 
 
@@ -215,11 +238,16 @@ def dem_density(records: pd.DataFrame, pooled_spec: PooledRtdSummary) -> tuple[n
     return edges, density, int(sample.residence_s.size)
 
 
-def agreement_rows(dem_summary: DemSummary, records: pd.DataFrame, modes: dict[str, PbmMode]) -> list[AgreementRow]:
-    """The agreement table (module docstring)."""
+def agreement_rows(
+    dem_summary: DemSummary,
+    records: pd.DataFrame,
+    modes: dict[str, PbmMode],
+    outlet_counts: np.ndarray | None = None,
+) -> list[AgreementRow]:
+    """The agreement table (module docstring); ``outlet_counts``: see :func:`pbm_steady`."""
     steady = dem_summary.steady
     pooled_spec = dem_summary.pooled_rtd if dem_summary.has_pooled_rtd else None
-    pbm_values = {mode: pbm_steady(m.result, steady) for mode, m in modes.items()}
+    pbm_values = {mode: pbm_steady(m.result, steady, outlet_counts) for mode, m in modes.items()}
     for mode, m in modes.items():
         if m.pooled is not None:
             pbm_values[mode].update(

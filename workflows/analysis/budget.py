@@ -404,7 +404,12 @@ def budget_study(
         raise ConfigError("the DEM run never reaches the steady state: there is no steady flow to budget")
 
     def rows_of(t: VelocityTable) -> list[AgreementRow]:
-        return agreement_rows(summary, results.particles, run_modes(t, pbm_config, config.steady_state, summary))
+        return agreement_rows(
+            summary,
+            results.particles,
+            run_modes(t, pbm_config, config.steady_state, summary),
+            results.steady_outlet_counts(),
+        )
 
     log("PBM on the whole run's steady table")
     whole_rows = rows_of(table_from_first(results, t_end, steady_full))

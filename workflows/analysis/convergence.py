@@ -76,7 +76,12 @@ def converged(results: DemResults, config: Config, t_s: float, step_s: float = C
 
     def rows(t: float) -> list[AgreementRow]:
         table = table_from_first(results, t, steady)
-        return agreement_rows(summary, results.particles, run_modes(table, pbm_config, config.steady_state, summary))
+        return agreement_rows(
+            summary,
+            results.particles,
+            run_modes(table, pbm_config, config.steady_state, summary),
+            results.steady_outlet_counts(),
+        )
 
     now, before = rows(t_s), rows(t_s - step_s)
     # the yardstick is the DEM at T: the reference rows of judge() carry the half widths

@@ -153,7 +153,9 @@ def predictions(sides: dict[str, DemSide], configs: dict[str, Config], log: Log 
                 dem.summary,
                 built.mode_updates(),
             )
-            out.append(Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes)))
+            out.append(
+                Prediction(name, source, agreement_rows(dem.summary, dem.particles, modes, dem.steady_outlet_counts()))
+            )
     return out
 
 

@@ -176,7 +176,7 @@ def _compare(
         "PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final, dict(pbm_result.summary)
     )
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
-    rows = agreement_rows(dem.results.summary, dem.results.particles, modes)
+    rows = agreement_rows(dem.results.summary, dem.results.particles, modes, dem.results.steady_outlet_counts())
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     vrr = feeder_filtering(dem, pbm_config, log)
     memory = memory_future.result()

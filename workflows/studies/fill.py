@@ -76,7 +76,7 @@ def predict(table, config, dem, mode: str, exponents=None, rate_law: str = "tabl
     pooled = pooled_rtd(
         table, cfg, entry_window=spec.entry_window_s, horizon_s=spec.horizon_s, schedule=result.schedule
     )
-    rows = agreement_rows(dem.summary, dem.particles, {mode: PbmMode(mode, result, pooled)})
+    rows = agreement_rows(dem.summary, dem.particles, {mode: PbmMode(mode, result, pooled)}, dem.steady_outlet_counts())
     return {r.key: r for r in rows}
 
 

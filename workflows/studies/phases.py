@@ -534,7 +534,11 @@ def transverse_study(results: str | Path, lags_s: tuple[float, ...]) -> tuple[tu
         transverse = phases.one_phase(phases.prepare(seq, window, lag=lag, residents=True))
         table = dem.table.replace(phases=phases.with_transverse(axial, transverse))
         modes = {"phases": run_modes(table, pbm, config.steady_state, dem.summary)["phases"]}
-        row = next(r for r in agreement_rows(dem.summary, dem.particles, modes) if r.key == "rsd_outlet")
+        row = next(
+            r
+            for r in agreement_rows(dem.summary, dem.particles, modes, dem.steady_outlet_counts())
+            if r.key == "rsd_outlet"
+        )
         interval = Interval(row.dem, row.dem_ci_low, row.dem_ci_high)
         rates = transverse.rates[0, 2:]
         rows.append(TransverseRow(lag * seq.interval_s, float(rates[rates > 0].mean()), float(row.value("phases"))))

@@ -4,6 +4,7 @@ interval test of the numbers in its row."""
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from dem.post import postprocess
 from pbm.config import PbmConfig
 from tests.known_dumps import STEADY, config, write_synthetic
-from workflows.analysis.agreement import MODES, agreement_rows, run_modes
+from workflows.analysis.agreement import MODES, agreement_rows, pbm_steady, run_modes
 
 
 @pytest.fixture(scope="module")
@@ -73,3 +74,31 @@ def test_the_pbm_pooled_rtd_uses_the_dem_window(synthetic_80s):
         assert m.pooled.bin_edges[-1] == pytest.approx(spec.horizon_s)
         assert np.all(m.pooled.entry_times_s > spec.entry_window_s[0])
         assert np.all(m.pooled.entry_times_s <= spec.entry_window_s[1])
+
+
+def _mixed_pbm(ny: int = 2):
+    """A PBM output whose outlet compartments all hold A and B half and half, steady from
+    t = 0: what pbm_steady reads of a PbmResult."""
+    times = np.arange(5.0)
+    counts = np.full((times.size, 2, 3, ny), 10.0)
+    flux = np.ones(times.size)
+    return SimpleNamespace(
+        summary={"steady_state_time_s": 0.0}, times=times, counts=counts, outflow_A=flux, outflow_B=flux
+    )
+
+
+def test_the_outlet_rsd_is_sampled_at_the_dems_counts_dump_by_dump():
+    """Known answers for a perfectly mixed outlet (p = 1/2 in both compartments). At one
+    particle in each at every dump the RSD of the two fractions is 0 (both alike, p 1/4),
+    sqrt(2) (one A, one B, p 1/2) or undefined (no A, p 1/4): its mean over the defined
+    samples is sqrt(2) * (1/2) / (3/4). Dumps with one occupied compartment have no RSD
+    and do not count, as in the DEM's mean; at the mean counts (0.5 and 1.5) the first
+    compartment is empty and the outlet has no RSD at all."""
+    pbm = _mixed_pbm()
+    ones = np.ones((400, 2))
+    expected = math.sqrt(2) * 0.5 / 0.75
+    assert pbm_steady(pbm, {}, ones)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
+    mixed = np.vstack([ones, np.tile([[0.0, 2.0]], (400, 1))])
+    assert pbm_steady(pbm, {}, mixed)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
+    at_means = pbm_steady(pbm, {"outlet_totals": mixed.mean(axis=0).tolist()})
+    assert math.isnan(at_means["rsd_outlet"])
