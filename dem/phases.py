@@ -930,21 +930,16 @@ def fit(
 
 
 @single_threaded_blas()
-def one_phase(
-    data: PhaseData, max_iterations: int = 2000, max_rate_x_interval: float = rate_fit.MAX_RATE_X_INTERVAL
-) -> PhaseTransport:
+def one_phase(data: PhaseData, max_iterations: int = 2000) -> PhaseTransport:
     """The K = 1 chain: the measured rates of :mod:`dem.rates` (maximum likelihood of the
-    observed moves, pooled over ``data``, each rate at most ``max_rate_x_interval`` /
-    the interval), entry phase trivially 0."""
+    observed moves, pooled over ``data``), entry phase trivially 0."""
     counts = data.counts().astype(float)
     counts[-1] = 0.0
     nx, ny = data.nx, data.ny
     moves, _sizes = _moves(nx, ny, 1)
     start = rate_fit.naive_rates(counts, nx, ny, data.interval_s)
     start_moves = {f"{key}/0": start[key].ravel()[moves[f"{key}/0"][2]] for key in rate_fit.RATE_KEYS}
-    values, _fit = rate_fit.fit_pattern(
-        counts, moves, start_moves, data.interval_s, max_iterations, max_rate_x_interval=max_rate_x_interval
-    )
+    values, _fit = rate_fit.fit_pattern(counts, moves, start_moves, data.interval_s, max_iterations)
     split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
     return phase_model.from_move_rates(
         dict(zip(moves, np.split(values, split))), nx, ny, 1, np.ones(1), data.interval_s

@@ -14,6 +14,7 @@ STUDIES = (
     ("lag", "workflows.studies.lag"),
     ("layers", "workflows.studies.layers"),
     ("phases", "workflows.studies.phases"),
+    ("composition", "workflows.studies.composition"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),
     ("fill", "workflows.studies.fill"),

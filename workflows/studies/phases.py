@@ -489,12 +489,6 @@ def add_arguments(parser) -> None:
         help="interval between the observations fitted [s] (default %(default)s, the product's)",
     )
     parser.add_argument(
-        "--transverse-lags-s",
-        default=None,
-        help="instead of the K study: the outlet RSD of the results' phase model with its transverse rates "
-        "fitted at these observation intervals [s], comma-separated (e.g. 0.4,1,2,3)",
-    )
-    parser.add_argument(
         "--max-rate-x-interval",
         type=float,
         default=phases.PHASE_MAX_RATE_X_INTERVAL,
@@ -503,67 +497,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
 
-@dataclass(frozen=True)
-class TransverseRow:
-    """The phase model with its transverse rates fitted to observations ``lag_s`` apart:
-    their mean [1/s] and the PBM's outlet RSD on the DEM's counts (the agreement table's)."""
-
-    lag_s: float
-    mean_rate_per_s: float
-    rsd_outlet: float
-
-
-def transverse_study(results: str | Path, lags_s: tuple[float, ...]) -> tuple[tuple[TransverseRow, ...], Interval]:
-    """Composition: the outlet RSD against how far apart the observations are that the
-    memoryless transverse rates are fitted to (the axial phases kept), with the DEM's value
-    and interval. Slower transverse rates at longer lags are transverse memory: particles
-    flicker across y at the blades' stroke but drift across the bed slowly."""
-    from workflows.analysis.agreement import agreement_rows, run_modes
-    from workflows.pipeline.stages import load_results, rtd_pulse
-
-    dem, config = load_results(results)
-    if dem.sequences is None or not dem.table.has_phases:
-        raise ConfigError(f"results {results} carry no phase model: post-process the run's dumps with this version")
-    seq = dem.sequences
-    window = phases.steady_window(seq, dem.summary.steady_time)
-    axial = phases.axial_part(dem.table.phases)
-    pbm = pbm_config_for(config, dem.table, rtd_pulse(dem.summary)).model_copy(update={"rates": "phases"})
-    rows, interval = [], None
-    for lag_s in lags_s:
-        lag = max(1, round(lag_s / seq.interval_s))
-        transverse = phases.one_phase(phases.prepare(seq, window, lag=lag, residents=True))
-        table = dem.table.replace(phases=phases.with_transverse(axial, transverse))
-        modes = {"phases": run_modes(table, pbm, config.steady_state, dem.summary)["phases"]}
-        row = next(
-            r
-            for r in agreement_rows(dem.summary, dem.particles, modes, dem.steady_outlet_counts())
-            if r.key == "rsd_outlet"
-        )
-        interval = Interval(row.dem, row.dem_ci_low, row.dem_ci_high)
-        rates = transverse.rates[0, 2:]
-        rows.append(TransverseRow(lag * seq.interval_s, float(rates[rates > 0].mean()), float(row.value("phases"))))
-    return tuple(rows), interval
-
-
 def run(args) -> int:
-    if args.transverse_lags_s:
-        try:
-            lags = tuple(float(v) for v in args.transverse_lags_s.split(","))
-        except ValueError:
-            raise ConfigError(f"--transverse-lags-s {args.transverse_lags_s!r}: expected numbers, e.g. 0.4,2") from None
-        if not lags or min(lags) <= 0:
-            raise ConfigError(f"--transverse-lags-s {args.transverse_lags_s!r}: every interval must be > 0 s")
-        rows, dem = transverse_study(args.results, lags)
-        print(f"DEM outlet RSD {dem.value:.3f} [{dem.low:.3f}, {dem.high:.3f}]")
-        print("| transverse fitted every [s] | mean transverse rate [1/s] | PBM outlet RSD |\n| --- | --- | --- |")
-        for r in rows:
-            print(
-                f"| {r.lag_s:g} | {r.mean_rate_per_s:.3f} | {r.rsd_outlet:.3f} {'✓' if dem.inside(r.rsd_outlet) else '✗'} |"
-            )
-        out = writable_directory(args.out, "--out")
-        record_ = {"dem": asdict(dem), "rows": [asdict(r) for r in rows]}
-        print(f"wrote {write_json(out / 'transverse.json', record_)}")
-        return 0
     try:
         ks = tuple(int(k) for k in args.ks.split(","))
     except ValueError:
