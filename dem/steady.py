@@ -19,8 +19,9 @@ and sampling intervals after the steady-state time:
   (each particle a trial);
 * ``rsd_outlet`` and ``lacey_outlet``: means over the dumps of the RSD and the Lacey index
   across the last slice's compartments. What the PBM is compared with on this basis is its
-  composition sampled at the DEM's particle numbers (:func:`coupling.metrics.sampled_rsd`),
-  so ``outlet_totals`` (mean particles per last-slice compartment) is kept too.
+  composition sampled at the DEM's particle numbers (:func:`coupling.metrics.sampled_rsd`)
+  at every steady dump (:attr:`dem.post.DemResults.outlet_counts`); ``outlet_totals``
+  (mean particles per last-slice compartment) is kept for results without them.
 
 The pooled RTD (:func:`pooled_rtd`): every particle that entered during the entry window
 (t_ss, t_end - H] is a tracer, censored at the horizon H (:func:`coupling.metrics.rtd_pooled`).
