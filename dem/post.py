@@ -111,10 +111,11 @@ class DemResults:
     * ``sequences``: every particle's compartment at every dump, run-length encoded
       (:class:`dem.tracking.CompartmentSequences`), what the hidden-phase model is fitted
       to (:mod:`dem.phases`); None in results made before they were recorded.
-    * ``outlet_counts``: (dumps, NY) particles of A and B in each compartment of the last
-      slice at every dump of ``holdup``: the counts the outlet RSD is taken over, at which
-      the PBM's composition is sampled (:meth:`steady_outlet_counts`); None in results
-      made before they were recorded (then read off ``sequences`` when the grids agree).
+    * ``snapshot_counts``: (dumps, 2, NX, NY) particles of A and B in each compartment at
+      every dump of ``holdup``: what the steady quantities and their intervals are computed
+      from (:func:`dem.steady.steady_quantities`), kept so that they can be recomputed
+      without the dumps; the outlet's (:meth:`steady_outlet_counts`) are the counts at
+      which the PBM's composition is sampled. None in results made before they were kept.
     """
 
     table: VelocityTable
@@ -128,7 +129,7 @@ class DemResults:
     transitions: np.ndarray
     summary: DemSummary = field(default_factory=DemSummary)
     sequences: CompartmentSequences | None = None
-    outlet_counts: np.ndarray | None = None
+    snapshot_counts: np.ndarray | None = None
 
     def to_cache_entry(self, provenance: dict[str, Any]) -> CacheEntry:
         frames = {"timeseries": self.timeseries, "holdup": self.holdup, "rtd": self.rtd, "particles": self.particles}
@@ -138,8 +139,8 @@ class DemResults:
             "residence_times_s": self.residence_times_s,
             "transitions": self.transitions,
         }
-        if self.outlet_counts is not None:
-            arrays["outlet_counts"] = self.outlet_counts
+        if self.snapshot_counts is not None:
+            arrays["snapshot_counts"] = self.snapshot_counts
         if self.sequences is not None:
             arrays.update(self.sequences.to_arrays(SEQUENCE_PREFIX))
         return CacheEntry(self.table, self.summary.record(), frames, arrays, provenance)
@@ -149,15 +150,8 @@ class DemResults:
         arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
         sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
         plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
-        table = entry.table
-        if (
-            "outlet_counts" not in plain
-            and sequences is not None
-            and (sequences.nx, sequences.ny) == (table.nx, table.ny)
-        ):
-            plain["outlet_counts"] = sequences.slice_counts(table.nx - 1)
         return cls(
-            table=table,
+            table=entry.table,
             summary=DemSummary.from_record(entry.summary),
             **entry.frames,
             **plain,
@@ -165,12 +159,27 @@ class DemResults:
         )
 
     def steady_outlet_counts(self) -> np.ndarray | None:
-        """(steady dumps, NY) :attr:`outlet_counts` at the dumps after the steady state (the
-        dumps the DEM's outlet RSD averages over); None without them or a steady state."""
-        t_ss = self.summary.steady_time
-        if self.outlet_counts is None or t_ss is None or len(self.outlet_counts) != len(self.holdup):
+        """(steady dumps, NY) particles of A and B in each outlet compartment at each dump
+        after the steady state (the dumps the DEM's outlet RSD averages over), from
+        :attr:`snapshot_counts`, or read off the sequences for results made before those
+        were kept; None without either or without a steady state."""
+        t_ss, seq = self.summary.steady_time, self.sequences
+        if self.snapshot_counts is not None:
+            counts = self.snapshot_counts[:, :, -1, :].sum(axis=1)
+        elif seq is not None and (seq.nx, seq.ny) == (self.table.nx, self.table.ny):
+            counts = seq.slice_counts(seq.nx - 1)
+        else:
             return None
-        return self.outlet_counts[self.holdup["t_s"].to_numpy() > t_ss]
+        if t_ss is None or len(counts) != len(self.holdup):
+            return None
+        return counts[self.holdup["t_s"].to_numpy() > t_ss]
+
+
+def _compact_counts(counts: np.ndarray) -> np.ndarray:
+    """Per-compartment particle counts in the smallest integer type that holds them."""
+    counts = np.asarray(counts)
+    dtype = np.int16 if counts.size == 0 or counts.max() < np.iinfo(np.int16).max else np.int32
+    return counts.astype(dtype)
 
 
 def fit_phases(
@@ -642,5 +651,5 @@ def _results(
         transitions=transitions,
         summary=DemSummary.from_record(summary),
         sequences=sequences,
-        outlet_counts=acc.snapshot_counts[:, :, -1, :].sum(axis=1).astype(np.int32),
+        snapshot_counts=_compact_counts(acc.snapshot_counts),
     )

@@ -502,11 +502,13 @@ class CompartmentSequences:
         before = np.cumsum(self.run_length) - self.run_length
         first = self.start[owner] + before - before[self.run_offsets[:-1]][owner]
         state = self.run_state.astype(np.int64)
-        chosen = (state >= i * self.ny) & (state < (i + 1) * self.ny) & np.isin(self.component[owner], components)
+        chosen = (state >= i * self.ny) & (state < (i + 1) * self.ny)
+        chosen &= np.isin(self.component, components)[owner]
         cell = state[chosen] - i * self.ny
-        change = np.zeros((n_dumps + 1) * self.ny, np.int64)
-        np.add.at(change, first[chosen] * self.ny + cell, 1)
-        np.add.at(change, (first[chosen] + self.run_length[chosen]) * self.ny + cell, -1)
+        size = (n_dumps + 1) * self.ny
+        change = np.bincount(first[chosen] * self.ny + cell, minlength=size) - np.bincount(
+            (first[chosen] + self.run_length[chosen]) * self.ny + cell, minlength=size
+        )
         return np.cumsum(change.reshape(n_dumps + 1, self.ny), axis=0)[:n_dumps]
 
     def until(self, t_end_s: float) -> CompartmentSequences:

@@ -111,23 +111,25 @@ def test_rsd_and_floor(synthetic):
     assert res.summary.final_rsd_blender_floor == pytest.approx(floor)
 
 
-def test_outlet_counts_are_the_last_slices_particles_at_every_dump(synthetic):
-    """Per dump, what the outlet RSD is taken over; the same counts are read off the
-    compartment sequences when a results file predates them."""
+def test_per_dump_counts_are_kept_and_the_outlets_read_off_them(synthetic):
+    """Every compartment's particles at every dump are kept (what the steady quantities
+    come from); the outlet's, at which the PBM's composition is sampled, are the same
+    counts as the compartment sequences give, which stand in for them in older files."""
     from dem.post import DemResults
 
     cfg, res = synthetic
-    counts = res.outlet_counts
-    assert counts.shape == (len(res.holdup), cfg.tables.ny)
-    late = res.holdup["t_s"].to_numpy() >= 7
-    np.testing.assert_array_equal(counts[late], [[3, 2]] * int(late.sum()))  # 3 B on -y (column 0), 2 A on +y
-    np.testing.assert_array_equal(res.sequences.slice_counts(cfg.tables.nx - 1), counts)
+    assert res.snapshot_counts.shape == (len(res.holdup), 2, cfg.tables.nx, cfg.tables.ny)
+    np.testing.assert_array_equal(
+        res.snapshot_counts.sum(axis=(1, 2, 3)), res.holdup[["holdup_A", "holdup_B"]].sum(axis=1)
+    )
     after = res.holdup["t_s"].to_numpy() > res.summary.steady_time
-    np.testing.assert_array_equal(res.steady_outlet_counts(), counts[after])
+    outlet = res.steady_outlet_counts()
+    np.testing.assert_array_equal(outlet, [[3, 2]] * int(after.sum()))  # 3 B on -y (column 0), 2 A on +y
+    np.testing.assert_array_equal(res.sequences.slice_counts(cfg.tables.nx - 1)[after], outlet)
     entry = res.to_cache_entry({"input_hash": "test"})
-    np.testing.assert_array_equal(DemResults.from_cache_entry(entry).outlet_counts, counts)
-    older = dataclasses.replace(entry, arrays={k: v for k, v in entry.arrays.items() if k != "outlet_counts"})
-    np.testing.assert_array_equal(DemResults.from_cache_entry(older).outlet_counts, counts)
+    np.testing.assert_array_equal(DemResults.from_cache_entry(entry).snapshot_counts, res.snapshot_counts)
+    older = dataclasses.replace(entry, arrays={k: v for k, v in entry.arrays.items() if k != "snapshot_counts"})
+    np.testing.assert_array_equal(DemResults.from_cache_entry(older).steady_outlet_counts(), outlet)
 
 
 def test_rtd(synthetic):
