@@ -617,10 +617,35 @@ def initial_distribution(model: PhaseTransport, data: PhaseData) -> np.ndarray:
     """(2 + S, K) initial phase distribution of each group of :class:`PhaseData`: the
     entry distributions of the two feeders, then for the particles already inside, the
     model's steady phase distribution in their first compartment (what the EM starts
-    from and what a held-out score assumes; the EM refits those rows)."""
-    occupancy = steady_occupancy(model, np.maximum(first_compartments(data), 0.0) + 1e-12)
+    from and what a held-out score assumes; the EM refits those rows).
+
+    A model ``r`` times finer along x than the data (:func:`fit`'s ``refine``) hides the
+    sub-slice too: (2 + S, r K) over (sub-slice, phase), the feed spread evenly over the
+    sub-slices of the compartment it is first seen in."""
+    refine = _refinement(model, data)
+    first = np.maximum(first_compartments(data), 0.0) + 1e-12
+    if refine == 1:
+        occupancy = steady_occupancy(model, first)
+        entry = model.entry
+    else:
+        occupancy = steady_occupancy(model, np.repeat(first / refine, refine, axis=1)).reshape(data.n_cells, -1)
+        entry = np.repeat(model.entry[:, None, :] / refine, refine, axis=1).reshape(2, -1)
     given_cell = occupancy / np.maximum(occupancy.sum(axis=1, keepdims=True), 1e-300)
-    return np.vstack([model.entry, given_cell])
+    return np.vstack([entry, given_cell])
+
+
+def _refinement(model: PhaseTransport, data: PhaseData) -> int:
+    """How many of ``model``'s axial slices make one of ``data``'s (1: the same grid). A
+    finer model has its states ordered (slice, phase), so the states of one observed
+    slice, (sub-slice, phase), are contiguous: they are the hidden state there."""
+    if (model.nx, model.ny) == (data.nx, data.ny):
+        return 1
+    if data.ny != 1 or model.ny != 1 or model.nx % data.nx:
+        raise ValueError(
+            f"model grid {model.nx}x{model.ny} neither equals the data's {data.nx}x{data.ny} nor refines its "
+            "slices (NY = 1 and a multiple of its NX)"
+        )
+    return model.nx // data.nx
 
 
 def first_compartments(data: PhaseData) -> np.ndarray:
@@ -777,6 +802,19 @@ def _initial(
     return PhaseTransport(np.minimum(rates, cap), switching, np.stack([entry, entry]), base.interval_s)
 
 
+def refined(model: PhaseTransport, refine: int) -> PhaseTransport:
+    """``model`` on ``refine`` slices per slice (NY = 1): each slice's moves at ``refine``
+    times its rates, so that a particle crosses a slice as fast as before, and no backward
+    move out of the first sub-slice; switching and entry as they were. A start for
+    :func:`fit`'s ``refine``, not a model of its own: the EM refits every rate."""
+    if model.ny != 1 or refine < 1:
+        raise ValueError(f"refine {refine!r} of a {model.nx}x{model.ny} model: expected NY = 1 and refine >= 1")
+    rates = np.repeat(model.rates, refine, axis=2) * refine
+    rates[:, 1, 0] = 0.0
+    switching = np.repeat(model.switching, refine, axis=2)
+    return PhaseTransport(rates, switching, model.entry, model.interval_s)
+
+
 def _ordered(model: PhaseTransport, occupancy: np.ndarray) -> tuple[PhaseTransport, np.ndarray]:
     """``model`` with its phases sorted by :func:`coupling.phases.mobility`, slowest first,
     and ``occupancy`` (K, NX, NY) sorted alike."""
@@ -832,8 +870,10 @@ def _em(
     max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
 ) -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
     """EM from ``model`` (module docstring); returns the model, its log-likelihood, the
-    iterations, whether it converged and the expected time per (compartment, phase)."""
-    nx, ny, k, interval = data.nx, data.ny, model.n_phases, data.interval_s
+    iterations, whether it converged and the expected time per (compartment, phase) of
+    the model's grid, which may refine the data's slices (:func:`fit`'s ``refine``)."""
+    nx, ny, k, interval = model.nx, model.ny, model.n_phases, data.interval_s
+    hidden = _refinement(model, data) * k  # hidden states per observed compartment
     moves, _sizes = _moves(nx, ny, k)
     previous = -math.inf
     converged = False
@@ -842,7 +882,7 @@ def _em(
     initial = initial_distribution(model, data)
     for iteration in range(1, max_iterations + 1):  # noqa: B007 -- the count is reported after the loop
         p = expm(model.generator() * interval)
-        expected = forward_backward(p, initial, data, k)
+        expected = forward_backward(p, initial, data, hidden)
         # the likelihood is that of the model before this M-step
         gain = (expected.log_likelihood - previous) / max(data.n_steps, 1)
         if gain < tol:
@@ -852,7 +892,7 @@ def _em(
         updated = expected.entry / np.maximum(expected.entry.sum(axis=1, keepdims=True), 1e-300)
         missing = expected.entry.sum(axis=1) <= 0  # a group without particles keeps its row
         initial = np.where(missing[:, None], initial, updated)
-        entry = initial[:2]
+        entry = initial[:2].reshape(2, -1, k).sum(axis=1)  # over the sub-slices it entered
         counts = expected.counts.copy()
         counts[-1] = 0.0
         if m_step == "lbfgs":
@@ -878,13 +918,26 @@ def fit(
     base: PhaseTransport | None = None,
     m_step: str = "em",
     max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
+    refine: int = 1,
 ) -> PhaseFit:
     """Fit the K = ``n_phases`` chain to ``data`` by EM from ``starts`` starts (module
     docstring); stop when the log-likelihood gains less than ``tol`` nats per
     particle-step, or after ``max_iterations``. ``base``: the one-phase fit to start from
     (default: fitted here, by the same EM with K = 1). ``max_rate_x_interval``: the bound
-    on every rate x the observation interval (:data:`PHASE_MAX_RATE_X_INTERVAL`). Raises
-    ValueError for K < 1, starts < 1 or a bound that is not > 0."""
+    on every rate x the observation interval (:data:`PHASE_MAX_RATE_X_INTERVAL`).
+
+    ``refine`` = r > 1 (axial data, NY = 1): the chain has r slices in each observed one,
+    and the sub-slice a particle is in is hidden beside its phase (r K hidden states per
+    observed slice, the same forward-backward). Such a chain is fitted to observations
+    coarse enough to be Markov in the phases and is itself on a finer grid (``pbmdem study
+    phases --observed-nx``): the observations time the crossing of an observed slice but
+    do not say where in it the particles are, so the split of the hold-up between its
+    sub-slices is not identified. Raises ValueError for K < 1, starts < 1, a bound that is not
+    > 0 or refine < 1."""
+    if not isinstance(refine, (int, np.integer)) or refine < 1 or (refine > 1 and (data.ny != 1 or m_step != "em")):
+        raise ValueError(
+            f"refine = {refine!r}: expected an integer >= 1 (> 1 only on axial data, NY = 1, with the EM M-step)"
+        )
     if not isinstance(n_phases, (int, np.integer)) or n_phases < 1:
         raise ValueError(f"n_phases = {n_phases!r}: expected an integer >= 1")
     if starts < 1:
@@ -894,6 +947,8 @@ def fit(
     wall0 = time.perf_counter()
     if base is None:
         base = one_phase(data)
+    if refine > 1 and base.nx == data.nx:
+        base = refined(base, refine)
     rng = np.random.default_rng(seed)
     results = []
     for start in range(starts if n_phases > 1 else 1):
@@ -901,7 +956,7 @@ def fit(
         results.append(_em(first, data, max_iterations, tol, m_step_iterations, m_step, max_rate_x_interval))
     best = max(results, key=lambda r: r[1])
     model, log_likelihood, iterations, converged, dwell = best
-    occupancy = dwell.reshape(data.nx, data.ny, n_phases).transpose(2, 0, 1)
+    occupancy = dwell.reshape(model.nx, model.ny, n_phases).transpose(2, 0, 1)
     model, occupancy = _ordered(model, occupancy)
     model = PhaseTransport(
         model.rates,
@@ -913,7 +968,8 @@ def fit(
             "n_particles": data.n_particles,
             "n_steps": data.n_steps,
             "log_likelihood": log_likelihood,
-            "grid": [data.nx, data.ny],
+            "grid": [model.nx, model.ny],
+            "observed_grid": [data.nx, data.ny],
         },
     )
     return PhaseFit(
@@ -1223,6 +1279,7 @@ def fit_record(fit: PhaseFit) -> dict:
     return {
         "n_phases": fit.n_phases,
         "grid": [model.nx, model.ny],
+        "observed_grid": list(model.attrs.get("observed_grid", [model.nx, model.ny])),
         "log_likelihood": fit.log_likelihood,
         "n_particles": fit.n_particles,
         "n_steps": fit.n_steps,

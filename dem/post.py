@@ -50,6 +50,7 @@ below are the DEM's own.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Iterable, Sequence
@@ -196,6 +197,21 @@ def fit_phases(
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:  # too few data to fit
         return table, None, f"no phase model: {exc}"
     return with_phases, phases.fit_record(fit), None
+
+
+def refit_phases(results: DemResults) -> DemResults:
+    """``results`` with the hidden-phase model fitted again to its own compartment sequences
+    (:func:`fit_phases`, this version's fit), for results made before the fit changed: no
+    dumps are needed. The summary's ``phase_fit`` record and its phase note follow. Raises
+    ValueError when the results carry no sequences."""
+    if results.sequences is None:
+        raise ValueError("the results carry no compartment sequences to refit the phase model to")
+    table, record, note = fit_phases(results.table.replace(phases=None), results.sequences, results.summary.steady_time)
+    summary = results.summary.record()
+    summary["phase_fit"] = record
+    kept = [w for w in summary.get("warnings", []) if not str(w).startswith("no phase model")]
+    summary["warnings"] = kept + ([note] if note else [])
+    return dataclasses.replace(results, table=table, summary=DemSummary.from_record(summary))
 
 
 def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:

@@ -464,3 +464,20 @@ def test_the_bound_on_rate_x_interval_holds_and_is_checked(synthetic_two_phase):
     assert fit.transport.rates.max() > 0.3 / INTERVAL  # the fast lane at 7 /s is not held back
     with pytest.raises(ValueError, match="max_rate_x_interval"):
         phases.fit(data, 2, max_rate_x_interval=0.0)
+
+
+def test_a_finer_chain_fitted_to_coarser_observations_keeps_the_rtd(synthetic_two_phase):
+    """The known two-phase chain on 10 slices, observed on 5 (the sub-slice hidden beside
+    the phase): the 10-slice chain fitted to those observations has the truth's RTD mean
+    and variance, and it is the data's grid it refines that the fit checks."""
+    truth, sequences, _data, _fit = synthetic_two_phase
+    coarse = phases.prepare(sequences, grid=(NX // 2, 1))
+    fit = phases.fit(coarse, 2, starts=1, refine=2)
+    assert (fit.transport.nx, fit.transport.ny) == (NX, 1)
+    assert fit.transport.attrs["observed_grid"] == [NX // 2, 1]
+    mean_t, var_t = exact_rtd_moments(truth, inlet())
+    mean_f, var_f = exact_rtd_moments(fit.transport, inlet())
+    assert mean_f == pytest.approx(mean_t, rel=0.03)
+    assert var_f == pytest.approx(var_t, rel=0.05)
+    with pytest.raises(ValueError, match="refine"):
+        phases.fit(phases.prepare(sequences, grid=(NX // 2, 1)), 2, refine=0)

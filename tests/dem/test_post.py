@@ -12,6 +12,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from coupling.errors import DumpFormatError
@@ -391,3 +392,24 @@ def test_postprocessing_read_in_parts_gives_the_one_pass_results(tmp_path):
     assert streamed.summary.t_end_s == pytest.approx(END_S)
     with pytest.raises(DumpFormatError, match="does not follow the step"):
         post.add(files[-1:])
+
+
+def test_refit_phases_rewrites_a_results_file_from_its_sequences(synthetic, tmp_path, capsys):
+    """`pbmdem dem refit-phases`: the phase model fitted again to the file's own sequences
+    (no dumps), the file rewritten whole, everything else as it was."""
+    from coupling.cache import load_entry, save_entry
+    from dem.post import DemResults
+    from workflows.cli.main import main
+
+    _, res = synthetic
+    path = tmp_path / "dem-test.h5"
+    stripped = dataclasses.replace(res, table=res.table.replace(phases=None))
+    save_entry(path, stripped.to_cache_entry({"key": "test"}))
+    assert not DemResults.from_cache_entry(load_entry(path)).table.has_phases
+    assert main(["dem", "refit-phases", str(path)]) == 0
+    assert "phase model K = 3" in capsys.readouterr().out
+    back = DemResults.from_cache_entry(load_entry(path))
+    assert back.table.has_phases and back.table.phases.n_phases == 3
+    assert back.summary.record()["phase_fit"]["observed_grid"] == [back.table.nx, 1]
+    np.testing.assert_array_equal(back.snapshot_counts, res.snapshot_counts)
+    pd.testing.assert_frame_equal(back.particles, res.particles)

@@ -5,6 +5,7 @@
                      [--runs-dir DIR] [--cache-dir DIR] [--no-progress]
                      [--stop-when-converged [--check-every S]]
     pbmdem dem post  --preset NAME|--config FILE.toml --dumps 'GLOB' --out RESULTS.h5 [--massflow-dir DIR]
+    pbmdem dem refit-phases RESULTS.h5 [...]
     pbmdem dem slurm --preset NAME|--config FILE.toml --out DIR [--np 32] [--partition P]
                      [--holdup N] [--throughput R]
 
@@ -105,6 +106,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     post.set_defaults(func=post_command)
 
+    refit = dem_sub.add_parser(
+        "refit-phases",
+        help="fit the hidden-phase model of DEM results files again to their own compartment sequences "
+        "(after the fit changed; no dumps needed), rewriting each file in place",
+    )
+    refit.add_argument("results", nargs="+", help="DEM results files (dem-*.h5) with compartment sequences")
+    refit.set_defaults(func=refit_command)
+
     slurm = dem_sub.add_parser(
         "slurm", help="write the deck and a Slurm batch script with a cost estimate, without running"
     )
@@ -193,6 +202,26 @@ def post_command(args: argparse.Namespace) -> int:
     )
     print_summary(results.summary)
     print(f"velocity table and DEM results: {args.out} ({results.summary.n_snapshots} snapshots)")
+    return 0
+
+
+def refit_command(args: argparse.Namespace) -> int:
+    from coupling.cache import load_entry, save_entry
+    from dem.post import DemResults, refit_phases
+
+    for path in args.results:
+        entry = load_entry(path)  # refuses a corrupt or foreign file before anything is written
+        try:
+            results = refit_phases(DemResults.from_cache_entry(entry))
+        except ValueError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+        save_entry(path, results.to_cache_entry(entry.provenance))  # atomic: the old file stays until it is whole
+        fit = results.summary.record().get("phase_fit") or {}
+        print(
+            f"{path}: phase model K = {fit.get('n_phases')} on {fit.get('grid')} (observed on "
+            f"{fit.get('observed_grid', fit.get('grid'))}), {fit.get('iterations')} EM iterations, "
+            f"{fit.get('wall_time_s', float('nan')):.0f} s"
+        )
     return 0
 
 

@@ -196,20 +196,30 @@ def evaluate(
     residents: bool = True,
     lag: int = 1,
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
+    observed_nx: int | None = None,
 ) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
     the particles already inside when the window opens (:func:`dem.phases.prepare`); the
     held-out particles are only those that enter in the second half. ``lag``: fit to every
     ``lag``-th dump (the product's is :data:`dem.phases.PHASE_LAG_S`); the held-out score
-    and the CK test read the same observations, the CK test at 1, 2, 5 and 10 s."""
+    and the CK test read the same observations, the CK test at 1, 2, 5 and 10 s.
+    ``observed_nx``: fit the chain on ``grid`` (NY = 1) to the observations on this many
+    axial slices (:func:`dem.phases.fit`'s ``refine``); it is scored and CK-tested on its
+    own grid."""
     t0, t1 = fit_window
     data = phases.prepare(sequences, (t0, t1), grid, residents=residents, lag=lag)
+    observed, refine = grid, 1
+    if observed_nx is not None:
+        if grid[1] != 1 or observed_nx < 1 or grid[0] % observed_nx:
+            raise ConfigError(f"--observed-nx {observed_nx}: must divide the grid's NX {grid[0]}, with NY = 1")
+        observed, refine = (observed_nx, 1), grid[0] // observed_nx
+    fit_data = data if refine == 1 else phases.prepare(sequences, (t0, t1), observed, residents=residents, lag=lag)
     wall0 = time.perf_counter()
-    bound = {"max_rate_x_interval": max_rate_x_interval}
-    fit = phases.fit(data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
+    bound = {"max_rate_x_interval": max_rate_x_interval, "refine": refine}
+    fit = phases.fit(fit_data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
-    train = phases.prepare(sequences, (t0, middle), grid, residents=residents, lag=lag)
+    train = phases.prepare(sequences, (t0, middle), observed, residents=residents, lag=lag)
     test = phases.prepare(sequences, (middle, t1), grid, lag=lag)
     held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
     ck = fit.chapman_kolmogorov(data, tuple(max(1, round(v / data.interval_s)) for v in (1.0, 2.0, 5.0, 10.0)))
@@ -258,6 +268,7 @@ def phase_study(
     log=print,
     lag_s: float = phases.PHASE_LAG_S,
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
+    observed_nx: int | None = None,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
@@ -300,6 +311,7 @@ def phase_study(
                 residents=residents,
                 lag=lag,
                 max_rate_x_interval=max_rate_x_interval,
+                observed_nx=observed_nx,
             )
             log(
                 f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
@@ -494,6 +506,13 @@ def add_arguments(parser) -> None:
         default=phases.PHASE_MAX_RATE_X_INTERVAL,
         help="the fit's bound on every rate x the observation interval (default %(default)s, the product's)",
     )
+    parser.add_argument(
+        "--observed-nx",
+        type=int,
+        default=None,
+        help="fit each NXx1 grid's chain to the observations on this many slices instead (the sub-slice "
+        "hidden beside the phase; must divide NX)",
+    )
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
 
@@ -516,6 +535,7 @@ def run(args) -> int:
         starts=args.starts,
         lag_s=args.lag_s,
         max_rate_x_interval=args.max_rate_x_interval,
+        observed_nx=args.observed_nx,
     )
     print(markdown(study))
     out = writable_directory(args.out, "--out")

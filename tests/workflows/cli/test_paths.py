@@ -59,6 +59,8 @@ COMMANDS = {
         "--out",
         str(p["under_file"] / "r.h5"),
     ],
+    "dem refit-phases: missing file": lambda p: ["dem", "refit-phases", str(p["missing"] / "dem-x.h5")],
+    "dem refit-phases: not a results file": lambda p: ["dem", "refit-phases", str(p["file"])],
     "dem slurm: out under a file": lambda p: [
         "dem",
         "slurm",
