@@ -936,7 +936,8 @@ def fit(
     > 0 or refine < 1."""
     if not isinstance(refine, (int, np.integer)) or refine < 1 or (refine > 1 and (data.ny != 1 or m_step != "em")):
         raise ValueError(
-            f"refine = {refine!r}: expected an integer >= 1 (> 1 only on axial data, NY = 1, with the EM M-step)"
+            f"refine = {refine!r} on {data.nx}x{data.ny} data with m_step {m_step!r}: expected an integer >= 1, "
+            "and > 1 only on axial data (NY = 1) with the EM M-step"
         )
     if not isinstance(n_phases, (int, np.integer)) or n_phases < 1:
         raise ValueError(f"n_phases = {n_phases!r}: expected an integer >= 1")
@@ -949,6 +950,10 @@ def fit(
         base = one_phase(data)
     if refine > 1 and base.nx == data.nx:
         base = refined(base, refine)
+    if (base.nx, base.ny) != (data.nx * refine, data.ny):
+        raise ValueError(
+            f"base grid {base.nx}x{base.ny} is not refine = {refine} times the data's {data.nx}x{data.ny} along x"
+        )
     rng = np.random.default_rng(seed)
     results = []
     for start in range(starts if n_phases > 1 else 1):

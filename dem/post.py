@@ -160,10 +160,12 @@ class DemResults:
         )
 
     def steady_outlet_counts(self) -> np.ndarray | None:
-        """(steady dumps, NY) particles of A and B in each outlet compartment at each dump
-        after the steady state (the dumps the DEM's outlet RSD averages over), from
+        """(steady dumps, NY) particles (A and B together) in each outlet compartment at each
+        dump after the steady state (the dumps the DEM's outlet RSD averages over), from
         :attr:`snapshot_counts`, or read off the sequences for results made before those
-        were kept; None without either or without a steady state."""
+        were kept (they leave out the rare particles whose record was cut short, e.g. seen
+        at x < 0 or skipping a dump: 0.2 % of the outlet's on the shipped reduced run);
+        None without either or without a steady state."""
         t_ss, seq = self.summary.steady_time, self.sequences
         if self.snapshot_counts is not None:
             counts = self.snapshot_counts[:, :, -1, :].sum(axis=1)
@@ -203,14 +205,16 @@ def refit_phases(results: DemResults) -> DemResults:
     """``results`` with the hidden-phase model fitted again to its own compartment sequences
     (:func:`fit_phases`, this version's fit), for results made before the fit changed: no
     dumps are needed. The summary's ``phase_fit`` record and its phase note follow. Raises
-    ValueError when the results carry no sequences."""
+    ValueError when the results carry no sequences or the fit fails (too few data; the
+    results are then left as they are)."""
     if results.sequences is None:
         raise ValueError("the results carry no compartment sequences to refit the phase model to")
     table, record, note = fit_phases(results.table.replace(phases=None), results.sequences, results.summary.steady_time)
+    if record is None:
+        raise ValueError(note)
     summary = results.summary.record()
     summary["phase_fit"] = record
-    kept = [w for w in summary.get("warnings", []) if not str(w).startswith("no phase model")]
-    summary["warnings"] = kept + ([note] if note else [])
+    summary["warnings"] = [w for w in summary.get("warnings", []) if not str(w).startswith("no phase model")]
     return dataclasses.replace(results, table=table, summary=DemSummary.from_record(summary))
 
 

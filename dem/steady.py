@@ -20,7 +20,7 @@ and sampling intervals after the steady-state time:
 * ``rsd_outlet`` and ``lacey_outlet``: means over the dumps of the RSD and the Lacey index
   across the last slice's compartments. What the PBM is compared with on this basis is its
   composition sampled at the DEM's particle numbers (:func:`coupling.metrics.sampled_rsd`)
-  at every steady dump (:attr:`dem.post.DemResults.outlet_counts`); ``outlet_totals``
+  at every steady dump (:meth:`dem.post.DemResults.steady_outlet_counts`); ``outlet_totals``
   (mean particles per last-slice compartment) is kept for results without them.
 
 The pooled RTD (:func:`pooled_rtd`): every particle that entered during the entry window

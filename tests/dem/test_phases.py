@@ -479,5 +479,15 @@ def test_a_finer_chain_fitted_to_coarser_observations_keeps_the_rtd(synthetic_tw
     mean_f, var_f = exact_rtd_moments(fit.transport, inlet())
     assert mean_f == pytest.approx(mean_t, rel=0.03)
     assert var_f == pytest.approx(var_t, rel=0.05)
-    with pytest.raises(ValueError, match="refine"):
-        phases.fit(phases.prepare(sequences, grid=(NX // 2, 1)), 2, refine=0)
+    with pytest.raises(ValueError, match="refine = 0"):
+        phases.fit(coarse, 2, refine=0)
+    with pytest.raises(ValueError, match="m_step 'lbfgs'"):
+        phases.fit(coarse, 2, refine=2, m_step="lbfgs")
+    with pytest.raises(ValueError, match="NY = 1"):
+        phases.fit(
+            phases.prepare(phases.simulate_sequences(two_phase_model(2), inlet(2), 50, 60, np.random.default_rng(1))),
+            2,
+            refine=2,
+        )
+    with pytest.raises(ValueError, match="base grid 10x1 is not refine = 1"):
+        phases.fit(coarse, 2, base=fit.transport)

@@ -413,3 +413,17 @@ def test_refit_phases_rewrites_a_results_file_from_its_sequences(synthetic, tmp_
     assert back.summary.record()["phase_fit"]["observed_grid"] == [back.table.nx, 1]
     np.testing.assert_array_equal(back.snapshot_counts, res.snapshot_counts)
     pd.testing.assert_frame_equal(back.particles, res.particles)
+
+
+def test_a_refit_that_cannot_fit_leaves_the_file_as_it_was(synthetic, tmp_path, capsys):
+    from coupling.cache import save_entry
+    from workflows.cli.main import main
+
+    _, res = synthetic
+    unsteady = dataclasses.replace(res, summary=dataclasses.replace(res.summary, steady_state_time_s=None))
+    path = save_entry(tmp_path / "dem-test.h5", unsteady.to_cache_entry({"key": "test"}))
+    before = path.read_bytes()
+    assert main(["dem", "refit-phases", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "steady state" in err[0], err
+    assert path.read_bytes() == before

@@ -45,7 +45,7 @@ from pbm.simulate import PbmResult, simulate
 #: the PBM's rate modes, in the order of every table and figure (:data:`pbm.model.RATE_MODES`)
 MODES = RATE_MODES
 #: binomial draws of the sampled RSD / Lacey index (their Monte-Carlo error is < 0.5 %);
-#: at the DEM's per-dump counts, this many samplings in all, spread over the dumps
+#: at the DEM's per-dump counts, ten times as many samplings in all, spread over the dumps
 SAMPLING_DRAWS = 2000
 
 
@@ -118,11 +118,14 @@ def pbm_steady(
         # The DEM's RSD is a mean over dumps of the RSD at that dump's counts, which
         # fluctuate: a compartment holding 0.7 particles on average is left out of the mean
         # counts' RSD but holds 1-3 particles (fractions 0 or 1) at many dumps.
+        # One sampling per (repeat, dump), pooled over those in which the metric is
+        # defined: the DEM's mean counts each dump in which it is defined once.
         counts = np.asarray(outlet_counts, dtype=float)
-        draws = max(1, math.ceil(SAMPLING_DRAWS * 10 / len(counts)))
+        repeats = max(1, math.ceil(SAMPLING_DRAWS * 10 / len(counts)))
+        every = np.broadcast_to(counts, (repeats, *counts.shape))
         sampled = {
-            "rsd_outlet": sampled_rsd(fraction[None, :], counts, draws=draws),
-            "lacey_outlet": sampled_lacey(fraction[None, :], counts, draws=draws),
+            "rsd_outlet": sampled_rsd(fraction, every, draws=1),
+            "lacey_outlet": sampled_lacey(fraction, every, draws=1),
         }
         sampled = {k: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan for k, v in sampled.items()}
     else:

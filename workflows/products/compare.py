@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from coupling.blas import single_threaded_blas
 from coupling.errors import OutputError, ResourceLimitError, os_reason
 from coupling.jsonable import write_json
 from pbm.config import PbmConfig
@@ -152,10 +153,16 @@ def compare(config: Config, dem: DemSide, runs_root: Path, log: Log = lambda mes
     sensitivity reads or post-processes the same run at 2 NX through ``runs_root``)."""
     pbm_config = pbm_config_for(config, dem.table, rtd_pulse_s=rtd_pulse(dem.results.summary))
     # The memory check (a phase refit, mostly compiled code that releases the GIL) needs
-    # nothing of what follows, so it runs on the second core meanwhile.
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="memory-check") as aside:
-        memory_future = aside.submit(memory_check, dem.results, pbm_config)
-        return _compare(config, dem, runs_root, pbm_config, memory_future, log)
+    # nothing of what follows, so it runs on the second core meanwhile. OpenBLAS's thread
+    # count is one per process: set once around both threads, not by each in turn, whose
+    # saves and restores would interleave.
+    with single_threaded_blas():
+        aside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="memory-check")
+        try:
+            memory_future = aside.submit(memory_check, dem.results, pbm_config)
+            return _compare(config, dem, runs_root, pbm_config, memory_future, log)
+        finally:
+            aside.shutdown(wait=False, cancel_futures=True)
 
 
 def _compare(
