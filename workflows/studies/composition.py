@@ -1,8 +1,8 @@
 """``pbmdem study composition``: is the DEM's outlet segregated, or is its RSD sampling?
 
 The outlet RSD is a mean over the steady dumps of the RSD across the last slice's
-compartments at that dump's counts. Three numbers on one DEM results file with compartment
-sequences tell segregation from sampling:
+compartments at that dump's counts. Three numbers on one DEM results file with per-dump counts
+(or compartment sequences) tell segregation from sampling:
 
 * the DEM's outlet RSD and its random-mixture floor (both from the dumps);
 * the RSD of a random mixture at the DEM's own counts: at every steady dump, the A
@@ -68,14 +68,21 @@ def random_mixture_at(counts_a: np.ndarray, totals: np.ndarray, deals: int, rng:
 
 def composition_study(results_path: str | Path, seed: int = 0) -> CompositionStudy:
     results, config = load_results(results_path)
-    seq, summary = results.sequences, results.summary
-    if seq is None or (seq.nx, seq.ny) != (results.table.nx, results.table.ny):
-        raise ConfigError(f"{results_path}: no compartment sequences on the table's grid; post-process the run again")
+    seq, summary, table = results.sequences, results.summary, results.table
     if summary.steady_time is None or "rsd_outlet" not in summary.steady:
         raise ConfigError(f"{results_path}: the DEM run reached no steady state, so it has no steady outlet RSD")
-    after = seq.snapshot_t > summary.steady_time
-    a = seq.slice_counts(seq.nx - 1, (1,))[after]
-    totals = seq.slice_counts(seq.nx - 1)[after]
+    after = results.holdup["t_s"].to_numpy() > summary.steady_time
+    if results.snapshot_counts is not None:
+        a = results.snapshot_counts[after, 0, -1, :].astype(np.int64)
+        totals = results.snapshot_counts[after, :, -1, :].sum(axis=1).astype(np.int64)
+    elif seq is not None and (seq.nx, seq.ny) == (table.nx, table.ny):
+        a = seq.slice_counts(seq.nx - 1, (1,))[after]
+        totals = seq.slice_counts(seq.nx - 1)[after]
+    else:
+        raise ConfigError(
+            f"{results_path}: neither per-dump counts nor compartment sequences on the table's grid; "
+            "post-process the run again"
+        )
     series = results.timeseries[results.timeseries["t_s"] > summary.steady_time]
     steady = summary.steady["rsd_outlet"]
     pooled = a.sum(axis=0) / np.maximum(totals.sum(axis=0), 1)
@@ -99,7 +106,9 @@ def composition_study(results_path: str | Path, seed: int = 0) -> CompositionStu
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--results", default=str(REDUCED_RUN), help="DEM results file with compartment sequences (default: %(default)s)"
+        "--results",
+        default=str(REDUCED_RUN),
+        help="DEM results file with per-dump counts or sequences (default: %(default)s)",
     )
     parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
 
