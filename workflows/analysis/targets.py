@@ -9,7 +9,11 @@ from the summary that ``make full-comparison`` (``pbmdem compare``) writes:
   10 % of the DEM's and the total inside its 95 % interval; mean residence time and RTD
   variance inside the DEM's 95 % intervals; RTD overlap >= 0.9 and inside its noise band;
   mean and variance change < 5 % between NX and 2 NX;
+* the VRR of feeder A for white noise and first-order noise of tau = 5 s and 20 s inside
+  the DEM's 95 % intervals (feeder B's, and tau = 1 s, are printed as information);
 * post-processing, and the phase fit within it, <= 5 % of the DEM's wall time.
+
+The outlet RSD and Lacey index (composition) are printed for every mode, as information.
 
 The ``measured`` and ``velocity`` PBMs are printed beside it for the same quantities;
 their lines are information, not targets. A summary without the phase model (DEM results
@@ -23,6 +27,39 @@ import math
 
 def _rows(summary: dict) -> dict[str, dict]:
     return {row["key"]: row for row in summary.get("agreement") or []}
+
+
+#: (feeder, noise correlation times [s]) of the VRR target; the others are information
+VRR_TARGET = ("A", (0.0, 5.0, 20.0))
+
+
+def _vrr_lines(summary: dict, mode: str, target: bool | None) -> list[tuple[str, str, bool | None]]:
+    """The feeder-noise VRR of ``mode`` against the DEM's intervals, per feeder: a target
+    line for :data:`VRR_TARGET`, information for the rest."""
+    feeders = (((summary.get("vrr") or {}).get("pbm") or {}).get(mode) or {}).get("feeders") or {}
+    out = []
+    for feeder, record in sorted(feeders.items()):
+        noise = record.get("noise") or []
+        for part in ("target", "other"):
+            chosen = [
+                n for n in noise if (feeder == VRR_TARGET[0] and n["tau_s"] in VRR_TARGET[1]) == (part == "target")
+            ]
+            if not chosen:
+                continue
+            numbers = ", ".join(
+                f"tau {n['tau_s']:g} s: {n['vrr']:.2f} vs DEM [{n['dem']['low']:.2f}, {n['dem']['high']:.2f}]"
+                for n in chosen
+            )
+            passed = all(bool(n["inside"]) for n in chosen)
+            out.append(
+                (
+                    f"{mode}: VRR of feeder {feeder} inside the DEM intervals"
+                    + ("" if part == "target" else " (information)"),
+                    numbers,
+                    passed if (target and part == "target") else None,
+                )
+            )
+    return out
 
 
 def check(summary: dict) -> list[tuple[str, str, bool | None]]:
@@ -79,6 +116,17 @@ def check(summary: dict) -> list[tuple[str, str, bool | None]]:
                     (value >= 0.9 and value >= low) if target else None,
                 )
             )
+        for key in ("rsd_outlet", "lacey_outlet"):
+            r = rows.get(key)
+            if r:
+                out.append(
+                    (
+                        f"{mode}: {r['quantity']} inside the DEM interval",
+                        f"{r[f'pbm_{mode}']:.3f} vs DEM {r['dem']:.3f} [{r['dem_ci_low']:.3f}, {r['dem_ci_high']:.3f}]",
+                        None,
+                    )
+                )
+        out.extend(_vrr_lines(summary, mode, target))
         sens = (summary.get("nx_sensitivity") or {}).get(mode)
         if sens:
             nx = summary["nx_sensitivity"]["nx"]

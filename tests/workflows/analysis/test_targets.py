@@ -46,3 +46,27 @@ def test_phases_mode_is_the_target_and_the_others_inform():
 def test_a_summary_without_the_phases_mode_fails():
     out = verdicts(summary(258.0, with_phases=False))
     assert out["phases: the PBM ran in this mode"] is False
+
+
+def _noise(tau, vrr, low, high):
+    return {"tau_s": tau, "vrr": vrr, "inside": low <= vrr <= high, "dem": {"value": vrr, "low": low, "high": high}}
+
+
+def test_the_vrr_target_is_feeder_a_white_5_and_20_s_the_rest_informs():
+    s = summary(258.0)
+    a = [
+        _noise(0.0, 40.0, 38.0, 42.0),
+        _noise(1.0, 99.0, 1.0, 2.0),
+        _noise(5.0, 4.5, 4.3, 4.7),
+        _noise(20.0, 1.9, 1.8, 2.0),
+    ]
+    b = [_noise(0.0, 99.0, 38.0, 42.0)]
+    s["vrr"] = {"pbm": {"phases": {"feeders": {"A": {"noise": a}, "B": {"noise": b}}}}}
+    out = verdicts(s)
+    assert out["phases: VRR of feeder A inside the DEM intervals"] is True  # tau 1 s is outside but not a target
+    assert out["phases: VRR of feeder A inside the DEM intervals (information)"] is None
+    assert out["phases: VRR of feeder B inside the DEM intervals (information)"] is None
+    a[2] = _noise(5.0, 4.9, 4.3, 4.7)
+    assert verdicts(s)["phases: VRR of feeder A inside the DEM intervals"] is False
+    s["agreement"].append(row("rsd_outlet", 0.315, 0.306, 0.323, {"phases": 0.319, "measured": 0.2}))
+    assert verdicts(s)["phases: rsd_outlet inside the DEM interval"] is None  # composition informs
