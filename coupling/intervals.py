@@ -7,6 +7,8 @@
 * :func:`block_draw_counts` -- the same replicates as counts of each block, for statistics
   that are one matrix product over all replicates; :func:`percentile_interval` -- their ends.
 * :func:`time_blocks` -- the block label of each item from its time.
+* :func:`batch_means_error` -- the standard error of a series' mean by batch means, to
+  check that the blocks outlast the series' correlation.
 * :func:`overlap_noise_band` -- the RTD overlap that sampling noise alone leaves: what a
   sample of the DEM's size drawn from a density scores against that density.
 * :func:`inside` -- whether a value lies in an interval.
@@ -141,6 +143,21 @@ def percentile_interval(estimate, replicates, level: float = 0.95) -> Interval:
     low, high = np.percentile(np.asarray(replicates, dtype=float), [q, 100 - q], axis=0)
     estimate = np.asarray(estimate, dtype=float)
     return Interval(estimate[()], low[()], high[()])
+
+
+def batch_means_error(values, per_batch: int, min_batches: int = 4) -> float:
+    """Standard error of the mean of ``values`` (a series in time order) from the means of
+    consecutive batches of ``per_batch`` items, the last incomplete batch left out; NaN
+    with fewer than ``min_batches`` batches. It grows with the batch length until the
+    batches outlast the series' correlation, so comparing it across lengths shows how long
+    a bootstrap block has to be."""
+    per_batch = _check_count("per_batch", per_batch)
+    values = np.asarray(values, dtype=float)
+    n = values.size // per_batch
+    if n < max(2, min_batches):
+        return float("nan")
+    means = values[: n * per_batch].reshape(n, per_batch).mean(axis=1)
+    return float(means.std(ddof=1) / np.sqrt(n))
 
 
 def overlap_noise_band(

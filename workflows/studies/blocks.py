@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from coupling.errors import ConfigError
+from coupling.intervals import batch_means_error
 from coupling.jsonable import write_json
 from workflows.pipeline.stages import load_results
 from workflows.shipped import REDUCED_RUN
@@ -25,14 +26,12 @@ from workflows.shipped import REDUCED_RUN
 HELP = "the DEM's bootstrap block length against its hold-up's correlation (batch means by block length)"
 OUT = Path("results/blocks")
 BLOCKS_S = (1.0, 2.5, 5.0, 10.0, 20.0, 40.0)
-#: fewer batches than this give no standard error worth printing
-MIN_BATCHES = 4
 
 
 @dataclass(frozen=True)
 class BlockRow:
     """One results file: ``standard_error[i]`` of the steady mean hold-up by batch means
-    over blocks of ``blocks_s[i]`` (NaN with fewer than :data:`MIN_BATCHES` batches), and
+    over blocks of ``blocks_s[i]`` (NaN with fewer than four batches), and
     the half-width of the results' 95 % interval over 1.96 (the bootstrap's own error)."""
 
     results: str
@@ -42,16 +41,6 @@ class BlockRow:
     little_mean_residence_time_s: float
     blocks_s: tuple[float, ...]
     standard_error: tuple[float, ...]
-
-
-def batch_means_error(values: np.ndarray, per_batch: int) -> float:
-    """Standard error of the mean of ``values`` from the means of consecutive batches of
-    ``per_batch`` items (the last incomplete batch left out)."""
-    n = len(values) // per_batch
-    if n < MIN_BATCHES:
-        return float("nan")
-    means = np.asarray(values[: n * per_batch], dtype=float).reshape(n, per_batch).mean(axis=1)
-    return float(means.std(ddof=1) / np.sqrt(n))
 
 
 def block_row(path: str | Path) -> BlockRow:

@@ -1,11 +1,11 @@
-"""The block-length study: batch means on series whose correlation is known."""
+"""Batch means (coupling.intervals.batch_means_error) on series whose correlation is known."""
 
 import math
 
 import numpy as np
 import pytest
 
-from workflows.studies.blocks import batch_means_error
+from coupling.intervals import batch_means_error
 
 
 def test_batch_means_error_grows_with_the_block_until_it_outlasts_the_correlation():
