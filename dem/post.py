@@ -160,7 +160,7 @@ class DemResults:
         )
 
     def steady_outlet_counts(self) -> np.ndarray | None:
-        """(steady dumps, NY) particles (A and B together) in each outlet compartment at each
+        """(steady dumps, 2, NY) particles of A and of B in each outlet compartment at each
         dump after the steady state (the dumps the DEM's outlet RSD averages over), from
         :attr:`snapshot_counts`, or read off the sequences for results made before those
         were kept (they leave out the rare particles whose record was cut short, e.g. seen
@@ -168,9 +168,9 @@ class DemResults:
         None without either or without a steady state."""
         t_ss, seq = self.summary.steady_time, self.sequences
         if self.snapshot_counts is not None:
-            counts = self.snapshot_counts[:, :, -1, :].sum(axis=1)
+            counts = self.snapshot_counts[:, :, -1, :]
         elif seq is not None and (seq.nx, seq.ny) == (self.table.nx, self.table.ny):
-            counts = seq.slice_counts(seq.nx - 1)
+            counts = np.stack([seq.slice_counts(seq.nx - 1, (c,)) for c in phases.FEEDERS], axis=1)
         else:
             return None
         if t_ss is None or len(counts) != len(self.holdup):

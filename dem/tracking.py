@@ -490,6 +490,12 @@ class CompartmentSequences:
         out[element_owner, position] = np.repeat(self.run_state[run_index], lengths)
         return out
 
+    def _runs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each run's particle (row) and first dump (absolute index)."""
+        owner = np.repeat(np.arange(self.n_particles), np.diff(self.run_offsets))
+        before = np.cumsum(self.run_length) - self.run_length  # dumps before each run, all particles
+        return owner, self.start[owner] + before - before[self.run_offsets[:-1]][owner]
+
     def slice_counts(self, i: int, components: tuple[int, ...] = (1, 2)) -> np.ndarray:
         """(dumps, NY) int: how many particles of ``components`` are in each compartment
         of axial slice ``i`` at every dump (from the run-length encoding: a +1 where a
@@ -497,10 +503,7 @@ class CompartmentSequences:
         if not 0 <= i < self.nx:
             raise ValueError(f"slice {i} is not one of the grid's 0 ... {self.nx - 1}")
         n_dumps = self.snapshot_t.size
-        n_runs = np.diff(self.run_offsets)
-        owner = np.repeat(np.arange(self.n_particles), n_runs)
-        before = np.cumsum(self.run_length) - self.run_length
-        first = self.start[owner] + before - before[self.run_offsets[:-1]][owner]
+        owner, first = self._runs()
         state = self.run_state.astype(np.int64)
         chosen = (state >= i * self.ny) & (state < (i + 1) * self.ny)
         chosen &= np.isin(self.component, components)[owner]
@@ -516,10 +519,7 @@ class CompartmentSequences:
         dropped, the particles first seen after it left out, the sequences it cuts
         censored there."""
         last = int(np.searchsorted(self.snapshot_t, t_end_s + 1e-6 * self.interval_s, side="right")) - 1
-        n_runs = np.diff(self.run_offsets)
-        owner = np.repeat(np.arange(self.n_particles), n_runs)
-        before = np.cumsum(self.run_length) - self.run_length  # dumps before each run, all particles
-        first = self.start[owner] + before - before[self.run_offsets[:-1]][owner]  # each run's first dump
+        owner, first = self._runs()
         kept_runs = first <= last
         kept = self.start <= last
         counts = np.bincount(owner[kept_runs], minlength=self.n_particles)[kept]

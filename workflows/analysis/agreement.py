@@ -95,9 +95,10 @@ def pbm_steady(
     result: PbmResult, dem_steady: dict[str, Any], outlet_counts: np.ndarray | None = None
 ) -> dict[str, Any]:
     """The PBM's values of the :mod:`dem.steady` quantities (module docstring);
-    ``outlet_counts`` (steady dumps, NY): the DEM's particles in each outlet compartment at
-    each steady dump (:meth:`dem.post.DemResults.steady_outlet_counts`), the counts at
-    which the outlet RSD and Lacey index are sampled; None: the DEM's mean counts."""
+    ``outlet_counts`` (steady dumps, 2, NY): the DEM's A and B in each outlet compartment at
+    each steady dump (:meth:`dem.post.DemResults.steady_outlet_counts`), whose totals are
+    the counts at which the outlet RSD and Lacey index are sampled; None: the DEM's mean
+    counts."""
     t_ss = result.summary.get("steady_state_time_s")
     after = result.times > (t_ss if t_ss is not None and math.isfinite(t_ss) else result.times[-1])
     if not after.any():
@@ -120,7 +121,7 @@ def pbm_steady(
         # counts' RSD but holds 1-3 particles (fractions 0 or 1) at many dumps.
         # One sampling per (repeat, dump), pooled over those in which the metric is
         # defined: the DEM's mean counts each dump in which it is defined once.
-        counts = np.asarray(outlet_counts, dtype=float)
+        counts = np.asarray(outlet_counts, dtype=float).sum(axis=1)
         repeats = max(1, math.ceil(SAMPLING_DRAWS * 10 / len(counts)))
         every = np.broadcast_to(counts, (repeats, *counts.shape))
         sampled = {

@@ -68,27 +68,22 @@ def random_mixture_at(counts_a: np.ndarray, totals: np.ndarray, deals: int, rng:
 
 def composition_study(results_path: str | Path, seed: int = 0) -> CompositionStudy:
     results, config = load_results(results_path)
-    seq, summary, table = results.sequences, results.summary, results.table
+    summary = results.summary
     if summary.steady_time is None or "rsd_outlet" not in summary.steady:
         raise ConfigError(f"{results_path}: the DEM run reached no steady state, so it has no steady outlet RSD")
-    after = results.holdup["t_s"].to_numpy() > summary.steady_time
-    if results.snapshot_counts is not None:
-        a = results.snapshot_counts[after, 0, -1, :].astype(np.int64)
-        totals = results.snapshot_counts[after, :, -1, :].sum(axis=1).astype(np.int64)
-    elif seq is not None and (seq.nx, seq.ny) == (table.nx, table.ny):
-        a = seq.slice_counts(seq.nx - 1, (1,))[after]
-        totals = seq.slice_counts(seq.nx - 1)[after]
-    else:
+    outlet = results.steady_outlet_counts()
+    if outlet is None:
         raise ConfigError(
             f"{results_path}: neither per-dump counts nor compartment sequences on the table's grid; "
             "post-process the run again"
         )
+    a, totals = outlet[:, 0].astype(np.int64), outlet.sum(axis=1).astype(np.int64)
     series = results.timeseries[results.timeseries["t_s"] > summary.steady_time]
     steady = summary.steady["rsd_outlet"]
     pooled = a.sum(axis=0) / np.maximum(totals.sum(axis=0), 1)
     pbm_config = pbm_config_for(config, results.table, rtd_pulse(summary))
     modes = run_modes(results.table, pbm_config, config.steady_state, summary)
-    at_dumps = agreement_rows(summary, results.particles, modes, results.steady_outlet_counts())
+    at_dumps = agreement_rows(summary, results.particles, modes, outlet)
     row = next(r for r in at_dumps if r.key == "rsd_outlet")
     return CompositionStudy(
         dem_rsd=Interval(float(steady["value"]), float(steady["low"]), float(steady["high"])),
@@ -100,7 +95,7 @@ def composition_study(results_path: str | Path, seed: int = 0) -> CompositionStu
             mode: float(pbm_steady(m.result, summary.steady)["rsd_outlet"]) for mode, m in modes.items()
         },
         pbm_at_dump_counts={mode: float(row.value(mode)) for mode in modes},
-        steady_dumps=int(after.sum()),
+        steady_dumps=len(outlet),
     )
 
 

@@ -97,9 +97,12 @@ def test_the_outlet_rsd_is_sampled_at_the_dems_counts_dump_by_dump():
     pbm = _mixed_pbm()
     ones = np.ones((400, 2))
     expected = math.sqrt(2) * 0.5 / 0.75
-    assert pbm_steady(pbm, {}, ones)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
+    # (dumps, A and B, compartments): only the totals count, however the DEM's were split
+    split = np.stack([ones, np.zeros_like(ones)], axis=1)
+    assert pbm_steady(pbm, {}, split)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
     mixed = np.vstack([ones, np.tile([[0.0, 2.0]], (400, 1))])
-    assert pbm_steady(pbm, {}, mixed)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
+    split = np.stack([mixed / 2, mixed / 2], axis=1)
+    assert pbm_steady(pbm, {}, split)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
     at_means = pbm_steady(pbm, {"outlet_totals": mixed.mean(axis=0).tolist()})
     assert math.isnan(at_means["rsd_outlet"])
 
