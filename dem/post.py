@@ -71,7 +71,7 @@ from dem.config import DemConfig
 from dem.massflow import massflow_files
 from dem.rates import fit_windows
 from dem.resources import check_postprocess_resources
-from dem.steady import pooled_rtd, steady_quantities
+from dem.steady import STALE_INTERVALS, intervals_are_current, pooled_rtd, steady_quantities
 from dem.summary import DemSummary
 from dem.tracking import (
     EXIT_MASSFLOW,
@@ -148,16 +148,28 @@ class DemResults:
 
     @classmethod
     def from_cache_entry(cls, entry: CacheEntry) -> DemResults:
+        """The results an entry stores. Steady quantities whose intervals an earlier version
+        computed (:func:`dem.steady.intervals_are_current`) are computed again from the
+        stored counts (:func:`recompute_steady`), so no stale interval is judged against;
+        without counts to do it they stay, with a warning saying so."""
         arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
         sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
         plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
-        return cls(
+        results = cls(
             table=entry.table,
             summary=DemSummary.from_record(entry.summary),
             **entry.frames,
             **plain,
             sequences=sequences,
         )
+        if intervals_are_current(results.summary.steady):
+            return results
+        try:
+            return recompute_steady(results)
+        except ValueError:
+            record = results.summary.record()
+            record["warnings"] = [*record.get("warnings", []), STALE_INTERVALS]
+            return dataclasses.replace(results, summary=DemSummary.from_record(record))
 
     def steady_outlet_counts(self) -> np.ndarray | None:
         """(steady dumps, 2, NY) particles of A and of B in each outlet compartment at each
@@ -176,6 +188,17 @@ class DemResults:
         if t_ss is None or len(counts) != len(self.holdup):
             return None
         return counts[self.holdup["t_s"].to_numpy() > t_ss]
+
+    def compartment_counts(self) -> np.ndarray | None:
+        """(dumps, 2, NX, NY) particles of A and of B in every compartment at every dump:
+        :attr:`snapshot_counts`, or read off the sequences for results made before those
+        were kept (as in :meth:`steady_outlet_counts`); None without either."""
+        seq = self.sequences
+        if self.snapshot_counts is not None:
+            return self.snapshot_counts
+        if seq is None or (seq.nx, seq.ny) != (self.table.nx, self.table.ny) or seq.snapshot_t.size != len(self.holdup):
+            return None
+        return np.stack([seq.counts((c,)) for c in phases.FEEDERS], axis=1)
 
 
 def _compact_counts(counts: np.ndarray) -> np.ndarray:
@@ -216,6 +239,26 @@ def refit_phases(results: DemResults) -> DemResults:
     summary["phase_fit"] = record
     summary["warnings"] = [w for w in summary.get("warnings", []) if not str(w).startswith("no phase model")]
     return dataclasses.replace(results, table=table, summary=DemSummary.from_record(summary))
+
+
+def recompute_steady(results: DemResults) -> DemResults:
+    """``results`` with the steady quantities and the pooled RTD computed again, this
+    version's way (:mod:`dem.steady`), from what the results store: the compartment counts
+    (:meth:`DemResults.compartment_counts`), the sampling intervals and the particle
+    records; no dumps are needed. Raises ValueError when the results carry neither counts
+    nor compartment sequences on the table's grid."""
+    counts = results.compartment_counts()
+    if counts is None:
+        raise ValueError("the results carry neither compartment counts nor compartment sequences on the table's grid")
+    summary = results.summary.record()
+    t_s = results.holdup["t_s"].to_numpy(float)
+    steady_time = results.summary.steady_time
+    block_s = float(results.table.window_s)
+    steady = steady_quantities(t_s, counts, results.timeseries, steady_time, block_s)
+    little = steady.get("little_mean_residence_time_s", {}).get("value", float("nan"))
+    summary["steady"] = steady
+    summary["pooled_rtd"] = pooled_rtd(results.particles, steady_time, float(t_s[-1]), little, block_s)
+    return dataclasses.replace(results, summary=DemSummary.from_record(summary))
 
 
 def check_windows_covered(snapshot_t: np.ndarray, config: DemConfig) -> None:

@@ -514,6 +514,11 @@ class CompartmentSequences:
         )
         return np.cumsum(change.reshape(n_dumps + 1, self.ny), axis=0)[:n_dumps]
 
+    def counts(self, components: tuple[int, ...]) -> np.ndarray:
+        """(dumps, NX, NY) int: particles of ``components`` in every compartment at every
+        dump (:meth:`slice_counts`, slice by slice)."""
+        return np.stack([self.slice_counts(i, components) for i in range(self.nx)], axis=1)
+
     def until(self, t_end_s: float) -> CompartmentSequences:
         """The record a run stopped at ``t_end_s`` [s] would hold: the dumps after it
         dropped, the particles first seen after it left out, the sequences it cuts

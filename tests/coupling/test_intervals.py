@@ -10,6 +10,7 @@ import pytest
 from coupling.intervals import (
     Interval,
     NoiseBand,
+    batch_means_interval,
     block_bootstrap,
     block_draw_counts,
     inside,
@@ -120,6 +121,60 @@ def test_block_draw_counts_are_the_block_bootstraps_replicates():
 def test_block_bootstrap_refuses_bad_arguments(kwargs, word):
     with pytest.raises(ValueError, match=word):
         block_bootstrap(lambda idx: 0.0, **kwargs)
+
+
+def test_batch_means_interval_of_one_block_batches_is_the_t_interval_of_the_mean():
+    """Batches of one block: the jackknife of a mean is the mean's standard error, and
+    the interval is Student's with n - 1 degrees of freedom (t = 2.0096 at 49)."""
+    x = np.random.default_rng(3).normal(size=50)
+    (est, low, high), df = batch_means_interval(lambda idx: x[idx].mean(), 50, 1)
+    assert df == 49 and est == pytest.approx(x.mean())
+    assert high - est == pytest.approx(est - low)
+    assert (high - est) == pytest.approx(2.009575 * x.std(ddof=1) / math.sqrt(50), rel=1e-5)
+
+
+def test_batch_means_interval_of_a_ratio_is_its_delta_method_interval():
+    """A ratio of block sums (hold-up / outflow): the pseudo-values linearise it, so its
+    standard error is the delta method's, sum((y - r x)^2) / sum(x)^2 scaled by n / (n - 1)."""
+    rng = np.random.default_rng(6)
+    y, x = rng.normal(100, 5, 40), rng.normal(10, 1, 40)
+    r = y.sum() / x.sum()
+    (est, low, high), df = batch_means_interval(lambda idx: y[idx].sum() / x[idx].sum(), 40, 1)
+    delta = math.sqrt(40 / 39 * ((y - r * x) ** 2).sum()) / x.sum()
+    assert est == pytest.approx(r)
+    assert (high - low) / 2 == pytest.approx(2.022691 * delta, rel=0.02)
+
+
+def test_batch_means_interval_covers_a_slowly_relaxing_series_where_short_blocks_do_not():
+    """Blocks of a series relaxing over 2.5 blocks: batches of ten blocks (four times the
+    relaxation, as the steady quantities' batches of two residence times are to the
+    hold-up's slow part) hold the true mean at close to the nominal rate; one-block
+    batches, which treat neighbouring blocks as independent, do not."""
+    rng = np.random.default_rng(2013)
+    n, phi, reps = 60, math.exp(-1 / 2.5), 300
+    covered = {10: 0, 1: 0}
+    for _ in range(reps):
+        x = _ar1(rng, n, phi)
+        for m in covered:
+            (_, low, high), _ = batch_means_interval(lambda idx, x=x: x[idx].mean(), n, m)
+            covered[m] += bool(inside(0.0, low, high))
+    assert covered[10] / reps >= 0.9
+    assert covered[1] / reps < 0.75
+
+
+def test_batch_means_interval_vector_statistic_and_refusals():
+    x = np.random.default_rng(1).normal(size=(30, 2))
+    (est, low, high), df = batch_means_interval(lambda idx: x[idx].mean(axis=0), 30, 5)
+    assert est.shape == low.shape == high.shape == (2,) and np.all(low < est) and np.all(est < high)
+    assert df == pytest.approx(1.5 * (30 / 5 - 1))
+    with pytest.raises(ValueError, match="at most half of n_blocks"):
+        batch_means_interval(lambda idx: 0.0, 30, 16)
+    with pytest.raises(ValueError, match="n_blocks"):
+        batch_means_interval(lambda idx: 0.0, 1, 1)
+    with pytest.raises(ValueError, match="batch_blocks"):
+        batch_means_interval(lambda idx: 0.0, 30, 0)
+    with pytest.raises(ValueError, match="level"):
+        batch_means_interval(lambda idx: 0.0, 30, 1, level=1.5)
 
 
 def test_time_blocks():

@@ -19,6 +19,7 @@ from coupling.errors import DumpFormatError
 from dem.config import DemConfig, TablesConfig
 from dem.dumps import TruncatedDumpWarning, format_snapshot
 from dem.post import postprocess
+from dem.summary import DemSummary
 from tests.known_dumps import COLUMNS, DUMP_S, END_S, STEADY, D, L, R, config, write_synthetic
 
 
@@ -427,3 +428,65 @@ def test_a_refit_that_cannot_fit_leaves_the_file_as_it_was(synthetic, tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and "steady state" in err[0], err
     assert path.read_bytes() == before
+
+
+def test_recompute_steady_rewrites_a_results_file_from_its_sequences(tmp_path, capsys):
+    """`pbmdem dem recompute-steady` on a file made before the per-dump counts were kept
+    and with its steady quantities gone: the counts read off the sequences give back the
+    post-processing's steady quantities and pooled RTD exactly, batches and all."""
+    from coupling.cache import load_entry, save_entry
+    from dem.post import DemResults
+    from workflows.cli.main import main
+
+    cfg = config()
+    write_synthetic(tmp_path, cfg, end_s=80.0)
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
+    assert res.summary.steady["batch_s"] == 10.0  # two residence times of 5 s, in 5-s blocks
+    record = res.summary.record()
+    record["steady"], record["pooled_rtd"] = {}, {}
+    older = dataclasses.replace(res, snapshot_counts=None, summary=DemSummary.from_record(record))
+    path = save_entry(tmp_path / "dem-test.h5", older.to_cache_entry({"key": "test"}))
+    assert main(["dem", "recompute-steady", str(path)]) == 0
+    assert "steady hold-up 20 [" in capsys.readouterr().out
+    back = DemResults.from_cache_entry(load_entry(path))
+    _assert_same(back.summary.steady, res.summary.steady)
+    _assert_same(back.summary.pooled_rtd, res.summary.pooled_rtd)
+    assert back.snapshot_counts is None
+    pd.testing.assert_frame_equal(back.particles, res.particles)
+
+
+def test_recompute_steady_without_counts_or_sequences_leaves_the_file_as_it_was(synthetic, tmp_path, capsys):
+    from coupling.cache import save_entry
+    from workflows.cli.main import main
+
+    _, res = synthetic
+    bare = dataclasses.replace(res, snapshot_counts=None, sequences=None)
+    path = save_entry(tmp_path / "dem-test.h5", bare.to_cache_entry({"key": "test"}))
+    before = path.read_bytes()
+    assert main(["dem", "recompute-steady", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "neither compartment counts nor" in err[0], err
+    assert path.read_bytes() == before
+
+
+def test_results_with_an_earlier_versions_intervals_are_brought_up_to_date_on_reading(tmp_path):
+    """Steady quantities without recorded batches (an earlier version's 5-s bootstrap) are
+    computed again when the results are read, from the counts or the sequences; with
+    neither they stay, and the results warn that their intervals are too narrow."""
+    from dem.post import DemResults
+
+    cfg = config()
+    write_synthetic(tmp_path, cfg, end_s=80.0)
+    res = postprocess(str(tmp_path / "dump.*.txt"), cfg, STEADY)
+    record = res.summary.record()
+    old = {k: v for k, v in record["steady"].items() if k not in ("batch_s", "degrees_of_freedom")}
+    old["holdup"] = {"value": 20.0, "low": 19.99, "high": 20.01}
+    record["steady"] = old
+    older = dataclasses.replace(res, snapshot_counts=None, summary=DemSummary.from_record(record))
+    read = DemResults.from_cache_entry(older.to_cache_entry({"key": "test"}))
+    _assert_same(read.summary.steady, res.summary.steady)
+    assert not any("earlier version" in w for w in read.summary.warnings)
+    bare = dataclasses.replace(older, sequences=None)
+    kept = DemResults.from_cache_entry(bare.to_cache_entry({"key": "test"}))
+    assert kept.summary.steady["holdup"]["low"] == 19.99
+    assert any("earlier version's, over 5-s blocks" in w for w in kept.summary.warnings)

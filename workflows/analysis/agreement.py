@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from coupling.intervals import batch_means_error, inside, overlap_noise_band
+from coupling.intervals import inside, overlap_noise_band
 from coupling.metrics import SteadyStateRule, rtd_density, rtd_overlap, rtd_pooled, sampled_lacey, sampled_rsd
 from coupling.tables import VelocityTable
 from dem.summary import DemSummary, PooledRtdSummary
@@ -228,35 +228,6 @@ def _row(key: str, quantity: str, unit: str, dem: dict[str, Any] | None, pbm: di
     value, low, high = ((dem or {}).get(k, math.nan) for k in ("value", "low", "high"))
     modes = {mode: ModeValue(v, bool(inside(v, low, high))) for mode, v in pbm.items()}
     return AgreementRow(key, quantity, unit, value, low, high, modes)
-
-
-#: A steady interval is flagged when batch means over blocks of one mean residence time
-#: give a standard error this many times the interval's own (half-width / 1.96)
-NARROW_INTERVAL_RATIO = 1.25
-
-
-def holdup_interval_note(
-    t_s: np.ndarray, holdup: np.ndarray, steady_time_s: float, interval_error: float, residence_time_s: float
-) -> str | None:
-    """A line for the report when the DEM's steady hold-up interval is narrower than the
-    hold-up's own fluctuations allow: the batch-means standard error of the steady mean
-    over blocks of one ``residence_time_s`` (the hold-up relaxes on that time), against
-    ``interval_error``, the interval's half-width / 1.96. None when it is not narrower by
-    :data:`NARROW_INTERVAL_RATIO`, or the steady period holds fewer than four such blocks."""
-    t_s, holdup = np.asarray(t_s, float), np.asarray(holdup, float)
-    after = t_s > steady_time_s
-    if after.sum() < 2 or not (math.isfinite(residence_time_s) and residence_time_s > 0 and interval_error > 0):
-        return None
-    dt = float(np.median(np.diff(t_s[after])))
-    error = batch_means_error(holdup[after], max(1, round(residence_time_s / dt)))
-    if not (math.isfinite(error) and error > NARROW_INTERVAL_RATIO * interval_error):
-        return None
-    return (
-        f"DEM: the steady hold-up's 95 % interval (+-{1.96 * interval_error:.3g}) rests on short bootstrap "
-        f"blocks; batch means over blocks of one mean residence time ({residence_time_s:.3g} s) give a standard "
-        f"error {error / interval_error:.2g}x the interval's, so it and the other slow quantities' intervals "
-        "(hold-ups, residence times) are too narrow by about that factor (pbmdem study blocks)"
-    )
 
 
 def dem_density(records: pd.DataFrame, pooled_spec: PooledRtdSummary) -> tuple[np.ndarray, np.ndarray, int]:

@@ -6,12 +6,15 @@
                      [--stop-when-converged [--check-every S]]
     pbmdem dem post  --preset NAME|--config FILE.toml --dumps 'GLOB' --out RESULTS.h5 [--massflow-dir DIR]
     pbmdem dem refit-phases RESULTS.h5 [...]
+    pbmdem dem recompute-steady RESULTS.h5 [...]
     pbmdem dem slurm --preset NAME|--config FILE.toml --out DIR [--np 32] [--partition P]
                      [--holdup N] [--throughput R]
 
 ``run`` reuses a valid cache file or a completed run of the same inputs; ``post`` needs only
-the dumps and the configuration they were made with; ``slurm`` writes the run directory
-and a batch script instead of running.
+the dumps and the configuration they were made with; ``refit-phases`` and
+``recompute-steady`` bring a results file made by an earlier version up to this one's
+phase fit and steady intervals from what the file stores; ``slurm`` writes the run
+directory and a batch script instead of running.
 """
 
 from __future__ import annotations
@@ -114,6 +117,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     refit.add_argument("results", nargs="+", help="DEM results files (dem-*.h5) with compartment sequences")
     refit.set_defaults(func=refit_command)
 
+    recompute = dem_sub.add_parser(
+        "recompute-steady",
+        help="compute the steady quantities, their intervals and the pooled RTD of DEM results files again "
+        "from their stored compartment counts or sequences (after the method changed; no dumps needed), "
+        "rewriting each file in place",
+    )
+    recompute.add_argument("results", nargs="+", help="DEM results files (dem-*.h5)")
+    recompute.set_defaults(func=recompute_steady_command)
+
     slurm = dem_sub.add_parser(
         "slurm", help="write the deck and a Slurm batch script with a cost estimate, without running"
     )
@@ -205,23 +217,53 @@ def post_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def refit_command(args: argparse.Namespace) -> int:
+def _rewrite(paths, derive, describe) -> None:
+    """Each results file read whole (a corrupt or foreign one refused before anything is
+    written), ``derive``d again and rewritten atomically, so a failure leaves it as it was."""
     from coupling.cache import load_entry, save_entry
-    from dem.post import DemResults, refit_phases
+    from dem.post import DemResults
 
-    for path in args.results:
-        entry = load_entry(path)  # refuses a corrupt or foreign file before anything is written
+    for path in paths:
+        entry = load_entry(path)
         try:
-            results = refit_phases(DemResults.from_cache_entry(entry))
+            results = derive(DemResults.from_cache_entry(entry))
         except ValueError as exc:
             raise ConfigError(f"{path}: {exc}") from None
-        save_entry(path, results.to_cache_entry(entry.provenance))  # atomic: the old file stays until it is whole
-        fit = results.summary.record().get("phase_fit") or {}
-        print(
-            f"{path}: phase model K = {fit.get('n_phases')} on {fit.get('grid')} (observed on "
-            f"{fit.get('observed_grid', fit.get('grid'))}), {fit.get('iterations')} EM iterations, "
-            f"{fit.get('wall_time_s', float('nan')):.0f} s"
-        )
+        save_entry(path, results.to_cache_entry(entry.provenance))
+        print(f"{path}: {describe(results.summary)}")
+
+
+def _phase_fit_line(summary: DemSummary) -> str:
+    fit = summary.record().get("phase_fit") or {}
+    return (
+        f"phase model K = {fit.get('n_phases')} on {fit.get('grid')} (observed on "
+        f"{fit.get('observed_grid', fit.get('grid'))}), {fit.get('iterations')} EM iterations, "
+        f"{fit.get('wall_time_s', float('nan')):.0f} s"
+    )
+
+
+def _steady_line(summary: DemSummary) -> str:
+    steady = summary.steady
+    if not steady:
+        return "no steady quantities (no steady state, or too short a steady period for an interval)"
+    holdup = steady["holdup"]
+    return (
+        f"steady hold-up {holdup['value']:.0f} [{holdup['low']:.0f}, {holdup['high']:.0f}] from batches of "
+        f"{steady['batch_s']:g} s ({steady['degrees_of_freedom']:.1f} degrees of freedom)"
+    )
+
+
+def refit_command(args: argparse.Namespace) -> int:
+    from dem.post import refit_phases
+
+    _rewrite(args.results, refit_phases, _phase_fit_line)
+    return 0
+
+
+def recompute_steady_command(args: argparse.Namespace) -> int:
+    from dem.post import recompute_steady
+
+    _rewrite(args.results, recompute_steady, _steady_line)
     return 0
 
 

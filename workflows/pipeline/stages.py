@@ -47,6 +47,9 @@ from workflows.shipped import SHIPPED_RESULTS_DIRS
 #: Datasets added without changing any other (the compartment sequences and the phase
 #: model) do not bump it: results without them are post-processed again by
 #: :func:`dem_stage` when the run's dumps are at hand, and otherwise serve without them.
+#: Nor did the steady intervals' batch means: they are computed from what the results
+#: store, so older results are brought up to them on reading
+#: (:meth:`dem.post.DemResults.from_cache_entry`) and keep their keys.
 POST_VERSION = 3
 
 

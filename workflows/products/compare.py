@@ -41,7 +41,6 @@ from workflows.analysis.agreement import (
     PbmMode,
     agreement_rows,
     dem_density,
-    holdup_interval_note,
     nx_sensitivity,
     run_modes,
 )
@@ -104,17 +103,6 @@ def _notes(dem: DemSide) -> list[str]:
     elif dem.source == "cache":
         notes.append(f"DEM results come from the cache made {made}; LIGGGHTS was not run now.")
     notes += [f"DEM: {warning}" for warning in dem.results.summary.warnings]
-    summary, holdup = dem.results.summary, dem.results.holdup
-    stat, little = summary.steady.get("holdup"), summary.steady.get("little_mean_residence_time_s")
-    if stat and little and summary.steady_time is not None:
-        note = holdup_interval_note(
-            holdup["t_s"].to_numpy(),
-            (holdup["holdup_A"] + holdup["holdup_B"]).to_numpy(),
-            summary.steady_time,
-            (stat["high"] - stat["low"]) / 2 / 1.96,
-            little["value"],
-        )
-        notes += [note] if note else []
     return notes
 
 

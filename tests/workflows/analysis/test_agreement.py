@@ -12,7 +12,7 @@ import pytest
 from dem.post import postprocess
 from pbm.config import PbmConfig
 from tests.known_dumps import STEADY, config, write_synthetic
-from workflows.analysis.agreement import MODES, agreement_rows, holdup_interval_note, pbm_steady, run_modes
+from workflows.analysis.agreement import MODES, agreement_rows, pbm_steady, run_modes
 
 
 @pytest.fixture(scope="module")
@@ -105,24 +105,3 @@ def test_the_outlet_rsd_is_sampled_at_the_dems_counts_dump_by_dump():
     assert pbm_steady(pbm, {}, split)["rsd_outlet"] == pytest.approx(expected, rel=0.03)
     at_means = pbm_steady(pbm, {"outlet_totals": mixed.mean(axis=0).tolist()})
     assert math.isnan(at_means["rsd_outlet"])
-
-
-def test_a_hold_up_interval_narrower_than_its_correlation_allows_is_flagged():
-    """A hold-up that relaxes over the residence time (AR(1), 20-s correlation, 0.1-s dumps):
-    an interval as wide as independent 5-s blocks would give is flagged; one as wide as the
-    correlation allows, or a white hold-up, is not."""
-    rng = np.random.default_rng(2)
-    t = np.arange(0.0, 400.0, 0.1)
-    phi = math.exp(-0.1 / 20.0)
-    ar = np.empty(t.size)
-    ar[0] = 0.0
-    noise = rng.normal(size=t.size) * math.sqrt(1 - phi**2)
-    for i in range(1, t.size):
-        ar[i] = phi * ar[i - 1] + noise[i]
-    n = t.size - 1
-    true = math.sqrt((1 + phi) / (1 - phi) / n)
-    short_blocks = math.sqrt(2 * 5.0 / 0.1 / n)  # about what 5-s blocks of an AR(1) this slow give
-    note = holdup_interval_note(t, 2000 + 10 * ar, 0.0, 10 * short_blocks, 20.0)
-    assert note is not None and "20 s" in note and "pbmdem study blocks" in note
-    assert holdup_interval_note(t, 2000 + 10 * ar, 0.0, 10 * true, 20.0) is None
-    assert holdup_interval_note(t, 2000 + rng.normal(size=t.size), 0.0, 1 / math.sqrt(t.size), 20.0) is None

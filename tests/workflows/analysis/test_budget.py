@@ -207,8 +207,9 @@ def test_smallest_budget_needs_every_larger_t_inside():
 
 def test_refit_at_the_end_is_the_post_processings_own_model():
     """At T = the last dump, with the run's own steady time, the refit is skipped: the phase
-    model the post-processing fitted is what fitting again gives (the fit is deterministic),
-    and before the end the model is fitted again."""
+    model the post-processing fitted is what fitting again gives (the fit is deterministic;
+    to rounding, since the shipped file was fitted on another CPU, whose vector units may
+    sum in another order), and before the end the model is fitted again."""
     from dem import phases
     from workflows.analysis.budget import refit_phases
     from workflows.pipeline.stages import load_results
@@ -221,6 +222,6 @@ def test_refit_at_the_end_is_the_post_processings_own_model():
     again, _fit = phases.table_with_phases(
         results.table, results.sequences.until(end), steady, results.table.phases.n_phases
     )
-    np.testing.assert_array_equal(again.phases.rates, own.rates)
-    np.testing.assert_array_equal(again.phases.switching, own.switching)
+    np.testing.assert_allclose(again.phases.rates, own.rates, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(again.phases.switching, own.switching, rtol=1e-9, atol=0)
     assert refit_phases(results, end - 20.0, steady) is not results.table.phases
