@@ -53,6 +53,7 @@ from workflows.report.comparison import (
     SideResults,
     agreement_html,
     comparison_metrics,
+    interval_method,
     plot_agreement,
     plot_comparison,
     render_html,
@@ -267,7 +268,9 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         provenance,
         studies,
         notes,
-        agreement_html(c.rows, c.sensitivity) + vrr_section + memory_section,
+        agreement_html(c.rows, c.sensitivity, interval_method(c.dem.results.summary.steady))
+        + vrr_section
+        + memory_section,
     )
     (out_dir / "report.html").write_text(page)
     summary = {

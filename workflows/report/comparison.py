@@ -255,8 +255,20 @@ def plot_agreement(
     return files
 
 
-def agreement_html(rows: list[AgreementRow], nx_sensitivity: dict[str, Any] | None) -> str:
-    """The agreement table (:mod:`workflows.analysis.agreement`) and the NX sensitivity as HTML."""
+def interval_method(steady: dict[str, Any]) -> str:
+    """One sentence on how the DEM's intervals were had (``coupling/DEFINITIONS.md``)."""
+    if not steady or "batch_s" not in steady:
+        return ""
+    return (
+        f"DEM intervals: the steady quantities' from overlapping batch means over {steady['batch_s']:g}-s batches "
+        f"with Student's t at {steady['degrees_of_freedom']:.1f} degrees of freedom; "
+        f"the pooled RTD's from a bootstrap over {steady['block_s']:g}-s blocks of entry time; C_A's binomial."
+    )
+
+
+def agreement_html(rows: list[AgreementRow], nx_sensitivity: dict[str, Any] | None, method: str = "") -> str:
+    """The agreement table (:mod:`workflows.analysis.agreement`), the sentence on how the
+    DEM's intervals were had, and the NX sensitivity as HTML."""
     if not rows:
         return "<p>No agreement table: the DEM run has no steady state to average over.</p>"
 
@@ -275,7 +287,7 @@ def agreement_html(rows: list[AgreementRow], nx_sensitivity: dict[str, Any] | No
         + "".join(f"<th>{html.escape(label)}</th><th>verdict</th>" for _, label in MODE_STYLES.values())
         + "</tr>"
     )
-    out = f"<table>{head}{body}</table>"
+    out = f"<table>{head}{body}</table>" + (f"<p>{html.escape(method)}</p>" if method else "")
     if nx_sensitivity:
         lines = []
         for mode in MODE_STYLES:

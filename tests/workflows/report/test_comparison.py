@@ -8,6 +8,7 @@ from workflows.report.comparison import (
     SideResults,
     Study,
     comparison_metrics,
+    interval_method,
     plot_comparison,
     render_html,
     rtd_overlap,
@@ -69,3 +70,10 @@ def test_side_results_requires_every_column(rng):
     side = _side("DEM", rng)
     with pytest.raises(ValueError, match="lacks columns"):
         SideResults("DEM", side.timeseries.drop(columns=["C_A"]), side.rtd, side.rsd_by_slice, {})
+
+
+def test_the_report_says_how_the_dem_intervals_were_had():
+    steady = {"holdup": {}, "batch_s": 40.0, "block_s": 5.0, "degrees_of_freedom": 6.6}
+    line = interval_method(steady)
+    assert "40-s batches" in line and "6.6 degrees of freedom" in line and "5-s blocks of entry time" in line
+    assert interval_method({"holdup": {}}) == "" and interval_method({}) == ""
