@@ -102,7 +102,7 @@ PHASES = 3
 #: blades' stroke (a blade passes every 0.12 s at 250 rpm); a chain fitted to that flicker
 #: reads it as fast exchange, which mixes the phases and takes dispersion away. Measured on
 #: the whole validation baseline (K = 3, residents included; DEM: 21.27 s [20.72, 21.86],
-#: 278 s^2 [259, 295], hold-up 1588 [1582, 1595]): fitted every 1, 2, 3, 4, 5, 10 dumps the
+#: 278 s^2 [259, 295], hold-up 1588 [1568, 1609]): fitted every 1, 2, 3, 4, 5, 10 dumps the
 #: RTD variance is 250, 262, 265, 269, 266, 291 s^2 and the steady hold-up 1595, 1581, 1581,
 #: 1586, 1596, 1784 (with the memoryless fit's bound on rate x interval, 2: at 1 s, 2 /s no
 #: longer holds the fast lane); 0.4 s is inside all three intervals, every slice within 1.6 %, and the E-step,
