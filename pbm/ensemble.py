@@ -236,21 +236,28 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     fed = [rates[s] * factors[:, :, s] for s in (0, 1)]  # (J, M) feed rate of each member
     # Member blocks on a thread per free core: numpy releases the GIL in its products, and
     # each thread's BLAS stays single-threaded (see coupling.blas).
-    blocks = np.array_split(np.arange(factors.shape[1]), free_cores(min(MAX_THREADS, factors.shape[1])))
+    members = factors.shape[1]
+    blocks = np.array_split(np.arange(members), free_cores(min(MAX_THREADS, members)))
     kernels = (outlet, discharged, final, n_int, nx, ny, chunk)
+    # each block writes its members' columns of the results: no copy to join them
+    results = (np.empty((n_out, members)), np.empty((n_out, members)), np.empty((nx, members)))
+
+    def combine(idx: np.ndarray) -> None:
+        cols = slice(int(idx[0]), int(idx[-1]) + 1)
+        _combine(*kernels, fed[0][:, cols], fed[1][:, cols], *(r[:, cols] for r in results))
+
     with ThreadPoolExecutor(max_workers=len(blocks)) as pool:
-        parts = list(pool.map(lambda idx: _combine(*kernels, fed[0][:, idx], fed[1][:, idx]), blocks))
-    return tuple(np.concatenate([part[i] for part in parts], axis=-1) for i in range(3))
+        list(pool.map(combine, blocks))
+    return results
 
 
-def _combine(outlet, discharged, final, n_int, nx, ny, chunk, fed_a, fed_b):
+def _combine(outlet, discharged, final, n_int, nx, ny, chunk, fed_a, fed_b, c_a, rsd_out, slices):
     """C_A, outlet RSD and final slice RSDs of the members whose interval feed rates are
-    the columns of ``fed_a`` / ``fed_b`` (J, M), from the unit responses."""
+    the columns of ``fed_a`` / ``fed_b`` (J, M), from the unit responses, written into
+    ``c_a``, ``rsd_out`` (outputs, M) and ``slices`` (NX, M)."""
     n_out = outlet.shape[0]
     members = fed_a.shape[1]
     fed = (fed_a, fed_b)
-    c_a = np.empty((n_out, members))
-    rsd_out = np.empty_like(c_a)
     # One set of buffers for every block: a fresh array per product is fresh pages, and
     # faulting them in cost as much as the products on these machines.
     cells = np.empty((2, chunk * ny, members))
@@ -274,7 +281,7 @@ def _combine(outlet, discharged, final, n_int, nx, ny, chunk, fed_a, fed_b):
         c_a[k0:k1] = outflow_fraction_a(inc[0], inc[1])
         out[:, 0] = out[:, rows]
     state = [(final[:, s * n_int : (s + 1) * n_int] @ fed[s]).reshape(nx, ny, -1) for s in (0, 1)]
-    return c_a, rsd_out, rsd(state[0], state[1], axis=1)
+    slices[:] = rsd(state[0], state[1], axis=1)
 
 
 PAPER_SIGMAS = (0.0, 0.05, 0.1, 0.2, 0.3)
