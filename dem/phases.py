@@ -802,6 +802,45 @@ def _initial(
     return PhaseTransport(np.minimum(rates, cap), switching, np.stack([entry, entry]), base.interval_s)
 
 
+def _stagnant_projection(moves: dict, exit_max: float):
+    """The constraints of a stagnant phase 0 on the rates of ``moves`` (their order): it
+    makes no move, and leaves each compartment at ``exit_max`` [1/s] at most in all. The
+    update of each rate is the maximiser of jumps log r - r dwell, separately, so under
+    a bound on their sum the rates leaving one compartment are scaled down together."""
+    names = list(moves)
+    bounds = np.cumsum([0] + [moves[name][0].size for name in names])
+    span = {name: slice(int(a), int(b)) for name, a, b in zip(names, bounds[:-1], bounds[1:])}
+    still = [span[n] for n in names if not n.startswith("switch/") and n.endswith("/0")]
+    leave = [span[n] for n in names if n.startswith("switch/0/")]
+
+    def project(rates: np.ndarray) -> np.ndarray:
+        rates = rates.copy()
+        for part in still:
+            rates[part] = 0.0
+        if leave:
+            total = np.sum([rates[part] for part in leave], axis=0)
+            scale = np.minimum(1.0, exit_max / np.maximum(total, 1e-300))
+            for part in leave:
+                rates[part] *= scale
+        return rates
+
+    return project
+
+
+def _with_stagnant(mobile: PhaseTransport, exit_max: float) -> PhaseTransport:
+    """A start with a stagnant phase 0 before the phases of ``mobile``: no moves, entered
+    from every other phase at 1e-3 /s, left at half of ``exit_max`` in all, never entered
+    from the feed."""
+    k = mobile.n_phases + 1
+    rates = np.concatenate([np.zeros((1,) + mobile.rates.shape[1:]), mobile.rates])
+    switching = np.zeros((k, k, mobile.nx, mobile.ny))
+    switching[1:, 1:] = mobile.switching
+    switching[1:, 0] = 1e-3
+    switching[0, 1:] = 0.5 * exit_max / (k - 1)
+    entry = np.concatenate([np.zeros((2, 1)), mobile.entry], axis=1)
+    return PhaseTransport(rates, switching, entry, mobile.interval_s)
+
+
 def refined(model: PhaseTransport, refine: int) -> PhaseTransport:
     """``model`` on ``refine`` slices per slice (NY = 1): each slice's moves at ``refine``
     times its rates, so that a particle crosses a slice as fast as before, and no backward
@@ -834,6 +873,7 @@ def _ctmc_em_steps(
     interval_s: float,
     steps: int,
     max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
+    project=None,
 ) -> np.ndarray:
     """``steps`` EM updates of the rates of a chain observed at ``counts`` (expected
     transitions per interval): each move's rate becomes its expected number of jumps over
@@ -841,7 +881,9 @@ def _ctmc_em_steps(
     :func:`dem.rates.log_likelihood` (for a move i -> j, rate * dL/dQ_ij is the expected
     number of jumps and dL/dQ_ii the expected time in i, given the endpoints of every
     interval). One Frechet derivative per update, against tens of evaluations for L-BFGS;
-    every update increases the likelihood. Capped at ``max_rate_x_interval`` / interval."""
+    every update increases the likelihood. Capped at ``max_rate_x_interval`` / interval;
+    ``project`` (rates -> rates, the moves' order) imposes constraints after each update
+    (:func:`_stagnant_projection`)."""
     src = np.concatenate([t[0] for t in moves.values()])
     dst = np.concatenate([t[1] for t in moves.values()])
     rates = np.concatenate([np.asarray(start[key], dtype=float) for key in moves])
@@ -857,6 +899,8 @@ def _ctmc_em_steps(
         dwell = d_q[src, src]
         jumps = rates * d_q[src, dst]
         rates = np.where(dwell > 0, np.minimum(jumps / np.maximum(dwell, 1e-300), cap), rates)
+        if project is not None:
+            rates = project(rates)
     return rates
 
 
@@ -868,13 +912,16 @@ def _em(
     m_step_iterations: int,
     m_step: str = "em",
     max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
+    stagnant_exit_max: float | None = None,
 ) -> tuple[PhaseTransport, float, int, bool, np.ndarray]:
     """EM from ``model`` (module docstring); returns the model, its log-likelihood, the
     iterations, whether it converged and the expected time per (compartment, phase) of
-    the model's grid, which may refine the data's slices (:func:`fit`'s ``refine``)."""
+    the model's grid, which may refine the data's slices (:func:`fit`'s ``refine``).
+    ``stagnant_exit_max``: phase 0 is stagnant (:func:`fit`)."""
     nx, ny, k, interval = model.nx, model.ny, model.n_phases, data.interval_s
     hidden = _refinement(model, data) * k  # hidden states per observed compartment
     moves, _sizes = _moves(nx, ny, k)
+    project = None if stagnant_exit_max is None else _stagnant_projection(moves, stagnant_exit_max)
     previous = -math.inf
     converged = False
     dwell = np.zeros(nx * ny * k)
@@ -898,7 +945,9 @@ def _em(
         if m_step == "lbfgs":
             values, _fit = rate_fit.fit_pattern(counts, moves, _move_rates(model), interval, m_step_iterations)
         else:
-            values = _ctmc_em_steps(counts, moves, _move_rates(model), interval, m_step_iterations, max_rate_x_interval)
+            values = _ctmc_em_steps(
+                counts, moves, _move_rates(model), interval, m_step_iterations, max_rate_x_interval, project
+            )
         split = np.cumsum([src.size for src, _d, _c in moves.values()])[:-1]
         per_move = dict(zip(moves, np.split(values, split)))
         model = phase_model.from_move_rates(per_move, nx, ny, k, entry, interval, model.attrs)
@@ -919,6 +968,7 @@ def fit(
     m_step: str = "em",
     max_rate_x_interval: float = PHASE_MAX_RATE_X_INTERVAL,
     refine: int = 1,
+    stagnant_exit_max: float | None = None,
 ) -> PhaseFit:
     """Fit the K = ``n_phases`` chain to ``data`` by EM from ``starts`` starts (module
     docstring); stop when the log-likelihood gains less than ``tol`` nats per
@@ -932,8 +982,18 @@ def fit(
     coarse enough to be Markov in the phases and is itself on a finer grid (``pbmdem study
     phases --observed-nx``): the observations time the crossing of an observed slice but
     do not say where in it the particles are, so the split of the hold-up between its
-    sub-slices is not identified. Raises ValueError for K < 1, starts < 1, a bound that is not
-    > 0 or refine < 1."""
+    sub-slices is not identified.
+
+    ``stagnant_exit_max`` [1/s]: phase 0 of the K is stagnant, a dead zone: it makes no
+    move (nor leaves over the weir), is never entered from the feed, and is left at this
+    rate at most in each compartment; the other K - 1 phases start as a (K - 1)-phase fit
+    does. Without the bound, maximum likelihood spends an immobile phase on the short
+    pauses of the slow bed; with it (e.g. one over the mean residence time) the phase holds
+    what the DEM's longest stays are, particles parked for tens of seconds in the corners
+    at the inlet wall and under the weir (``pbmdem study phases --stagnant``).
+
+    Raises ValueError for K < 1 (K < 2 with a stagnant phase), starts < 1, a bound that is
+    not > 0 or refine < 1."""
     if not isinstance(refine, (int, np.integer)) or refine < 1 or (refine > 1 and (data.ny != 1 or m_step != "em")):
         raise ValueError(
             f"refine = {refine!r} on {data.nx}x{data.ny} data with m_step {m_step!r}: expected an integer >= 1, "
@@ -945,6 +1005,14 @@ def fit(
         raise ValueError(f"starts = {starts!r}: expected at least one start")
     if not (math.isfinite(max_rate_x_interval) and max_rate_x_interval > 0):
         raise ValueError(f"max_rate_x_interval = {max_rate_x_interval!r}: expected a finite bound > 0")
+    if stagnant_exit_max is not None and (
+        n_phases < 2 or refine > 1 or m_step != "em" or not (math.isfinite(stagnant_exit_max) and stagnant_exit_max > 0)
+    ):
+        raise ValueError(
+            f"stagnant_exit_max = {stagnant_exit_max!r} with K = {n_phases}, refine {refine}, m_step {m_step!r}: "
+            "expected a finite rate > 0 [1/s], K >= 2 (the stagnant phase and at least one that moves), "
+            "refine 1 and the EM M-step"
+        )
     wall0 = time.perf_counter()
     if base is None:
         base = one_phase(data)
@@ -956,9 +1024,14 @@ def fit(
         )
     rng = np.random.default_rng(seed)
     results = []
+    mobile = n_phases if stagnant_exit_max is None else n_phases - 1
     for start in range(starts if n_phases > 1 else 1):
-        first = _initial(base, n_phases, None if start == 0 else rng, max_rate_x_interval)
-        results.append(_em(first, data, max_iterations, tol, m_step_iterations, m_step, max_rate_x_interval))
+        first = _initial(base, mobile, None if start == 0 else rng, max_rate_x_interval)
+        if stagnant_exit_max is not None:
+            first = _with_stagnant(first, stagnant_exit_max)
+        results.append(
+            _em(first, data, max_iterations, tol, m_step_iterations, m_step, max_rate_x_interval, stagnant_exit_max)
+        )
     best = max(results, key=lambda r: r[1])
     model, log_likelihood, iterations, converged, dwell = best
     occupancy = dwell.reshape(model.nx, model.ny, n_phases).transpose(2, 0, 1)
@@ -975,6 +1048,7 @@ def fit(
             "log_likelihood": log_likelihood,
             "grid": [model.nx, model.ny],
             "observed_grid": [data.nx, data.ny],
+            **({} if stagnant_exit_max is None else {"stagnant_exit_max_per_s": float(stagnant_exit_max)}),
         },
     )
     return PhaseFit(

@@ -142,6 +142,39 @@ def test_two_phase_chain_is_recovered(synthetic_two_phase):
     assert phases.PhaseFit(truth, 0, 0, 0, 0, True).score(data) <= fit.log_likelihood + 1e-6 * data.n_steps
 
 
+def test_a_stagnant_phase_is_recovered_where_the_particles_park():
+    """A dead zone in the first and last slices: the stream (forward 3 /s, back 1 /s)
+    parks there at 0.08 /s and leaves the zone at 0.05 /s, nowhere else. Fitted with a
+    stagnant phase bounded at 0.2 /s: it makes no move, is entered where the truth parks
+    (and hardly elsewhere), left at the truth's rate, and the RTD's mean and variance,
+    which the long stays dominate, are the truth's."""
+    rates = np.zeros((2, 4, NX, 1))
+    rates[1, 0], rates[1, 1] = 3.0, 1.0
+    switching = np.zeros((2, 2, NX, 1))
+    switching[1, 0, [0, NX - 1]] = 0.08
+    switching[0, 1] = 0.05
+    truth = PhaseTransport(rates, switching, np.array([[0.0, 1.0], [0.0, 1.0]]), 0.4)
+    # 20 000 particles over 1200 s: ~1500 parking episodes, so the leaving rate carries
+    # ~3 % sampling noise and the variance, as its inverse square, ~6 %
+    sequences = phases.simulate_sequences(truth, inlet(), 20000, 3000, np.random.default_rng(11))
+    fit = phases.fit(phases.prepare(sequences), 2, starts=1, tol=1e-7, stagnant_exit_max=0.2)
+    got = fit.transport
+    assert np.all(got.rates[0] == 0.0) and np.all(got.switching[0, 1] <= 0.2 + 1e-12)
+    np.testing.assert_allclose(got.entry[:, 0], 0.0)
+    parks = got.switching[1, 0, :, 0]
+    assert parks[[0, NX - 1]] == pytest.approx([0.08, 0.08], rel=0.1)
+    assert np.all(parks[1:-1] < 0.005)
+    occupancy = fit.occupancy[0, :, 0]
+    leaves = (got.switching[0, 1, :, 0] * occupancy).sum() / occupancy.sum()
+    assert leaves == pytest.approx(0.05, rel=0.1)
+    mean_t, var_t = exact_rtd_moments(truth, inlet())
+    mean_f, var_f = exact_rtd_moments(got, inlet())
+    assert mean_f == pytest.approx(mean_t, rel=0.03)
+    assert var_f == pytest.approx(var_t, rel=0.15)
+    with pytest.raises(ValueError, match="stagnant_exit_max"):
+        phases.fit(phases.prepare(sequences), 1, stagnant_exit_max=0.2)
+
+
 def test_one_phase_is_the_measured_chain(synthetic_two_phase):
     """K = 1 is dem.rates' maximum likelihood on the pooled moves."""
     _truth, _seq, data, _fit = synthetic_two_phase

@@ -27,7 +27,9 @@ Reproduce (a run directory with its dumps, ``runs/<key>``)::
     pbmdem study phases --results dem.h5 --grids 10x1,10x10 --ks 1,2,3
 
 and for NX = 20 the same post-processing with ``[dem.tables] nx = 20`` in a ``--config``
-file, then ``--grids 20x1``.
+file, then ``--grids 20x1``. ``--stagnant`` makes phase 0 of every K >= 2 a dead zone
+(:func:`dem.phases.fit`'s ``stagnant_exit_max``, at one over the run's Little's-law mean
+residence time: a particle parked there stays a residence time or more).
 """
 
 from __future__ import annotations
@@ -76,6 +78,7 @@ class DemTarget:
     holdup: Interval
     steady_time_s: float
     source: str
+    little_mean_residence_time_s: float = float("nan")
 
 
 def _interval(estimate: Estimate) -> Interval:
@@ -103,6 +106,7 @@ def dem_target(summary: DemSummary, source: str) -> DemTarget:
         holdup=_interval(Estimate.from_record(steady["holdup"])),
         steady_time_s=float(summary.steady_state_time_s),
         source=source,
+        little_mean_residence_time_s=float(steady.get("little_mean_residence_time_s", {}).get("value", float("nan"))),
     )
 
 
@@ -197,6 +201,7 @@ def evaluate(
     lag: int = 1,
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
+    stagnant: bool = False,
 ) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
     the particles already inside when the window opens (:func:`dem.phases.prepare`); the
@@ -216,6 +221,10 @@ def evaluate(
     fit_data = data if refine == 1 else phases.prepare(sequences, (t0, t1), observed, residents=residents, lag=lag)
     wall0 = time.perf_counter()
     bound = {"max_rate_x_interval": max_rate_x_interval, "refine": refine}
+    if stagnant and k >= 2:
+        if not target.little_mean_residence_time_s > 0:
+            raise ConfigError(f"{target.source}: no Little's-law mean residence time to bound a stagnant phase by")
+        bound["stagnant_exit_max"] = 1.0 / target.little_mean_residence_time_s
     fit = phases.fit(fit_data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
@@ -269,6 +278,7 @@ def phase_study(
     lag_s: float = phases.PHASE_LAG_S,
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
+    stagnant: bool = False,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
@@ -312,6 +322,7 @@ def phase_study(
                 lag=lag,
                 max_rate_x_interval=max_rate_x_interval,
                 observed_nx=observed_nx,
+                stagnant=stagnant,
             )
             log(
                 f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
@@ -513,6 +524,11 @@ def add_arguments(parser) -> None:
         help="fit each NXx1 grid's chain to the observations on this many slices instead (the sub-slice "
         "hidden beside the phase; must divide NX)",
     )
+    parser.add_argument(
+        "--stagnant",
+        action="store_true",
+        help="phase 0 of every K >= 2 a dead zone: no moves, left at one over the mean residence time at most",
+    )
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
 
@@ -536,6 +552,7 @@ def run(args) -> int:
         lag_s=args.lag_s,
         max_rate_x_interval=args.max_rate_x_interval,
         observed_nx=args.observed_nx,
+        stagnant=args.stagnant,
     )
     print(markdown(study))
     out = writable_directory(args.out, "--out")
