@@ -202,6 +202,7 @@ def evaluate(
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
     stagnant: bool = False,
+    tol: float = phases.PHASE_TOL,
 ) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
     the particles already inside when the window opens (:func:`dem.phases.prepare`); the
@@ -225,12 +226,12 @@ def evaluate(
         if not target.little_mean_residence_time_s > 0:
             raise ConfigError(f"{target.source}: no Little's-law mean residence time to bound a stagnant phase by")
         bound["stagnant_exit_max"] = 1.0 / target.little_mean_residence_time_s
-    fit = phases.fit(fit_data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
+    fit = phases.fit(fit_data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=tol, **bound)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
     train = phases.prepare(sequences, (t0, middle), observed, residents=residents, lag=lag)
     test = phases.prepare(sequences, (middle, t1), grid, lag=lag)
-    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=1e-5, **bound)
+    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=tol, **bound)
     ck = fit.chapman_kolmogorov(data, tuple(max(1, round(v / data.interval_s)) for v in (1.0, 2.0, 5.0, 10.0)))
     pbm = pbm_numbers(fit.transport, config, target)
     # slice hold-ups: the DEM's are on 10 slices; a coarser or finer PBM grid is compared
@@ -279,6 +280,7 @@ def phase_study(
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
     stagnant: bool = False,
+    tol: float = phases.PHASE_TOL,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
@@ -323,6 +325,7 @@ def phase_study(
                 max_rate_x_interval=max_rate_x_interval,
                 observed_nx=observed_nx,
                 stagnant=stagnant,
+                tol=tol,
             )
             log(
                 f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
@@ -525,6 +528,12 @@ def add_arguments(parser) -> None:
         "hidden beside the phase; must divide NX)",
     )
     parser.add_argument(
+        "--tol",
+        type=float,
+        default=phases.PHASE_TOL,
+        help="stop EM when a step gains less than this per particle-step [nats] (default %(default)s, the product's)",
+    )
+    parser.add_argument(
         "--stagnant",
         action="store_true",
         help="phase 0 of every K >= 2 a dead zone: no moves, left at one over the mean residence time at most",
@@ -541,6 +550,8 @@ def run(args) -> int:
         raise ConfigError(f"--ks {args.ks!r} and --starts {args.starts}: all must be >= 1")
     if not args.lag_s > 0:
         raise ConfigError(f"--lag-s {args.lag_s}: expected an interval > 0 s")
+    if not args.tol > 0:
+        raise ConfigError(f"--tol {args.tol}: expected a gain > 0 nats per particle-step, e.g. 1e-5")
     if not args.max_rate_x_interval > 0:
         raise ConfigError(f"--max-rate-x-interval {args.max_rate_x_interval}: expected a bound > 0")
     study = phase_study(
@@ -553,6 +564,7 @@ def run(args) -> int:
         max_rate_x_interval=args.max_rate_x_interval,
         observed_nx=args.observed_nx,
         stagnant=args.stagnant,
+        tol=args.tol,
     )
     print(markdown(study))
     out = writable_directory(args.out, "--out")
