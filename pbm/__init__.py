@@ -26,38 +26,26 @@ and tested at the function named):
   ``seed`` (member 0 is the single run).
 """
 
-import importlib
+from pbm.config import PbmConfig
+from pbm.ensemble import EnsembleResult, noise_ensemble, noise_study
+from pbm.model import fill_missing_velocities
+from pbm.outputs import write_outputs
+from pbm.simulate import PbmResult, simulate
+from pbm.studies import geometry_study, grid_study, regrid, scale_blender
+from pbm.synthetic import synthetic_table
 
-#: Every name of the API and the module that defines it. They are imported on first use
-#: (PEP 562), so that a command needing one part (the design tool's frequency responses, a
-#: configuration) does not import the integrators, the plots and the compiled kernels of
-#: every other part: the package's eager imports were a third of the design command's time.
-_API = {
-    "EnsembleResult": "pbm.ensemble",
-    "PbmConfig": "pbm.config",
-    "PbmResult": "pbm.simulate",
-    "fill_missing_velocities": "pbm.model",
-    "geometry_study": "pbm.studies",
-    "grid_study": "pbm.studies",
-    "noise_ensemble": "pbm.ensemble",
-    "noise_study": "pbm.ensemble",
-    "regrid": "pbm.studies",
-    "scale_blender": "pbm.studies",
-    "simulate": "pbm.simulate",
-    "synthetic_table": "pbm.synthetic",
-    "write_outputs": "pbm.outputs",
-}
-
-__all__ = sorted(_API)
-
-
-def __getattr__(name: str):
-    if name not in _API:
-        raise AttributeError(f"module 'pbm' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_API[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_API))
+__all__ = [
+    "EnsembleResult",
+    "PbmConfig",
+    "PbmResult",
+    "fill_missing_velocities",
+    "geometry_study",
+    "grid_study",
+    "noise_ensemble",
+    "noise_study",
+    "regrid",
+    "scale_blender",
+    "simulate",
+    "synthetic_table",
+    "write_outputs",
+]
