@@ -12,8 +12,9 @@ window (5 s by default).
   Student's t (:func:`coupling.intervals.batch_means_interval`).
 * The pooled RTD's statistics are means over particles, each particle's residence time
   nearly independent of those entering a few seconds before it: the batch-means error of
-  its mean and variance does not grow from 1-s to 10-s entry blocks (the same study), so
-  they keep the block bootstrap over 5-s blocks of entry time
+  its mean and variance does not grow from 1-s to 10-s entry blocks on the runs whose
+  entry window is long enough to tell (the same study), so they keep the block bootstrap
+  over 5-s blocks of entry time
   (:func:`coupling.intervals.block_bootstrap`).
 
 The definitions of the quantities themselves are those of :mod:`coupling.metrics`, shared
