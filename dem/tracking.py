@@ -496,28 +496,20 @@ class CompartmentSequences:
         before = np.cumsum(self.run_length) - self.run_length  # dumps before each run, all particles
         return owner, self.start[owner] + before - before[self.run_offsets[:-1]][owner]
 
-    def slice_counts(self, i: int, components: tuple[int, ...] = (1, 2)) -> np.ndarray:
-        """(dumps, NY) int: how many particles of ``components`` are in each compartment
-        of axial slice ``i`` at every dump (from the run-length encoding: a +1 where a
-        run in the slice starts, a -1 where it ends, summed over the dumps)."""
-        if not 0 <= i < self.nx:
-            raise ValueError(f"slice {i} is not one of the grid's 0 ... {self.nx - 1}")
-        n_dumps = self.snapshot_t.size
+    def counts(self, components: tuple[int, ...] = (1, 2)) -> np.ndarray:
+        """(dumps, NX, NY) int: how many particles of ``components`` are in each compartment
+        at every dump (from the run-length encoding: a +1 where a run in a compartment
+        starts, a -1 where it ends, summed over the dumps)."""
+        n_dumps, cells = self.snapshot_t.size, self.n_cells
         owner, first = self._runs()
         state = self.run_state.astype(np.int64)
-        chosen = (state >= i * self.ny) & (state < (i + 1) * self.ny)
-        chosen &= np.isin(self.component, components)[owner]
-        cell = state[chosen] - i * self.ny
-        size = (n_dumps + 1) * self.ny
-        change = np.bincount(first[chosen] * self.ny + cell, minlength=size) - np.bincount(
-            (first[chosen] + self.run_length[chosen]) * self.ny + cell, minlength=size
+        chosen = (state < cells) & np.isin(self.component, components)[owner]
+        cell = state[chosen]
+        size = (n_dumps + 1) * cells
+        change = np.bincount(first[chosen] * cells + cell, minlength=size) - np.bincount(
+            (first[chosen] + self.run_length[chosen]) * cells + cell, minlength=size
         )
-        return np.cumsum(change.reshape(n_dumps + 1, self.ny), axis=0)[:n_dumps]
-
-    def counts(self, components: tuple[int, ...]) -> np.ndarray:
-        """(dumps, NX, NY) int: particles of ``components`` in every compartment at every
-        dump (:meth:`slice_counts`, slice by slice)."""
-        return np.stack([self.slice_counts(i, components) for i in range(self.nx)], axis=1)
+        return np.cumsum(change.reshape(n_dumps + 1, self.nx, self.ny), axis=0)[:n_dumps]
 
     def until(self, t_end_s: float) -> CompartmentSequences:
         """The record a run stopped at ``t_end_s`` [s] would hold: the dumps after it

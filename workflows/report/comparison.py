@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 
 from coupling.metrics import TIMESERIES_COLUMNS
 from coupling.metrics import rtd_overlap as shared_rtd_overlap
+from dem.steady import intervals_are_current
 from workflows.analysis.agreement import AgreementRow
 
 DEM_COLOUR, PBM_COLOUR = "#b2182b", "#2166ac"
@@ -257,7 +258,7 @@ def plot_agreement(
 
 def interval_method(steady: dict[str, Any]) -> str:
     """One sentence on how the DEM's intervals were had (``coupling/DEFINITIONS.md``)."""
-    if not steady or "batch_s" not in steady:
+    if not steady or not intervals_are_current(steady):
         return ""
     return (
         f"DEM intervals: the steady quantities' from overlapping batch means over {steady['batch_s']:g}-s batches "
