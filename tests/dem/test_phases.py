@@ -142,18 +142,24 @@ def test_two_phase_chain_is_recovered(synthetic_two_phase):
     assert phases.PhaseFit(truth, 0, 0, 0, 0, True).score(data) <= fit.log_likelihood + 1e-6 * data.n_steps
 
 
+def dead_zone_model() -> PhaseTransport:
+    """A stream (forward 3 /s, back 1 /s) that parks at 0.08 /s in a dead zone of the first
+    and last slices, left at 0.05 /s; every particle is fed into the stream."""
+    rates = np.zeros((2, 4, NX, 1))
+    rates[1, 0], rates[1, 1] = 3.0, 1.0
+    switching = np.zeros((2, 2, NX, 1))
+    switching[1, 0, [0, NX - 1]] = 0.08
+    switching[0, 1] = 0.05
+    return PhaseTransport(rates, switching, np.array([[0.0, 1.0], [0.0, 1.0]]), 0.4)
+
+
 def test_a_stagnant_phase_is_recovered_where_the_particles_park():
     """A dead zone in the first and last slices: the stream (forward 3 /s, back 1 /s)
     parks there at 0.08 /s and leaves the zone at 0.05 /s, nowhere else. Fitted with a
     stagnant phase bounded at 0.2 /s: it makes no move, is entered where the truth parks
     (and hardly elsewhere), left at the truth's rate, and the RTD's mean and variance,
     which the long stays dominate, are the truth's."""
-    rates = np.zeros((2, 4, NX, 1))
-    rates[1, 0], rates[1, 1] = 3.0, 1.0
-    switching = np.zeros((2, 2, NX, 1))
-    switching[1, 0, [0, NX - 1]] = 0.08
-    switching[0, 1] = 0.05
-    truth = PhaseTransport(rates, switching, np.array([[0.0, 1.0], [0.0, 1.0]]), 0.4)
+    truth = dead_zone_model()
     # 20 000 particles over 1200 s: ~1500 parking episodes, so the leaving rate carries
     # ~3 % sampling noise and the variance, as its inverse square, ~6 %
     sequences = phases.simulate_sequences(truth, inlet(), 20000, 3000, np.random.default_rng(11))

@@ -128,7 +128,9 @@ def test_per_dump_counts_are_kept_and_the_outlets_read_off_them(synthetic):
     outlet = res.steady_outlet_counts()  # (dumps, A and B, NY): 2 A on +y (column 1), 3 B on -y
     np.testing.assert_array_equal(outlet, [[[0, 2], [3, 0]]] * int(after.sum()))
     np.testing.assert_array_equal(res.sequences.counts()[after][:, -1], outlet.sum(axis=1))
-    np.testing.assert_array_equal(res.sequences.counts((1,)) + res.sequences.counts((2,)), res.snapshot_counts.sum(axis=1))
+    np.testing.assert_array_equal(
+        res.sequences.counts((1,)) + res.sequences.counts((2,)), res.snapshot_counts.sum(axis=1)
+    )
     entry = res.to_cache_entry({"input_hash": "test"})
     np.testing.assert_array_equal(DemResults.from_cache_entry(entry).snapshot_counts, res.snapshot_counts)
     older = dataclasses.replace(entry, arrays={k: v for k, v in entry.arrays.items() if k != "snapshot_counts"})

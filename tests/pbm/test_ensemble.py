@@ -39,3 +39,18 @@ def test_bands_are_numpys_statistics_row_by_row_whatever_the_nans(monkeypatch):
         np.testing.assert_allclose(mean, want_mean, rtol=1e-12, equal_nan=True)
         np.testing.assert_allclose(lo, want[:, 0], rtol=1e-12, equal_nan=True)
         np.testing.assert_allclose(hi, want[:, 1], rtol=1e-12, equal_nan=True)
+
+
+def test_noise_factors_are_one_seeded_stream_member_after_member():
+    """N(1, sigma) clipped at 0, one generator seeded config.seed drawn member after member
+    (member m's factors do not depend on how many follow), (intervals, members, 2)."""
+    from pbm.simulate import noise_factors
+
+    config = PbmConfig()
+    got = noise_factors(config, 30, 50, 0.6)
+    draws = np.random.default_rng(config.seed).standard_normal((50, 30, 2))
+    assert got.shape == (30, 50, 2)
+    np.testing.assert_array_equal(got, np.clip(1.0 + 0.6 * draws.transpose(1, 0, 2), 0.0, None))
+    assert (got == 0).any()  # sigma 0.6 clips some
+    np.testing.assert_array_equal(noise_factors(config, 30, 7, 0.6), got[:, :7])
+    np.testing.assert_array_equal(noise_factors(config, 30, 5, 0.0), np.ones((30, 5, 2)))

@@ -137,6 +137,11 @@ class ModelResult:
     converged: bool
     start_spread: float
     entry: tuple[tuple[float, ...], ...]
+    #: with a stagnant phase (``--stagnant``): its share of the hold-up, the rate at which
+    #: it is left (weighted by where it holds particles) [1/s] and the slices holding most
+    stagnant_share: float = float("nan")
+    stagnant_exit_per_s: float = float("nan")
+    stagnant_slices: tuple[int, ...] = ()
 
     def worst_slice_error(self) -> float:
         return float(max(self.slice_error, key=abs))
@@ -150,6 +155,7 @@ class PhaseStudy:
     n_particles: int
     n_steps: int
     dem_wall_time_s: float
+    parked: ParkedTracers | None = None
 
 
 def phase_table(model, length_m: float, diameter_m: float, t_end_s: float, window_s: float = 5.0):
@@ -242,6 +248,7 @@ def evaluate(
     dem_c = dem_slices.reshape(n, -1).sum(axis=1)
     pbm_c = pbm_slices.reshape(n, -1).sum(axis=1)
     lls = fit.start_log_likelihoods
+    stagnant_numbers = _stagnant_numbers(fit) if "stagnant_exit_max" in bound else {}
     return ModelResult(
         grid=grid,
         n_phases=k,
@@ -262,7 +269,53 @@ def evaluate(
         converged=fit.converged,
         start_spread=float(max(lls) - min(lls)),
         entry=tuple(tuple(float(v) for v in row) for row in fit.entry_distribution()),
+        **stagnant_numbers,
     )
+
+
+def _stagnant_numbers(fit) -> dict[str, Any]:
+    """:class:`ModelResult`'s stagnant fields of a fit whose phase 0 is stagnant."""
+    held = fit.occupancy[0].sum(axis=1)  # (NX,) time the stagnant phase holds per slice
+    leave = fit.transport.switching[0].sum(axis=0).sum(axis=1) / fit.transport.ny  # (NX,) mean over y
+    return {
+        "stagnant_share": float(held.sum() / fit.occupancy.sum()),
+        "stagnant_exit_per_s": float((leave * held).sum() / max(held.sum(), 1e-300)),
+        "stagnant_slices": tuple(int(i) for i in np.flatnonzero(held >= 0.1 * held.max())),
+    }
+
+
+@dataclass(frozen=True)
+class ParkedTracers:
+    """The DEM's pooled-RTD tracers still inside at the horizon: how many of how many
+    entered, and for each its longest stay in one axial slice without leaving it [s] and
+    that slice."""
+
+    n_entered: int
+    n_beyond: int
+    longest_stay_s: tuple[float, ...]
+    slice_of_stay: tuple[int, ...]
+
+
+def parked_tracers(
+    sequences, entry_s: np.ndarray, exit_s: np.ndarray, ids: np.ndarray, entry_window_s, horizon_s: float
+) -> ParkedTracers:
+    """:class:`ParkedTracers` of the particles (``ids`` with their ``entry_s`` and
+    ``exit_s``, NaN while inside) that entered in ``entry_window_s`` = (t0, t1] and had
+    not left ``horizon_s`` later, read off their compartment ``sequences``."""
+    t0, t1 = entry_window_s
+    entered = (entry_s > t0) & (entry_s <= t1)
+    beyond = entered & ~(exit_s - entry_s <= horizon_s)
+    rows = np.flatnonzero(np.isin(sequences.ids, ids[beyond]))
+    stays, where = [], []
+    for states in sequences.states(rows):
+        slices = states[states < sequences.n_cells] // sequences.ny
+        change = np.flatnonzero(np.diff(slices) != 0)
+        starts = np.concatenate([[0], change + 1])
+        lengths = np.diff(np.concatenate([starts, [slices.size]]))
+        longest = int(np.argmax(lengths))
+        stays.append(float(lengths[longest] * sequences.interval_s))
+        where.append(int(slices[starts[longest]]))
+    return ParkedTracers(int(entered.sum()), int(beyond.sum()), tuple(stays), tuple(where))
 
 
 def phase_study(
@@ -331,8 +384,28 @@ def phase_study(
                 f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
                 f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
                 f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s"
+                + (
+                    f"; stagnant phase: {row.stagnant_share:.1%} of the hold-up, in slices "
+                    f"{list(row.stagnant_slices)}, left at {row.stagnant_exit_per_s:.3f} /s"
+                    if row.stagnant_slices
+                    else ""
+                )
             )
             out.append(row)
+    # the run's own tracers: a --target's entry window is another run's
+    pooled, records = dem.summary.pooled_rtd, dem.particles
+    parked = (
+        parked_tracers(
+            seq,
+            records["entry_t_s"].to_numpy(float),
+            records["exit_t_s"].to_numpy(float),
+            records["id"].to_numpy(),
+            pooled.entry_window_s,
+            pooled.horizon_s,
+        )
+        if pooled is not None and pooled.has_tracers
+        else None
+    )
     return PhaseStudy(
         goal,
         tuple(out),
@@ -340,6 +413,7 @@ def phase_study(
         data.n_particles,
         data.n_steps,
         float(entry.provenance.get("wall_time_s", float("nan"))),
+        parked,
     )
 
 
@@ -355,6 +429,7 @@ def markdown(study: PhaseStudy) -> str:
         f"{g.variance_s2.value:.0f} s² [{g.variance_s2.low:.0f}, {g.variance_s2.high:.0f}], hold-up "
         f"{g.holdup.value:.0f} [{g.holdup.low:.0f}, {g.holdup.high:.0f}]; fit window {study.fit_window_s[0]:.1f}-"
         f"{study.fit_window_s[1]:.1f} s, {study.n_particles} particles, {study.n_steps} particle-steps",
+        *_parked_lines(study.parked),
         "",
         "| grid | K | mean [s] | variance [s²] | hold-up | worst slice | held-out ll/step | CK max z | fit [s] |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
@@ -367,6 +442,22 @@ def markdown(study: PhaseStudy) -> str:
             f"{r.held_out_per_step:.4f} | {r.ck_max_z:.1f} {mark(r.ck_passed)} | {r.fit_wall_s:.0f} |"
         )
     return "\n".join(lines)
+
+
+def _parked_lines(parked: ParkedTracers | None) -> list[str]:
+    if parked is None or not parked.n_entered:
+        return []
+    line = (
+        f"the run's own pooled-RTD tracers still inside at the horizon: {parked.n_beyond} of {parked.n_entered} "
+        f"({parked.n_beyond / parked.n_entered:.2%})"
+    )
+    if parked.n_beyond:
+        slices = np.bincount(parked.slice_of_stay)
+        line += (
+            f"; their longest stay in one slice {min(parked.longest_stay_s):.0f}-{max(parked.longest_stay_s):.0f} s, "
+            "in slices " + ", ".join(f"{i} ({n})" for i, n in enumerate(slices) if n)
+        )
+    return [line]
 
 
 def record(study: PhaseStudy) -> dict[str, Any]:

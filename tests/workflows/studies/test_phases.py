@@ -73,3 +73,44 @@ def test_results_without_sequences_are_refused_by_name(tmp_path, capsys):
     old = save_entry(tmp_path / "old.h5", dataclasses.replace(entry, arrays=arrays))
     assert main(["study", "phases", "--results", str(old), "--out", str(tmp_path / "out")]) == 2
     assert "no compartment sequences" in capsys.readouterr().err
+
+
+def test_parked_tracers_are_the_pooled_tracers_still_inside_with_their_longest_stay():
+    """Three slices, one dump a second; ids 1..4. Particle 1 passes in 3 s; 2 sits 5 s in
+    slice 0, then 2 s in slice 1, still inside; 3 sits 4 s in slice 2 after 1 s in slice 0
+    and never leaves; 4 enters after the window. Window (-0.5, 1.5], horizon 3 s."""
+    import numpy as np
+
+    from dem import phases
+    from workflows.studies.phases import parked_tracers
+
+    out = 3  # past the weir
+    obs = np.full((4, 9), -1)
+    obs[0, 0:4] = [0, 1, 2, out]
+    obs[1, 1:8] = [0, 0, 0, 0, 0, 1, 1]
+    obs[2, 0:5] = [0, 2, 2, 2, 2]
+    obs[3, 3:5] = [0, 1]
+    seq = phases.sequences_from_padded(obs, np.array([0, 1, 0, 3]), np.array([1, 2, 1, 2]), np.arange(9.0), 1.0, 3, 1)
+    entry = np.array([0.0, 1.0, 0.0, 3.0])
+    exit_ = np.array([3.0, np.nan, np.nan, np.nan])
+    parked = parked_tracers(seq, entry, exit_, np.array([1, 2, 3, 4]), (-0.5, 1.5), 3.0)
+    assert (parked.n_entered, parked.n_beyond) == (3, 2)
+    assert parked.longest_stay_s == (5.0, 4.0) and parked.slice_of_stay == (0, 2)
+
+
+def test_the_study_reports_where_a_stagnant_phase_parks_and_how_fast_it_lets_go():
+    """The dead zone of tests/dem/test_phases.py (parked at 0.08 /s in the first and last
+    slices, left at 0.05 /s): the study's numbers name those slices and that rate."""
+    import numpy as np
+
+    from dem import phases
+    from tests.dem.test_phases import NX, dead_zone_model, inlet
+    from workflows.studies.phases import _stagnant_numbers
+
+    truth = dead_zone_model()
+    sequences = phases.simulate_sequences(truth, inlet(), 20000, 3000, np.random.default_rng(11))
+    fit = phases.fit(phases.prepare(sequences), 2, starts=1, tol=1e-7, stagnant_exit_max=0.2)
+    numbers = _stagnant_numbers(fit)
+    assert numbers["stagnant_slices"] == (0, NX - 1)
+    assert numbers["stagnant_exit_per_s"] == pytest.approx(0.05, rel=0.1)
+    assert 0.0 < numbers["stagnant_share"] < 0.5
