@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from coupling.blas import free_cores, single_threaded_blas
 from coupling.errors import ConfigError
@@ -29,6 +30,9 @@ from pbm.simulate import check_run, feed_factors, noise_intervals
 from pbm.solver import MAX_THREADS, TIME_TOLERANCE_S, Propagators, breakpoints, march, multiples, shared_pool
 
 BAND_QUANTILES = (0.05, 0.95)
+#: Pivots (of a column-pivoted QR) below this fraction of the largest are dropped from
+#: the outlet's unit responses: the rounding level of the responses themselves.
+LOW_RANK_RTOL = float(np.finfo(float).eps)
 
 
 @dataclass(frozen=True)
@@ -210,8 +214,8 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     PBM is linear in its feed, so the particles fed at one particle/s during noise
     interval j alone are propagated once per feeder and interval (2 J columns), their
     outlet compartments and discharge recorded at every output; each member is then the
-    sum over j of those responses times its feed rate in interval j (one matrix product
-    per block of outputs, reduced to C_A and RSD before the next block). ``factors`` is a
+    sum over j of those responses times its feed rate in interval j (matrix products per
+    block of outputs, reduced to C_A and RSD before the next block). ``factors`` is a
     future of the (J, M, 2) feed factors, awaited only after the march."""
     nx, ny, k = grid
     n = nx * ny * k
@@ -232,13 +236,20 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
             outlet[out] = _compartments(z, grid)[-1]
             discharged[out] = z[n]
     final = _compartments(z, grid).reshape(nx * ny, -1)
+    running = np.concatenate([np.zeros((1, 2 * n_int)), discharged])  # the totals before each output
+
+    def factored_block(first: int) -> tuple:
+        end = min(n_out, first + chunk)
+        return _factored_block(outlet[first:end], running[first : end + 1])
+
+    factored = list(shared_pool().map(factored_block, range(0, n_out, chunk)))
     factors = factors.result()[:n_int]
     fed = [rates[s] * factors[:, :, s] for s in (0, 1)]  # (J, M) feed rate of each member
     # Member blocks on a thread per free core: numpy releases the GIL in its products, and
     # each thread's BLAS stays single-threaded (see coupling.blas).
     members = factors.shape[1]
     blocks = np.array_split(np.arange(members), free_cores(min(MAX_THREADS, members)))
-    kernels = (outlet, discharged, final, n_int, nx, ny, chunk)
+    kernels = (factored, final, n_out, n_int, nx, ny, chunk)
     # each block writes its members' columns of the results: no copy to join them
     results = (np.empty((n_out, members)), np.empty((n_out, members)), np.empty((nx, members)))
 
@@ -251,35 +262,64 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     return results
 
 
-def _combine(outlet, discharged, final, n_int, nx, ny, chunk, fed_a, fed_b, c_a, rsd_out, slices):
+def _factored_block(outlet: np.ndarray, discharged: np.ndarray):
+    """``(used, [(Q, R) of A, (Q, R) of B])`` of a block of outputs' unit responses: the
+    intervals it needs (nothing fed after its last output has arrived anywhere, so later
+    columns are dropped) and each species' responses factored to their rounding level
+    (:func:`_low_rank`), rows the outlet's cells output after output, then the discharge's
+    increments (``discharged``: the running totals from the output before the block's).
+
+    Over a block of outputs the outlet cells follow smooth curves, so the responses to
+    every interval fed by then span ~30 directions where there are up to J of them (260 in
+    the benchmark's run): two thin products per member instead of one wide one, half the
+    multiply-adds. C_A needs the increments only, and differencing the members' running
+    totals instead would cancel most of their digits."""
+    n_int = discharged.shape[1] // 2
+    increments = np.diff(discharged, axis=0)
+    live = (np.any(outlet != 0, axis=(0, 1)) | np.any(increments != 0, axis=0)).reshape(2, n_int).any(axis=0)
+    used = int(np.flatnonzero(live).max()) + 1 if live.any() else 1
+    pieces = [
+        np.concatenate(
+            [outlet[:, :, s * n_int : s * n_int + used].reshape(-1, used), increments[:, s * n_int : s * n_int + used]]
+        )
+        for s in (0, 1)
+    ]
+    return used, [_low_rank(piece) for piece in pieces]
+
+
+def _low_rank(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Q, R) with Q R = ``b`` to its rounding level and as few columns of Q as that
+    allows: a column-pivoted QR truncated at :data:`LOW_RANK_RTOL` of its largest pivot."""
+    q, r, perm = scipy.linalg.qr(b, mode="economic", pivoting=True)
+    pivots = np.abs(np.diag(r))
+    rank = max(1, int(np.count_nonzero(pivots > LOW_RANK_RTOL * pivots[0]))) if pivots.size else 1
+    unpermuted = np.empty((rank, b.shape[1]))
+    unpermuted[:, perm] = r[:rank]
+    return np.ascontiguousarray(q[:, :rank]), unpermuted
+
+
+def _combine(factored, final, n_out, n_int, nx, ny, chunk, fed_a, fed_b, c_a, rsd_out, slices):
     """C_A, outlet RSD and final slice RSDs of the members whose interval feed rates are
     the columns of ``fed_a`` / ``fed_b`` (J, M), from the unit responses, written into
-    ``c_a``, ``rsd_out`` (outputs, M) and ``slices`` (NX, M)."""
-    n_out = outlet.shape[0]
+    ``c_a``, ``rsd_out`` (outputs, M) and ``slices`` (NX, M). ``factored``: each block of
+    ``chunk`` outputs' :func:`_factored_block`."""
     members = fed_a.shape[1]
     fed = (fed_a, fed_b)
     # One set of buffers for every block: a fresh array per product is fresh pages, and
     # faulting them in cost as much as the products on these machines.
-    cells = np.empty((2, chunk * ny, members))
-    out = np.empty((2, chunk + 1, members))
-    out[:, 0] = 0.0  # the discharged before the first output: nothing
-    for k0 in range(0, n_out, chunk):
-        k1 = min(n_out, k0 + chunk)
-        rows = k1 - k0
-        # nothing fed after the block's last output has arrived anywhere: drop those columns
-        block = outlet[k0:k1]
-        live = (np.any(block != 0, axis=(0, 1)) | np.any(discharged[k0:k1] != 0, axis=0)).reshape(2, n_int).any(axis=0)
-        used = int(np.flatnonzero(live).max()) + 1 if live.any() else 1
-        for s in (0, 1):
-            np.matmul(
-                block[:, :, s * n_int : s * n_int + used].reshape(-1, used), fed[s][:used], out=cells[s, : rows * ny]
-            )
-            np.matmul(discharged[k0:k1, s * n_int : s * n_int + used], fed[s][:used], out=out[s, 1 : rows + 1])
+    cells = np.empty((2, chunk * (ny + 1), members))
+    reduced = np.empty(max(q.shape[1] for _, pair in factored for q, _ in pair) * members)
+    for i, k0 in enumerate(range(0, n_out, chunk)):
+        rows = min(n_out, k0 + chunk) - k0
+        u, pair = factored[i]
+        for s, (q, r) in enumerate(pair):
+            inner = reduced[: r.shape[0] * members].reshape(r.shape[0], members)
+            np.matmul(r, fed[s][:u], out=inner)
+            np.matmul(q, inner, out=cells[s, : rows * (ny + 1)])
         shaped = cells[:, : rows * ny].reshape(2, rows, ny, members)
-        rsd_out[k0:k1] = rsd(shaped[0], shaped[1], axis=1)
-        inc = np.diff(out[:, : rows + 1], axis=1)
-        c_a[k0:k1] = outflow_fraction_a(inc[0], inc[1])
-        out[:, 0] = out[:, rows]
+        rsd_out[k0 : k0 + rows] = rsd(shaped[0], shaped[1], axis=1)
+        inc = cells[:, rows * ny : rows * (ny + 1)]
+        c_a[k0 : k0 + rows] = outflow_fraction_a(inc[0], inc[1])
     state = [(final[:, s * n_int : (s + 1) * n_int] @ fed[s]).reshape(nx, ny, -1) for s in (0, 1)]
     slices[:] = rsd(state[0], state[1], axis=1)
 

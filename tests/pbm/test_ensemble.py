@@ -9,11 +9,13 @@ from pbm.config import PbmConfig
 from pbm.synthetic import synthetic_table
 
 
-@pytest.mark.parametrize("step", [None, 10.0])
-def test_superposition_equals_one_column_pair_per_member(monkeypatch, step):
-    table = synthetic_table(n_windows=5)
+@pytest.mark.parametrize(("step", "windows"), [(None, 5), (10.0, 5), (None, 24)])
+def test_superposition_equals_one_column_pair_per_member(monkeypatch, step, windows):
+    """On 24 windows (120 noise intervals) the outlet's responses are factored to a rank
+    well below their columns: the members still agree with their own propagation."""
+    table = synthetic_table(n_windows=windows)
     config = PbmConfig(feed_step_s=step, feed_step_factor_a=1.5 if step else 1.0)
-    members = 40  # > 25 noise intervals: the superposition path
+    members = 5 * windows + 15  # more than the noise intervals: the superposition path
     fast = ensemble.noise_ensemble(table, config, sigma=0.2, members=members)
     monkeypatch.setattr(ensemble, "_by_superposition", ensemble._by_columns)
     slow = ensemble.noise_ensemble(table, config, sigma=0.2, members=members)
@@ -54,3 +56,19 @@ def test_noise_factors_are_one_seeded_stream_member_after_member():
     assert (got == 0).any()  # sigma 0.6 clips some
     np.testing.assert_array_equal(noise_factors(config, 30, 7, 0.6), got[:, :7])
     np.testing.assert_array_equal(noise_factors(config, 30, 5, 0.0), np.ones((30, 5, 2)))
+
+
+def test_low_rank_factors_reproduce_the_block_with_its_numerical_rank():
+    """A rank-5 block plus rounding-level noise: 5 columns (give or take the rounding of
+    the product that made it), the block to its rounding level; a full-rank block: exact with every column; a zero block: one zero column."""
+    rng = np.random.default_rng(4)
+    block = rng.random((160, 5)) @ rng.random((5, 90)) + 1e-18 * rng.random((160, 90))
+    q, r = ensemble._low_rank(block)
+    assert 5 <= q.shape[1] <= 7 and r.shape == (q.shape[1], 90)
+    np.testing.assert_allclose(q @ r, block, rtol=0, atol=1e-13 * np.abs(block).max())
+    full = rng.random((40, 30))
+    q, r = ensemble._low_rank(full)
+    assert q.shape == (40, 30)
+    np.testing.assert_allclose(q @ r, full, rtol=0, atol=1e-13)
+    q, r = ensemble._low_rank(np.zeros((8, 3)))
+    assert q.shape == (8, 1) and not (q @ r).any()
