@@ -223,19 +223,22 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
 
     def unit_feed(key: int) -> np.ndarray:
         r = np.zeros((2, 2 * n_int))
-        r[0, key] = 1.0
-        r[1, n_int + key] = 1.0
+        r[0, 2 * key] = 1.0
+        r[1, 2 * key + 1] = 1.0
         return r
 
     outlet = np.empty((n_out, ny, 2 * n_int))
     discharged = np.empty((n_out, 2 * n_int))
     z = np.zeros((props.n_states, 2 * n_int))
-    for b, z in march(props, times, z, unit_feed, feed_key):  # noqa: B020 -- march returns each step's new state
+    # Interval j's pair of columns (A, B) is 2j, 2j + 1, so the columns fed so far lead the
+    # state and the march leaves the others, still zero, alone: half its products.
+    live = 2 * (np.maximum.accumulate(feed_key) + 1)
+    for b, z in march(props, times, z, unit_feed, feed_key, live=live):  # noqa: B020 -- march returns each step's new state
         out = out_index[b]
         if out >= 0:
-            outlet[out] = _compartments(z, grid)[-1]
-            discharged[out] = z[n]
-    final = _compartments(z, grid).reshape(nx * ny, -1)
+            outlet[out] = _by_species(_compartments(z, grid)[-1])
+            discharged[out] = _by_species(z[n])
+    final = _by_species(_compartments(z, grid).reshape(nx * ny, -1))
     running = np.concatenate([np.zeros((1, 2 * n_int)), discharged])  # the totals before each output
 
     def factored_block(first: int) -> tuple:
@@ -260,6 +263,11 @@ def _by_superposition(props, times, feed_key, out_index, n_out, rates, factors, 
     with ThreadPoolExecutor(max_workers=len(blocks)) as pool:
         list(pool.map(combine, blocks))
     return results
+
+
+def _by_species(columns: np.ndarray) -> np.ndarray:
+    """Interval-pair columns (A0, B0, A1, B1, ...) reordered as A's intervals, then B's."""
+    return np.concatenate([columns[..., 0::2], columns[..., 1::2]], axis=-1)
 
 
 def _factored_block(outlet: np.ndarray, discharged: np.ndarray):

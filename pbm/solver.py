@@ -368,6 +368,7 @@ def march(
     method: str = "expm",
     rtol: float = 1e-6,
     atol: float = 1e-9,
+    live: np.ndarray | None = None,
 ) -> Iterator[tuple[int, np.ndarray]]:
     """Propagate the state matrix ``z0`` (m, c) through the breakpoints ``times``.
 
@@ -377,6 +378,9 @@ def march(
     [particles/s]: row 0 feed A and row 1 feed B into each column. ``injections[b]`` is
     added to the state at breakpoint b before stepping on (a Dirac pulse). The window in
     force is read at each step's midpoint, so window switches must be breakpoints.
+    ``live[s]``, if given, is how many leading columns may be non-zero during step s (the
+    others are zero and fed nothing then, so they stay zero): the dense kernel propagates
+    only those.
     """
     injections = injections or {}
     z = np.array(z0, dtype=float, copy=True)
@@ -399,8 +403,12 @@ def march(
             key = int(feed_key[s])
             if key not in feed_cache:
                 feed_cache = {key: feed_rates(key)}  # keys arrive in order: keep only the current
-            z = p @ z
-            z += q @ feed_cache[key]
+            c = z.shape[1] if live is None else int(live[s])
+            if c == z.shape[1]:
+                z = p @ z
+                z += q @ feed_cache[key]
+            else:
+                z[:, :c] = p @ z[:, :c] + q @ feed_cache[key][:, :c]
             if s + 1 in injections:
                 z += injections[s + 1]
             yield s + 1, z
