@@ -27,9 +27,9 @@ Reproduce (a run directory with its dumps, ``runs/<key>``)::
     pbmdem study phases --results dem.h5 --grids 10x1,10x10 --ks 1,2,3
 
 and for NX = 20 the same post-processing with ``[dem.tables] nx = 20`` in a ``--config``
-file, then ``--grids 20x1``. ``--stagnant`` makes phase 0 of every K >= 2 a dead zone
-(:func:`dem.phases.fit`'s ``stagnant_exit_max``, at one over the run's Little's-law mean
-residence time: a particle parked there stays a residence time or more).
+file, then ``--grids 20x1``. ``--stagnant R`` makes phase 0 of every K >= 2 a dead zone
+(:func:`dem.phases.fit`'s ``stagnant_exit_max``, at one over R times the run's Little's-law
+mean residence time: a particle parked there stays R residence times or more; R = 1 bare).
 """
 
 from __future__ import annotations
@@ -207,7 +207,7 @@ def evaluate(
     lag: int = 1,
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
-    stagnant: bool = False,
+    stagnant: float | None = None,
     tol: float = phases.PHASE_TOL,
 ) -> ModelResult:
     """One row of the study (module docstring). ``residents``: fit also to the moves of
@@ -228,10 +228,10 @@ def evaluate(
     fit_data = data if refine == 1 else phases.prepare(sequences, (t0, t1), observed, residents=residents, lag=lag)
     wall0 = time.perf_counter()
     bound = {"max_rate_x_interval": max_rate_x_interval, "refine": refine}
-    if stagnant and k >= 2:
+    if stagnant is not None and k >= 2:
         if not target.little_mean_residence_time_s > 0:
             raise ConfigError(f"{target.source}: no Little's-law mean residence time to bound a stagnant phase by")
-        bound["stagnant_exit_max"] = 1.0 / target.little_mean_residence_time_s
+        bound["stagnant_exit_max"] = 1.0 / (stagnant * target.little_mean_residence_time_s)
     fit = phases.fit(fit_data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=tol, **bound)
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
@@ -332,7 +332,7 @@ def phase_study(
     lag_s: float = phases.PHASE_LAG_S,
     max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
-    stagnant: bool = False,
+    stagnant: float | None = None,
     tol: float = phases.PHASE_TOL,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
@@ -626,8 +626,12 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument(
         "--stagnant",
-        action="store_true",
-        help="phase 0 of every K >= 2 a dead zone: no moves, left at one over the mean residence time at most",
+        nargs="?",
+        type=float,
+        const=1.0,
+        metavar="R",
+        help="phase 0 of every K >= 2 a dead zone: no moves, left at most once per R mean residence times "
+        "(default R = 1)",
     )
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
@@ -643,6 +647,8 @@ def run(args) -> int:
         raise ConfigError(f"--lag-s {args.lag_s}: expected an interval > 0 s")
     if not args.tol > 0:
         raise ConfigError(f"--tol {args.tol}: expected a gain > 0 nats per particle-step, e.g. 1e-5")
+    if args.stagnant is not None and not args.stagnant > 0:
+        raise ConfigError(f"--stagnant {args.stagnant}: expected a number of mean residence times > 0, e.g. 1")
     if not args.max_rate_x_interval > 0:
         raise ConfigError(f"--max-rate-x-interval {args.max_rate_x_interval}: expected a bound > 0")
     study = phase_study(

@@ -53,6 +53,7 @@ def test_the_command_writes_its_record(results_file, tmp_path):
         (["--grids", "4by1"], "--grids '4by1'"),
         (["--ks", "0"], "must be >= 1"),
         (["--target", "no-such-file.h5"], "--target no-such-file.h5"),
+        (["--stagnant", "0"], "--stagnant 0.0"),
     ],
 )
 def test_bad_arguments_are_one_line(results_file, tmp_path, capsys, extra, message):
@@ -114,3 +115,12 @@ def test_the_study_reports_where_a_stagnant_phase_parks_and_how_fast_it_lets_go(
     assert numbers["stagnant_slices"] == (0, NX - 1)
     assert numbers["stagnant_exit_per_s"] == pytest.approx(0.05, rel=0.1)
     assert 0.0 < numbers["stagnant_share"] < 0.5
+
+
+def test_a_stagnant_phase_is_left_at_most_once_per_r_residence_times(results_file):
+    """``stagnant=R`` bounds phase 0's leaving rate by 1 / (R x the Little's-law mean
+    residence time): the fitted rate respects it for R = 1 and R = 4."""
+    for r in (1.0, 4.0):
+        study = phase_study(results_file, grids=((4, 1),), ks=(2,), starts=1, stagnant=r, log=lambda message: None)
+        (row,) = study.results
+        assert 0 < row.stagnant_exit_per_s <= 1.0 / (r * study.target.little_mean_residence_time_s) * (1 + 1e-9)
