@@ -51,7 +51,7 @@ from coupling.tables import read_table
 from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
 from pbm.model import feed_distribution, filled_table
-from pbm.simulate import simulate
+from pbm.simulate import noise_intervals, simulate
 from pbm.solver import MAX_THREADS, Propagators, breakpoints, kernel_work, multiples
 from pbm.synthetic import synthetic_table
 from workflows.shipped import REFERENCE_DIR
@@ -283,7 +283,7 @@ def run_kernels(repeats: int = 7, loaded: bool = True) -> dict:
 def run_benchmark(
     repeats: int = 15,
     bdf_repeats: int = 3,
-    ensemble_repeats: int = 3,
+    ensemble_repeats: int = 5,
     members: int = 10000,
     rtd_pulse_s: float = PULSE_S,
     kernel_repeats: int = 7,
@@ -299,7 +299,9 @@ def run_benchmark(
     detect_times, _, _ = _timed(lambda: simulate(table, config), max(3, repeats // 3))
     bdf_times, bdf, bdf_cpu = _timed(lambda: simulate(table, bdf_config, rtd_pulse_s=rtd_pulse_s), bdf_repeats)
 
-    noise_ensemble(table, config, sigma=0.1, members=8)  # warm-up
+    # warm-up: imports, thread pools and LAPACK's first calls, on the superposition path
+    # (more members than noise intervals) that the timed runs take
+    noise_ensemble(table, config, sigma=0.1, members=min(members, 2 * noise_intervals(config, table.t_end) + 1))
     ens_times, _, ens_cpu = _timed(lambda: noise_ensemble(table, config, sigma=0.1, members=members), ensemble_repeats)
     tracemalloc.start()
     noise_ensemble(table, config, sigma=0.1, members=members)
