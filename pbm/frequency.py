@@ -39,8 +39,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cache
 
+import numba
 import numpy as np
 from scipy.linalg import expm, schur
 
@@ -220,7 +220,8 @@ def _responses_reference(t, rhs, left, omegas):
     return np.array([left @ np.linalg.solve(1j * w * eye - t, rhs) for w in omegas])
 
 
-def _quasi_triangular_solves(t, rhs, left, omegas):
+@numba.njit(cache=True, nogil=True)
+def _quasi_triangular_solves(t, rhs, left, omegas):  # pragma: no cover - compiled
     """left . (i w I - T)^{-1} rhs for every w in ``omegas``, T real quasi-upper-triangular
     (a real Schur form): back substitution from the last row up, a 1 x 1 diagonal block by
     division, a 2 x 2 block by Cramer's rule, every frequency of a row at once."""
@@ -263,20 +264,13 @@ def _quasi_triangular_solves(t, rhs, left, omegas):
 
 
 def _responses(t, rhs, left, omegas):
-    """:func:`_quasi_triangular_solves`, compiled on first use."""
-    return _compiled_solves()(
+    """:func:`_quasi_triangular_solves` on C-ordered float arrays (one compiled signature)."""
+    return _quasi_triangular_solves(
         np.ascontiguousarray(t, dtype=float),
         np.ascontiguousarray(rhs, dtype=float),
         np.ascontiguousarray(left, dtype=float),
         np.ascontiguousarray(omegas, dtype=float),
     )
-
-
-@cache
-def _compiled_solves():
-    import numba
-
-    return numba.njit(cache=True, nogil=True)(_quasi_triangular_solves)
 
 
 def transfer_function_from_rtd(t_s, E_per_s, frequencies_hz) -> np.ndarray:
