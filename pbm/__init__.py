@@ -26,13 +26,26 @@ and tested at the function named):
   ``seed`` (member 0 is the single run).
 """
 
+import importlib
+
 from pbm.config import PbmConfig
-from pbm.ensemble import EnsembleResult, noise_ensemble, noise_study
 from pbm.model import fill_missing_velocities
-from pbm.outputs import write_outputs
 from pbm.simulate import PbmResult, simulate
-from pbm.studies import geometry_study, grid_study, regrid, scale_blender
-from pbm.synthetic import synthetic_table
+
+# The ensemble, the studies and the figures (matplotlib) are imported on first use: a
+# command that needs one of them does not pay for the others. ``simulate`` stays eager:
+# it is also its module's name, which a later import of pbm.simulate would rebind.
+_HOMES = {
+    "EnsembleResult": "pbm.ensemble",
+    "geometry_study": "pbm.studies",
+    "grid_study": "pbm.studies",
+    "noise_ensemble": "pbm.ensemble",
+    "noise_study": "pbm.ensemble",
+    "regrid": "pbm.studies",
+    "scale_blender": "pbm.studies",
+    "synthetic_table": "pbm.synthetic",
+    "write_outputs": "pbm.outputs",
+}
 
 __all__ = [
     "EnsembleResult",
@@ -49,3 +62,16 @@ __all__ = [
     "synthetic_table",
     "write_outputs",
 ]
+
+
+def __getattr__(name: str):
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module 'pbm' has no attribute {name!r}")
+    value = getattr(importlib.import_module(home), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -31,6 +31,8 @@ in which that length meets the spec, with every criterion's margin.
 from __future__ import annotations
 
 import math
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -38,12 +40,19 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy.optimize import brentq
 
-from coupling.blas import single_threaded_blas
+from coupling.blas import free_cores, single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.fill import fill_samples, fit_fill_law, steady_table, steady_windows
-from pbm.frequency import noise_frequencies, noise_spectrum, stationary_system, system_response, vrr_spectrum
+from pbm.frequency import (
+    load_kernels,
+    noise_frequencies,
+    noise_spectrum,
+    stationary_system,
+    system_response,
+    vrr_spectrum,
+)
 from pbm.studies import interpolate_tables, scale_blender
 
 #: Length factors the rescaling may be asked for, relative to the library's blender: the
@@ -57,6 +66,8 @@ SCAN_POINTS = 7
 SPEEDS_PER_SPAN = 4
 #: Relative precision of the refined feasible edges.
 EDGE_RTOL = 1e-5
+#: Processes the speeds are shared among, at most (fewer when fewer cores are free).
+MAX_WORKERS = 4
 
 
 class DesignSpec(BaseModel):
@@ -187,17 +198,23 @@ class Evaluation:
 
 
 @single_threaded_blas()
-def evaluate(library: TableLibrary, spec: DesignSpec, rpm: float, length_factor: float) -> Evaluation:
+def evaluate(
+    library: TableLibrary, spec: DesignSpec, rpm: float, length_factor: float, composition: bool = True
+) -> Evaluation:
     """The outlet quantities and margins of the blender ``length_factor`` x the library's
-    length at ``rpm`` (within the library's range)."""
+    length at ``rpm`` (within the library's range); with ``composition`` False, the
+    residence-time margins only (no frequency response: the composition is not judged)."""
     config = library.pbm_config
     table = scale_blender(library.table_at(rpm), length_factor=length_factor)
     system = stationary_system(table, config, t_start_s=library.steady_time_s)
-    return _judged(spec, system, config, float(rpm), float(length_factor))
+    return _judged(spec, system, config, float(rpm), float(length_factor), composition=composition)
 
 
-def _judged(spec: DesignSpec, system, config: PbmConfig, rpm: float, length_factor: float, feed=None) -> Evaluation:
-    """The :class:`Evaluation` of a stationary system fed at ``config``'s rates."""
+def _judged(
+    spec: DesignSpec, system, config: PbmConfig, rpm: float, length_factor: float, feed=None, composition: bool = True
+) -> Evaluation:
+    """The :class:`Evaluation` of a stationary system fed at ``config``'s rates (without
+    the composition's margins when ``composition`` is False)."""
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
     if not rates.sum() > 0:
         raise ConfigError("the library's feed rates are both 0: nothing flows through the blender")
@@ -213,7 +230,7 @@ def _judged(spec: DesignSpec, system, config: PbmConfig, rpm: float, length_fact
     if spec.mrt_max_s is not None:
         margins["mrt_max_s"] = spec.mrt_max_s - mrt
     sd = rsd = vrr = None
-    if spec.composition:
+    if spec.composition and composition:
         c = float(rates[0] / rates.sum())
         freqs = noise_frequencies(spec.noise_band_hz, N_FREQUENCIES)
         h = system_response(system, freqs, spec.noise_feeder)
@@ -227,8 +244,17 @@ def _judged(spec: DesignSpec, system, config: PbmConfig, rpm: float, length_fact
     return Evaluation(rpm, length_factor, mrt, sd, rsd, vrr, margins, feed)
 
 
+def _criteria(spec: DesignSpec) -> frozenset[str]:
+    """The names of the margins ``spec`` judges."""
+    bounds = {"mrt_min_s": spec.mrt_min_s, "mrt_max_s": spec.mrt_max_s}
+    bounds |= {"ca_tolerance": spec.ca_tolerance, "rsd_max": spec.rsd_max}
+    return frozenset(k for k, v in bounds.items() if v is not None)
+
+
 #: Margins that grow with the blender's length; the others shrink with it.
 _GROWING = ("mrt_min_s", "ca_tolerance", "rsd_max")
+#: Margins judged without the composition.
+_RESIDENCE = ("mrt_min_s", "mrt_max_s")
 
 
 @dataclass(frozen=True)
@@ -309,13 +335,19 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     binds there. Margins that grow with length set the lower edge, the others the upper;
     the first feasible stretch of the scan is returned."""
     evaluated: dict[float, Evaluation] = {}
+    residence_only: dict[float, Evaluation] = {}
 
-    def at(f: float) -> Evaluation:
+    def at(f: float, composition: bool = True) -> Evaluation:
         # the edges' root finding starts from the scanned points it brackets, and ends on one
         f = float(f)
-        if f not in evaluated:
+        if f in evaluated:
+            return evaluated[f]
+        if composition:
             evaluated[f] = evaluate(library, spec, rpm, f)
-        return evaluated[f]
+            return evaluated[f]
+        if f not in residence_only:
+            residence_only[f] = evaluate(library, spec, rpm, f, composition=False)
+        return residence_only[f]
 
     factors = np.geomspace(spec.length_factor_min, spec.length_factor_max, SCAN_POINTS)
     scanned = [at(f) for f in factors]
@@ -328,8 +360,12 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
         last += 1
 
     def edge(outside: float, inside: float, kinds: tuple[str, ...]) -> float:
+        # the shrinking margins bound the residence time only: their edge needs no
+        # frequency response, a sixth of the responses a design computes otherwise
+        composition = any(k not in _RESIDENCE for k in kinds)
+
         def margin(f: float) -> float:
-            m = at(f).margins
+            m = at(f, composition).margins
             return min(m[k] for k in kinds)
 
         if margin(outside) * margin(inside) > 0:  # not the margin that failed: keep the scanned point
@@ -347,17 +383,48 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     return SpeedRow(rpm, float(lo), float(hi), at(lo), scanned)
 
 
+def speed_rows(library: TableLibrary, spec: DesignSpec, speeds) -> list[SpeedRow]:
+    """:func:`feasible_lengths` at every speed of ``speeds``, in their order.
+
+    The speeds are independent: they are dealt round-robin (neighbouring speeds cost
+    alike) to this process and to workers forked on the cores that are free, each with a
+    single-threaded BLAS. Threads would not help: scipy's Schur decomposition holds the
+    GIL. Where processes cannot be forked, or one core is free, they run here in turn."""
+    speeds = [float(v) for v in speeds]
+    workers = free_cores(min(len(speeds), MAX_WORKERS)) if "fork" in multiprocessing.get_all_start_methods() else 1
+    if workers == 1:
+        return _speed_rows(library, spec, speeds)
+    shares = [speeds[k::workers] for k in range(workers)]
+    load_kernels()  # once, here, rather than once in every worker
+    context = multiprocessing.get_context("fork")
+    with ProcessPoolExecutor(workers - 1, mp_context=context) as pool:
+        pending = [pool.submit(_speed_rows, library, spec, share) for share in shares[1:]]
+        done = _speed_rows(library, spec, shares[0]) + [row for job in pending for row in job.result()]
+    by_speed = {row.rpm: row for row in done}
+    return [by_speed[v] for v in speeds]
+
+
+def _speed_rows(library: TableLibrary, spec: DesignSpec, speeds: list[float]) -> list[SpeedRow]:
+    return [feasible_lengths(library, spec, rpm) for rpm in speeds]
+
+
 def speed_ranges(
     library: TableLibrary,
     spec: DesignSpec,
     speeds,
     length_factor: float = 1.0,
+    known=(),
 ) -> list[tuple[float, float]]:
     """The speed intervals in which the blender ``length_factor`` x the library's meets
     ``spec``: the feasible stretches of ``speeds``, each open edge refined between its grid
-    speeds by root finding on the smallest margin."""
+    speeds by root finding on the smallest margin. ``known``: evaluations already made
+    (any speed and length; those at ``length_factor`` are not made again)."""
     speeds = [float(v) for v in speeds]
-    evaluated: dict[float, float] = {}
+    evaluated: dict[float, float] = {
+        e.rpm: min(e.margins.values())
+        for e in known
+        if e.length_factor == length_factor and set(e.margins) == _criteria(spec)
+    }
 
     def margin(rpm: float) -> float:
         # the root finding starts from the grid speeds it brackets
@@ -396,9 +463,9 @@ def design(library: TableLibrary, spec: DesignSpec) -> DesignResult:
     """The smallest blender length over the searched speeds that meets ``spec``, the speed
     ranges in which the library's own blender meets it, and every speed's feasible lengths."""
     speeds = speed_grid(library, spec)
-    rows = [feasible_lengths(library, spec, rpm) for rpm in speeds]
+    rows = speed_rows(library, spec, speeds)
     feasible = [r for r in rows if r.feasible]
-    ranges = speed_ranges(library, spec, speeds)
+    ranges = speed_ranges(library, spec, speeds, known=[e for r in rows for e in r.scanned])
     library_rpm = tuple(v for v, _ in library.points)
     notes: list[str] = []
     if not ranges:

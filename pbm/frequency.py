@@ -263,6 +263,13 @@ def _quasi_triangular_solves(t, rhs, left, omegas):  # pragma: no cover - compil
     return out
 
 
+def load_kernels() -> None:
+    """Load (or compile) the compiled back substitution now: a process about to fork
+    workers that will all need it loads it once, before the fork."""
+    one = np.ones(1)
+    _responses(-one.reshape(1, 1), one, one, one)
+
+
 def _responses(t, rhs, left, omegas):
     """:func:`_quasi_triangular_solves` on C-ordered float arrays (one compiled signature)."""
     return _quasi_triangular_solves(

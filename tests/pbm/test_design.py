@@ -181,3 +181,45 @@ def test_largest_feed_follows_the_flow_law():
     assert none.best is None and "no feed" in none.notes[0]
     with pytest.raises(ConfigError, match="distinct feed rates"):
         feed_library([(50.0, steady_tanks(50.0))], config, 250.0, L)
+
+
+def test_forked_speeds_and_the_residence_only_edge_change_nothing(monkeypatch):
+    # v grows with rpm: from 125 rpm on, the composition sets the shortest length and the
+    # residence time the longest, both inside the lengths searched
+    c = 0.02 / 200
+    lib = library([(100.0, tanks(4, 100 * c)), (200.0, tanks(4, 200 * c))])
+    spec = design_spec(ca_tolerance=0.015, noise_sigma=0.1, mrt_max_s=30.0)
+    monkeypatch.setattr("pbm.design.free_cores", lambda limit=None: 2)
+    forked = design(lib, spec)
+    monkeypatch.setattr("pbm.design.free_cores", lambda limit=None: 1)
+    serial = design(lib, spec)
+    # every margin judged on every point, the composition included
+    monkeypatch.setattr("pbm.design._RESIDENCE", ())
+    full = design(lib, spec)
+    for result in (forked, serial):
+        assert result.to_dict() == full.to_dict()
+    assert all(0.5 < r.length_factor_lo < r.length_factor_hi < 2.0 for r in full.rows[1:])
+    assert full.rpm_ranges  # the ranges' search took the rows' evaluations at 1 x as known
+
+
+def test_speed_ranges_ignore_known_evaluations_of_other_criteria():
+    from pbm.design import Evaluation, speed_ranges
+
+    lib = library([(250.0, tanks(3, 0.02))])
+    spec = design_spec(mrt_min_s=10.0, ca_tolerance=0.03, noise_sigma=0.1)
+    wrong = Evaluation(250.0, 1.0, 99.0, None, None, None, {"mrt_min_s": 89.0})  # no composition judged
+    assert speed_ranges(lib, spec, [250.0], known=[wrong]) == speed_ranges(lib, spec, [250.0])
+
+
+def test_a_command_line_imports_no_figure_library_or_integrator_before_it_runs():
+    import subprocess
+    import sys
+
+    # the configuration imports pbm.config: the package must not import its ensemble and
+    # figures with it (a design pays for what it uses, its figure when it draws it)
+    probe = (
+        "import sys, workflows.cli.main as m; m.build_parser(['design']); "
+        "print(sorted(k for k in ('matplotlib', 'scipy.integrate', 'pbm.ensemble') if k in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
