@@ -97,12 +97,10 @@ FEEDERS = (1, 2)
 #: validation baseline at a 0.2-s lag: 262.9 s^2 against K = 3's 262.4, K = 2's 231).
 #: A fourth phase that is a dead zone (:func:`fit`'s ``stagnant_exit_max``, left at most
 #: once per 2 Little's-law residence times; ``pbmdem study phases --ks 4 --stagnant 2``)
-#: puts the pooled means, variances and hold-ups of the reduced run, the validation
-#: baseline, feeds x0.5, x1.5, x2 and 150 rpm inside 17 of their 18 intervals (K = 3: 8),
-#: and the NX = 10 -> 20 change inside 5 %; but it holds 0.7-1.3 % too much in the PBM
-#: (reduced 2267 against [2238, 2263]), and under the fill law, which does not move the
-#: zone, the hold-up curve leaves the DEM's intervals at feeds x0.5, x1.5 and x2. Not
-#: adopted while the zone's own exchange is not a function of the fill.
+#: brings the pooled means of the reduced run, the validation baseline, feeds x0.5, x1.5,
+#: x2 and 150 rpm inside, but holds 1-4 % too much at five of them (up to +20 % in a
+#: slice): 13 of their 18 mean, variance and hold-up intervals against K = 3's 12. Not
+#: adopted while the zone's size is not the DEM's.
 PHASES = 3
 
 #: The interval [s] between the observations the phases are fitted to: every 4th dump at

@@ -91,6 +91,13 @@ def run_modes(
     return modes
 
 
+def steady_outputs(result: PbmResult) -> np.ndarray:
+    """Which of the PBM's outputs are steady: after its own steady-state time (the rule
+    the DEM's own curve is judged by), none when it has none."""
+    t_ss = result.summary.get("steady_state_time_s")
+    return result.times > (t_ss if t_ss is not None and math.isfinite(t_ss) else result.times[-1])
+
+
 def pbm_steady(
     result: PbmResult, dem_steady: dict[str, Any], outlet_counts: np.ndarray | None = None
 ) -> dict[str, Any]:
@@ -99,8 +106,7 @@ def pbm_steady(
     each steady dump (:meth:`dem.post.DemResults.steady_outlet_counts`), whose totals are
     the counts at which the outlet RSD and Lacey index are sampled; None: the DEM's mean
     counts."""
-    t_ss = result.summary.get("steady_state_time_s")
-    after = result.times > (t_ss if t_ss is not None and math.isfinite(t_ss) else result.times[-1])
+    after = steady_outputs(result)
     if not after.any():
         return {}
     counts = result.counts[after]  # (n, 2, NX, NY)

@@ -124,3 +124,28 @@ def test_a_stagnant_phase_is_left_at_most_once_per_r_residence_times(results_fil
         study = phase_study(results_file, grids=((4, 1),), ks=(2,), starts=1, stagnant=r, log=lambda message: None)
         (row,) = study.results
         assert 0 < row.stagnant_exit_per_s <= 1.0 / (r * study.target.little_mean_residence_time_s) * (1 + 1e-9)
+
+
+def test_the_study_takes_the_pbms_hold_up_after_its_own_steady_state():
+    """A one-phase chain with a slow last slice (it fills over ~100 s) judged against a DEM
+    that was steady from 1 s: the study's hold-up is the chain's stationary one (feed x
+    mean residence time, to the steady rule's tolerance), not the mean of its filling."""
+    import numpy as np
+
+    from coupling.phases import PhaseTransport
+    from tests.known_dumps import config
+    from workflows.config import Config
+    from workflows.studies.phases import DemTarget, Interval, pbm_numbers
+
+    nx = 4
+    rates = np.zeros((1, 4, nx, 1))
+    rates[0, 0, :, 0] = [2.0, 2.0, 2.0, 0.02]  # forward; the last slice drains in 50 s
+    model = PhaseTransport(rates, np.zeros((1, 1, nx, 1)), np.ones((2, 1)), 0.1)
+    cfg = Config(dem=config())
+    feed = cfg.dem.operation.feed_rate_total_per_s
+    stationary = feed * (3 * 0.5 + 50.0)
+    wide = Interval(0.0, 0.0, 1e9)
+    target = DemTarget(wide, wide, (10.0, 300.0), 400.0, (wide,) * nx, wide, 1.0, "synthetic")
+    numbers = pbm_numbers(model, cfg, target)
+    assert numbers["holdup"] == pytest.approx(stationary, rel=0.03)
+    assert numbers["by_slice"][-1] == pytest.approx(feed * 50.0, rel=0.03)
