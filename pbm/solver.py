@@ -23,6 +23,7 @@ analytic Jacobian) instead; it is the independent cross-check of the exact path.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -441,6 +442,12 @@ def shared_pool() -> ThreadPoolExecutor:
     """The worker threads the marches share, started on first use; how many a march uses is
     sized to the free cores at the time."""
     return ThreadPoolExecutor(max_workers=MAX_THREADS, thread_name_prefix="pbm-march")
+
+
+# A forked process (the design's workers) inherits the pool but not its threads, and work
+# it queued there would wait forever: it starts a pool of its own.
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=shared_pool.cache_clear)
 
 
 def _march_bdf(props, times, z, windows, feed_rates, feed_key, injections, rtol, atol):

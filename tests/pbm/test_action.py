@@ -178,3 +178,26 @@ def test_dense_march_with_live_columns_equals_the_full_march(shipped):
     lean = [z.copy() for _, z in march(props, times, z0, unit_feed, feed_key, live=live)]
     assert live[0] < columns and len(full) == len(lean)
     assert max(_relative(a, b) for a, b in zip(lean, full)) < 1e-13
+
+
+def test_a_forked_process_gets_a_pool_of_its_own():
+    """The design's forked workers inherit the marches' pool without its threads: work
+    queued on it there must still run (it would wait forever on the parent's)."""
+    import multiprocessing
+
+    from pbm.solver import shared_pool
+
+    assert shared_pool().submit(int, 1).result() == 1  # the parent's pool has its thread
+
+    def child(queue):
+        queue.put(shared_pool().submit(int, 2).result(timeout=20))
+
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    process = context.Process(target=child, args=(queue,))
+    process.start()
+    process.join(30)
+    alive = process.is_alive()
+    if alive:
+        process.kill()
+    assert not alive and process.exitcode == 0 and queue.get(timeout=5) == 2
