@@ -244,13 +244,6 @@ def _judged(
     return Evaluation(rpm, length_factor, mrt, sd, rsd, vrr, margins, feed)
 
 
-def _criteria(spec: DesignSpec) -> frozenset[str]:
-    """The names of the margins ``spec`` judges."""
-    bounds = {"mrt_min_s": spec.mrt_min_s, "mrt_max_s": spec.mrt_max_s}
-    bounds |= {"ca_tolerance": spec.ca_tolerance, "rsd_max": spec.rsd_max}
-    return frozenset(k for k, v in bounds.items() if v is not None)
-
-
 #: Margins that grow with the blender's length; the others shrink with it.
 _GROWING = ("mrt_min_s", "ca_tolerance", "rsd_max")
 #: Margins judged without the composition.
@@ -391,7 +384,7 @@ def speed_rows(library: TableLibrary, spec: DesignSpec, speeds) -> list[SpeedRow
     single-threaded BLAS. Threads would not help: scipy's Schur decomposition holds the
     GIL. Where processes cannot be forked, or one core is free, they run here in turn."""
     speeds = [float(v) for v in speeds]
-    workers = free_cores(min(len(speeds), MAX_WORKERS)) if "fork" in multiprocessing.get_all_start_methods() else 1
+    workers = search_processes(len(speeds))
     if workers == 1:
         return _speed_rows(library, spec, speeds)
     shares = [speeds[k::workers] for k in range(workers)]
@@ -402,6 +395,13 @@ def speed_rows(library: TableLibrary, spec: DesignSpec, speeds) -> list[SpeedRow
         done = _speed_rows(library, spec, shares[0]) + [row for job in pending for row in job.result()]
     by_speed = {row.rpm: row for row in done}
     return [by_speed[v] for v in speeds]
+
+
+def search_processes(n_speeds: int) -> int:
+    """How many processes :func:`speed_rows` shares ``n_speeds`` speeds among now."""
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return 1
+    return free_cores(min(n_speeds, MAX_WORKERS))
 
 
 def _speed_rows(library: TableLibrary, spec: DesignSpec, speeds: list[float]) -> list[SpeedRow]:
@@ -422,8 +422,8 @@ def speed_ranges(
     speeds = [float(v) for v in speeds]
     evaluated: dict[float, float] = {
         e.rpm: min(e.margins.values())
-        for e in known
-        if e.length_factor == length_factor and set(e.margins) == _criteria(spec)
+        for e in known  # one that left the composition out is no use
+        if e.length_factor == length_factor and (e.vrr is not None or not spec.composition)
     }
 
     def margin(rpm: float) -> float:

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-from coupling.blas import free_cores
 from coupling.jsonable import write_json
 from workflows.shipped import VALIDATION_DIR
 
@@ -99,7 +98,7 @@ def _stages() -> tuple[dict[str, float], dict[str, float], int]:
             design(load_library(runs, "measured"), spec)
             serial = time.perf_counter() - start
     searched = sum(t for _, _, t in calls)  # the blender's responses, the rest are the feed's
-    workers = free_cores(pbm.design.MAX_WORKERS)
+    workers = pbm.design.search_processes(len(pbm.design.speed_grid(load_library(runs, "measured"), spec)))
     start = time.perf_counter()
     result = design(load_library(runs, "measured"), spec)
     out[SEARCH.format(workers=workers)] = time.perf_counter() - start
