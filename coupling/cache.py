@@ -15,7 +15,8 @@ nothing of what they mean. File layout (one file per key, ``<root>/dem-<key>.h5`
         frames/<name>/<column>   attrs of frames/<name>: columns (JSON, in order)
         arrays/<name>
 
-    /                      attrs: sha256 (written after everything else, see below)
+    /                      attrs: head_sha256, then sha256 (written after everything else,
+                                  see below)
 
 Writes are atomic (temporary file renamed into place). A file that is unreadable, foreign
 (another format or version), for another key, incomplete, without a digest or whose digest
@@ -26,8 +27,12 @@ that into "absent" so the caller rebuilds it.
 Integrity: the root attribute ``sha256`` is the SHA-256 of a canonical serialisation of the
 whole file as h5py reads it -- every group, every dataset's dtype, shape and bytes, and
 every attribute's name and value, walked in sorted order, each item length-prefixed --
-except ``sha256`` itself. :func:`load_entry` recomputes it from the open file and compares
-before parsing anything. HDF5's own ``fletcher32`` filter was not chosen because it covers
+except the digests themselves. :func:`load_entry` recomputes it from the open file and
+compares before parsing anything. The root attribute ``head_sha256`` is the same over the
+head alone (the root's attributes, ``/velocity_table``, the attributes of ``/results``):
+:func:`load_head` checks it and reads nothing else, so a reader of the tables alone does
+not decompress the per-particle records (most of the file); a file written before it
+existed is checked whole. HDF5's own ``fletcher32`` filter was not chosen because it covers
 only the chunks of a dataset's data: attributes, where the summary and provenance JSON and
 the table's ``window_s``/``min_samples`` live, and the object headers that give a dataset
 its dtype and shape are outside it. Measured on 300 seeded damaged copies of the shipped
@@ -43,19 +48,22 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
-import pandas as pd
 
 from coupling.errors import CacheError, os_reason
-from coupling.files import DIGEST_ATTR, h5_digest, regular_file
+from coupling.files import DIGEST_ATTR, HEAD_DIGEST_ATTR, h5_digest, h5_head_digest, regular_file
 from coupling.jsonable import dumps_exact
 from coupling.tables import GROUP as TABLE_GROUP
 from coupling.tables import VelocityTable, atomic_h5, table_from_group, table_to_group
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 CACHE_FORMAT = "pbmdem-cache"
 CACHE_FORMAT_VERSION = 2
@@ -123,6 +131,7 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
             h5.attrs["provenance"] = dumps_exact(entry.provenance)
             h5.attrs["complete"] = True  # a file without it was never finished
             # over what was just written, read back through h5py: the same path load_entry takes
+            h5.attrs[HEAD_DIGEST_ATTR] = head_digest(h5)
             h5.attrs[DIGEST_ATTR] = file_digest(h5)
     except OSError as exc:
         raise CacheError(f"cannot write cache file {path}: {os_reason(exc)}") from exc
@@ -132,6 +141,54 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
 def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
     """Read the entry in ``path``. Raises CacheError naming the problem if the file is
     missing, corrupt, foreign, incomplete or (when ``key`` is given) for other inputs."""
+    import pandas as pd  # here: a reader of the head alone (:func:`load_head`) need not import it
+
+    with _open_entry(path) as h5:
+        stored = _stored(h5, DIGEST_ATTR)
+        if stored is None:
+            raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
+        values: dict = {}
+        _check(stored, file_digest(h5, values), DIGEST_ATTR, path)
+        head = _head(h5, path, key)
+        group = h5[RESULTS_GROUP]
+        frames = {}
+        for name, sub in group["frames"].items():
+            columns = json.loads(sub.attrs["columns"])
+            frames[name] = pd.DataFrame({c: _read(values, sub[c]) for c in columns}, columns=columns)
+        arrays = {name: _read(values, data) for name, data in group["arrays"].items()}
+    return CacheEntry(head.table, head.summary, frames, arrays, head.provenance)
+
+
+def load_head(path: str | os.PathLike, key: str | None = None) -> CacheHead:
+    """The table, summary and provenance of the entry in ``path``, without reading its
+    frames and arrays (the per-particle records, most of the file): checked against the
+    file's head digest, or, in a file written before it existed, against the whole file's.
+    Raises CacheError as :func:`load_entry` does."""
+    with _open_entry(path) as h5:
+        stored = _stored(h5, HEAD_DIGEST_ATTR)
+        if stored is not None:
+            _check(stored, head_digest(h5), HEAD_DIGEST_ATTR, path)
+        else:
+            stored = _stored(h5, DIGEST_ATTR)
+            if stored is None:
+                raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
+            _check(stored, file_digest(h5), DIGEST_ATTR, path)
+        return _head(h5, path, key)
+
+
+@dataclass(frozen=True)
+class CacheHead:
+    """The parts of an entry that :func:`load_head` reads."""
+
+    table: VelocityTable
+    summary: dict[str, Any]
+    provenance: dict[str, Any]
+
+
+@contextmanager
+def _open_entry(path: str | os.PathLike):
+    """The open cache file, its format, version and completeness checked; any failure
+    inside the block that is not a CacheError becomes one naming the file."""
     # a directory, a FIFO (would block), a device or a symlink loop: refused by name
     path = regular_file(path, "cache file", CacheError)
     try:
@@ -145,32 +202,7 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
                 )
             if not bool(h5.attrs.get("complete", False)):
                 raise CacheError(f"{path} is incomplete (never finished writing)")
-            stored_digest = h5.attrs.get(DIGEST_ATTR)
-            if stored_digest is None:
-                raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
-            if isinstance(stored_digest, bytes):
-                stored_digest = stored_digest.decode("ascii")
-            values: dict = {}
-            actual = file_digest(h5, values)
-            if stored_digest != actual:
-                raise CacheError(
-                    f"{path} is corrupt or was edited: its content does not match its {DIGEST_ATTR} "
-                    "digest; regenerate it"
-                )
-            stored_key = str(h5.attrs.get("key"))
-            if key is not None and stored_key != key:
-                raise CacheError(f"{path} holds results for inputs {stored_key}, not {key}")
-            provenance = json.loads(h5.attrs["provenance"])
-            if TABLE_GROUP not in h5 or RESULTS_GROUP not in h5:
-                raise CacheError(f"{path} lacks the '{TABLE_GROUP}' or '{RESULTS_GROUP}' group")
-            table = table_from_group(h5[TABLE_GROUP], source=str(path))
-            group = h5[RESULTS_GROUP]
-            summary = json.loads(group.attrs["summary"])
-            frames = {}
-            for name, sub in group["frames"].items():
-                columns = json.loads(sub.attrs["columns"])
-                frames[name] = pd.DataFrame({c: _read(values, sub[c]) for c in columns}, columns=columns)
-            arrays = {name: _read(values, data) for name, data in group["arrays"].items()}
+            yield h5
     except CacheError:
         raise
     except Exception as exc:  # noqa: BLE001 - h5py and numpy raise many types on damaged files
@@ -178,7 +210,37 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
         # signature"), KeyError, ValueError, UnicodeDecodeError, TableError...; every one
         # means the same thing to the caller: do not trust this file.
         raise CacheError(f"{path} is corrupt or unreadable: {type(exc).__name__}: {exc}") from exc
-    return CacheEntry(table, summary, frames, arrays, provenance)
+
+
+def _stored(h5, name: str) -> str | None:
+    value = h5.attrs.get(name)
+    return value.decode("ascii") if isinstance(value, bytes) else value
+
+
+def _check(stored: str, actual: str, name: str, path) -> None:
+    if stored != actual:
+        raise CacheError(
+            f"{path} is corrupt or was edited: its content does not match its {name} digest; regenerate it"
+        )
+
+
+def _head(h5, path, key: str | None) -> CacheHead:
+    """The head of an open entry whose digest was checked."""
+    stored_key = str(h5.attrs.get("key"))
+    if key is not None and stored_key != key:
+        raise CacheError(f"{path} holds results for inputs {stored_key}, not {key}")
+    if TABLE_GROUP not in h5 or RESULTS_GROUP not in h5:
+        raise CacheError(f"{path} lacks the '{TABLE_GROUP}' or '{RESULTS_GROUP}' group")
+    provenance = json.loads(h5.attrs["provenance"])
+    table = table_from_group(h5[TABLE_GROUP], source=str(path))
+    summary = json.loads(h5[RESULTS_GROUP].attrs["summary"])
+    return CacheHead(table, summary, provenance)
+
+
+def head_digest(h5: h5py.File) -> str:
+    """SHA-256 (hex) of an open cache file's head: the root's attributes, the velocity table
+    and the results' summary (:func:`coupling.files.h5_head_digest`)."""
+    return h5_head_digest(h5, groups=(TABLE_GROUP,), attributes_of=(RESULTS_GROUP,))
 
 
 def file_digest(h5: h5py.File, values: dict | None = None) -> str:

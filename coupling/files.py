@@ -23,6 +23,7 @@ import errno
 import hashlib
 import os
 import stat
+import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -30,22 +31,32 @@ from typing import Any
 
 import numpy as np
 
-from coupling.errors import OutputError, PbmDemError, os_reason
+from coupling.errors import ConfigError, OutputError, PbmDemError, os_reason
 
 __all__ = [
     "DIGEST_ATTR",
+    "DIGEST_ATTRS",
     "FORMAT_ATTR",
+    "HEAD_DIGEST_ATTR",
     "h5_digest",
+    "h5_head_digest",
     "input_directory",
     "open_verified_h5",
     "output_directory_path",
     "refuse_output_over_inputs",
     "regular_file",
     "resolved",
+    "writable_directory",
 ]
 
 #: Root attribute holding the SHA-256 of the file's canonical content (:func:`h5_digest`).
 DIGEST_ATTR = "sha256"
+#: Root attribute holding the SHA-256 of the file's head alone (:func:`h5_head_digest`): the
+#: parts a reader that skips the bulk needs. Files written before it existed lack it; their
+#: readers check the whole file instead.
+HEAD_DIGEST_ATTR = "head_sha256"
+#: The root attributes no digest covers.
+DIGEST_ATTRS = (DIGEST_ATTR, HEAD_DIGEST_ATTR)
 #: Root attribute naming a file this project wrote ("pbmdem-cache", "pbmdem-table"): a file
 #: that says it is ours must carry its digest.
 FORMAT_ATTR = "format"
@@ -147,6 +158,20 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+def writable_directory(path: str | os.PathLike, what: str) -> Path:
+    """``path`` as a directory this process can write in, created if missing. Checked
+    before any expensive work, so that a bad output path fails in a second, not after the
+    solver; raises ConfigError naming the path and the problem."""
+    path = output_directory_path(path, what, ConfigError)  # loops and files in the way: one line
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path} is not a writable directory: {exc.strerror or exc}") from None
+    return path
+
+
 def refuse_output_over_inputs(
     out: str | os.PathLike,
     inputs: Iterable[str | os.PathLike | None],
@@ -172,47 +197,76 @@ def refuse_output_over_inputs(
 
 # ----------------------------------------------------------------------------- HDF5
 def h5_digest(h5, values: dict[str, Any] | None = None) -> str:
-    """SHA-256 (hex) of everything in an open HDF5 file except its :data:`DIGEST_ATTR`:
-    every group, every dataset's dtype, shape and bytes, and every attribute's name and
-    value, walked in sorted order, each item length-prefixed (no two different trees
-    serialise to the same byte stream). ``values``, if given, receives every dataset's
-    value keyed by its path ("/group/name"): a reader that checks the digest then takes
-    its data from what the check read, rather than decompressing it all a second time."""
-    import h5py
+    """SHA-256 (hex) of everything in an open HDF5 file except its digests
+    (:data:`DIGEST_ATTRS`): every group, every dataset's dtype, shape and bytes, and every
+    attribute's name and value, walked in sorted order, each item length-prefixed (no two
+    different trees serialise to the same byte stream). ``values``, if given, receives every
+    dataset's value keyed by its path ("/group/name"): a reader that checks the digest then
+    takes its data from what the check read, rather than decompressing it all a second time."""
+    return _Digest(h5, values).root().walk("", h5).hexdigest()
 
-    sha = hashlib.sha256()
 
-    def feed(tag: bytes, payload: bytes) -> None:
-        sha.update(tag + len(payload).to_bytes(8, "little"))
-        sha.update(payload)
+def h5_head_digest(h5, groups: Iterable[str], attributes_of: Iterable[str] = ()) -> str:
+    """SHA-256 (hex) of a file's head: the root's attributes except the digests, every group
+    named in ``groups`` whole (as :func:`h5_digest` walks it, its name in the stream), and
+    the attributes alone of each group named in ``attributes_of``. A reader that needs only
+    these parts checks them without reading the rest of the file (:data:`HEAD_DIGEST_ATTR`)."""
+    digest = _Digest(h5, None).root()
+    for name in groups:
+        digest.feed(b"G", f"/{name}".encode())
+        digest.walk(f"/{name}", h5[name])
+    for name in attributes_of:
+        digest.feed(b"H", f"/{name}".encode())
+        digest.attrs(f"/{name}", h5[name])
+    return digest.hexdigest()
 
-    def attrs(where: str, obj, skip: str | None) -> None:
+
+class _Digest:
+    """The canonical byte stream of :func:`h5_digest`, fed to SHA-256."""
+
+    def __init__(self, h5, values: dict[str, Any] | None) -> None:
+        self.h5, self.values, self.sha = h5, values, hashlib.sha256()
+
+    def hexdigest(self) -> str:
+        return self.sha.hexdigest()
+
+    def feed(self, tag: bytes, payload: bytes) -> None:
+        self.sha.update(tag + len(payload).to_bytes(8, "little"))
+        self.sha.update(payload)
+
+    def root(self) -> _Digest:
+        self.attrs("", self.h5, skip=DIGEST_ATTRS)
+        return self
+
+    def attrs(self, where: str, obj, skip: tuple[str, ...] = ()) -> None:
         for name in sorted(obj.attrs.keys()):
-            if name == skip:
+            if name in skip:
                 continue
-            feed(b"A", f"{where}@{name}".encode())
-            feed(b"V", _value_bytes(obj.attrs[name]))
+            self.feed(b"A", f"{where}@{name}".encode())
+            self.feed(b"V", _value_bytes(obj.attrs[name]))
 
-    def walk(where: str, group, skip: str | None = None) -> None:
-        attrs(where, group, skip)
+    def walk(self, where: str, group) -> _Digest:
+        """The group's members, recursively (its own attributes are the caller's)."""
+        import h5py
+
+        if where:
+            self.attrs(where, group)
         for name in sorted(group.keys()):
             obj = group[name]
             child = f"{where}/{name}"
             if isinstance(obj, h5py.Group):
-                feed(b"G", child.encode())
-                walk(child, obj)
+                self.feed(b"G", child.encode())
+                self.walk(child, obj)
             elif isinstance(obj, h5py.Dataset):
-                feed(b"D", child.encode())
+                self.feed(b"D", child.encode())
                 value = obj[()]
-                if values is not None:
-                    values[child] = value
-                feed(b"V", _value_bytes(value))
-                attrs(child, obj, None)
+                if self.values is not None:
+                    self.values[child] = value
+                self.feed(b"V", _value_bytes(value))
+                self.attrs(child, obj)
             else:
                 raise ValueError(f"unexpected HDF5 object {child!r} of type {type(obj).__name__}")
-
-    walk("", h5, skip=DIGEST_ATTR)
-    return sha.hexdigest()
+        return self
 
 
 def _value_bytes(value: Any) -> bytes:

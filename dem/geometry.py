@@ -53,12 +53,15 @@ import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import meshio
 import numpy as np
 
 from coupling.errors import GeometryError
 from dem.config import DemConfig, GeometryConfig
+
+if TYPE_CHECKING:
+    import meshio
 
 # LIGGGHTS 3.8.0's mesh/surface checks (SurfaceMesh / TriMesh): these are the limits it applies.
 MIN_TRIANGLE_ANGLE_DEG = 0.5
@@ -82,7 +85,7 @@ class TriMesh:
         return self.points[self.triangles]
 
     def to_meshio(self) -> meshio.Mesh:
-        return meshio.Mesh(self.points, [("triangle", self.triangles)])
+        return _meshio().Mesh(self.points, [("triangle", self.triangles)])
 
 
 @dataclass(frozen=True)
@@ -519,17 +522,25 @@ def build_geometry(config: DemConfig) -> Geometry:
 # --------------------------------------------------------------------------------------
 
 
+def _meshio():
+    """meshio, imported where a mesh is written or read: the geometry's boxes (the feed
+    zones a PBM configuration needs) should not pay its import."""
+    import meshio
+
+    return meshio
+
+
 def stl_text(mesh: TriMesh) -> str:
     """ASCII STL of a mesh, written by meshio (in memory)."""
     buf = io.StringIO()
-    meshio.stl.write(buf, mesh.to_meshio(), binary=False)
+    _meshio().stl.write(buf, mesh.to_meshio(), binary=False)
     return buf.getvalue()
 
 
 def write_stl(mesh: TriMesh, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    meshio.write(path, mesh.to_meshio(), file_format="stl", binary=False)
+    _meshio().write(path, mesh.to_meshio(), file_format="stl", binary=False)
     return path
 
 
@@ -539,5 +550,5 @@ def read_stl(path: str | Path, name: str | None = None) -> TriMesh:
         # meshio sniffs ASCII-vs-binary by reading the first bytes of an ASCII file as a
         # uint32 triangle count and multiplying it: a harmless overflow warning.
         warnings.simplefilter("ignore", RuntimeWarning)
-        m = meshio.read(path, file_format="stl")
+        m = _meshio().read(path, file_format="stl")
     return TriMesh(name or Path(path).stem, np.asarray(m.points, float), np.asarray(m.get_cells_type("triangle")))

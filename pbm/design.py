@@ -46,7 +46,6 @@ from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
 from pbm.fill import fill_samples, fit_fill_law, steady_table, steady_windows
 from pbm.frequency import (
-    load_kernels,
     noise_frequencies,
     noise_spectrum,
     stationary_system,
@@ -388,7 +387,6 @@ def speed_rows(library: TableLibrary, spec: DesignSpec, speeds) -> list[SpeedRow
     if workers == 1:
         return _speed_rows(library, spec, speeds)
     shares = [speeds[k::workers] for k in range(workers)]
-    load_kernels()  # once, here, rather than once in every worker
     context = multiprocessing.get_context("fork")
     with ProcessPoolExecutor(workers - 1, mp_context=context) as pool:
         pending = [pool.submit(_speed_rows, library, spec, share) for share in shares[1:]]

@@ -40,7 +40,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from coupling.errors import ConfigError, TableError
@@ -384,8 +383,12 @@ def _flow_derivative(reference: FillReference, law: FillLaw, rate: np.ndarray, z
     return d
 
 
-def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw):
-    """The bulk ODE's right-hand side without the feed, and its Jacobian."""
+def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw, compiled: bool):
+    """The bulk ODE's right-hand side without the feed, and its Jacobian. ``compiled``: the
+    right-hand side by :func:`pbm.kernels.bulk_flows` (3 us a call against numpy's 40, for
+    an integrator that calls it tens of thousands of times per noisy run), else in numpy
+    (for a Newton solve's few dozen calls, which numba's import and load, 0.6 s in a fresh
+    process, would cost more than they save)."""
     n = reference.n_populations
     nx = reference.fill.size
     s = reference.schedule
@@ -404,10 +407,16 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw):
     slice_of, ref_fill = np.ascontiguousarray(reference.slice_of), np.ascontiguousarray(reference.fill)
     sink = np.where(internal, dst, -1)
 
-    def rhs(y):
-        # compiled: the integrator calls it tens of thousands of times per noisy run, where
-        # the dozen numpy calls of the same sums cost 40 us a call against 3
-        return _bulk_flows(y, slice_of, ref_fill, beta.ravel(), base, src, sink, scale, n, nx)
+    def flows(y):
+        _, rate = factors(y)
+        flux = rate * y[src]
+        return np.bincount(dst[internal], flux[internal], n) - np.bincount(src, flux, n)
+
+    def compiled_flows(y):
+        return kernels.bulk_flows(y, slice_of, ref_fill, beta.ravel(), base, src, sink, scale, n, nx, FILL_FLOOR)
+
+    if compiled:
+        from pbm import kernels  # see pbm.kernels for why it is imported here
 
     def jac(y):
         fill, rate = factors(y)
@@ -418,7 +427,7 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw):
         j += _flow_derivative(reference, law, rate, y, fill)[:n][:, reference.slice_of]
         return j
 
-    return rhs, jac
+    return (compiled_flows if compiled else flows), jac
 
 
 def bulk_bandwidth(reference: FillReference) -> int:
@@ -443,29 +452,6 @@ def _packed(j: np.ndarray, band: int) -> np.ndarray:
     return packed
 
 
-@numba.njit(cache=True, nogil=True)
-def _bulk_flows(y, slice_of, ref_fill, beta, base, src, sink, scale, n, nx):  # pragma: no cover - compiled
-    """dy/dt without the feed: move m carries base[m] x its factor x y[src[m]] from src[m]
-    to sink[m] (-1: discharged); its factor is (fill / reference)^beta of entry scale[m]
-    of the flattened (NX, 2) exponents, or 1 where scale[m] < 0 (a move the law keeps)."""
-    fill = np.zeros(nx)
-    for p in range(y.size):
-        fill[slice_of[p]] += y[p]
-    factor = np.empty(2 * nx)
-    for i in range(nx):
-        ratio = max(fill[i], FILL_FLOOR) / ref_fill[i]
-        factor[2 * i] = ratio ** beta[2 * i]
-        factor[2 * i + 1] = ratio ** beta[2 * i + 1]
-    out = np.zeros(n)
-    for m in range(base.size):
-        rate = base[m] if scale[m] < 0 else base[m] * factor[scale[m]]
-        flux = rate * y[src[m]]
-        out[src[m]] -= flux
-        if sink[m] >= 0:
-            out[sink[m]] += flux
-    return out
-
-
 def solve_bulk(
     reference: FillReference,
     law: FillLaw,
@@ -484,7 +470,7 @@ def solve_bulk(
     # imported here: scipy.integrate costs a fifth of a second that the steady solves do not need
     from scipy.integrate import solve_ivp
 
-    rhs, jac = _bulk_rhs_and_jacobian(reference, law)
+    rhs, jac = _bulk_rhs_and_jacobian(reference, law, compiled=True)
     n = reference.n_populations
     band = bulk_bandwidth(reference)
     jacobian, banded = (lambda _t, v: jac(v)), {}
@@ -597,7 +583,7 @@ def steady_bulk(reference: FillReference, law: FillLaw, source: np.ndarray, tol:
     ``source`` (n,) [particles/s]: Newton's method with the analytic Jacobian, started
     from the reference rates' steady state and halving a step that would empty a
     population or raise the residual. Raises SolverError when it does not converge."""
-    rhs, jac = _bulk_rhs_and_jacobian(reference, law)
+    rhs, jac = _bulk_rhs_and_jacobian(reference, law, compiled=False)
     n = reference.n_populations
     g0 = reference.schedule.dense(0)[:n, :n]
     y = np.maximum(np.linalg.solve(-g0, source), FILL_FLOOR)

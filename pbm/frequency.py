@@ -40,7 +40,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from scipy.linalg import expm, schur
 
@@ -220,64 +219,32 @@ def _responses_reference(t, rhs, left, omegas):
     return np.array([left @ np.linalg.solve(1j * w * eye - t, rhs) for w in omegas])
 
 
-@numba.njit(cache=True, nogil=True)
-def _quasi_triangular_solves(t, rhs, left, omegas):  # pragma: no cover - compiled
+def _responses(t, rhs, left, omegas):
     """left . (i w I - T)^{-1} rhs for every w in ``omegas``, T real quasi-upper-triangular
-    (a real Schur form): back substitution from the last row up, a 1 x 1 diagonal block by
-    division, a 2 x 2 block by Cramer's rule, every frequency of a row at once."""
-    n, f_n = t.shape[0], omegas.size
-    x = np.zeros((n, f_n), dtype=np.complex128)
-    acc = np.empty(f_n, dtype=np.complex128)
-    acc2 = np.empty(f_n, dtype=np.complex128)
+    (a real Schur form): back substitution from the last row up, every frequency of a row
+    at once, a 1 x 1 diagonal block by division and a 2 x 2 block by Cramer's rule. In
+    numpy: at 100 states and 201 frequencies it takes 1.7 ms against 7.5 for the Schur form
+    before it; a compiled loop took 0.7 ms but a third of a second to import and load, more
+    than a design search's 129 responses gain from it."""
+    n = t.shape[0]
+    s = 1j * np.asarray(omegas, dtype=float)
+    x = np.zeros((n, s.size), dtype=complex)
     i = n - 1
     while i >= 0:
-        pair = i > 0 and t[i, i - 1] != 0.0
-        top = i - 1 if pair else i
-        for r in range(top, i + 1):
-            target = acc if r == i else acc2
-            for f in range(f_n):
-                target[f] = rhs[r]
-            for j in range(i + 1, n):
-                tij = t[r, j]
-                if tij != 0.0:
-                    for f in range(f_n):
-                        target[f] += tij * x[j, f]
-        if pair:
-            # [[s - a, -b], [-c, s - d]] [x_top, x_i] = [acc2, acc], s = i w
-            a, b_, c, d = t[top, top], t[top, i], t[i, top], t[i, i]
-            for f in range(f_n):
-                s = 1j * omegas[f]
-                det = (s - a) * (s - d) - b_ * c
-                x[top, f] = ((s - d) * acc2[f] + b_ * acc[f]) / det
-                x[i, f] = ((s - a) * acc[f] + c * acc2[f]) / det
+        if i > 0 and t[i, i - 1] != 0.0:
+            top = i - 1
+            acc = rhs[i] + t[i, i + 1 :] @ x[i + 1 :]
+            acc2 = rhs[top] + t[top, i + 1 :] @ x[i + 1 :]
+            # [[s - a, -b], [-c, s - d]] [x_top, x_i] = [acc2, acc]
+            a, b, c, d = t[top, top], t[top, i], t[i, top], t[i, i]
+            det = (s - a) * (s - d) - b * c
+            x[top] = ((s - d) * acc2 + b * acc) / det
+            x[i] = ((s - a) * acc + c * acc2) / det
+            i = top - 1
         else:
-            for f in range(f_n):
-                x[i, f] = acc[f] / (1j * omegas[f] - t[i, i])
-        i = top - 1
-    out = np.zeros(f_n, dtype=np.complex128)
-    for r in range(n):
-        lr = left[r]
-        if lr != 0.0:
-            for f in range(f_n):
-                out[f] += lr * x[r, f]
-    return out
-
-
-def load_kernels() -> None:
-    """Load (or compile) the compiled back substitution now: a process about to fork
-    workers that will all need it loads it once, before the fork."""
-    one = np.ones(1)
-    _responses(-one.reshape(1, 1), one, one, one)
-
-
-def _responses(t, rhs, left, omegas):
-    """:func:`_quasi_triangular_solves` on C-ordered float arrays (one compiled signature)."""
-    return _quasi_triangular_solves(
-        np.ascontiguousarray(t, dtype=float),
-        np.ascontiguousarray(rhs, dtype=float),
-        np.ascontiguousarray(left, dtype=float),
-        np.ascontiguousarray(omegas, dtype=float),
-    )
+            x[i] = (rhs[i] + t[i, i + 1 :] @ x[i + 1 :]) / (s - t[i, i])
+            i -= 1
+    return left @ x
 
 
 def transfer_function_from_rtd(t_s, E_per_s, frequencies_hz) -> np.ndarray:

@@ -14,10 +14,9 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
@@ -27,6 +26,9 @@ from pbm.config import PbmConfig
 from pbm.fill import config_schedule
 from pbm.model import N_ACCUMULATORS, collapse_phases, feed_distribution, filled_table, n_phases, n_populations
 from pbm.solver import TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 BDF_ATOL_PARTICLES = 1e-9
 
@@ -74,6 +76,8 @@ class PbmResult:
 
     def timeseries(self) -> pd.DataFrame:
         """The CQA series in :data:`coupling.metrics.TIMESERIES_COLUMNS`."""
+        import pandas as pd  # here: a caller of the solver alone (the design) need not import it
+
         values = (
             self.times,
             self.outflow_A,
@@ -88,6 +92,8 @@ class PbmResult:
 
     def rtd(self) -> pd.DataFrame:
         """E(t): ``t_s`` (bin centres since the pulse) and ``E_per_s``."""
+        import pandas as pd
+
         return pd.DataFrame({"t_s": self.rtd_t, "E_per_s": self.rtd_E})
 
 

@@ -168,6 +168,16 @@ def config_without(config: Config, *paths: str) -> dict[str, Any]:
     return data
 
 
+#: what the runs of a feed library may differ in: the feed rate, and the duration (a slower
+#: feed needs longer to fill and to pool an RTD)
+FEED_LIBRARY_KEYS = ("dem.operation.feed_rate_total_per_s", "dem.operation.duration_s")
+
+
+def same_but_feed(config: Config) -> dict[str, Any]:
+    """What two runs of one feed library share: ``config`` less :data:`FEED_LIBRARY_KEYS`."""
+    return config_without(config, *FEED_LIBRARY_KEYS)
+
+
 def dump_toml(config: Config) -> str:
     """TOML text of a resolved configuration (every value explicit), loadable by load_config."""
     data = config.to_dict()

@@ -128,3 +128,61 @@ def test_parts_are_generic(tmp_path, results):
 def test_stable_hash_ignores_key_order():
     assert stable_hash({"a": 1, "b": [1, 2]}) == stable_hash({"b": [1, 2], "a": 1})
     assert stable_hash({"a": 1}) != stable_hash({"a": 2})
+
+
+def _edit(path, where, value):
+    """Overwrite one dataset in place: a change a digest must notice."""
+    with h5py.File(path, "a") as h5:
+        data = h5[where][()]
+        data.flat[0] = value
+        del h5[where]
+        h5.create_dataset(where, data=data)
+
+
+def test_the_head_is_read_alone_and_checked_by_its_own_digest(tmp_path, results):
+    """load_head gives what load_entry gives of the table, summary and provenance; a change
+    in the table or the summary is refused by the head digest, a change in the bulk (the
+    per-particle records) only by the whole file's, which load_head does not read."""
+    from coupling.cache import load_head
+
+    path = save(tmp_path / "c.h5", results)
+    head, entry = load_head(path, key="k1"), load_entry(path, key="k1")
+    assert head.summary == entry.summary and head.provenance == entry.provenance
+    np.testing.assert_array_equal(head.table.vx_pos, entry.table.vx_pos)
+    with pytest.raises(CacheError, match="holds results for inputs k1, not k2"):
+        load_head(path, key="k2")
+
+    bulk = save(tmp_path / "bulk.h5", results)
+    _edit(bulk, "results/arrays/residence_times_s", -1.0)
+    assert load_head(bulk).summary == entry.summary
+    with pytest.raises(CacheError, match="does not match its sha256 digest"):
+        load_entry(bulk)
+
+    table = save(tmp_path / "table.h5", results)
+    _edit(table, "velocity_table/vx_pos", 123.0)
+    summary = save(tmp_path / "summary.h5", results)
+    with h5py.File(summary, "a") as h5:
+        h5["results"].attrs["summary"] = h5["results"].attrs["summary"].replace("0", "1", 1)
+    for damaged in (table, summary):
+        for reader in (load_head, load_entry):
+            with pytest.raises(CacheError, match="corrupt or was edited"):
+                reader(damaged)
+
+
+def test_a_file_without_a_head_digest_is_checked_whole(tmp_path, results):
+    """A file written before the head digest existed: load_head checks the whole file, so a
+    change in its bulk is refused as load_entry refuses it; the whole-file digest does not
+    cover the head digest, so such a file's digest is what it was."""
+    from coupling.cache import load_head
+    from coupling.files import DIGEST_ATTR, HEAD_DIGEST_ATTR
+
+    path = save(tmp_path / "c.h5", results)
+    with h5py.File(path, "a") as h5:
+        whole = h5.attrs[DIGEST_ATTR]
+        del h5.attrs[HEAD_DIGEST_ATTR]
+    assert load_head(path).summary == load_entry(path).summary
+    with h5py.File(path) as h5:
+        assert h5.attrs[DIGEST_ATTR] == whole
+    _edit(path, "results/arrays/residence_times_s", -1.0)
+    with pytest.raises(CacheError, match="does not match its sha256 digest"):
+        load_head(path)

@@ -196,7 +196,7 @@ def test_sampled_ca_spread_matches_the_time_domain_ensemble():
 
 
 def test_quasi_triangular_solves_equal_a_dense_solve_per_frequency():
-    """The compiled back substitution through a real Schur form's 1 x 1 and 2 x 2 blocks
+    """The back substitution through a real Schur form's 1 x 1 and 2 x 2 blocks
     against numpy's dense solve of (i w I - T) x = rhs at every frequency: a generator
     with rotation (complex pairs, so 2 x 2 blocks) and the shipped reduced table's."""
     from scipy.linalg import schur

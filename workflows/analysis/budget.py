@@ -34,7 +34,7 @@ from dem.rates import RATE_KEYS, fit_rates
 from pbm.model import fill_missing_velocities
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
 from workflows.config import Config
-from workflows.pipeline.stages import pbm_config_for, rtd_pulse
+from workflows.pipeline.results import pbm_config_for, rtd_pulse
 
 DEFAULT_T = (30.0, 45.0, 60.0, 90.0, 120.0, 180.0, 260.0)
 #: agreement rows that are not judged: the recovered fraction's DEM interval is ~0.1 %

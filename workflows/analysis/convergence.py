@@ -36,7 +36,7 @@ from dem.run import StopRun
 from workflows.analysis.agreement import MODES, AgreementRow, agreement_rows, run_modes
 from workflows.analysis.budget import Verdict, judge, table_from_first, verdict
 from workflows.config import Config
-from workflows.pipeline.stages import pbm_config_for, rtd_pulse
+from workflows.pipeline.results import pbm_config_for, rtd_pulse
 
 #: Simulated seconds between checks (and the dT of the comparison).
 CHECK_EVERY_S = 20.0

@@ -42,7 +42,8 @@ from coupling.intervals import N_BOOT, SEED, Interval
 from pbm.model import supported_modes
 from pbm.simulate import simulate
 from workflows.config import Config
-from workflows.pipeline.stages import DemSide, pbm_config_for
+from workflows.pipeline.results import pbm_config_for
+from workflows.pipeline.stages import DemSide
 
 #: The deviance's p-value below which the PBM's response is rejected as a whole.
 P_MIN = 0.05

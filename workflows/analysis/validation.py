@@ -15,25 +15,18 @@ from pbm.fill import fill_samples, fit_fill_law
 from pbm.model import supported_modes
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
-from workflows.config import Config, config_without
+from workflows.config import Config, config_without, same_but_feed
 from workflows.pipeline.log import Log, stderr_log
-from workflows.pipeline.stages import DemSide, pbm_config_for, rtd_pulse
+from workflows.pipeline.results import pbm_config_for, rtd_pulse
+from workflows.pipeline.stages import DemSide
 
 # --------------------------------------------------------------------------- predictions
 #: Agreement rows that are diagnostics of the RTD's definition, not predictions to judge.
 NOT_JUDGED = ("rtd_recovered_fraction",)
 
 
-#: what the runs of a feed library may differ in: the feed rate, and the duration (a slower
-#: feed needs longer to fill and to pool an RTD)
-FEED_LIBRARY_KEYS = ("dem.operation.feed_rate_total_per_s", "dem.operation.duration_s")
 #: the sources that predict with flow that follows the fill (pbm.fill)
 FILL_SOURCES = ("baseline + fill law", "library + fill law")
-
-
-def same_but_feed(config: Config) -> dict[str, Any]:
-    """What two runs of one feed library share: ``config`` less :data:`FEED_LIBRARY_KEYS`."""
-    return config_without(config, *FEED_LIBRARY_KEYS)
 
 
 def feed_library(configs: dict[str, Config], baseline: str = "baseline") -> list[str]:

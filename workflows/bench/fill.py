@@ -19,7 +19,7 @@ import numpy as np
 import pbm.fill as fill_module
 from coupling.jsonable import json_ready, write_json
 from pbm.simulate import simulate
-from workflows.pipeline.stages import load_results, pbm_config_for
+from workflows.pipeline.results import load_results, pbm_config_for
 from workflows.shipped import REFERENCE_DIR, VALIDATION_DIR
 
 #: (label, results file, feeder noise)

@@ -13,12 +13,13 @@ from pathlib import Path
 from typing import Any
 
 from coupling.errors import ConfigError, SolverRunError
+from coupling.files import writable_directory
 from dem.cluster import batch_script, estimate_cost, mpi_command, slurm_script
 from dem.deck import MAIN_DECK, build_deck, write_deck
 from dem.run import can_resume, completed_run, prepare_run
 from workflows.config import Config, dump_toml
 from workflows.pipeline.log import Log
-from workflows.pipeline.stages import results_available, writable_directory
+from workflows.pipeline.stages import results_available
 from workflows.shipped import measured_throughput, reference_holdup
 
 #: Particle-steps per second per core of the blender deck when no benchmark result is

@@ -1,6 +1,7 @@
 """The stages as the pipeline sees them: the DEM stage (cache, shipped reference, or a
-LIGGGHTS run post-processed), the PBM configuration that describes the same process, and
-the cluster plan. The CLI commands and :mod:`workflows.products.compare` call these.
+LIGGGHTS run post-processed), the PBM run, and the cluster plan. The CLI commands and
+:mod:`workflows.products.compare` call these; reading a results file and the PBM
+configuration of the process it describes are :mod:`workflows.pipeline.results`'.
 
 Keys. A LIGGGHTS run is keyed by its deck and the solver version (:func:`dem.run.run_key`);
 its post-processed results by that run key *and* the post-processing settings (bins,
@@ -12,34 +13,28 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import math
-import tempfile
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from coupling.cache import cache_path, load_entry, save_entry, stable_hash, try_load_entry
-from coupling.compartments import inlet_weights
+from coupling.cache import cache_path, save_entry, stable_hash, try_load_entry
 from coupling.errors import ConfigError
-from coupling.files import output_directory_path, refuse_output_over_inputs
+from coupling.files import refuse_output_over_inputs, writable_directory
 from coupling.tables import VelocityTable, read_table
 from dem.deck import DECK_INFO, MESH_DIR, build_deck, deck_hash, dump_step, write_deck
 from dem.dumps import dump_paths
-from dem.geometry import build_geometry, feed_zones, write_stl
+from dem.geometry import build_geometry, write_stl
 from dem.massflow import massflow_files
 from dem.post import DemResults, Postprocessor, postprocess
 from dem.resources import check_postprocess_resources
 from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem, solver_counters
-from dem.summary import DemSummary
-from pbm.config import PbmConfig
 from pbm.model import require_rates, supported_modes
 from pbm.outputs import write_outputs
 from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
-from workflows.config import Config, config_from_dict, dump_toml, load_preset
+from workflows.config import Config, dump_toml
 from workflows.pipeline.log import Log, quiet
 from workflows.shipped import SHIPPED_RESULTS_DIRS
 
@@ -55,36 +50,6 @@ POST_VERSION = 3
 
 def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-
-
-def writable_directory(path: str | Path, what: str) -> Path:
-    """``path`` as a directory this process can write in, created if missing. Checked
-    before any expensive work, so that a bad output path fails in a second, not after the
-    solver; raises ConfigError naming the path and the problem."""
-    path = output_directory_path(path, what, ConfigError)  # loops and files in the way: one line
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            pass
-    except OSError as exc:
-        raise ConfigError(f"{what} {path} is not a writable directory: {exc.strerror or exc}") from None
-    return path
-
-
-@dataclass
-class DemSide:
-    """The DEM's results for one configuration and where they came from: ``source`` is
-    "run" (post-processed now), "cache" or "reference" (shipped with the repository)."""
-
-    table: VelocityTable
-    results: DemResults
-    provenance: dict[str, Any]
-    cache_file: Path
-    source: str
-
-    @property
-    def key(self) -> str:
-        return str(self.provenance.get("key", "unknown"))
 
 
 def post_hash(config: Config) -> str:
@@ -106,6 +71,22 @@ def _roots(cache_root: Path, reference_dir: Path | tuple[Path, ...]) -> list[tup
     """Where results are looked for, in order: the cache, then the shipped folder(s)."""
     shipped = (reference_dir,) if isinstance(reference_dir, (str, Path)) else reference_dir
     return [(Path(cache_root), "cache"), *((Path(d), "reference") for d in shipped)]
+
+
+@dataclass
+class DemSide:
+    """The DEM's results for one configuration and where they came from: ``source`` is
+    "run" (post-processed now), "cache" or "reference" (shipped with the repository)."""
+
+    table: VelocityTable
+    results: DemResults
+    provenance: dict[str, Any]
+    cache_file: Path
+    source: str
+
+    @property
+    def key(self) -> str:
+        return str(self.provenance.get("key", "unknown"))
 
 
 def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], log: Log) -> DemSide | None:
@@ -374,41 +355,3 @@ def _check_same_deck(config: Config, run_dir: Path) -> None:
             f"the dumps in {run_dir} come from a deck whose {DECK_INFO} differs from the one the "
             "configuration given makes (timestep, intervals or geometry): pass the configuration of that run"
         )
-
-
-def load_results(path: str | Path) -> tuple[DemResults, Config]:
-    """The DEM results in a cache or shipped results file, with the configuration they were
-    made with (:func:`config_of`). A missing or corrupt file raises CacheError naming it."""
-    entry = load_entry(path)
-    return DemResults.from_cache_entry(entry), config_of(entry)
-
-
-def config_of(entry) -> Config:
-    """The configuration a cached or shipped DEM results entry was made with (stored with
-    it), else the reduced preset, from which the shipped reference was made."""
-    text = entry.provenance.get("config_toml")
-    if not text:
-        return load_preset("reduced")
-    return config_from_dict(tomllib.loads(text), "the configuration stored with the DEM results")
-
-
-def rtd_pulse(dem_summary: DemSummary) -> float | None:
-    """The PBM's tracer pulse time: the DEM's RTD tagging time, None when it tagged none."""
-    tag_time = dem_summary.rtd_tag_time_s
-    return float(tag_time) if tag_time is not None and math.isfinite(tag_time) else None
-
-
-def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:
-    """The PBM configuration that describes the same process as the DEM run: the DEM's
-    feed rates, each feeder's zone mapped onto the inlet compartments by overlap in y."""
-    zones = feed_zones(config.dem.geometry)
-    operation = config.dem.operation
-    return config.pbm.model_copy(
-        update={
-            "feed_rate_a_per_s": operation.feed_rate_a_per_s,
-            "feed_rate_b_per_s": operation.feed_rate_b_per_s,
-            "feed_weights_a": inlet_weights(table.y_edges, zones["A"].ymin, zones["A"].ymax),
-            "feed_weights_b": inlet_weights(table.y_edges, zones["B"].ymin, zones["B"].ymax),
-            "rtd_pulse_s": rtd_pulse_s,
-        }
-    )

@@ -4,7 +4,7 @@
 
 1. :func:`workflows.pipeline.stages.dem_stage` -- the DEM's velocity table and CQAs: cache,
    shipped reference data, or a LIGGGHTS run post-processed by :mod:`dem.post`.
-2. :func:`workflows.pipeline.stages.pbm_config_for` -- the PBM configuration of the same process.
+2. :func:`workflows.pipeline.results.pbm_config_for` -- the PBM configuration of the same process.
 3. :func:`workflows.analysis.agreement.run_modes` -- the PBM on the DEM's own table in each rate
    mode, tracer pulse at the DEM's RTD tagging time, steady state by the same rule as the
    DEM; the configured mode's run gives the report's metrics and curves.
@@ -33,6 +33,7 @@ import numpy as np
 
 from coupling.blas import single_threaded_blas
 from coupling.errors import OutputError, ResourceLimitError, os_reason
+from coupling.files import writable_directory
 from coupling.jsonable import write_json
 from pbm.config import PbmConfig
 from pbm.simulate import PbmResult
@@ -47,7 +48,8 @@ from workflows.analysis.agreement import (
 from workflows.analysis.memory import MemoryCheck, memory_check
 from workflows.analysis.vrr import VrrComparison, vrr_comparison
 from workflows.config import Config, config_from_dict, dump_toml
-from workflows.pipeline.stages import DemSide, dem_stage, pbm_config_for, rtd_pulse, writable_directory
+from workflows.pipeline.results import pbm_config_for, rtd_pulse
+from workflows.pipeline.stages import DemSide, dem_stage
 from workflows.products.paper_studies import run_studies
 from workflows.report.comparison import (
     SideResults,

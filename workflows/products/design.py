@@ -9,85 +9,95 @@ configurations differ in the impeller speed alone. Writes ``design.json`` and
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from coupling.errors import ConfigError, OutputError, os_reason
+from coupling.files import writable_directory
 from coupling.jsonable import json_ready, write_json
-from dem.post import DemResults
+from coupling.tables import VelocityTable
+from dem.summary import DemSummary
 from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult, design, feed_library, max_feed
-from workflows.analysis.validation import same_but_feed
-from workflows.config import Config, config_without
+from workflows.config import Config, config_without, same_but_feed
 from workflows.pipeline.log import Log
-from workflows.pipeline.stages import load_results, pbm_config_for, writable_directory
+from workflows.pipeline.results import load_table, pbm_config_for
 from workflows.report.design import plot_feasible
 from workflows.shipped import VALIDATION_DIR
 
 RPM_KEY = "dem.operation.impeller_rpm"
 
 
-def library_runs(directory: str | Path = VALIDATION_DIR) -> list[tuple[Path, DemResults, Config]]:
-    """(path, results, configuration) of every DEM results file in ``directory``, each read
-    (and its digest checked) once for both libraries. Raises ConfigError when the
-    directory is none or holds no results file."""
+class LibraryRun(NamedTuple):
+    """One DEM results file of a library: what the inversion reads of it."""
+
+    path: Path
+    table: VelocityTable
+    summary: DemSummary
+    config: Config
+
+
+def library_runs(directory: str | Path = VALIDATION_DIR) -> list[LibraryRun]:
+    """Every DEM results file in ``directory``, each read once for both libraries, and only
+    its table, summary and configuration (checked against its head digest,
+    :func:`workflows.pipeline.results.load_table`). Raises ConfigError when the directory is
+    none or holds no results file."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ConfigError(f"table library {directory}: not a directory of DEM results files (dem-*.h5)")
-    runs = [(path, *load_results(path)) for path in sorted(directory.glob("dem-*.h5"))]
+    runs = [LibraryRun(path, *load_table(path)) for path in sorted(directory.glob("dem-*.h5"))]
     if not runs:
         raise ConfigError(f"table library {directory}: no DEM results files (dem-*.h5) in it")
     return runs
 
 
-def load_library(
-    runs: list[tuple[Path, DemResults, Config]], rates: str = "velocity", log: Log | None = None
-) -> TableLibrary:
+def load_library(runs: list[LibraryRun], rates: str = "velocity", log: Log | None = None) -> TableLibrary:
     """The table library among ``runs`` (:func:`library_runs`): grouped by configuration
     less the impeller speed, the largest group (ties: the one with the widest speed range)."""
     directory = runs[0][0].parent
     groups: dict[str, list] = {}
-    for path, results, config in runs:
-        key = repr(config_without(config, RPM_KEY))
-        groups.setdefault(key, []).append((config.dem.operation.impeller_rpm, results, config, path))
+    for run in runs:
+        key = repr(config_without(run.config, RPM_KEY))
+        groups.setdefault(key, []).append((run.config.dem.operation.impeller_rpm, run))
     members = max(groups.values(), key=lambda g: (len(g), max(m[0] for m in g) - min(m[0] for m in g)))
     speeds = [m[0] for m in members]
     if len(set(speeds)) != len(speeds):
         raise ConfigError(f"table library {directory}: two runs at the same speed ({sorted(speeds)} rpm)")
     (log or (lambda _: None))(
-        f"table library: {', '.join(f'{m[0]:g} rpm ({m[3].name})' for m in sorted(members, key=lambda m: m[0]))}"
+        f"table library: {', '.join(f'{m[0]:g} rpm ({m[1].path.name})' for m in sorted(members, key=lambda m: m[0]))}"
     )
-    _, results, config, _ = members[0]
+    first = members[0][1]
     if any(m[1].summary.steady_time is None for m in members):
         raise ConfigError(
             f"table library {directory}: a run never reached the steady state; its tables describe no "
             "stationary blender"
         )
-    pbm_config = pbm_config_for(config, results.table, None).model_copy(update={"rates": rates})
+    pbm_config = pbm_config_for(first.config, first.table, None).model_copy(update={"rates": rates})
     steady = max(m[1].summary.steady_time for m in members)
     return TableLibrary(
-        tuple((m[0], m[1].table) for m in members), pbm_config, float(steady), float(config.dem.geometry.length_m)
+        tuple((m[0], m[1].table) for m in members), pbm_config, float(steady), float(first.config.dem.geometry.length_m)
     )
 
 
-def load_feed_library(runs: list[tuple[Path, DemResults, Config]], rates: str = "measured", log: Log | None = None):
+def load_feed_library(runs: list[LibraryRun], rates: str = "measured", log: Log | None = None):
     """The feed library among ``runs`` (:func:`library_runs`): the largest group whose
     configurations differ only in the feed rate (and the duration), when it holds at least
     two runs with a steady state; else None (the answer then has no throughput)."""
     groups: dict[str, list] = {}
-    for path, results, config in runs:
-        if results.summary.steady_time is None or not results.table.has_rates:
+    for run in runs:
+        if run.summary.steady_time is None or not run.table.has_rates:
             continue
-        groups.setdefault(repr(same_but_feed(config)), []).append((results, config, path))
+        groups.setdefault(repr(same_but_feed(run.config)), []).append(run)
     members = max(groups.values(), key=len, default=[])
     if len(members) < 2:
         return None
-    members.sort(key=lambda m: m[1].dem.operation.feed_rate_total_per_s)
+    members.sort(key=lambda m: m.config.dem.operation.feed_rate_total_per_s)
     (log or (lambda _: None))(
-        "feed library: " + ", ".join(f"{m[1].dem.operation.feed_rate_total_per_s:g} /s ({m[2].name})" for m in members)
+        "feed library: "
+        + ", ".join(f"{m.config.dem.operation.feed_rate_total_per_s:g} /s ({m.path.name})" for m in members)
     )
-    results, config, _ = members[0]
-    pbm_config = pbm_config_for(config, results.table, None).model_copy(update={"rates": rates})
-    runs = [(m[1].dem.operation.feed_rate_total_per_s, m[0].table) for m in members]
-    return feed_library(runs, pbm_config, config.dem.operation.impeller_rpm, config.dem.geometry.length_m)
+    config = members[0].config
+    pbm_config = pbm_config_for(config, members[0].table, None).model_copy(update={"rates": rates})
+    tables = [(m.config.dem.operation.feed_rate_total_per_s, m.table) for m in members]
+    return feed_library(tables, pbm_config, config.dem.operation.impeller_rpm, config.dem.geometry.length_m)
 
 
 def run_design(

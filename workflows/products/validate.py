@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from coupling.errors import OutputError, os_reason
+from coupling.files import writable_directory
 from coupling.jsonable import json_ready, write_json
 from dem.run import can_resume, prepare_run
 from workflows.analysis.budget import budget_study
@@ -39,7 +40,7 @@ from workflows.analysis.step import step_comparison
 from workflows.analysis.validation import campaign_span_s, library_law, predictions, verdicts
 from workflows.config import Config, load_preset, override
 from workflows.pipeline.log import Log, stderr_log
-from workflows.pipeline.stages import DemSide, dem_stage, writable_directory
+from workflows.pipeline.stages import DemSide, dem_stage
 from workflows.report.budget import plot_budget
 from workflows.report.step import plot_step, step_html
 from workflows.report.validation import plot_parity, plot_profiles, render_report

@@ -38,7 +38,7 @@ from coupling.intervals import LEVEL, N_BOOT, batch_means_error, block_draw_coun
 from coupling.jsonable import write_json
 from dem.post import DemResults
 from dem.steady import steady_quantities
-from workflows.pipeline.stages import load_results
+from workflows.pipeline.results import load_results
 from workflows.shipped import REDUCED_RUN
 
 HELP = "how long the DEM's quantities stay correlated (batch means by block length), and the intervals' coverage"

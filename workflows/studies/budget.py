@@ -11,7 +11,7 @@ from pathlib import Path
 
 from coupling.jsonable import write_json
 from workflows.analysis.budget import DEFAULT_T, budget_study
-from workflows.pipeline.stages import load_results
+from workflows.pipeline.results import load_results
 from workflows.report.budget import plot_budget, print_table
 from workflows.shipped import REDUCED_RUN
 

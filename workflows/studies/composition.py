@@ -31,7 +31,7 @@ from coupling.intervals import Interval
 from coupling.jsonable import write_json
 from coupling.metrics import rsd
 from workflows.analysis.agreement import agreement_rows, pbm_steady, run_modes
-from workflows.pipeline.stages import load_results, pbm_config_for, rtd_pulse
+from workflows.pipeline.results import load_results, pbm_config_for, rtd_pulse
 from workflows.shipped import REDUCED_RUN
 
 HELP = "the outlet's composition: segregation or sampling (DEM RSD against a random mixture at its own counts)"

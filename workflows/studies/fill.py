@@ -34,9 +34,10 @@ from pbm.model import supported_modes
 from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import PbmMode, agreement_rows
-from workflows.analysis.validation import feed_library, prediction_config, same_but_feed
+from workflows.analysis.validation import feed_library, prediction_config
+from workflows.config import same_but_feed
 from workflows.pipeline.log import stderr_log
-from workflows.pipeline.stages import load_results
+from workflows.pipeline.results import load_results
 from workflows.products.validate import campaign_configs, run_campaign
 from workflows.report.fill import plot_fill
 

@@ -30,7 +30,7 @@ from dem.dumps import iter_snapshots
 from dem.post import DemResults
 from pbm.rtd import pooled_rtd
 from workflows.config import load_preset
-from workflows.pipeline.stages import pbm_config_for
+from workflows.pipeline.results import pbm_config_for
 from workflows.shipped import REFERENCE_DIR
 
 OUT = Path("results/bench/lag.json")

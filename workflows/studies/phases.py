@@ -43,6 +43,7 @@ import numpy as np
 
 from coupling.cache import try_load_entry
 from coupling.errors import ConfigError
+from coupling.files import writable_directory
 from coupling.jsonable import write_json
 from coupling.tables import make_table
 from dem import phases
@@ -52,7 +53,7 @@ from pbm.rtd import pooled_rtd
 from pbm.simulate import simulate
 from workflows.analysis.agreement import steady_outputs
 from workflows.config import Config
-from workflows.pipeline.stages import config_of, pbm_config_for, writable_directory
+from workflows.pipeline.results import config_of, pbm_config_for
 
 
 @dataclass(frozen=True)

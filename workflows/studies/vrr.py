@@ -12,7 +12,7 @@ from pathlib import Path
 from coupling.errors import ConfigError
 from coupling.jsonable import write_json
 from workflows.analysis.vrr import vrr_comparison
-from workflows.pipeline.stages import load_results, pbm_config_for
+from workflows.pipeline.results import load_results, pbm_config_for
 from workflows.report.vrr import plot_vrr, print_table
 from workflows.shipped import REDUCED_RUN
 

@@ -212,7 +212,7 @@ def test_refit_at_the_end_is_the_post_processings_own_model():
     sum in another order), and before the end the model is fitted again."""
     from dem import phases
     from workflows.analysis.budget import refit_phases
-    from workflows.pipeline.stages import load_results
+    from workflows.pipeline.results import load_results
     from workflows.shipped import VALIDATION_DIR
 
     results, _config = load_results(VALIDATION_DIR / "dem-aa093a229dfd2ce4.h5")

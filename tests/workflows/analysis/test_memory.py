@@ -6,7 +6,7 @@ import math
 import pytest
 
 from workflows.analysis.memory import memory_check
-from workflows.pipeline.stages import load_results, pbm_config_for, rtd_pulse
+from workflows.pipeline.results import load_results, pbm_config_for, rtd_pulse
 from workflows.shipped import VALIDATION_DIR
 
 

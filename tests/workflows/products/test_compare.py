@@ -13,7 +13,8 @@ from coupling.compartments import inlet_weights
 from coupling.errors import ConfigError
 from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
-from workflows.pipeline.stages import dem_stage, pbm_config_for, post_hash, results_key
+from workflows.pipeline.results import pbm_config_for
+from workflows.pipeline.stages import dem_stage, post_hash, results_key
 
 
 def test_feed_weights_are_the_overlap_in_y():
