@@ -6,14 +6,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pbm.resources import check_ensemble_memory
-from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline.log import stderr_log
 
 HELP = "DEM (or its cached / shipped results) -> velocity tables -> PBM -> side-by-side report"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from workflows.config import add_config_arguments
+
     add_config_arguments(parser)
     parser.add_argument("--np", type=int, default=None, help="MPI ranks for LIGGGHTS (default: the config's)")
     parser.add_argument(
@@ -28,6 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pbm.resources import check_ensemble_memory
+    from workflows.config import resolve_config
     from workflows.products.compare import full_comparison
 
     config = resolve_config(args.preset, args.config)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from workflows.config import dump_toml, preset_names, resolve_config
-
 HELP = "list presets, print or validate a configuration"
 
 
@@ -16,6 +14,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from workflows.config import dump_toml, preset_names, resolve_config
+
     if args.list:
         print("\n".join(preset_names()))
         return 0

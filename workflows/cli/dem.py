@@ -24,12 +24,14 @@ import functools
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from coupling.errors import ConfigError
 from coupling.files import refuse_output_over_inputs
-from dem.summary import DemSummary
-from workflows.config import add_config_arguments, resolve_config
 from workflows.pipeline.log import stderr_log
+
+if TYPE_CHECKING:
+    from dem.summary import DemSummary
 
 SUMMARY_KEYS = (
     "t_end_s",
@@ -58,6 +60,8 @@ HELP = "DEM stage: write decks, run LIGGGHTS, post-process dumps"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from workflows.config import add_config_arguments
+
     dem_sub = parser.add_subparsers(dest="dem_command", required=True, metavar="DEM_COMMAND")
 
     deck = dem_sub.add_parser("deck", help="write a LIGGGHTS deck, meshes and the resolved config into a directory")
@@ -160,6 +164,7 @@ RUN_DIRECTORY_FILES = ("config.toml", "deck.json", "in.blender")
 
 
 def deck_command(args: argparse.Namespace) -> int:
+    from workflows.config import resolve_config
     from workflows.pipeline.stages import write_run_directory
 
     refuse_config_overwrite(args.out, args.config, RUN_DIRECTORY_FILES)
@@ -171,6 +176,7 @@ def deck_command(args: argparse.Namespace) -> int:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    from workflows.config import resolve_config
     from workflows.pipeline.stages import dem_stage
 
     config = resolve_config(args.preset, args.config)
@@ -207,6 +213,7 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def post_command(args: argparse.Namespace) -> int:
+    from workflows.config import resolve_config
     from workflows.pipeline.stages import postprocess_dumps
 
     results = postprocess_dumps(
@@ -268,6 +275,7 @@ def recompute_steady_command(args: argparse.Namespace) -> int:
 
 
 def slurm_command(args: argparse.Namespace) -> int:
+    from workflows.config import resolve_config
     from workflows.pipeline.cluster import plan_cluster_run
 
     refuse_config_overwrite(args.out, args.config, (*RUN_DIRECTORY_FILES, "job.slurm"))

@@ -47,6 +47,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from coupling.forked import Prepared
+    from workflows.report import DESIGN_FIGURES
+
+    # forked first, so that matplotlib is imported on the other core while this process
+    # imports and reads the library; it draws the figure at the end
+    with Prepared(DESIGN_FIGURES) as figures:
+        return _run(args, figures)
+
+
+def _run(args: argparse.Namespace, figures) -> int:
     from pbm.design import design_spec
     from workflows.products.design import answer_lines, run_design, throughput_lines
     from workflows.shipped import VALIDATION_DIR
@@ -67,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
         "length_factor_max": args.length_max,
     }
     spec = design_spec(**{k: v for k, v in given.items() if v is not None})
-    result, throughput, out = run_design(spec, args.out, args.library or VALIDATION_DIR, args.rates, log=stderr_log)
+    result, throughput, out = run_design(
+        spec, args.out, args.library or VALIDATION_DIR, args.rates, log=stderr_log, figures=figures
+    )
     print("\n".join(answer_lines(result) + throughput_lines(throughput)))
     print(f"design.json and feasible.png: {out}")
     return 0 if result.best is not None else 1

@@ -12,12 +12,13 @@ import json
 
 from coupling.errors import ConfigError
 from coupling.files import refuse_output_over_inputs
-from workflows.config import add_config_arguments
 
 HELP = "PBM stage: simulate CQAs from DEM velocity tables"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from workflows.config import add_config_arguments
+
     pbm_sub = parser.add_subparsers(dest="pbm_command", required=True, metavar="PBM_COMMAND")
 
     run = pbm_sub.add_parser("run", help="simulate the blender from a velocity table and write the CQAs")

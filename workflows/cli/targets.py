@@ -9,7 +9,6 @@ import json
 from pathlib import Path
 
 from coupling.errors import ConfigError
-from workflows.analysis.targets import check
 
 HELP = "check the measured-rates targets on comparisons' summary.json (exit 1 if any fails)"
 DEFAULT = "results/reduced-*/summary.json"
@@ -22,6 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from workflows.analysis.targets import check
+
     paths = [Path(p) for pattern in args.summaries for p in sorted(glob.glob(pattern))]
     if not paths:
         raise ConfigError(f"no summary.json at {' '.join(args.summaries)}: run `make full-comparison` first")

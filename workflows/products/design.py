@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 from coupling.errors import ConfigError, OutputError, os_reason
 from coupling.files import writable_directory
+from coupling.forked import Prepared
 from coupling.jsonable import json_ready, write_json
 from coupling.tables import VelocityTable
 from dem.summary import DemSummary
@@ -20,7 +21,7 @@ from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult,
 from workflows.config import Config, config_without, same_but_feed
 from workflows.pipeline.log import Log
 from workflows.pipeline.results import load_table, pbm_config_for
-from workflows.report.design import plot_feasible
+from workflows.report import DESIGN_FIGURES
 from workflows.shipped import VALIDATION_DIR
 
 RPM_KEY = "dem.operation.impeller_rpm"
@@ -106,14 +107,20 @@ def run_design(
     library_dir: str | Path = VALIDATION_DIR,
     rates: str = "velocity",
     log: Log | None = None,
+    figures: Prepared | None = None,
 ) -> tuple[DesignResult, ThroughputResult | None, Path]:
     """``pbmdem design``: the answer (the smallest blender; the largest feed its own blender
     takes, when the directory holds a feed library), ``design.json`` and ``feasible.png``
-    in ``out_dir``."""
+    in ``out_dir``. ``figures``: a process of :data:`workflows.report.DESIGN_FIGURES`
+    forked by the caller before its own imports, which draws the figure while the feed
+    library is searched here; else it is drawn in this process."""
     out_dir = writable_directory(out_dir, "design output directory")
     runs = library_runs(library_dir)
     library = load_library(runs, rates, log)
+    figures = figures or Prepared(DESIGN_FIGURES, fork=False)
+    figures.ready()  # its imports done, so that the search finds its core free
     result = design(library, spec)
+    figures.start("plot_feasible", result, out_dir / "feasible.png")
     feeds = load_feed_library(runs, rates, log)
     throughput = None if feeds is None else max_feed(feeds, spec)
     data: dict[str, Any] = {
@@ -125,7 +132,7 @@ def run_design(
     }
     try:
         write_json(out_dir / "design.json", json_ready(data))
-        plot_feasible(result, out_dir / "feasible.png")
+        figures.result()
     except OSError as exc:
         raise OutputError(f"cannot write the design results in {out_dir}: {os_reason(exc)}") from exc
     return result, throughput, out_dir
