@@ -3,6 +3,7 @@
 for N = 1, |H(f)|^2 = 1 / (1 + (2 pi f / k)^2) with k = v / L; with velocities proportional
 to the speed the library's interpolation is exact, so the feasible region is known too."""
 
+import json
 import math
 import re
 
@@ -121,6 +122,11 @@ def test_cli_on_the_shipped_library(tmp_path, capsys):
     assert "feed library: 36.85 /s" in out.err
     assert re.search(r"largest feed meeting the spec .*: \d+\.\d particles/s", out.out)
     assert (tmp_path / "design.json").is_file() and (tmp_path / "feasible.png").stat().st_size > 10_000
+    # the figure is drawn from the record design.json holds: the file alone redraws it
+    from workflows.report.design import plot_feasible
+
+    again = plot_feasible(json.loads((tmp_path / "design.json").read_text()), tmp_path / "again.png")
+    assert again.stat().st_size > 10_000
 
 
 def test_cli_bad_library_is_one_line(tmp_path, capsys):
@@ -215,11 +221,22 @@ def test_a_command_line_imports_no_figure_library_or_integrator_before_it_runs()
     import subprocess
     import sys
 
-    # the configuration imports pbm.config: the package must not import its ensemble and
-    # figures with it (a design pays for what it uses, its figure when it draws it)
+    # the parser imports no configuration (pydantic, pbm, scipy), so that the design's figure
+    # process forks before them; and reading the library, the search and the largest feed
+    # import no figure library, integrator, compiled kernel or frame library
     probe = (
         "import sys, workflows.cli.main as m; m.build_parser(['design']); "
-        "print(sorted(k for k in ('matplotlib', 'scipy.integrate', 'pbm.ensemble') if k in sys.modules))"
+        "print(sorted(k for k in ('matplotlib', 'scipy', 'pydantic', 'workflows.config', 'pbm') if k in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+    probe = (
+        "import sys, workflows.products.design as d, pbm.design as p; runs = d.library_runs(); "
+        "spec = p.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5, mrt_max_s=25); "
+        "p.design(d.load_library(runs, 'measured'), spec); "
+        "p.max_feed(d.load_feed_library(runs, 'measured'), spec); "
+        "print(sorted(k for k in ('matplotlib', 'scipy.integrate', 'pbm.ensemble', 'numba', 'pandas', 'meshio') "
+        "if k in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -120,7 +120,7 @@ def run_design(
     figures = figures or Prepared(DESIGN_FIGURES, fork=False)
     figures.ready()  # its imports done, so that the search finds its core free
     result = design(library, spec)
-    figures.start("plot_feasible", result, out_dir / "feasible.png")
+    figures.start("plot_feasible", result.to_dict(), out_dir / "feasible.png")
     feeds = load_feed_library(runs, rates, log)
     throughput = None if feeds is None else max_feed(feeds, spec)
     data: dict[str, Any] = {
