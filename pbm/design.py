@@ -114,6 +114,13 @@ class DesignSpec(BaseModel):
     def composition(self) -> bool:
         return self.ca_tolerance is not None or self.rsd_max is not None
 
+    @property
+    def criteria(self) -> tuple[str, ...]:
+        """The margins an evaluation judges, by name (:class:`Evaluation`)."""
+        given = {"mrt_min_s": self.mrt_min_s, "mrt_max_s": self.mrt_max_s}
+        given |= {"ca_tolerance": self.ca_tolerance, "rsd_max": self.rsd_max}
+        return tuple(name for name, value in given.items() if value is not None)
+
 
 def design_spec(**values: Any) -> DesignSpec:
     """A validated :class:`DesignSpec`; ConfigError names the bad value."""
@@ -342,7 +349,7 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
         return residence_only[f]
 
     factors = np.geomspace(spec.length_factor_min, spec.length_factor_max, SCAN_POINTS)
-    scanned = [at(f) for f in factors]
+    scanned = [_scan(at, spec, f) for f in factors]
     ok = [e.feasible for e in scanned]
     if not any(ok):
         return SpeedRow(rpm, None, None, None, scanned)
@@ -364,8 +371,8 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
             return inside
         return _feasible_root(margin, outside, inside)
 
-    growing = tuple(k for k in scanned[0].margins if k in _GROWING)
-    shrinking = tuple(k for k in scanned[0].margins if k not in _GROWING)
+    growing = tuple(k for k in spec.criteria if k in _GROWING)
+    shrinking = tuple(k for k in spec.criteria if k not in _GROWING)
     lo = factors[first]
     if first > 0 and growing:
         lo = edge(factors[first - 1], factors[first], growing)
@@ -373,6 +380,18 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     if last + 1 < len(factors) and shrinking:
         hi = edge(factors[last], factors[last + 1], shrinking)
     return SpeedRow(rpm, float(lo), float(hi), at(lo), scanned)
+
+
+def _scan(at, spec: DesignSpec, point: float) -> Evaluation:
+    """``at(point)``, judged first on the residence time alone where the spec also judges
+    the composition: where the residence time fails, nothing else can make the point
+    feasible, and its frequency response is spared (a scan point the edges' root finding
+    brackets is judged whole there)."""
+    if spec.composition and any(k in _RESIDENCE for k in spec.criteria):
+        quick = at(point, composition=False)
+        if not quick.feasible:
+            return quick
+    return at(point)
 
 
 def speed_rows(library: TableLibrary, spec: DesignSpec, speeds) -> list[SpeedRow]:
@@ -544,12 +563,13 @@ def feed_library(
 
 
 @single_threaded_blas()
-def evaluate_feed(feeds: FeedLibrary, spec: DesignSpec, total: float) -> Evaluation:
+def evaluate_feed(feeds: FeedLibrary, spec: DesignSpec, total: float, composition: bool = True) -> Evaluation:
     """The outlet quantities and margins of the library's blender fed ``total``
-    [particles/s] (inside the library's range), its rates following the fill."""
+    [particles/s] (inside the library's range), its rates following the fill (with
+    ``composition`` False, the residence-time margins only, as :func:`evaluate`)."""
     config = feeds.config_at(total)
     system = stationary_system(interpolate_tables(feeds.points, total), config)
-    return _judged(spec, system, config, feeds.rpm, 1.0, float(total))
+    return _judged(spec, system, config, feeds.rpm, 1.0, float(total), composition=composition)
 
 
 @dataclass(frozen=True)
@@ -577,17 +597,17 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
     between the last feasible feed and the next. Higher feeds are outside the library:
     refused, never extrapolated (a note says when the top of the range still meets it)."""
     lo, hi = feeds.feed_range
-    evaluated: dict[float, Evaluation] = {}
+    evaluated: dict[tuple[float, bool], Evaluation] = {}
 
-    def at(f: float) -> Evaluation:
+    def at(f: float, composition: bool = True) -> Evaluation:
         # the root finding starts from the scanned feeds it brackets, and ends on one
-        f = float(f)
-        if f not in evaluated:
-            evaluated[f] = evaluate_feed(feeds, spec, f)
-        return evaluated[f]
+        key = (float(f), composition)
+        if key not in evaluated:
+            evaluated[key] = evaluate_feed(feeds, spec, key[0], composition)
+        return evaluated[key]
 
     grid = np.geomspace(lo, hi, FEED_SCAN_POINTS)
-    scanned = [at(f) for f in grid]
+    scanned = [_scan(at, spec, f) for f in grid]
     ok = [e.feasible for e in scanned]
     notes: list[str] = []
     if not any(ok):

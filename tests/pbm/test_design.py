@@ -240,3 +240,28 @@ def test_a_command_line_imports_no_figure_library_or_integrator_before_it_runs()
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_a_scan_point_the_residence_time_fails_gets_no_frequency_response(monkeypatch):
+    """The scans judge the residence time first: the points it fails are not given a
+    frequency response, and the answer is the one judging every margin everywhere gives."""
+    import pbm.design
+
+    c = 0.02 / 200
+    lib = library([(100.0, tanks(4, 100 * c)), (200.0, tanks(4, 200 * c))])
+    spec = design_spec(ca_tolerance=0.015, noise_sigma=0.1, mrt_max_s=30.0)
+    monkeypatch.setattr("pbm.design.free_cores", lambda limit=None: 1)
+    responses = []
+    respond = pbm.design.system_response
+    monkeypatch.setattr("pbm.design.system_response", lambda *a, **k: responses.append(a[0]) or respond(*a, **k))
+    quick = design(lib, spec)
+    spared = [e for r in quick.rows for e in r.scanned if e.vrr is None]
+    assert spared and all(e.margins["mrt_max_s"] < 0 for e in spared)
+    n_quick = len(responses)
+    monkeypatch.setattr("pbm.design._RESIDENCE", ())
+    full = design(lib, spec)
+    assert len(responses) - n_quick > n_quick  # judged whole everywhere: more responses
+    assert [(r.length_factor_lo, r.length_factor_hi) for r in quick.rows] == [
+        (r.length_factor_lo, r.length_factor_hi) for r in full.rows
+    ]
+    assert quick.best == full.best and quick.rpm_ranges == full.rpm_ranges
