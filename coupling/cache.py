@@ -149,7 +149,7 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
             raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
         values: dict = {}
         _check(stored, file_digest(h5, values), DIGEST_ATTR, path)
-        head = _head(h5, path, key)
+        head = _head(h5, path, key, values)
         group = h5[RESULTS_GROUP]
         frames = {}
         for name, sub in group["frames"].items():
@@ -166,14 +166,15 @@ def load_head(path: str | os.PathLike, key: str | None = None) -> CacheHead:
     Raises CacheError as :func:`load_entry` does."""
     with _open_entry(path) as h5:
         stored = _stored(h5, HEAD_DIGEST_ATTR)
+        values: dict = {}
         if stored is not None:
-            _check(stored, head_digest(h5), HEAD_DIGEST_ATTR, path)
+            _check(stored, head_digest(h5, values), HEAD_DIGEST_ATTR, path)
         else:
             stored = _stored(h5, DIGEST_ATTR)
             if stored is None:
                 raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
-            _check(stored, file_digest(h5), DIGEST_ATTR, path)
-        return _head(h5, path, key)
+            _check(stored, file_digest(h5, values), DIGEST_ATTR, path)
+        return _head(h5, path, key, values)
 
 
 @dataclass(frozen=True)
@@ -224,23 +225,23 @@ def _check(stored: str, actual: str, name: str, path) -> None:
         )
 
 
-def _head(h5, path, key: str | None) -> CacheHead:
-    """The head of an open entry whose digest was checked."""
+def _head(h5, path, key: str | None, values: dict) -> CacheHead:
+    """The head of an open entry whose digest was checked (``values``: what the check read)."""
     stored_key = str(h5.attrs.get("key"))
     if key is not None and stored_key != key:
         raise CacheError(f"{path} holds results for inputs {stored_key}, not {key}")
     if TABLE_GROUP not in h5 or RESULTS_GROUP not in h5:
         raise CacheError(f"{path} lacks the '{TABLE_GROUP}' or '{RESULTS_GROUP}' group")
     provenance = json.loads(h5.attrs["provenance"])
-    table = table_from_group(h5[TABLE_GROUP], source=str(path))
+    table = table_from_group(h5[TABLE_GROUP], source=str(path), values=values)
     summary = json.loads(h5[RESULTS_GROUP].attrs["summary"])
     return CacheHead(table, summary, provenance)
 
 
-def head_digest(h5: h5py.File) -> str:
+def head_digest(h5: h5py.File, values: dict | None = None) -> str:
     """SHA-256 (hex) of an open cache file's head: the root's attributes, the velocity table
     and the results' summary (:func:`coupling.files.h5_head_digest`)."""
-    return h5_head_digest(h5, groups=(TABLE_GROUP,), attributes_of=(RESULTS_GROUP,))
+    return h5_head_digest(h5, groups=(TABLE_GROUP,), attributes_of=(RESULTS_GROUP,), values=values)
 
 
 def file_digest(h5: h5py.File, values: dict | None = None) -> str:

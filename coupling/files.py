@@ -206,12 +206,15 @@ def h5_digest(h5, values: dict[str, Any] | None = None) -> str:
     return _Digest(h5, values).root().walk("", h5).hexdigest()
 
 
-def h5_head_digest(h5, groups: Iterable[str], attributes_of: Iterable[str] = ()) -> str:
+def h5_head_digest(
+    h5, groups: Iterable[str], attributes_of: Iterable[str] = (), values: dict[str, Any] | None = None
+) -> str:
     """SHA-256 (hex) of a file's head: the root's attributes except the digests, every group
     named in ``groups`` whole (as :func:`h5_digest` walks it, its name in the stream), and
     the attributes alone of each group named in ``attributes_of``. A reader that needs only
-    these parts checks them without reading the rest of the file (:data:`HEAD_DIGEST_ATTR`)."""
-    digest = _Digest(h5, None).root()
+    these parts checks them without reading the rest of the file (:data:`HEAD_DIGEST_ATTR`);
+    ``values`` receives what it read, as :func:`h5_digest`'s does."""
+    digest = _Digest(h5, values).root()
     for name in groups:
         digest.feed(b"G", f"/{name}".encode())
         digest.walk(f"/{name}", h5[name])

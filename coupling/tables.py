@@ -219,12 +219,14 @@ def _validate(table: VelocityTable) -> None:
             )
     shape = (t.size, table.x_edges.size - 1, table.y_edges.size - 1)
     for name in FIELD_NAMES:
-        _check_field(name, getattr(table, name), shape, nan_allowed=False)
-        _check_bound(
+        velocity = name in VELOCITY_NAMES
+        _check_values(
             name,
             getattr(table, name),
-            MAX_SPEED_M_S if name in VELOCITY_NAMES else MAX_COUNT,
-            "m/s" if name in VELOCITY_NAMES else "",
+            shape,
+            False,
+            MAX_SPEED_M_S if velocity else MAX_COUNT,
+            "m/s" if velocity else "",
         )
     present = [name for name in RATE_NAMES if getattr(table, name) is not None]
     if present and len(present) < len(RATE_NAMES):
@@ -235,12 +237,28 @@ def _validate(table: VelocityTable) -> None:
         )
     for name in present:
         # NaN is how the DEM post-processing marks a rate it observed too few transitions for.
-        _check_field(name, getattr(table, name), shape, nan_allowed=True)
-        _check_bound(name, getattr(table, name), MAX_RATE_PER_S, "/s")
+        _check_values(name, getattr(table, name), shape, True, MAX_RATE_PER_S, "/s")
     if table.phases is not None and (table.phases.nx, table.phases.ny) != shape[1:]:
         raise TableError(
             f"the phase model's grid {table.phases.nx}x{table.phases.ny} differs from the table's {shape[1]}x{shape[2]}"
         )
+
+
+def _check_values(
+    name: str, values: np.ndarray, shape: tuple[int, ...], nan_allowed: bool, bound: float, unit: str
+) -> None:
+    """Every entry in [0, ``bound``] (NaN too where ``nan_allowed``): one pass over the
+    values, which every table derived in a design search pays; the first problem is then
+    named by :func:`_check_field` and :func:`_check_bound`."""
+    if values.shape == shape:
+        with np.errstate(invalid="ignore"):
+            good = (values >= 0) & (values <= bound)
+        if nan_allowed:
+            good |= np.isnan(values)
+        if good.all():
+            return
+    _check_field(name, values, shape, nan_allowed)
+    _check_bound(name, values, bound, unit)
 
 
 def _check_bound(name: str, values: np.ndarray, bound: float, unit: str) -> None:
@@ -375,9 +393,16 @@ def table_to_group(group: h5py.Group, table: VelocityTable) -> None:
     group.attrs["units"] = json.dumps(UNITS)
 
 
-def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
-    """Read and validate a table from an open HDF5 group; raises TableError naming what is wrong."""
+def table_from_group(group: h5py.Group, source: str = "", values: dict | None = None) -> VelocityTable:
+    """Read and validate a table from an open HDF5 group; raises TableError naming what is
+    wrong. ``values``: datasets already read, keyed by their path (a digest check's), taken
+    from there rather than read again."""
     where = f" in {source}" if source else ""
+    values = values or {}
+
+    def read(dataset):
+        return values[dataset.name] if dataset.name in values else dataset[()]
+
     version = group.attrs.get("schema_version")
     if version is None:
         raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
@@ -396,16 +421,16 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
             raise TableError(
                 f"dataset '{name}' is missing{where}; a velocity table needs {('t', 'x_edges', 'y_edges', *FIELD_NAMES)}"
             )
-        arrays[name] = group[name][()]
+        arrays[name] = read(group[name])
     # Version 1 predates the rates; in version 2 they are optional, and VelocityTable
     # refuses a partial set by name.
     if int(version) >= 2:
-        arrays.update({name: group[name][()] for name in RATE_NAMES if name in group})
+        arrays.update({name: read(group[name]) for name in RATE_NAMES if name in group})
     for name in ("window_s", "min_samples"):
         if name not in group.attrs:
             raise TableError(f"attribute '{name}' is missing{where}")
     if int(version) >= 3 and PHASES_GROUP in group:
-        arrays["phases"] = _phases_from_group(group[PHASES_GROUP], where)
+        arrays["phases"] = _phases_from_group(group[PHASES_GROUP], where, read)
     reserved = {"schema_version", "window_s", "min_samples", "units"}
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
     min_samples = group.attrs["min_samples"]
@@ -427,7 +452,7 @@ def table_from_group(group: h5py.Group, source: str = "") -> VelocityTable:
     return table
 
 
-def _phases_from_group(sub: h5py.Group, where: str) -> PhaseTransport:
+def _phases_from_group(sub: h5py.Group, where: str, read) -> PhaseTransport:
     names = ("phase_rates", "phase_switching", "phase_entry")
     missing = [name for name in names if name not in sub]
     if missing:
@@ -435,7 +460,7 @@ def _phases_from_group(sub: h5py.Group, where: str) -> PhaseTransport:
     attrs = _attr_python(sub.attrs.get("attrs", "{}"))  # JSON text -> dict
     try:
         return phase_model.from_arrays(
-            {name: sub[name][()] for name in names},
+            {name: read(sub[name]) for name in names},
             float(sub.attrs.get("interval_s", np.nan)),
             attrs if isinstance(attrs, dict) else {},
         )
