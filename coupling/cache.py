@@ -57,7 +57,15 @@ import h5py
 import numpy as np
 
 from coupling.errors import CacheError, os_reason
-from coupling.files import DIGEST_ATTR, HEAD_DIGEST_ATTR, h5_digest, h5_head_digest, regular_file
+from coupling.files import (
+    DIGEST_ATTR,
+    HEAD_DIGEST_ATTR,
+    h5_digest,
+    h5_head_digest,
+    read_dataset,
+    regular_file,
+    stored_digest,
+)
 from coupling.jsonable import dumps_exact
 from coupling.tables import GROUP as TABLE_GROUP
 from coupling.tables import VelocityTable, atomic_h5, table_from_group, table_to_group
@@ -144,18 +152,15 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
     import pandas as pd  # here: a reader of the head alone (:func:`load_head`) need not import it
 
     with _open_entry(path) as h5:
-        stored = _stored(h5, DIGEST_ATTR)
-        if stored is None:
-            raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
         values: dict = {}
-        _check(stored, file_digest(h5, values), DIGEST_ATTR, path)
+        _check_whole(h5, path, values)
         head = _head(h5, path, key, values)
         group = h5[RESULTS_GROUP]
         frames = {}
         for name, sub in group["frames"].items():
             columns = json.loads(sub.attrs["columns"])
-            frames[name] = pd.DataFrame({c: _read(values, sub[c]) for c in columns}, columns=columns)
-        arrays = {name: _read(values, data) for name, data in group["arrays"].items()}
+            frames[name] = pd.DataFrame({c: read_dataset(sub[c], values) for c in columns}, columns=columns)
+        arrays = {name: read_dataset(data, values) for name, data in group["arrays"].items()}
     return CacheEntry(head.table, head.summary, frames, arrays, head.provenance)
 
 
@@ -165,15 +170,12 @@ def load_head(path: str | os.PathLike, key: str | None = None) -> CacheHead:
     file's head digest, or, in a file written before it existed, against the whole file's.
     Raises CacheError as :func:`load_entry` does."""
     with _open_entry(path) as h5:
-        stored = _stored(h5, HEAD_DIGEST_ATTR)
+        stored = stored_digest(h5, HEAD_DIGEST_ATTR)
         values: dict = {}
         if stored is not None:
             _check(stored, head_digest(h5, values), HEAD_DIGEST_ATTR, path)
         else:
-            stored = _stored(h5, DIGEST_ATTR)
-            if stored is None:
-                raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
-            _check(stored, file_digest(h5, values), DIGEST_ATTR, path)
+            _check_whole(h5, path, values)
         return _head(h5, path, key, values)
 
 
@@ -213,9 +215,12 @@ def _open_entry(path: str | os.PathLike):
         raise CacheError(f"{path} is corrupt or unreadable: {type(exc).__name__}: {exc}") from exc
 
 
-def _stored(h5, name: str) -> str | None:
-    value = h5.attrs.get(name)
-    return value.decode("ascii") if isinstance(value, bytes) else value
+def _check_whole(h5, path, values: dict) -> None:
+    """The whole file's digest checked (``values`` receives what the check read)."""
+    stored = stored_digest(h5)
+    if stored is None:
+        raise CacheError(f"{path} carries no '{DIGEST_ATTR}' integrity digest (written before digests existed)")
+    _check(stored, file_digest(h5, values), DIGEST_ATTR, path)
 
 
 def _check(stored: str, actual: str, name: str, path) -> None:
@@ -249,11 +254,6 @@ def file_digest(h5: h5py.File, values: dict | None = None) -> str:
     (:func:`coupling.files.h5_digest`, shared with the velocity-table files; ``values``
     receives the datasets it read)."""
     return h5_digest(h5, values)
-
-
-def _read(values: dict, dataset: h5py.Dataset):
-    """The dataset's value as the digest check read it (read now if it was not)."""
-    return values[dataset.name] if dataset.name in values else dataset[()]
 
 
 def try_load_entry(path: str | os.PathLike, key: str | None = None) -> tuple[CacheEntry | None, str]:

@@ -6,11 +6,14 @@
   user (``--runs-dir``, ``--massflow-dir``): no symlink loop, a directory.
 * :func:`refuse_output_over_inputs` -- an output path that is one of the command's inputs
   (resolved, symlinks and hard links followed) is refused before anything is written.
-* :func:`open_verified_h5` -- the one loader of every HDF5 file the tool reads (velocity
-  tables given with ``--tables``, caches, shipped reference and campaign results): it
+* :func:`open_verified_h5` -- the loader of the velocity-table files (``--tables``): it
   checks the path as above and, when the file carries the ``sha256`` integrity digest
   (:func:`h5_digest`; every file this project writes does), recomputes it before anything
-  is parsed. A digest mismatch is refused with one line naming the file.
+  is parsed. A digest mismatch is refused with one line naming the file. The results
+  files (caches, shipped reference and campaign results) are read by
+  :mod:`coupling.cache`, which checks the same digest, or that of the file's head alone
+  (:func:`h5_head_digest`) for a reader of nothing else.
+* :func:`writable_directory` -- an output directory, created and tried before any work.
 
 Every check raises one of :mod:`coupling.errors`' types (the caller chooses which, so a
 table reader raises TableError and the cache CacheError) with one line naming the path and
@@ -40,6 +43,7 @@ __all__ = [
     "HEAD_DIGEST_ATTR",
     "h5_digest",
     "h5_head_digest",
+    "read_dataset",
     "input_directory",
     "open_verified_h5",
     "output_directory_path",
@@ -272,6 +276,12 @@ class _Digest:
         return self
 
 
+def read_dataset(dataset, values: dict[str, Any] | None = None):
+    """A dataset's value: taken from ``values`` (what a digest check read, keyed by path)
+    when it is there, else read now."""
+    return values[dataset.name] if values is not None and dataset.name in values else dataset[()]
+
+
 def _value_bytes(value: Any) -> bytes:
     """Canonical bytes of an attribute or dataset value as h5py returns it."""
     if isinstance(value, str):
@@ -286,8 +296,9 @@ def _value_bytes(value: Any) -> bytes:
     return b"n" + len(header).to_bytes(2, "little") + header + np.ascontiguousarray(array).tobytes()
 
 
-def stored_digest(h5) -> str | None:
-    value = h5.attrs.get(DIGEST_ATTR)
+def stored_digest(h5, name: str = DIGEST_ATTR) -> str | None:
+    """The digest stored in root attribute ``name``, None when there is none."""
+    value = h5.attrs.get(name)
     if value is None:
         return None
     if isinstance(value, bytes):
@@ -346,9 +357,12 @@ def open_verified_h5(
 def sign_h5(path: str | os.PathLike) -> None:
     """Write the digest of the file at ``path`` into it (root :data:`DIGEST_ATTR`): for a
     file edited on purpose (a migration tool, a test that builds a damaged-but-signed file).
-    The digest guards against accidents -- a partial copy, a stray edit -- not against
-    someone who means to change the data."""
+    A head digest (:data:`HEAD_DIGEST_ATTR`) is removed, so that a reader of the head alone
+    checks the whole file. The digest guards against accidents -- a partial copy, a stray
+    edit -- not against someone who means to change the data."""
     import h5py
 
     with h5py.File(path, "a") as h5:
+        if HEAD_DIGEST_ATTR in h5.attrs:
+            del h5.attrs[HEAD_DIGEST_ATTR]
         h5.attrs[DIGEST_ATTR] = h5_digest(h5)

@@ -67,7 +67,7 @@ import numpy as np
 
 from coupling import phases as phase_model
 from coupling.errors import TableError, os_reason
-from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5
+from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5, read_dataset
 from coupling.phases import PhaseTransport
 
 SCHEMA_VERSION = 2
@@ -398,10 +398,9 @@ def table_from_group(group: h5py.Group, source: str = "", values: dict | None = 
     wrong. ``values``: datasets already read, keyed by their path (a digest check's), taken
     from there rather than read again."""
     where = f" in {source}" if source else ""
-    values = values or {}
 
     def read(dataset):
-        return values[dataset.name] if dataset.name in values else dataset[()]
+        return read_dataset(dataset, values)
 
     version = group.attrs.get("schema_version")
     if version is None:

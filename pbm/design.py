@@ -174,7 +174,9 @@ class TableLibrary:
 @dataclass(frozen=True)
 class Evaluation:
     """One candidate (speed, length factor): its outlet quantities and every margin
-    (positive: met, by that much, in the criterion's own unit)."""
+    (positive: met, by that much, in the criterion's own unit). Where a residence-time
+    margin fails, the composition is not judged (:func:`_judged`): ``ca_sd``, ``ca_rsd``
+    and ``vrr`` are None and its margins absent."""
 
     rpm: float
     length_factor: float
@@ -220,7 +222,9 @@ def _judged(
     spec: DesignSpec, system, config: PbmConfig, rpm: float, length_factor: float, feed=None, composition: bool = True
 ) -> Evaluation:
     """The :class:`Evaluation` of a stationary system fed at ``config``'s rates (without
-    the composition's margins when ``composition`` is False)."""
+    the composition's margins when ``composition`` is False). The composition is judged
+    only where the residence time is met: where it fails, the point is infeasible whatever
+    its composition, and its frequency response is spared."""
     rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
     if not rates.sum() > 0:
         raise ConfigError("the library's feed rates are both 0: nothing flows through the blender")
@@ -236,7 +240,7 @@ def _judged(
     if spec.mrt_max_s is not None:
         margins["mrt_max_s"] = spec.mrt_max_s - mrt
     sd = rsd = vrr = None
-    if spec.composition and composition:
+    if spec.composition and composition and not _residence_failed(margins):
         c = float(rates[0] / rates.sum())
         freqs = noise_frequencies(spec.noise_band_hz, N_FREQUENCIES)
         h = system_response(system, freqs, spec.noise_feeder)
@@ -254,6 +258,26 @@ def _judged(
 _GROWING = ("mrt_min_s", "ca_tolerance", "rsd_max")
 #: Margins judged without the composition.
 _RESIDENCE = ("mrt_min_s", "mrt_max_s")
+
+
+def _residence_failed(margins: dict[str, float]) -> bool:
+    return any(margins.get(k, 0.0) < 0 for k in _RESIDENCE)
+
+
+def _least(e: Evaluation, kinds: tuple[str, ...]) -> float:
+    """The least of the ``kinds`` margins of ``e``; where its composition was spared (a
+    residence margin failed, :func:`_judged`), the least failed one: negative too, so
+    that the sign a root finding brackets is the point's feasibility."""
+    failed = [m for k, m in e.margins.items() if k in _RESIDENCE and m < 0]
+    return min([e.margins[k] for k in kinds if k in e.margins] + failed)
+
+
+def _judged_whole(e: Evaluation, spec: DesignSpec) -> bool:
+    """Whether ``e`` is what :func:`evaluate` gives for ``spec``: every criterion judged, or
+    the composition spared where a residence margin failed."""
+    return all(k in e.margins for k in spec.criteria) or (
+        all(k in e.margins for k in spec.criteria if k in _RESIDENCE) and _residence_failed(e.margins)
+    )
 
 
 @dataclass(frozen=True)
@@ -349,7 +373,7 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
         return residence_only[f]
 
     factors = np.geomspace(spec.length_factor_min, spec.length_factor_max, SCAN_POINTS)
-    scanned = [_scan(at, spec, f) for f in factors]
+    scanned = [at(f) for f in factors]
     ok = [e.feasible for e in scanned]
     if not any(ok):
         return SpeedRow(rpm, None, None, None, scanned)
@@ -364,8 +388,7 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
         composition = any(k not in _RESIDENCE for k in kinds)
 
         def margin(f: float) -> float:
-            m = at(f, composition).margins
-            return min(m[k] for k in kinds)
+            return _least(at(f, composition), kinds)
 
         if margin(outside) * margin(inside) > 0:  # not the margin that failed: keep the scanned point
             return inside
@@ -380,18 +403,6 @@ def feasible_lengths(library: TableLibrary, spec: DesignSpec, rpm: float) -> Spe
     if last + 1 < len(factors) and shrinking:
         hi = edge(factors[last], factors[last + 1], shrinking)
     return SpeedRow(rpm, float(lo), float(hi), at(lo), scanned)
-
-
-def _scan(at, spec: DesignSpec, point: float) -> Evaluation:
-    """``at(point)``, judged first on the residence time alone where the spec also judges
-    the composition: where the residence time fails, nothing else can make the point
-    feasible, and its frequency response is spared (a scan point the edges' root finding
-    brackets is judged whole there)."""
-    if spec.composition and any(k in _RESIDENCE for k in spec.criteria):
-        quick = at(point, composition=False)
-        if not quick.feasible:
-            return quick
-    return at(point)
 
 
 def speed_rows(library: TableLibrary, spec: DesignSpec, speeds) -> list[SpeedRow]:
@@ -438,15 +449,15 @@ def speed_ranges(
     (any speed and length; those at ``length_factor`` are not made again)."""
     speeds = [float(v) for v in speeds]
     evaluated: dict[float, float] = {
-        e.rpm: min(e.margins.values())
-        for e in known  # one that left the composition out is no use
-        if e.length_factor == length_factor and (e.vrr is not None or not spec.composition)
+        e.rpm: _least(e, spec.criteria)
+        for e in known  # one judged on other criteria is no use
+        if e.length_factor == length_factor and _judged_whole(e, spec)
     }
 
     def margin(rpm: float) -> float:
         # the root finding starts from the grid speeds it brackets
         if rpm not in evaluated:
-            evaluated[rpm] = min(evaluate(library, spec, rpm, length_factor).margins.values())
+            evaluated[rpm] = _least(evaluate(library, spec, rpm, length_factor), spec.criteria)
         return evaluated[rpm]
 
     values = [margin(v) for v in speeds]
@@ -563,19 +574,19 @@ def feed_library(
 
 
 @single_threaded_blas()
-def evaluate_feed(feeds: FeedLibrary, spec: DesignSpec, total: float, composition: bool = True) -> Evaluation:
+def evaluate_feed(feeds: FeedLibrary, spec: DesignSpec, total: float) -> Evaluation:
     """The outlet quantities and margins of the library's blender fed ``total``
-    [particles/s] (inside the library's range), its rates following the fill (with
-    ``composition`` False, the residence-time margins only, as :func:`evaluate`)."""
+    [particles/s] (inside the library's range), its rates following the fill."""
     config = feeds.config_at(total)
     system = stationary_system(interpolate_tables(feeds.points, total), config)
-    return _judged(spec, system, config, feeds.rpm, 1.0, float(total), composition=composition)
+    return _judged(spec, system, config, feeds.rpm, 1.0, float(total))
 
 
 @dataclass(frozen=True)
 class ThroughputResult:
     """The largest total feed [particles/s] in the library's range at which its blender
-    meets the spec (``best``: None when no feed does), the feeds scanned, and notes."""
+    meets the spec (``best``: None when no feed does), the feeds scanned (those whose
+    residence time fails without their composition, :class:`Evaluation`), and notes."""
 
     feed_range: tuple[float, float]
     best: Evaluation | None
@@ -597,17 +608,17 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
     between the last feasible feed and the next. Higher feeds are outside the library:
     refused, never extrapolated (a note says when the top of the range still meets it)."""
     lo, hi = feeds.feed_range
-    evaluated: dict[tuple[float, bool], Evaluation] = {}
+    evaluated: dict[float, Evaluation] = {}
 
-    def at(f: float, composition: bool = True) -> Evaluation:
+    def at(f: float) -> Evaluation:
         # the root finding starts from the scanned feeds it brackets, and ends on one
-        key = (float(f), composition)
-        if key not in evaluated:
-            evaluated[key] = evaluate_feed(feeds, spec, key[0], composition)
-        return evaluated[key]
+        f = float(f)
+        if f not in evaluated:
+            evaluated[f] = evaluate_feed(feeds, spec, f)
+        return evaluated[f]
 
     grid = np.geomspace(lo, hi, FEED_SCAN_POINTS)
-    scanned = [_scan(at, spec, f) for f in grid]
+    scanned = [at(f) for f in grid]
     ok = [e.feasible for e in scanned]
     notes: list[str] = []
     if not any(ok):
@@ -622,7 +633,7 @@ def max_feed(feeds: FeedLibrary, spec: DesignSpec) -> ThroughputResult:
         return ThroughputResult((lo, hi), scanned[-1], scanned, notes)
 
     def least(f: float) -> float:
-        return min(at(f).margins.values())
+        return _least(at(f), spec.criteria)
 
     edge = _feasible_root(least, float(grid[last + 1]), float(grid[last]))
     if not all(ok[: last + 1]):

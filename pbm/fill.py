@@ -387,7 +387,7 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw, compiled: boo
     """The bulk ODE's right-hand side without the feed, and its Jacobian. ``compiled``: the
     right-hand side by :func:`pbm.kernels.bulk_flows` (3 us a call against numpy's 40, for
     an integrator that calls it tens of thousands of times per noisy run), else in numpy
-    (for a Newton solve's few dozen calls, which numba's import and load, 0.6 s in a fresh
+    (for a Newton solve's few dozen calls, which numba's import and load, half a second in a fresh
     process, would cost more than they save)."""
     n = reference.n_populations
     nx = reference.fill.size
@@ -403,20 +403,21 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw, compiled: boo
         per_move = np.where(kept, 1.0, law.factors(fill, reference.fill)[slices, direction])
         return fill, base * per_move
 
-    beta, scale = np.ascontiguousarray(law.beta, dtype=float), np.where(kept, -1, slices * 2 + direction)
-    slice_of, ref_fill = np.ascontiguousarray(reference.slice_of), np.ascontiguousarray(reference.fill)
-    sink = np.where(internal, dst, -1)
-
     def flows(y):
         _, rate = factors(y)
         flux = rate * y[src]
         return np.bincount(dst[internal], flux[internal], n) - np.bincount(src, flux, n)
 
-    def compiled_flows(y):
-        return kernels.bulk_flows(y, slice_of, ref_fill, beta.ravel(), base, src, sink, scale, n, nx, FILL_FLOOR)
-
     if compiled:
         from pbm import kernels  # see pbm.kernels for why it is imported here
+
+        beta = np.ascontiguousarray(law.beta, dtype=float).ravel()
+        scale = np.where(kept, -1, slices * 2 + direction)
+        slice_of, ref_fill = np.ascontiguousarray(reference.slice_of), np.ascontiguousarray(reference.fill)
+        sink = np.where(internal, dst, -1)
+
+        def flows(y):  # noqa: F811 - the same flows, compiled
+            return kernels.bulk_flows(y, slice_of, ref_fill, beta, base, src, sink, scale, n, nx, FILL_FLOOR)
 
     def jac(y):
         fill, rate = factors(y)
@@ -427,7 +428,7 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw, compiled: boo
         j += _flow_derivative(reference, law, rate, y, fill)[:n][:, reference.slice_of]
         return j
 
-    return (compiled_flows if compiled else flows), jac
+    return flows, jac
 
 
 def bulk_bandwidth(reference: FillReference) -> int:

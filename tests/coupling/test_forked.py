@@ -49,3 +49,45 @@ def test_one_call_per_process():
         prepared.start("getpid")
         with pytest.raises(RuntimeError, match="already ran a call"):
             prepared.start("getpid")
+
+
+def test_the_call_still_runs_when_the_process_dies_or_cannot_take_it():
+    """A process killed before it answers, or arguments it cannot be sent: the call runs
+    here instead, rather than being lost."""
+    import signal
+
+    with Prepared("os") as prepared:
+        prepared.ready()
+        os.kill(prepared._process.pid, signal.SIGKILL)
+        prepared._process.join()
+        prepared.start("getpid")
+        assert prepared.result() == os.getpid()
+    with Prepared("builtins") as prepared:
+        prepared.start("callable", lambda: 0)  # a lambda cannot be pickled
+        assert prepared.result() is True
+
+
+def test_an_error_that_cannot_travel_comes_back_in_words(tmp_path, monkeypatch):
+    (tmp_path / "odd_errors.py").write_text(
+        "class Odd(Exception):\n"
+        "    def __init__(self, a, b):\n"
+        "        super().__init__(f'{a} and {b}')\n"
+        "def boom():\n"
+        "    raise Odd(1, 2)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with Prepared("odd_errors") as prepared:
+        prepared.start("boom")
+        with pytest.raises(RuntimeError, match=r"odd_errors.boom: Odd: 1 and 2"):
+            prepared.result()
+
+
+def test_a_parent_that_gives_up_on_the_call_leaves_no_trace(capfd):
+    """The parent closes the pipe while the call runs (it failed, or Ctrl-C): the process
+    ends quietly, without a traceback on stderr."""
+    prepared = Prepared("time")
+    prepared.start("sleep", 0.3)
+    process = prepared._process
+    prepared.close()
+    assert process.exitcode == 0
+    assert capfd.readouterr().err == ""

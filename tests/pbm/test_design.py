@@ -242,9 +242,10 @@ def test_a_command_line_imports_no_figure_library_or_integrator_before_it_runs()
     assert out.strip() == "[]"
 
 
-def test_a_scan_point_the_residence_time_fails_gets_no_frequency_response(monkeypatch):
-    """The scans judge the residence time first: the points it fails are not given a
-    frequency response, and the answer is the one judging every margin everywhere gives."""
+def test_a_point_whose_residence_time_fails_gets_no_frequency_response(monkeypatch):
+    """The composition is judged only where the residence time is met: the points where it
+    fails get no frequency response, and the answers -- the blender's and the largest
+    feed's -- are those judging every margin at every point gives."""
     import pbm.design
 
     c = 0.02 / 200
@@ -254,14 +255,36 @@ def test_a_scan_point_the_residence_time_fails_gets_no_frequency_response(monkey
     responses = []
     respond = pbm.design.system_response
     monkeypatch.setattr("pbm.design.system_response", lambda *a, **k: responses.append(a[0]) or respond(*a, **k))
-    quick = design(lib, spec)
+    feeds = feed_library([(f, steady_tanks(f, beta=1.0)) for f in (10.0, 20.0, 40.0)], PbmConfig(), 250.0, 0.33)
+    feed_spec = design_spec(ca_tolerance=0.05, noise_sigma=0.1, mrt_max_s=4.0)
+    quick, quick_feed = design(lib, spec), max_feed(feeds, feed_spec)
     spared = [e for r in quick.rows for e in r.scanned if e.vrr is None]
-    assert spared and all(e.margins["mrt_max_s"] < 0 for e in spared)
+    spared_feeds = [e for e in quick_feed.scanned if e.vrr is None]
+    assert spared and all(e.margins["mrt_max_s"] < 0 and not e.feasible for e in spared)
+    assert spared_feeds and all(e.margins["mrt_max_s"] < 0 for e in spared_feeds)
     n_quick = len(responses)
     monkeypatch.setattr("pbm.design._RESIDENCE", ())
-    full = design(lib, spec)
+    full, full_feed = design(lib, spec), max_feed(feeds, feed_spec)
     assert len(responses) - n_quick > n_quick  # judged whole everywhere: more responses
     assert [(r.length_factor_lo, r.length_factor_hi) for r in quick.rows] == [
         (r.length_factor_lo, r.length_factor_hi) for r in full.rows
     ]
     assert quick.best == full.best and quick.rpm_ranges == full.rpm_ranges
+    assert quick_feed.best == full_feed.best
+
+
+def test_a_design_that_fails_after_its_search_leaves_no_figure(tmp_path, monkeypatch):
+    """The figure is drawn beside the feed library's search, to a file of its own: when the
+    search fails, neither file is written and nothing of the drawing is left behind."""
+    from coupling.forked import Prepared
+    from workflows.products.design import run_design
+    from workflows.report import DESIGN_FIGURES
+
+    def broken(*_a, **_k):
+        raise ConfigError("the feed library's search broke")
+
+    monkeypatch.setattr("workflows.products.design.max_feed", broken)
+    spec = design_spec(mrt_min_s=22.0, mrt_max_s=40.0)
+    with Prepared(DESIGN_FIGURES) as figures, pytest.raises(ConfigError, match="broke"):
+        run_design(spec, tmp_path / "out", figures=figures)
+    assert list((tmp_path / "out").iterdir()) == []

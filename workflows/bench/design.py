@@ -85,7 +85,7 @@ def _stages() -> tuple[dict[str, float], dict[str, float], int]:
         return h
 
     # a first search pays what every first call does (the library's interpolated tables,
-    # scipy's and numba's first dispatches): not timed, so that the two timed ones compare
+    # scipy's first dispatches): not timed, so that the two timed ones compare
     with mock.patch.object(pbm.design, "free_cores", lambda limit=None: 1):
         design(load_library(runs, "measured"), spec)
         # the responses counted in one process: forked workers' calls would not come back

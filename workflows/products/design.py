@@ -8,6 +8,8 @@ configurations differ in the impeller speed alone. Writes ``design.json`` and
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -113,28 +115,36 @@ def run_design(
     takes, when the directory holds a feed library), ``design.json`` and ``feasible.png``
     in ``out_dir``. ``figures``: a process of :data:`workflows.report.DESIGN_FIGURES`
     forked by the caller before its own imports, which draws the figure while the feed
-    library is searched here; else it is drawn in this process."""
+    library is searched here; else it is drawn in this process. Both files are replaced
+    only when both are made: the figure is drawn to a file of its own first."""
     out_dir = writable_directory(out_dir, "design output directory")
     runs = library_runs(library_dir)
     library = load_library(runs, rates, log)
     figures = figures or Prepared(DESIGN_FIGURES, fork=False)
     figures.ready()  # its imports done, so that the search finds its core free
     result = design(library, spec)
-    figures.start("plot_feasible", result.to_dict(), out_dir / "feasible.png")
-    feeds = load_feed_library(runs, rates, log)
-    throughput = None if feeds is None else max_feed(feeds, spec)
-    data: dict[str, Any] = {
-        **result.to_dict(),
-        "throughput": None if throughput is None else throughput.to_dict(),
-        "library_dir": str(library_dir),
-        "rates": rates,
-        "steady_time_s": library.steady_time_s,
-    }
+    drawn = out_dir / f".feasible-{os.getpid()}.png"
+    figures.start("plot_feasible", result.to_dict(), drawn)
     try:
-        write_json(out_dir / "design.json", json_ready(data))
+        feeds = load_feed_library(runs, rates, log)
+        throughput = None if feeds is None else max_feed(feeds, spec)
+        data: dict[str, Any] = {
+            **result.to_dict(),
+            "throughput": None if throughput is None else throughput.to_dict(),
+            "library_dir": str(library_dir),
+            "rates": rates,
+            "steady_time_s": library.steady_time_s,
+        }
         figures.result()
+        write_json(out_dir / "design.json", json_ready(data))
+        os.replace(drawn, out_dir / "feasible.png")
     except OSError as exc:
         raise OutputError(f"cannot write the design results in {out_dir}: {os_reason(exc)}") from exc
+    finally:
+        if figures.pending:  # failed before collecting it: the drawing ends before its file goes
+            with contextlib.suppress(Exception):
+                figures.result()
+        drawn.unlink(missing_ok=True)
     return result, throughput, out_dir
 
 
