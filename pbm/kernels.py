@@ -6,7 +6,11 @@ a parser) need not pay; :mod:`pbm.action` and :mod:`pbm.fill` import this module
 functions that call it.
 
 * :func:`action_march`, :func:`action_series`, :func:`action_product` -- the exact step's action by
-  uniformization (:mod:`pbm.action` describes the method and its buffers).
+  uniformization (:mod:`pbm.action` describes the method and its buffers). They are
+  compiled with reassociation and contraction allowed (:data:`SUMS`), which lets the
+  compiler vectorise the sums and fuse the multiply-adds: the paper scenario ran in 15-18
+  ms against 20-21 without (`pbmdem bench pbm`), its states agreeing with the dense path
+  to 5e-12 as before. NaN and infinity keep their meaning (no finite-math assumption).
 * :func:`bulk_flows` -- the bulk populations' flows under the fill law (:mod:`pbm.fill`).
 """
 
@@ -17,8 +21,11 @@ import math
 import numba
 import numpy as np
 
+#: The floating-point liberties of the uniformization kernels (module docstring).
+SUMS = {"reassoc", "contract"}
 
-@numba.njit(cache=True, nogil=True)
+
+@numba.njit(cache=True, nogil=True, fastmath=SUMS)
 def action_product(offsets, values_w, outflow_w, rate, v, t, source, pad, n):
     """t = B v on the padded buffers (populations at [pad, pad + n), then OUT, INT1, INT2)."""
     tv = t[pad : pad + n]
@@ -41,7 +48,7 @@ def action_product(offsets, values_w, outflow_w, rate, v, t, source, pad, n):
     t[a + 2] = v[a + 2] + v[a + 1] / rate
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=SUMS)
 def action_series(offsets, values_w, outflow_w, rate, means, v, t, results, source, pad, n, tail):
     """results[j] = exp(G tau_j) applied to the padded state v, for lam tau_j = ``means[j]``
     (increasing): one series serves every output, each weighting the same powers B^k v
@@ -80,7 +87,7 @@ def action_series(offsets, values_w, outflow_w, rate, means, v, t, results, sour
             results[j, i] /= used[j]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=SUMS)
 def action_march(
     offsets,
     values,
