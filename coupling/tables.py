@@ -399,9 +399,6 @@ def table_from_group(group: h5py.Group, source: str = "", values: dict | None = 
     from there rather than read again."""
     where = f" in {source}" if source else ""
 
-    def read(dataset):
-        return read_dataset(dataset, values)
-
     version = group.attrs.get("schema_version")
     if version is None:
         raise TableError(f"attribute 'schema_version' is missing{where}; this is not a velocity table")
@@ -420,16 +417,16 @@ def table_from_group(group: h5py.Group, source: str = "", values: dict | None = 
             raise TableError(
                 f"dataset '{name}' is missing{where}; a velocity table needs {('t', 'x_edges', 'y_edges', *FIELD_NAMES)}"
             )
-        arrays[name] = read(group[name])
+        arrays[name] = read_dataset(group[name], values)
     # Version 1 predates the rates; in version 2 they are optional, and VelocityTable
     # refuses a partial set by name.
     if int(version) >= 2:
-        arrays.update({name: read(group[name]) for name in RATE_NAMES if name in group})
+        arrays.update({name: read_dataset(group[name], values) for name in RATE_NAMES if name in group})
     for name in ("window_s", "min_samples"):
         if name not in group.attrs:
             raise TableError(f"attribute '{name}' is missing{where}")
     if int(version) >= 3 and PHASES_GROUP in group:
-        arrays["phases"] = _phases_from_group(group[PHASES_GROUP], where, read)
+        arrays["phases"] = _phases_from_group(group[PHASES_GROUP], where, values)
     reserved = {"schema_version", "window_s", "min_samples", "units"}
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
     min_samples = group.attrs["min_samples"]
@@ -451,7 +448,7 @@ def table_from_group(group: h5py.Group, source: str = "", values: dict | None = 
     return table
 
 
-def _phases_from_group(sub: h5py.Group, where: str, read) -> PhaseTransport:
+def _phases_from_group(sub: h5py.Group, where: str, values: dict | None) -> PhaseTransport:
     names = ("phase_rates", "phase_switching", "phase_entry")
     missing = [name for name in names if name not in sub]
     if missing:
@@ -459,7 +456,7 @@ def _phases_from_group(sub: h5py.Group, where: str, read) -> PhaseTransport:
     attrs = _attr_python(sub.attrs.get("attrs", "{}"))  # JSON text -> dict
     try:
         return phase_model.from_arrays(
-            {name: read(sub[name]) for name in names},
+            {name: read_dataset(sub[name], values) for name in names},
             float(sub.attrs.get("interval_s", np.nan)),
             attrs if isinstance(attrs, dict) else {},
         )

@@ -403,11 +403,6 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw, compiled: boo
         per_move = np.where(kept, 1.0, law.factors(fill, reference.fill)[slices, direction])
         return fill, base * per_move
 
-    def flows(y):
-        _, rate = factors(y)
-        flux = rate * y[src]
-        return np.bincount(dst[internal], flux[internal], n) - np.bincount(src, flux, n)
-
     if compiled:
         from pbm import kernels  # see pbm.kernels for why it is imported here
 
@@ -416,8 +411,15 @@ def _bulk_rhs_and_jacobian(reference: FillReference, law: FillLaw, compiled: boo
         slice_of, ref_fill = np.ascontiguousarray(reference.slice_of), np.ascontiguousarray(reference.fill)
         sink = np.where(internal, dst, -1)
 
-        def flows(y):  # noqa: F811 - the same flows, compiled
+        def flows(y):
             return kernels.bulk_flows(y, slice_of, ref_fill, beta, base, src, sink, scale, n, nx, FILL_FLOOR)
+
+    else:
+
+        def flows(y):
+            _, rate = factors(y)
+            flux = rate * y[src]
+            return np.bincount(dst[internal], flux[internal], n) - np.bincount(src, flux, n)
 
     def jac(y):
         fill, rate = factors(y)

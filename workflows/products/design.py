@@ -55,7 +55,7 @@ def library_runs(directory: str | Path = VALIDATION_DIR) -> list[LibraryRun]:
 def load_library(runs: list[LibraryRun], rates: str = "velocity", log: Log | None = None) -> TableLibrary:
     """The table library among ``runs`` (:func:`library_runs`): grouped by configuration
     less the impeller speed, the largest group (ties: the one with the widest speed range)."""
-    directory = runs[0][0].parent
+    directory = runs[0].path.parent
     groups: dict[str, list] = {}
     for run in runs:
         key = repr(config_without(run.config, RPM_KEY))
@@ -123,13 +123,14 @@ def run_design(
     figures = figures or Prepared(DESIGN_FIGURES, fork=False)
     figures.ready()  # its imports done, so that the search finds its core free
     result = design(library, spec)
+    record = result.to_dict()
     drawn = out_dir / f".feasible-{os.getpid()}.png"
-    figures.start("plot_feasible", result.to_dict(), drawn)
+    figures.start("plot_feasible", record, drawn)
     try:
         feeds = load_feed_library(runs, rates, log)
         throughput = None if feeds is None else max_feed(feeds, spec)
         data: dict[str, Any] = {
-            **result.to_dict(),
+            **record,
             "throughput": None if throughput is None else throughput.to_dict(),
             "library_dir": str(library_dir),
             "rates": rates,
