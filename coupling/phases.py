@@ -215,6 +215,39 @@ def blend(a: PhaseTransport, b: PhaseTransport, w: float) -> PhaseTransport | No
     )
 
 
+def population(models: list[PhaseTransport], shares) -> PhaseTransport:
+    """One chain for particles of several kinds that never change kind (sizes): the phases
+    of ``models`` side by side, no switching between the kinds', the feed entering kind m
+    with probability ``shares[m]`` (normalised) and then its phases as ``models[m]`` enters
+    them. Raises ValueError for models on different grids or shares that are not >= 0
+    with a positive sum."""
+    shares = np.asarray(shares, dtype=float)
+    if not models or shares.shape != (len(models),) or np.any(~np.isfinite(shares) | (shares < 0)) or shares.sum() <= 0:
+        raise ValueError(
+            f"shares {shares.tolist()} for {len(models)} models: expected one share >= 0 per model, sum > 0"
+        )
+    grids = {(m.nx, m.ny) for m in models}
+    if len(grids) != 1:
+        raise ValueError(f"models on grids {sorted(grids)}: a population needs one grid")
+    nx, ny = grids.pop()
+    k = sum(m.n_phases for m in models)
+    switching = np.zeros((k, k, nx, ny))
+    entry = np.zeros((2, k))
+    first = 0
+    for m, share in zip(models, shares / shares.sum()):
+        kind = slice(first, first + m.n_phases)
+        switching[kind, kind] = m.switching
+        entry[:, kind] = share * m.entry
+        first += m.n_phases
+    return PhaseTransport(
+        np.concatenate([m.rates for m in models]),
+        switching,
+        entry,
+        models[0].interval_s,
+        {"population": [m.attrs for m in models], "shares": shares.tolist()},
+    )
+
+
 def to_arrays(model: PhaseTransport) -> dict[str, np.ndarray]:
     """The datasets of a schema-3 table (:mod:`coupling.tables`)."""
     return {"phase_rates": model.rates, "phase_switching": model.switching, "phase_entry": model.entry}

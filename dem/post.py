@@ -473,9 +473,10 @@ def accounting(acc: Accumulation, exits: Exits, solver_counters: dict[str, float
 # ----------------------------------------------------------------------------- 8. records
 def particle_records(acc: Accumulation, exits: Exits) -> pd.DataFrame:
     """One row per particle seen: ``id``, ``component`` (1 A, 2 B, 3 other), ``entry_t_s``
-    and ``entry_y_m`` (first sight), ``exit_t_s`` (NaN while inside, or lost) and
+    and ``entry_y_m`` (first sight), ``exit_t_s`` (NaN while inside, or lost),
     ``exit_cell`` (flat index i * NY + j of the last compartment it was seen in before it
-    left; -1 while inside)."""
+    left; -1 while inside) and ``diameter_m`` (at first sight; NaN when the dumps carry no
+    radius). Files made before the diameter was recorded lack that column."""
     log = acc.particles
     ids = np.flatnonzero(log.seen)
     exited = exits.exited[ids]
@@ -487,6 +488,7 @@ def particle_records(acc: Accumulation, exits: Exits) -> pd.DataFrame:
             "entry_y_m": log.first_y[ids],
             "exit_t_s": np.where(exited, exits.time[ids], np.nan),
             "exit_cell": np.where(exited, log.last_cell[ids], -1).astype(np.int32),
+            "diameter_m": log.diameter[ids],
         }
     )
 

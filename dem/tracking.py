@@ -54,7 +54,7 @@ class ParticleLog:
     ``last_cell`` is the last compartment a particle was seen in (the compartment it left
     the blender from, once it has exited)."""
 
-    FLOATS = ("first_t", "first_y", "last_t", "last_x", "exit_t", "vanish_t")
+    FLOATS = ("first_t", "first_y", "last_t", "last_x", "exit_t", "vanish_t", "diameter")
     #: integer arrays, -1 = none: states, the snapshot index of the last sight, the window
     #: of the snapshot a particle vanished after
     INTS = ("last_state", "last_cell", "last_snapshot", "vanish_state", "vanish_window")
@@ -248,6 +248,8 @@ class DumpStream:
         new = np.isnan(log.first_t[ids])
         log.first_t[ids[new]] = t
         log.first_y[ids[new]] = y[new]
+        if "radius" in snap:  # the size a particle was inserted with; NaN where the dumps carry none
+            log.diameter[ids[new]] = 2.0 * snap["radius"][new]
         self.n_seen += int(np.count_nonzero(new))  # an id listed twice counts twice: a looser bound, no sort
         log.kind[ids] = np.where(is_a, 1, np.where(is_b, 2, 3))
         back = ~new & ~np.isnan(log.vanish_t[ids])
@@ -476,9 +478,7 @@ class CompartmentSequences:
         """(P, max length) int16 matrix of decoded sequences, ``fill`` after each one ends
         (vectorised: no Python loop over particles)."""
         chosen = np.arange(self.n_particles) if particles is None else np.asarray(particles, dtype=np.int64)
-        first, last = self.run_offsets[chosen], self.run_offsets[chosen + 1]
-        n_runs = last - first
-        run_index = np.repeat(first - np.concatenate([[0], np.cumsum(n_runs)[:-1]]), n_runs) + np.arange(n_runs.sum())
+        run_index, n_runs = self._runs_of(chosen)
         owner = np.repeat(np.arange(chosen.size), n_runs)
         lengths = self.run_length[run_index]
         per_particle = np.bincount(owner, lengths, minlength=chosen.size).astype(np.int64)
@@ -489,6 +489,15 @@ class CompartmentSequences:
         position = np.arange(element_owner.size) - row_start[element_owner]
         out[element_owner, position] = np.repeat(self.run_state[run_index], lengths)
         return out
+
+    def _runs_of(self, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The indices of the runs of particles ``chosen``, particle after particle, and how
+        many runs each has."""
+        first, last = self.run_offsets[chosen], self.run_offsets[chosen + 1]
+        n_runs = last - first
+        return np.repeat(first - np.concatenate([[0], np.cumsum(n_runs)[:-1]]), n_runs) + np.arange(
+            n_runs.sum()
+        ), n_runs
 
     def _runs(self) -> tuple[np.ndarray, np.ndarray]:
         """Each run's particle (row) and first dump (absolute index)."""
@@ -510,6 +519,24 @@ class CompartmentSequences:
             (first[chosen] + self.run_length[chosen]) * cells + cell, minlength=size
         )
         return np.cumsum(change.reshape(n_dumps + 1, self.nx, self.ny), axis=0)[:n_dumps]
+
+    def subset(self, particles: np.ndarray) -> CompartmentSequences:
+        """The record of ``particles`` (indices, in the order given) alone: e.g. one size
+        class, whose chain is fitted apart from the others'."""
+        chosen = np.asarray(particles, dtype=np.int64)
+        runs, n_runs = self._runs_of(chosen)
+        return CompartmentSequences(
+            ids=self.ids[chosen],
+            component=self.component[chosen],
+            start=self.start[chosen],
+            run_offsets=np.concatenate([[0], np.cumsum(n_runs)]).astype(self.run_offsets.dtype),
+            run_state=self.run_state[runs],
+            run_length=self.run_length[runs],
+            snapshot_t=self.snapshot_t,
+            interval_s=self.interval_s,
+            nx=self.nx,
+            ny=self.ny,
+        )
 
     def until(self, t_end_s: float) -> CompartmentSequences:
         """The record a run stopped at ``t_end_s`` [s] would hold: the dumps after it

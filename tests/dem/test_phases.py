@@ -15,7 +15,7 @@ import pytest
 from scipy.linalg import expm
 
 from coupling.errors import ConfigError, TableError
-from coupling.phases import PhaseTransport, mobility
+from coupling.phases import PhaseTransport, mobility, population
 from coupling.tables import make_table, read_table, write_table
 from dem import phases
 from dem import rates as rate_fit
@@ -530,3 +530,39 @@ def test_a_finer_chain_fitted_to_coarser_observations_keeps_the_rtd(synthetic_tw
         )
     with pytest.raises(ValueError, match="base grid 10x1 is not refine = 1"):
         phases.fit(coarse, 2, base=fit.transport)
+
+
+def test_a_subset_of_the_sequences_is_their_rows(synthetic_two_phase):
+    _model, sequences, _data, _fit = synthetic_two_phase
+    rows = np.array([17, 3, 400, 5999, 3])
+    part = sequences.subset(rows)
+    assert part.ids.tolist() == sequences.ids[rows].tolist()
+    assert [s.tolist() for s in part.states()] == [s.tolist() for s in sequences.states(rows)]
+    np.testing.assert_array_equal(part.discharged, sequences.discharged[rows])
+    whole = sequences.subset(np.arange(sequences.n_particles))
+    for name in sequences.ARRAYS:
+        np.testing.assert_array_equal(getattr(whole, name), getattr(sequences, name))
+
+
+def test_a_population_of_kinds_is_the_mixture_of_their_chains():
+    """Two kinds that never change (a fast one-phase chain and the two-phase chain), fed
+    1 : 3: the population's residence time is the mixture of theirs, its moments the
+    share-weighted moments of each kind."""
+    slow = two_phase_model()
+    rates = np.zeros((1, 4, NX, 1))
+    rates[0, 0], rates[0, 1] = 5.0, 1.0
+    fast = PhaseTransport(rates, np.zeros((1, 1, NX, 1)), np.ones((2, 1)), INTERVAL)
+    both = population([fast, slow], [1.0, 3.0])
+    assert both.n_phases == 3
+    assert np.all(both.switching[0, 1:] == 0) and np.all(both.switching[1:, 0] == 0)
+    parts = [exact_rtd_moments(m, inlet()) for m in (fast, slow)]
+    mean, var = exact_rtd_moments(both, inlet())
+    w = np.array([0.25, 0.75])
+    means = np.array([p[0] for p in parts])
+    second = np.array([p[1] + p[0] ** 2 for p in parts])
+    assert mean == pytest.approx(w @ means, rel=1e-10)
+    assert var == pytest.approx(w @ second - (w @ means) ** 2, rel=1e-10)
+    with pytest.raises(ValueError, match="one share >= 0 per model"):
+        population([fast, slow], [1.0, -1.0])
+    with pytest.raises(ValueError, match="one grid"):
+        population([fast, two_phase_model(ny=2)], [1.0, 1.0])

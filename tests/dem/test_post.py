@@ -314,6 +314,7 @@ def test_particle_records_match_the_synthetic_truth(tmp_path):
         assert row["component"] == ptype
         assert row["entry_t_s"] == pytest.approx(entry, abs=1e-4)
         assert row["entry_y_m"] == pytest.approx(0.02 if ptype == 1 else -0.02)
+        assert row["diameter_m"] == pytest.approx(0.006)  # the dumps' radius 0.003
         if math.isnan(exit_s):
             assert math.isnan(row["exit_t_s"]) and row["exit_cell"] == -1
         else:

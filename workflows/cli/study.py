@@ -15,6 +15,7 @@ STUDIES = (
     ("layers", "workflows.studies.layers"),
     ("phases", "workflows.studies.phases"),
     ("composition", "workflows.studies.composition"),
+    ("sizes", "workflows.studies.sizes"),
     ("blocks", "workflows.studies.blocks"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),

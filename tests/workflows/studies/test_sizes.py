@@ -1,0 +1,58 @@
+"""The size study: classes read off the diameters, the diameters read off dumps, and on
+the shipped validation baseline with sizes dealt at random (so they carry nothing about
+the transport) a chain per size class gives what one chain for every size gives."""
+
+import numpy as np
+import pytest
+
+from coupling.errors import ConfigError
+from dem.dumps import format_snapshot
+from workflows.pipeline.results import load_results
+from workflows.shipped import VALIDATION_DIR
+from workflows.studies.sizes import MAX_CLASSES, QUANTILE_CLASSES, diameters_from_dumps, size_classes, size_study
+
+BASELINE = VALIDATION_DIR / "dem-aa093a229dfd2ce4.h5"
+COLUMNS = ("id", "type", "x", "y", "z", "vx", "vy", "vz", "radius")
+
+
+def test_distinct_diameters_are_the_classes_and_many_are_grouped():
+    labels, centres = size_classes(np.array([0.006, 0.00548, np.nan, 0.00652, 0.006, 0.0060000001]))
+    assert labels.tolist() == [1, 0, -1, 2, 1, 1]
+    np.testing.assert_allclose(centres, [0.00548, 0.006, 0.00652], rtol=1e-6)
+    spread = np.random.default_rng(0).normal(0.006, 0.0003, 1000)
+    labels, centres = size_classes(spread)
+    assert np.unique(spread).size > MAX_CLASSES and centres.size == QUANTILE_CLASSES
+    assert np.all(np.diff(centres) > 0)
+    assert np.bincount(labels).min() >= 1000 // QUANTILE_CLASSES - 1
+    with pytest.raises(ValueError, match="no particle has a known diameter"):
+        size_classes(np.array([np.nan, 0.0]))
+
+
+def _dumps_with_sizes(directory, ids, radius):
+    rows = np.zeros((ids.size, len(COLUMNS)))
+    rows[:, 0], rows[:, 1], rows[:, -1] = ids, 1, radius
+    (directory / "dumps").mkdir(parents=True)
+    (directory / "dumps" / "dump.0.txt").write_bytes(format_snapshot(0, COLUMNS, rows))
+    later = rows[:3].copy()
+    later[:, -1] = 0.01  # a particle keeps the size it was first seen with
+    (directory / "dumps" / "dump.10.txt").write_bytes(format_snapshot(10, COLUMNS, later))
+
+
+def test_sizes_that_carry_nothing_change_nothing(tmp_path):
+    results, _config = load_results(BASELINE)
+    ids = results.particles["id"].to_numpy(np.int64)
+    radius = np.where(ids % 2 == 0, 0.0027, 0.0033)
+    _dumps_with_sizes(tmp_path, ids, radius)
+    seen = diameters_from_dumps(tmp_path / "dumps" / "dump.*.txt")
+    assert seen[int(ids[0])] == pytest.approx(2 * radius[0])
+    with pytest.raises(ConfigError, match="holds no particle diameters.*--run-dir"):
+        size_study(BASELINE)
+    study = size_study(BASELINE, tmp_path)
+    assert [round(c.diameter_m, 4) for c in study.classes] == [0.0054, 0.0066]
+    assert sum(c.share for c in study.classes) == pytest.approx(1.0)
+    small, large = study.classes
+    # the two halves are one distribution: each inside the other's interval
+    assert small.dem_mean_s.low <= large.dem_mean_s.value <= small.dem_mean_s.high
+    assert large.dem_mean_s.low <= small.dem_mean_s.value <= large.dem_mean_s.high
+    for key, tol in (("mean_s", 0.02), ("variance_s2", 0.06), ("holdup", 0.01)):
+        assert study.by_size[key] == pytest.approx(study.one_chain[key], rel=tol)
