@@ -21,7 +21,8 @@ Feed of component A (row 0) and B (row 1) enters in phase h with probability
 
 Phases are ordered by mobility, slowest first (:func:`mobility`): the hidden phase has no
 name of its own, and without an order two fits of the same data could differ by a
-relabelling.
+relabelling. A population of kinds that never change (:func:`population`: a chain per size
+class) orders its phases kind by kind, each kind's by mobility.
 """
 
 from __future__ import annotations
@@ -218,13 +219,22 @@ def blend(a: PhaseTransport, b: PhaseTransport, w: float) -> PhaseTransport | No
 def population(models: list[PhaseTransport], shares) -> PhaseTransport:
     """One chain for particles of several kinds that never change kind (sizes): the phases
     of ``models`` side by side, no switching between the kinds', the feed entering kind m
-    with probability ``shares[m]`` (normalised) and then its phases as ``models[m]`` enters
-    them. Raises ValueError for models on different grids or shares that are not >= 0
-    with a positive sum."""
-    shares = np.asarray(shares, dtype=float)
-    if not models or shares.shape != (len(models),) or np.any(~np.isfinite(shares) | (shares < 0)) or shares.sum() <= 0:
+    with probability ``shares[m]`` (normalised; or ``shares[f, m]`` per feeder f, A then
+    B) and then its phases as ``models[m]`` enters them. Raises ValueError for models on
+    different grids or shares that are not >= 0 with a positive sum per feeder."""
+    given = np.asarray(shares, dtype=float)
+    shares = np.broadcast_to(given, (2, len(models))) if given.ndim == 1 else given
+    if (
+        not models
+        or given.ndim not in (1, 2)
+        or given.shape[-1] != len(models)
+        or shares.shape != (2, len(models))
+        or np.any(~np.isfinite(shares) | (shares < 0))
+        or np.any(shares.sum(axis=1) <= 0)
+    ):
         raise ValueError(
-            f"shares {shares.tolist()} for {len(models)} models: expected one share >= 0 per model, sum > 0"
+            f"shares {given.tolist()} for {len(models)} models: expected one share >= 0 per model (or per "
+            "feeder and model), with a positive sum"
         )
     grids = {(m.nx, m.ny) for m in models}
     if len(grids) != 1:
@@ -233,18 +243,19 @@ def population(models: list[PhaseTransport], shares) -> PhaseTransport:
     k = sum(m.n_phases for m in models)
     switching = np.zeros((k, k, nx, ny))
     entry = np.zeros((2, k))
+    fractions = shares / shares.sum(axis=1, keepdims=True)
     first = 0
-    for m, share in zip(models, shares / shares.sum()):
+    for index, m in enumerate(models):
         kind = slice(first, first + m.n_phases)
         switching[kind, kind] = m.switching
-        entry[:, kind] = share * m.entry
+        entry[:, kind] = fractions[:, index, None] * m.entry
         first += m.n_phases
     return PhaseTransport(
         np.concatenate([m.rates for m in models]),
         switching,
         entry,
         models[0].interval_s,
-        {"population": [m.attrs for m in models], "shares": shares.tolist()},
+        {"population": [m.attrs for m in models], "shares": fractions.tolist()},
     )
 
 

@@ -201,20 +201,35 @@ def _compact_counts(counts: np.ndarray) -> np.ndarray:
     return counts.astype(dtype)
 
 
+def sequence_diameters(sequences: CompartmentSequences, records: pd.DataFrame) -> np.ndarray | None:
+    """The diameter [m] of each sequence's particle from the per-particle ``records`` (NaN
+    where unknown); None when the records carry no diameters (made before they were kept)."""
+    if "diameter_m" not in records:
+        return None
+    by_id = pd.Series(records["diameter_m"].to_numpy(float), index=records["id"].to_numpy(np.int64))
+    return by_id.reindex(np.asarray(sequences.ids, np.int64)).to_numpy(float)
+
+
 def fit_phases(
-    table: VelocityTable, sequences: CompartmentSequences, steady_time_s: float | None
+    table: VelocityTable,
+    sequences: CompartmentSequences,
+    steady_time_s: float | None,
+    diameters: np.ndarray | None = None,
 ) -> tuple[VelocityTable, dict[str, Any] | None, str | None]:
     """The table carrying the hidden-phase transport (:func:`dem.phases.table_with_phases`,
-    K = :data:`dem.phases.PHASES`) fitted to the particles that entered during the steady
-    period, with a record of the fit; a run with no steady state, or no particle entering
-    after it, keeps its table without phases and gets a note saying why."""
+    K = :data:`dem.phases.PHASES`, a chain per size class where ``diameters`` are known)
+    fitted to the particles that entered during the steady period, with a record of the
+    fit; a run with no steady state, or no particle entering after it, keeps its table
+    without phases and gets a note saying why."""
     if steady_time_s is None:
         return table, None, "no phase model: the run never reached the steady state it is fitted to"
     try:
-        with_phases, fit = phases.table_with_phases(table, sequences, steady_time_s, phases.PHASES)
+        with_phases, fits = phases.table_with_phases(
+            table, sequences, steady_time_s, phases.PHASES, diameters=diameters
+        )
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:  # too few data to fit
         return table, None, f"no phase model: {exc}"
-    return with_phases, phases.fit_record(fit), None
+    return with_phases, phases.fits_record(fits, with_phases.phases), None
 
 
 def refit_phases(results: DemResults) -> DemResults:
@@ -225,7 +240,12 @@ def refit_phases(results: DemResults) -> DemResults:
     results are then left as they are)."""
     if results.sequences is None:
         raise ValueError("the results carry no compartment sequences to refit the phase model to")
-    table, record, note = fit_phases(results.table.replace(phases=None), results.sequences, results.summary.steady_time)
+    table, record, note = fit_phases(
+        results.table.replace(phases=None),
+        results.sequences,
+        results.summary.steady_time,
+        sequence_diameters(results.sequences, results.particles),
+    )
     if record is None:
         raise ValueError(note)
     summary = results.summary.record()
@@ -627,7 +647,7 @@ def _results(
     steady_time = steady.time(timeseries["t_s"], timeseries["holdup_A"] + timeseries["holdup_B"])
     t_ss = float("nan") if steady_time is None else steady_time
     steady_outflow, steady_c_a = steady_means(timeseries, steady_time)
-    table, phase_fit, phase_note = fit_phases(table, sequences, steady_time)
+    table, phase_fit, phase_note = fit_phases(table, sequences, steady_time, sequence_diameters(sequences, records))
     tag_time = float(rtd_tag_time_s) if rtd_tag_time_s is not None else t_ss
     tag_window = float(config.tables.rtd_tag_window_s)
     rtd, residence, n_tagged = tagged_rtd(acc, exits, tag_time, tag_window, tol)

@@ -29,7 +29,7 @@ from coupling.errors import ConfigError
 from coupling.phases import PhaseTransport
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from dem import phases
-from dem.post import DemResults
+from dem.post import DemResults, sequence_diameters
 from dem.rates import RATE_KEYS, fit_rates
 from pbm.model import fill_missing_velocities
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
@@ -167,8 +167,13 @@ def refit_phases(results: DemResults, t_use_s: float, steady_time_s: float) -> P
         # deterministic: its model, without fitting it again
         return results.table.phases
     try:
-        refit, _fit = phases.table_with_phases(
-            results.table, results.sequences.until(t_use_s), steady_time_s, results.table.phases.n_phases
+        short = results.sequences.until(t_use_s)
+        refit, _fits = phases.table_with_phases(
+            results.table,
+            short,
+            steady_time_s,
+            phases.phases_per_kind(results.table.phases),
+            diameters=sequence_diameters(short, results.particles),
         )
     except (ValueError, FloatingPointError, np.linalg.LinAlgError):
         return None

@@ -32,7 +32,7 @@ import numpy as np
 
 from dem import phases
 from dem.phases import CkTest
-from dem.post import DemResults
+from dem.post import DemResults, sequence_diameters
 from dem.steady import pooled_rtd as dem_pooled_rtd
 from dem.summary import Estimate, PooledRtdSummary
 from pbm.config import PbmConfig
@@ -173,8 +173,13 @@ def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
     dem = dem_pooled_rtd(results.particles, mid, t_end, little, float(table.window_s))
     if not dem.get("n_entered"):
         raise ValueError(dem.get("note", "no particle entered in the second half"))
-    refit, _fit = phases.table_with_phases(
-        table, results.sequences, t_ss, table.phases.n_phases, entered_s=(float(t_ss), float(mid))
+    refit, _fits = phases.table_with_phases(
+        table,
+        results.sequences,
+        t_ss,
+        phases.phases_per_kind(table.phases),
+        entered_s=(float(t_ss), float(mid)),
+        diameters=sequence_diameters(results.sequences, results.particles),
     )
     config = pbm_config.model_copy(update={"rates": "phases", "rtd_pulse_s": None})
     pbm = pooled_rtd(refit, config, tuple(dem["entry_window_s"]), dem["horizon_s"])

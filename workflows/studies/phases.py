@@ -192,6 +192,7 @@ def pbm_numbers(model, config: Config, target: DemTarget) -> dict[str, Any]:
         "mean_s": rtd.mean_s,
         "variance_s2": rtd.variance_s2,
         "recovered_fraction": rtd.recovered_fraction,
+        "density_per_s": rtd.recovered_density_per_s,
         "by_slice": by_slice,
         "holdup": float(by_slice.sum()),
     }

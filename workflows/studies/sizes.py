@@ -9,11 +9,11 @@ chain is told nothing about. This study measures it on one DEM run:
 * the DEM's pooled RTD of each size class: the particles of that class that entered in the
   run's entry window, the run's horizon, the same block bootstrap as the whole run's
   (:func:`dem.steady.pooled_rtd`), and the share still inside at the horizon;
-* a phase model per size class (the product's fit, :func:`dem.phases.table_with_phases`,
-  on that class's sequences alone) and their population (:func:`coupling.phases.population`:
-  each class its own chain, the feed dealt over the classes by their shares): each class's
-  pooled RTD, and the population's mean, variance and hold-up beside the run's own phase
-  model (one chain for every size) and the DEM.
+* the post-processing's phase model fitted both ways (:func:`dem.phases.table_with_phases`):
+  one chain for every size, and a chain per size class (their population,
+  :func:`coupling.phases.population`: each class its own chain, the feed dealt over the
+  classes by their shares): each class's pooled RTD, and for the whole feed the mean,
+  variance, hold-up and RTD overlap of both against the DEM.
 
 The diameters come from the per-particle records (``diameter_m``, recorded since the
 post-processing reads the dumps' radius) or, for results made before, from the run's dumps
@@ -31,24 +31,24 @@ from pathlib import Path
 import numpy as np
 
 from coupling.errors import ConfigError
+from coupling.intervals import overlap_noise_band
 from coupling.jsonable import write_json
-from coupling.phases import population
+from coupling.metrics import rtd_overlap
 from dem import phases
 from dem.deck import DUMP_GLOB
 from dem.dumps import iter_snapshots
+from dem.post import sequence_diameters
 from dem.steady import pooled_rtd as dem_pooled_rtd
 from dem.summary import Estimate
+from workflows.analysis.agreement import dem_density
 from workflows.pipeline.results import load_results
 from workflows.shipped import REDUCED_RUN
 from workflows.studies.phases import Interval, dem_target, pbm_numbers
 
 HELP = "the RTD by particle size: the DEM's per size class, and a phase model per class against one for all"
 OUT = Path("results/sizes")
-#: more distinct diameters than this are grouped into QUANTILE_CLASSES classes of equal counts
-MAX_CLASSES = 8
-QUANTILE_CLASSES = 5
-#: diameters closer than this are one class [m] (the dumps print radii to ~6 digits)
-SAME_DIAMETER_M = 1e-7
+#: what the study compares for the whole feed
+WHOLE = ("mean_s", "variance_s2", "holdup", "rtd_overlap", "overlap_noise_low")
 
 
 @dataclass(frozen=True)
@@ -94,33 +94,11 @@ def diameters_from_dumps(pattern: str | Path) -> dict[int, float]:
     return seen
 
 
-def size_classes(diameters: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(class of each particle, -1 where the diameter is unknown; mean diameter of each
-    class [m], ascending). Distinct diameters are the classes; more than
-    :data:`MAX_CLASSES` of them (a continuous distribution) are grouped into
-    :data:`QUANTILE_CLASSES` classes of about equal counts."""
-    d = np.asarray(diameters, dtype=float)
-    known = np.isfinite(d) & (d > 0)
-    if not known.any():
-        raise ValueError("no particle has a known diameter")
-    labels = np.full(d.size, -1, np.int64)
-    distinct = np.unique(np.round(d[known] / SAME_DIAMETER_M))
-    if distinct.size <= MAX_CLASSES:
-        labels[known] = np.searchsorted(distinct, np.round(d[known] / SAME_DIAMETER_M))
-    else:
-        edges = np.quantile(d[known], np.linspace(0, 1, QUANTILE_CLASSES + 1)[1:-1])
-        labels[known] = np.searchsorted(edges, d[known], side="right")
-    n = int(labels.max()) + 1
-    centres = np.array([d[labels == c].mean() if np.any(labels == c) else math.nan for c in range(n)])
-    return labels, centres
-
-
 def _diameters(results, run_dir: str | Path | None, source: str) -> np.ndarray:
-    """The diameter of each particle of the records [m], from the records or the dumps."""
-    records = results.particles
-    ids = records["id"].to_numpy(np.int64)
-    if "diameter_m" in records and np.isfinite(records["diameter_m"].to_numpy(float)).any():
-        return records["diameter_m"].to_numpy(float)
+    """The diameter of each particle of the sequences [m], from the records or the dumps."""
+    known = sequence_diameters(results.sequences, results.particles)
+    if known is not None and np.isfinite(known).any():
+        return known
     if run_dir is None:
         raise ConfigError(
             f"{source} holds no particle diameters (made before they were recorded): give --run-dir, the run "
@@ -130,48 +108,39 @@ def _diameters(results, run_dir: str | Path | None, source: str) -> np.ndarray:
     seen = diameters_from_dumps(pattern)
     if not seen:
         raise ConfigError(f"--run-dir {run_dir}: no dump in {pattern}")
-    return np.array([seen.get(int(i), math.nan) for i in ids])
+    return np.array([seen.get(int(i), math.nan) for i in results.sequences.ids.tolist()])
 
 
 def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_phases: int | None = None) -> SizeStudy:
     """:class:`SizeStudy` of the DEM results ``results_path`` (module docstring); K =
-    ``n_phases`` per class, default the run's own phase model's."""
+    ``n_phases`` per class, default the post-processing's (:data:`dem.phases.PHASES`)."""
     results, config = load_results(results_path)
     summary, table, seq = results.summary, results.table, results.sequences
-    if seq is None or table.phases is None:
-        raise ConfigError(f"{results_path} holds no compartment sequences or phase model: post-process the run again")
-    if summary.steady_time is None or not summary.has_pooled_rtd:
-        raise ConfigError(f"{results_path}: the run has no steady state or no pooled RTD to split by size")
-    k = n_phases or table.phases.n_phases
-    diameters = _diameters(results, run_dir, str(results_path))
-    labels, centres = size_classes(diameters)
-    records = results.particles
-    t_ss, t_end = float(summary.steady_time), float(seq.snapshot_t[-1])
-    little = float(summary.steady["little_mean_residence_time_s"]["value"])
+    if seq is None:
+        raise ConfigError(f"{results_path} holds no compartment sequences: post-process the run again")
     target = dem_target(summary, str(results_path))
+    k = n_phases or phases.PHASES
+    diameters = _diameters(results, run_dir, str(results_path))
+    t_ss = float(summary.steady_time)
+    wall0 = time.perf_counter()
+    by_size, fits = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k, diameters=diameters)
+    one_chain, _fit = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k)
+    wall = time.perf_counter() - wall0
+    kinds = phases.kinds_by_size(seq, diameters, phases.steady_window(seq, t_ss), phases.MIN_KIND_PARTICLES)
+    records = results.particles
+    little = float(summary.steady["little_mean_residence_time_s"]["value"])
     t0, t1 = target.entry_window_s
     entry_t = records["entry_t_s"].to_numpy(float)
     in_window = (entry_t > t0) & (entry_t <= t1)
-    label_by_id = dict(zip(records["id"].to_numpy(np.int64).tolist(), labels.tolist()))
-    seq_labels = np.array([label_by_id.get(int(pid), -1) for pid in seq.ids.tolist()])
-    wall0 = time.perf_counter()
-    models, shares, rows = [], [], []
-    for c, diameter in enumerate(centres):
-        mine = labels == c
-        share = float((mine & in_window).sum() / max(in_window.sum(), 1))
-        members = np.flatnonzero(seq_labels == c)
-        if share <= 0 or not members.size:
-            continue
-        fitted, _fit = phases.table_with_phases(table, seq.subset(members), t_ss, k)
-        model = fitted.phases
-        dem = dem_pooled_rtd(records[mine], t_ss, t_end, little, float(table.window_s))
-        pbm = pbm_numbers(model, config, target)
-        models.append(model)
-        shares.append(share)
+    rows = []
+    for members, fit in zip(kinds, fits if len(kinds) > 1 else ()):
+        mine = records["id"].isin(seq.ids[members]).to_numpy()
+        dem = dem_pooled_rtd(records[mine], t_ss, float(seq.snapshot_t[-1]), little, float(table.window_s))
+        pbm = pbm_numbers(fit.transport, config, target)
         rows.append(
             SizeClass(
-                float(diameter),
-                share,
+                float(np.nanmean(diameters[members])),
+                float((mine & in_window).sum() / max(in_window.sum(), 1)),
                 int(dem["n_entered"]),
                 Estimate.from_record(dem["mean_residence_time_s"]),
                 Estimate.from_record(dem["rtd_variance_s2"]),
@@ -181,16 +150,19 @@ def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_ph
                 1.0 - float(pbm["recovered_fraction"]),
             )
         )
-    wall = time.perf_counter() - wall0
-    whole = {
-        name: pbm_numbers(m, config, target) for name, m in (("one", table.phases), ("by", population(models, shares)))
-    }
+    whole = {"one": pbm_numbers(one_chain.phases, config, target), "by": pbm_numbers(by_size.phases, config, target)}
+    _edges, density, n = dem_density(records, summary.pooled_rtd)
+    bin_s = float(summary.pooled_rtd.bin_s)
+    for numbers in whole.values():
+        e_pbm = numbers["density_per_s"]
+        numbers["rtd_overlap"] = rtd_overlap(density, e_pbm[: density.size], bin_s)
+        numbers["overlap_noise_low"] = overlap_noise_band(e_pbm, bin_s, n).low
     return SizeStudy(
         tuple(rows),
         k,
         {"mean_s": target.mean_s, "variance_s2": target.variance_s2, "holdup": target.holdup},
-        {key: float(whole["one"][key]) for key in ("mean_s", "variance_s2", "holdup")},
-        {key: float(whole["by"][key]) for key in ("mean_s", "variance_s2", "holdup")},
+        {key: float(whole["one"][key]) for key in WHOLE},
+        {key: float(whole["by"][key]) for key in WHOLE},
         wall,
     )
 
@@ -225,6 +197,12 @@ def markdown(study: SizeStudy) -> str:
             f"| {label} | {dem.value:.{digits}f} [{dem.low:.{digits}f}, {dem.high:.{digits}f}] | "
             f"{study.one_chain[key]:.{digits}f} {marks[0]} | {study.by_size[key]:.{digits}f} {marks[1]} |"
         )
+    overlap = [
+        f"{x['rtd_overlap']:.3f} {'✓' if x['rtd_overlap'] >= x['overlap_noise_low'] else '✗'} "
+        f"(noise band ≥ {x['overlap_noise_low']:.3f})"
+        for x in (study.one_chain, study.by_size)
+    ]
+    lines.append(f"| RTD overlap | | {overlap[0]} | {overlap[1]} |")
     return "\n".join(lines)
 
 
