@@ -259,6 +259,27 @@ def population(models: list[PhaseTransport], shares) -> PhaseTransport:
     )
 
 
+def kinds(model: PhaseTransport) -> list[PhaseTransport]:
+    """The chains of a population's kinds (the inverse of :func:`population` for a model
+    whose attributes name its kinds: ``phases_per_kind`` and ``diameters_m``), each fed as
+    the kind's particles are; [model] for a model of one kind. A kind a feeder does not
+    feed enters as the other feeder's particles of that kind do."""
+    k = int(model.attrs.get("phases_per_kind", model.n_phases))
+    count = len(model.attrs.get("diameters_m", [])) or 1
+    if k * count != model.n_phases:
+        raise ValueError(f"a model of {model.n_phases} phases is not {count} kinds of {k} phases")
+    out = []
+    for m in range(count):
+        kind = slice(m * k, (m + 1) * k)
+        entry = model.entry[:, kind]
+        sums = entry.sum(axis=1)
+        entry = np.where(
+            sums[:, None] > 0, entry / np.maximum(sums[:, None], 1e-300), entry[::-1] / max(sums.max(), 1e-300)
+        )
+        out.append(PhaseTransport(model.rates[kind], model.switching[kind, kind], entry, model.interval_s))
+    return out
+
+
 def to_arrays(model: PhaseTransport) -> dict[str, np.ndarray]:
     """The datasets of a schema-3 table (:mod:`coupling.tables`)."""
     return {"phase_rates": model.rates, "phase_switching": model.switching, "phase_entry": model.entry}

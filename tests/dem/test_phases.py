@@ -15,7 +15,7 @@ import pytest
 from scipy.linalg import expm
 
 from coupling.errors import ConfigError, TableError
-from coupling.phases import PhaseTransport, mobility, population
+from coupling.phases import PhaseTransport, kinds, mobility, population
 from coupling.tables import make_table, read_table, write_table
 from dem import phases
 from dem import rates as rate_fit
@@ -563,6 +563,16 @@ def test_a_population_of_kinds_is_the_mixture_of_their_chains():
     second = np.array([p[1] + p[0] ** 2 for p in parts])
     assert mean == pytest.approx(w @ means, rel=1e-10)
     assert var == pytest.approx(w @ second - (w @ means) ** 2, rel=1e-10)
+    # the kinds come back out of a population whose attributes name them
+    pair = population([_one_phase(1.5, 0.8), _one_phase(5.0, 1.0)], [[1.0, 2.0], [0.0, 1.0]])
+    pair = PhaseTransport(
+        pair.rates, pair.switching, pair.entry, INTERVAL, {"phases_per_kind": 1, "diameters_m": [1, 2]}
+    )
+    first, second = kinds(pair)
+    np.testing.assert_allclose(first.entry, [[1.0], [1.0]])  # feeder B feeds none of it: as A does
+    np.testing.assert_allclose(second.rates, pair.rates[1:])
+    with pytest.raises(ValueError, match="a model of 3 phases is not 2 kinds of 3 phases"):
+        kinds(PhaseTransport(both.rates, both.switching, both.entry, INTERVAL, {"diameters_m": [1, 2]}))
     with pytest.raises(ValueError, match="one share >= 0 per model"):
         population([fast, slow], [1.0, -1.0])
     with pytest.raises(ValueError, match="one grid"):

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from coupling import phases as phase_model
 from dem import phases
 from dem.phases import CkTest
 from dem.post import DemResults, sequence_diameters
@@ -106,6 +107,84 @@ class OutOfSample:
 
 
 @dataclass(frozen=True)
+class SizeRtd:
+    """One size class of a chain per size class: its particles' mean diameter [m], their
+    share of the pooled RTD's tracers, the DEM's pooled RTD of them (mean [s], variance
+    [s²], the share still inside at the horizon) and the class's own chain's."""
+
+    diameter_m: float
+    share: float
+    n_entered: int
+    dem_mean_s: Estimate
+    dem_variance_s2: Estimate
+    dem_beyond: float
+    pbm_mean_s: float
+    pbm_variance_s2: float
+    pbm_beyond: float
+
+    @property
+    def mean_inside(self) -> bool:
+        return bool(self.dem_mean_s.low <= self.pbm_mean_s <= self.dem_mean_s.high)
+
+    @property
+    def variance_inside(self) -> bool:
+        return bool(self.dem_variance_s2.low <= self.pbm_variance_s2 <= self.dem_variance_s2.high)
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "diameter_m": self.diameter_m,
+            "share": self.share,
+            "n_entered": self.n_entered,
+            "dem_mean_s": self.dem_mean_s.record(),
+            "dem_variance_s2": self.dem_variance_s2.record(),
+            "dem_beyond_horizon": self.dem_beyond,
+            "pbm_mean_s": self.pbm_mean_s,
+            "pbm_variance_s2": self.pbm_variance_s2,
+            "pbm_beyond_horizon": self.pbm_beyond,
+            "mean_inside": self.mean_inside,
+            "variance_inside": self.variance_inside,
+        }
+
+
+def rtd_by_size(results: DemResults, table, pbm_config: PbmConfig, diameters: np.ndarray) -> tuple[SizeRtd, ...]:
+    """:class:`SizeRtd` of every size class of ``table``'s chain per size class (fitted by
+    :func:`dem.phases.table_with_phases` with ``diameters``, one per sequence): the classes
+    as that fit made them, the DEM's pooled RTD of each class's particles over the run's
+    entry window and horizon, the class's chain fed alone. () for a table of one chain."""
+    model = table.phases
+    if model is None or not model.attrs.get("diameters_m"):
+        return ()
+    summary, sequences, records = results.summary, results.sequences, results.particles
+    spec = summary.pooled_rtd
+    t_ss, t_end = float(summary.steady_time), float(sequences.snapshot_t[-1])
+    little = float(summary.steady["little_mean_residence_time_s"]["value"])
+    window = phases.steady_window(sequences, t_ss)
+    members = phases.kinds_by_size(sequences, diameters, window, phases.MIN_KIND_PARTICLES)
+    entry_t = records["entry_t_s"].to_numpy(float)
+    tracers = (entry_t > spec.entry_window_s[0]) & (entry_t <= spec.entry_window_s[1])
+    config = pbm_config.model_copy(update={"rates": "phases", "rtd_pulse_s": None})
+    out = []
+    for rows, kind in zip(members, phase_model.kinds(model)):
+        mine = records["id"].isin(sequences.ids[rows]).to_numpy()
+        dem = dem_pooled_rtd(records[mine], t_ss, t_end, little, float(table.window_s))
+        pbm = pooled_rtd(table.replace(phases=kind), config, tuple(spec.entry_window_s), spec.horizon_s)
+        out.append(
+            SizeRtd(
+                float(np.nanmean(diameters[rows])),
+                float((mine & tracers).sum() / max(tracers.sum(), 1)),
+                int(dem["n_entered"]),
+                Estimate.from_record(dem["mean_residence_time_s"]),
+                Estimate.from_record(dem["rtd_variance_s2"]),
+                1.0 - float(dem["recovered_fraction"]["value"]),
+                float(pbm.mean_s),
+                float(pbm.variance_s2),
+                1.0 - float(pbm.recovered_fraction),
+            )
+        )
+    return tuple(out)
+
+
+@dataclass(frozen=True)
 class MemoryCheck:
     """The memoryless chain and the phase model, each checked (module docstring), and the
     out-of-sample prediction (None when the run is too short for one)."""
@@ -116,6 +195,7 @@ class MemoryCheck:
     n_steps: int
     out_of_sample: OutOfSample | None = None
     out_of_sample_note: str = ""
+    by_size: tuple[SizeRtd, ...] = ()
 
     def record(self) -> dict[str, Any]:
         return {
@@ -125,6 +205,7 @@ class MemoryCheck:
             "chains": [c.record() for c in self.chains],
             "out_of_sample": None if self.out_of_sample is None else self.out_of_sample.record(),
             "out_of_sample_note": self.out_of_sample_note,
+            "by_size": [s.record() for s in self.by_size],
         }
 
 
@@ -156,7 +237,9 @@ def memory_check(results: DemResults, pbm_config: PbmConfig) -> MemoryCheck | No
         held_out, note = out_of_sample(results, pbm_config), ""
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:  # too few particles in a half
         held_out, note = None, f"no out-of-sample check: {exc}"
-    return MemoryCheck(tuple(chains), window, data.n_particles, data.n_steps, held_out, note)
+    diameters = sequence_diameters(sequences, results.particles)
+    sizes = () if diameters is None else rtd_by_size(results, table, pbm_config, diameters)
+    return MemoryCheck(tuple(chains), window, data.n_particles, data.n_steps, held_out, note, sizes)
 
 
 def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:

@@ -78,6 +78,7 @@ def memory_html(check: MemoryCheck, figure: str | None) -> str:
     )
     if figure:
         out += f'<figure><img src="{html.escape(figure)}" alt="Chapman-Kolmogorov test"></figure>'
+    out += _sizes_html(check)
     held = check.out_of_sample
     if held is None:
         out += f"<p>{html.escape(check.out_of_sample_note)}</p>"
@@ -98,3 +99,32 @@ def memory_html(check: MemoryCheck, figure: str | None) -> str:
         + "</table>"
     )
     return out
+
+
+def _sizes_html(check: MemoryCheck) -> str:
+    """The pooled RTD of each size class, DEM against the class's own chain; "" for a phase
+    model of one chain."""
+    if not check.by_size:
+        return ""
+
+    def interval(e) -> str:
+        return f"{fmt(e.value)} [{fmt(e.low)}, {fmt(e.high)}]"
+
+    def mark(inside: bool) -> str:
+        return "inside" if inside else "<b>outside</b>"
+
+    rows = "".join(
+        f"<tr><td>{1e3 * c.diameter_m:.2f}</td><td>{c.share:.3f}</td><td>{c.n_entered}</td>"
+        f"<td>{interval(c.dem_mean_s)}</td><td>{fmt(c.pbm_mean_s)} ({mark(c.mean_inside)})</td>"
+        f"<td>{interval(c.dem_variance_s2)}</td><td>{fmt(c.pbm_variance_s2)} ({mark(c.variance_inside)})</td>"
+        f"<td>{c.dem_beyond:.2%}</td><td>{c.pbm_beyond:.2%}</td></tr>"
+        for c in check.by_size
+    )
+    return (
+        "<h3>By particle size</h3><p>A particle keeps its size, and the sizes move at different speeds: "
+        "the phase model is a chain per size class, fed in the classes' shares. The pooled RTD of each "
+        "class's particles (the run's entry window and horizon) against its own chain.</p>"
+        "<table><tr><th>diameter [mm]</th><th>share</th><th>tracers</th><th>DEM mean [s]</th><th>PBM mean</th>"
+        "<th>DEM variance [s²]</th><th>PBM variance</th><th>DEM beyond the horizon</th><th>PBM beyond</th></tr>"
+        f"{rows}</table>"
+    )

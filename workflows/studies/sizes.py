@@ -38,10 +38,9 @@ from dem import phases
 from dem.deck import DUMP_GLOB
 from dem.dumps import iter_snapshots
 from dem.post import sequence_diameters
-from dem.steady import pooled_rtd as dem_pooled_rtd
-from dem.summary import Estimate
 from workflows.analysis.agreement import dem_density
-from workflows.pipeline.results import load_results
+from workflows.analysis.memory import SizeRtd, rtd_by_size
+from workflows.pipeline.results import load_results, pbm_config_for
 from workflows.shipped import REDUCED_RUN
 from workflows.studies.phases import Interval, dem_target, pbm_numbers
 
@@ -52,30 +51,13 @@ WHOLE = ("mean_s", "variance_s2", "holdup", "rtd_overlap", "overlap_noise_low")
 
 
 @dataclass(frozen=True)
-class SizeClass:
-    """One size class: its mean diameter [m], its share of the entry window's particles,
-    the DEM's pooled RTD of its particles (mean [s], variance [s²], share beyond the
-    horizon) and its own phase model's."""
-
-    diameter_m: float
-    share: float
-    n_entered: int
-    dem_mean_s: Estimate
-    dem_variance_s2: Estimate
-    dem_beyond: float
-    model_mean_s: float
-    model_variance_s2: float
-    model_beyond: float
-
-
-@dataclass(frozen=True)
 class SizeStudy:
     """What :func:`size_study` measures (module docstring): the classes, and for the whole
     feed the DEM against one phase model for every size (``one_chain``, the run's own) and
     the population of per-class models (``by_size``), each as mean [s], variance [s²] and
     steady hold-up [particles]."""
 
-    classes: tuple[SizeClass, ...]
+    classes: tuple[SizeRtd, ...]
     n_phases: int
     dem: dict[str, Interval]
     one_chain: dict[str, float]
@@ -123,33 +105,12 @@ def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_ph
     diameters = _diameters(results, run_dir, str(results_path))
     t_ss = float(summary.steady_time)
     wall0 = time.perf_counter()
-    by_size, fits = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k, diameters=diameters)
+    by_size, _fits = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k, diameters=diameters)
     one_chain, _fit = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k)
     wall = time.perf_counter() - wall0
-    kinds = phases.kinds_by_size(seq, diameters, phases.steady_window(seq, t_ss), phases.MIN_KIND_PARTICLES)
     records = results.particles
-    little = float(summary.steady["little_mean_residence_time_s"]["value"])
-    t0, t1 = target.entry_window_s
-    entry_t = records["entry_t_s"].to_numpy(float)
-    in_window = (entry_t > t0) & (entry_t <= t1)
-    rows = []
-    for members, fit in zip(kinds, fits if len(kinds) > 1 else ()):
-        mine = records["id"].isin(seq.ids[members]).to_numpy()
-        dem = dem_pooled_rtd(records[mine], t_ss, float(seq.snapshot_t[-1]), little, float(table.window_s))
-        pbm = pbm_numbers(fit.transport, config, target)
-        rows.append(
-            SizeClass(
-                float(np.nanmean(diameters[members])),
-                float((mine & in_window).sum() / max(in_window.sum(), 1)),
-                int(dem["n_entered"]),
-                Estimate.from_record(dem["mean_residence_time_s"]),
-                Estimate.from_record(dem["rtd_variance_s2"]),
-                1.0 - float(dem["recovered_fraction"]["value"]),
-                float(pbm["mean_s"]),
-                float(pbm["variance_s2"]),
-                1.0 - float(pbm["recovered_fraction"]),
-            )
-        )
+    pbm_config = pbm_config_for(config, table, None)
+    rows = rtd_by_size(results, by_size, pbm_config, diameters)
     whole = {"one": pbm_numbers(one_chain.phases, config, target), "by": pbm_numbers(by_size.phases, config, target)}
     _edges, density, n = dem_density(records, summary.pooled_rtd)
     bin_s = float(summary.pooled_rtd.bin_s)
@@ -179,7 +140,7 @@ def markdown(study: SizeStudy) -> str:
         lines.append(
             f"| {1e3 * c.diameter_m:.2f} | {c.share:.3f} | {c.n_entered} | {m.value:.2f} [{m.low:.2f}, {m.high:.2f}] | "
             f"{v.value:.0f} [{v.low:.0f}, {v.high:.0f}] | {c.dem_beyond:.2%} | "
-            f"{c.model_mean_s:.2f} / {c.model_variance_s2:.0f} / {c.model_beyond:.2%} |"
+            f"{c.pbm_mean_s:.2f} / {c.pbm_variance_s2:.0f} / {c.pbm_beyond:.2%} |"
         )
     lines += [
         "",

@@ -8,7 +8,9 @@ import pytest
 from coupling.errors import ConfigError
 from dem.dumps import format_snapshot
 from dem.phases import MAX_CLASSES, QUANTILE_CLASSES, size_classes
+from workflows.analysis.memory import MemoryCheck
 from workflows.pipeline.results import load_results
+from workflows.report.memory import _sizes_html
 from workflows.shipped import VALIDATION_DIR
 from workflows.studies.sizes import diameters_from_dumps, size_study
 
@@ -54,3 +56,6 @@ def test_sizes_that_carry_nothing_change_nothing(tmp_path):
     assert large.dem_mean_s.low <= small.dem_mean_s.value <= large.dem_mean_s.high
     for key, tol in (("mean_s", 0.02), ("variance_s2", 0.06), ("holdup", 0.01)):
         assert study.by_size[key] == pytest.approx(study.one_chain[key], rel=tol)
+    # the report's table of the classes
+    page = _sizes_html(MemoryCheck((), (0.0, 1.0), 0, 0, by_size=study.classes))
+    assert "By particle size" in page and page.count("<tr><td>5.40") == 1 and page.count("<tr><td>6.60") == 1
