@@ -201,11 +201,19 @@ def scaled(
 
 
 def blend(a: PhaseTransport, b: PhaseTransport, w: float) -> PhaseTransport | None:
-    """(1 - w) ``a`` + w ``b``, rate by rate (a table library between two runs), or None when
-    the two models differ in grid or in the number of phases: phases are ordered by
-    mobility (slowest first), so phase h of one run is matched with phase h of the other."""
+    """(1 - w) ``a`` + w ``b`` (a table library between two runs): rate by rate when the two
+    models have the same grid and number of phases (phases are ordered by mobility, slowest
+    first, so phase h of one run is matched with phase h of the other); otherwise, on one
+    grid, the mixture of the two chains (:func:`population`: a share 1 - w of the particles
+    follows ``a``, w ``b``), since phases of different structures (one chain for every size
+    against a chain per size class) have no one-to-one match; None on different grids."""
     if a.rates.shape != b.rates.shape:
-        return None
+        if (a.nx, a.ny) != (b.nx, b.ny):
+            return None
+        if w <= 0.0 or w >= 1.0:
+            return a if w <= 0.0 else b
+        mixed = population([a, b], [1.0 - w, w])
+        return PhaseTransport(mixed.rates, mixed.switching, mixed.entry, a.interval_s, {"mixture": float(w)})
     mix = lambda x, y: (1 - w) * x + w * y  # noqa: E731
     return PhaseTransport(
         mix(a.rates, b.rates),

@@ -95,7 +95,7 @@ def interpolate_tables(points, at: float) -> VelocityTable:
         ra, rb = fill_missing_rates(a)[0], fill_missing_rates(b)[0]
         rates = {name: (1 - w) * getattr(ra, name) + w * getattr(rb, name) for name in RATE_NAMES}
     phases = None
-    if a.has_phases and b.has_phases:  # None when they differ in K: no phase model between them
+    if a.has_phases and b.has_phases:
         phases = phase_model.blend(a.phases, b.phases, w)
     attrs = {**t0.attrs, "interpolated": {"at": float(at), "between": [v0, v1]}}
     return a.replace(min_samples=1, attrs=attrs, phases=phases, **fields, **rates)

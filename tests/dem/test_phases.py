@@ -15,7 +15,7 @@ import pytest
 from scipy.linalg import expm
 
 from coupling.errors import ConfigError, TableError
-from coupling.phases import PhaseTransport, kinds, mobility, population
+from coupling.phases import PhaseTransport, blend, kinds, mobility, population
 from coupling.tables import make_table, read_table, write_table
 from dem import phases
 from dem import rates as rate_fit
@@ -563,6 +563,11 @@ def test_a_population_of_kinds_is_the_mixture_of_their_chains():
     second = np.array([p[1] + p[0] ** 2 for p in parts])
     assert mean == pytest.approx(w @ means, rel=1e-10)
     assert var == pytest.approx(w @ second - (w @ means) ** 2, rel=1e-10)
+    # a table library between runs of different structures mixes their chains
+    mixed = blend(fast, slow, 0.75)
+    assert exact_rtd_moments(mixed, inlet()) == pytest.approx((mean, var), rel=1e-10)
+    assert blend(fast, slow, 0.0) is fast and blend(fast, slow, 1.0) is slow
+    assert blend(fast, two_phase_model(ny=2), 0.5) is None
     # the kinds come back out of a population whose attributes name them
     pair = population([_one_phase(1.5, 0.8), _one_phase(5.0, 1.0)], [[1.0, 2.0], [0.0, 1.0]])
     pair = PhaseTransport(
