@@ -68,8 +68,21 @@ class ChainCheck:
         }
 
 
+class _JudgedRtd:
+    """The verdicts of a PBM's pooled RTD (``pbm_mean_s``, ``pbm_variance_s2``) against the
+    DEM's intervals (``dem_mean_s``, ``dem_variance_s2``)."""
+
+    @property
+    def mean_inside(self) -> bool:
+        return bool(self.dem_mean_s.low <= self.pbm_mean_s <= self.dem_mean_s.high)
+
+    @property
+    def variance_inside(self) -> bool:
+        return bool(self.dem_variance_s2.low <= self.pbm_variance_s2 <= self.dem_variance_s2.high)
+
+
 @dataclass(frozen=True)
-class OutOfSample:
+class OutOfSample(_JudgedRtd):
     """The pooled RTD of the particles that entered in ``entry_window_s`` (the second half
     of the steady period): the DEM's, with its intervals, and the PBM's (mode "phases")
     on a model fitted to the particles of ``fit_window_s`` alone."""
@@ -82,14 +95,6 @@ class OutOfSample:
     dem_variance_s2: Estimate
     pbm_mean_s: float
     pbm_variance_s2: float
-
-    @property
-    def mean_inside(self) -> bool:
-        return bool(self.dem_mean_s.low <= self.pbm_mean_s <= self.dem_mean_s.high)
-
-    @property
-    def variance_inside(self) -> bool:
-        return bool(self.dem_variance_s2.low <= self.pbm_variance_s2 <= self.dem_variance_s2.high)
 
     def record(self) -> dict[str, Any]:
         return {
@@ -107,7 +112,7 @@ class OutOfSample:
 
 
 @dataclass(frozen=True)
-class SizeRtd:
+class SizeRtd(_JudgedRtd):
     """One size class of a chain per size class: its particles' mean diameter [m], their
     share of the pooled RTD's tracers, the DEM's pooled RTD of them (mean [s], variance
     [s²], the share still inside at the horizon) and the class's own chain's."""
@@ -121,14 +126,6 @@ class SizeRtd:
     pbm_mean_s: float
     pbm_variance_s2: float
     pbm_beyond: float
-
-    @property
-    def mean_inside(self) -> bool:
-        return bool(self.dem_mean_s.low <= self.pbm_mean_s <= self.dem_mean_s.high)
-
-    @property
-    def variance_inside(self) -> bool:
-        return bool(self.dem_variance_s2.low <= self.pbm_variance_s2 <= self.dem_variance_s2.high)
 
     def record(self) -> dict[str, Any]:
         return {
