@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from coupling.phases import kinds
 from coupling.tables import read_table
 from pbm import PbmConfig, simulate, synthetic_table
 from pbm.action import MAX_MEAN, diagonals
@@ -136,15 +137,25 @@ def test_simulate_gives_the_same_run_with_either_kernel(shipped, rates):
 
 def test_the_cheaper_kernel_is_chosen(shipped):
     """Few columns on a time-varying grid: the action; many columns (an ensemble's unit
-    responses), or one operator reused all run long (the phase model): the dense path."""
+    responses), or one operator of 300 states reused all run long (a K = 3 phase model):
+    the dense path; the shipped chain per size class (5 x 3 phases, 1500 states): the
+    action again, its exponentials costing more than all the run's products."""
     t_end = shipped.t_end
     times = breakpoints(0.0, t_end, shipped.t, multiples(1.0, 0.0, t_end))
     steps = np.diff(times)
-    for rates, columns, expected in (("measured", 3, "action"), ("measured", 500, "dense"), ("phases", 3, "dense")):
-        filled, _ = filled_table(shipped, rates)
-        props = Propagators(filled, feed_distribution(shipped, None, None, rates), rates)
+    one_class = shipped.replace(phases=kinds(shipped.phases)[-1])
+    cases = (
+        (shipped, "measured", 3, "action"),
+        (shipped, "measured", 500, "dense"),
+        (one_class, "phases", 3, "dense"),
+        (shipped, "phases", 3, "action"),
+    )
+    for table, rates, columns, expected in cases:
+        filled, _ = filled_table(table, rates)
+        props = Propagators(filled, feed_distribution(table, None, None, rates), rates)
         windows = props.schedule.windows(times)
         assert choose_kernel(props, windows, steps, columns) == expected, (
+            table.phases.n_phases,
             rates,
             columns,
             kernel_costs(props, windows, steps, columns),
