@@ -144,6 +144,10 @@ PHASE_TOL = 1e-5
 #: least this many particles entering in the fit window gets its own chain
 #: (:func:`table_with_phases`); a smaller class joins its neighbour in size.
 MIN_KIND_PARTICLES = 300
+#: ... and at least this share of them: a class of 1 % (the tails of the reduced preset's
+#: five classes) adds as many states to every solve as the middle one for 1 % of the
+#: particles; joined to its neighbour, the reduced comparison runs on 9 phases, not 15.
+MIN_KIND_SHARE = 0.05
 #: more distinct diameters than this are grouped into QUANTILE_CLASSES classes of equal counts
 MAX_CLASSES = 8
 QUANTILE_CLASSES = 5
@@ -1377,18 +1381,24 @@ def _first_seen_in(sequences: CompartmentSequences, window: tuple[float, float])
 
 
 def kinds_by_size(
-    sequences: CompartmentSequences, diameters: np.ndarray, window: tuple[float, float], minimum: int
+    sequences: CompartmentSequences,
+    diameters: np.ndarray,
+    window: tuple[float, float],
+    minimum: int = MIN_KIND_PARTICLES,
+    min_share: float = MIN_KIND_SHARE,
 ) -> list[np.ndarray]:
     """The sequences' rows of each size class (:func:`size_classes` of ``diameters``, one
     per sequence, NaN unknown), a class with fewer than ``minimum`` particles first seen in
-    ``window`` = (t0, t1] merged into its neighbour in size (the smaller of the two) until
-    none is; smallest size first. Particles of unknown size are in none."""
+    ``window`` = (t0, t1], or less than ``min_share`` of them, merged into its neighbour in
+    size (the smaller of the two) until none is; smallest size first. Particles of unknown
+    size are in none."""
     labels, _centres = size_classes(diameters)
     entering = _first_seen_in(sequences, window)
     groups = [np.flatnonzero(labels == c) for c in range(int(labels.max()) + 1)]
     groups = [g for g in groups if g.size]
     count = lambda g: int(entering[g].sum())  # noqa: E731
-    while len(groups) > 1 and min(count(g) for g in groups) < minimum:
+    least = max(minimum, min_share * sum(count(g) for g in groups))
+    while len(groups) > 1 and min(count(g) for g in groups) < least:
         small = min(range(len(groups)), key=lambda c: count(groups[c]))
         neighbours = [c for c in (small - 1, small + 1) if 0 <= c < len(groups)]
         other = min(neighbours, key=lambda c: count(groups[c]))
@@ -1430,7 +1440,7 @@ def table_with_phases(
     lag = max(1, round(PHASE_LAG_S / sequences.interval_s))
     kinds = [np.arange(sequences.n_particles)]
     if diameters is not None and np.isfinite(np.asarray(diameters, float)).any():
-        kinds = kinds_by_size(sequences, diameters, window, MIN_KIND_PARTICLES)
+        kinds = kinds_by_size(sequences, diameters, window)
     one = len(kinds) == 1
     fits = []
     for rows in kinds:

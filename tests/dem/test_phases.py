@@ -642,6 +642,9 @@ def test_a_small_size_class_joins_its_smaller_neighbour():
     assert [k.size for k in kinds] == [500, 500]
     assert kinds[1].tolist() == list(range(500, 1000))
     assert len(phases.kinds_by_size(seq, diameters, (-1.0, 1.0), 600)) == 1
+    # a class of 4 % joins its neighbour however many particles it has
+    tails = np.repeat([0.005, 0.006], [40, 960])
+    assert [k.size for k in phases.kinds_by_size(seq, tails, (-1.0, 1.0), 10)] == [1000]
     labels, centres = phases.size_classes(np.array([0.006, 0.00548, np.nan, 0.00652, 0.0060000001]))
     assert labels.tolist() == [1, 0, -1, 2, 1]
     np.testing.assert_allclose(centres, [0.00548, 0.006, 0.00652], rtol=1e-6)

@@ -138,7 +138,7 @@ def test_simulate_gives_the_same_run_with_either_kernel(shipped, rates):
 def test_the_cheaper_kernel_is_chosen(shipped):
     """Few columns on a time-varying grid: the action; many columns (an ensemble's unit
     responses), or one operator of 300 states reused all run long (a K = 3 phase model):
-    the dense path; the shipped chain per size class (5 x 3 phases, 1500 states): the
+    the dense path; the shipped chain per size class (3 x 3 phases, 900 states): the
     action again, its exponentials costing more than all the run's products."""
     t_end = shipped.t_end
     times = breakpoints(0.0, t_end, shipped.t, multiples(1.0, 0.0, t_end))

@@ -80,6 +80,17 @@ class _JudgedRtd:
     def variance_inside(self) -> bool:
         return bool(self.dem_variance_s2.low <= self.pbm_variance_s2 <= self.dem_variance_s2.high)
 
+    def judged_record(self) -> dict[str, Any]:
+        """Both sides' mean and variance and the verdicts, as the summary keeps them."""
+        return {
+            "dem_mean_s": self.dem_mean_s.record(),
+            "dem_variance_s2": self.dem_variance_s2.record(),
+            "pbm_mean_s": self.pbm_mean_s,
+            "pbm_variance_s2": self.pbm_variance_s2,
+            "mean_inside": self.mean_inside,
+            "variance_inside": self.variance_inside,
+        }
+
 
 @dataclass(frozen=True)
 class OutOfSample(_JudgedRtd):
@@ -102,12 +113,7 @@ class OutOfSample(_JudgedRtd):
             "entry_window_s": list(self.entry_window_s),
             "horizon_s": self.horizon_s,
             "n_entered": self.n_entered,
-            "dem_mean_s": self.dem_mean_s.record(),
-            "dem_variance_s2": self.dem_variance_s2.record(),
-            "pbm_mean_s": self.pbm_mean_s,
-            "pbm_variance_s2": self.pbm_variance_s2,
-            "mean_inside": self.mean_inside,
-            "variance_inside": self.variance_inside,
+            **self.judged_record(),
         }
 
 
@@ -132,14 +138,9 @@ class SizeRtd(_JudgedRtd):
             "diameter_m": self.diameter_m,
             "share": self.share,
             "n_entered": self.n_entered,
-            "dem_mean_s": self.dem_mean_s.record(),
-            "dem_variance_s2": self.dem_variance_s2.record(),
             "dem_beyond_horizon": self.dem_beyond,
-            "pbm_mean_s": self.pbm_mean_s,
-            "pbm_variance_s2": self.pbm_variance_s2,
             "pbm_beyond_horizon": self.pbm_beyond,
-            "mean_inside": self.mean_inside,
-            "variance_inside": self.variance_inside,
+            **self.judged_record(),
         }
 
 
@@ -156,7 +157,7 @@ def rtd_by_size(results: DemResults, table, pbm_config: PbmConfig, diameters: np
     t_ss, t_end = float(summary.steady_time), float(sequences.snapshot_t[-1])
     little = float(summary.steady["little_mean_residence_time_s"]["value"])
     window = phases.steady_window(sequences, t_ss)
-    members = phases.kinds_by_size(sequences, diameters, window, phases.MIN_KIND_PARTICLES)
+    members = phases.kinds_by_size(sequences, diameters, window)
     entry_t = records["entry_t_s"].to_numpy(float)
     tracers = (entry_t > spec.entry_window_s[0]) & (entry_t <= spec.entry_window_s[1])
     config = pbm_config.model_copy(update={"rates": "phases", "rtd_pulse_s": None})
