@@ -10,6 +10,8 @@ compartment's rate carries ~3-10 % sampling noise, a rate averaged over the comp
 and on the RTD variance (2 %), which is what the PBM uses the model for.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -609,19 +611,23 @@ def _joined(a: CompartmentSequences, b: CompartmentSequences) -> CompartmentSequ
 def test_a_chain_per_size_recovers_kinds_that_never_change():
     """Small particles that run (forward 5 /s, back 1 /s) and large ones that crawl (1.5 and
     0.8 /s), fed 1 : 1, each kind Markov: with the diameters, one K = 1 chain per size
-    recovers each kind's rates (within 5 % over the slices, 25 % slice by slice), and the
-    population's RTD is the mixture of theirs; one chain
-    for both sizes cannot hold the spread (its variance is far off)."""
+    recovers each kind's rates (within 5 % over the slices, 25 % slice by slice) beside a
+    dead zone that holds next to nothing (neither kind parks), and the population's RTD is
+    the mixture of theirs; one chain for both sizes cannot hold the spread (its variance is
+    far off)."""
     fast, slow = _one_phase(5.0, 1.0), _one_phase(1.5, 0.8)
     rng = np.random.default_rng(3)
     both = _joined(*(phases.simulate_sequences(m, inlet(), 4000, 2400, rng) for m in (fast, slow)))
     diameters = np.where(np.arange(both.n_particles) < 4000, 0.0055, 0.0065)
     table, fits = phases.table_with_phases(table_with(None), both, 0.0, 1, starts=1, diameters=diameters)
-    assert len(fits) == 2 and table.phases.n_phases == 2
+    assert len(fits) == 2 and table.phases.n_phases == 4 and phases.phases_per_kind(table.phases) == 2
     assert table.phases.attrs["diameters_m"] == pytest.approx([0.0055, 0.0065])
     for fit, truth in zip(fits, (fast, slow)):
+        entering = phases.first_compartments(phases.prepare(both, (0.0, both.snapshot_t[-1])))
+        held = phases.steady_occupancy(fit.transport, entering)
+        assert held[:, 0].sum() < 0.01 * held.sum()  # the zone
         inner = (slice(None), slice(1, -1))  # the slices between the walls, forward and back
-        got, want = fit.transport.rates[0, :2][inner], truth.rates[0, :2][inner]
+        got, want = fit.transport.rates[1, :2][inner], truth.rates[0, :2][inner]
         np.testing.assert_allclose(got.mean(axis=(1, 2)), want.mean(axis=(1, 2)), rtol=0.05)
         np.testing.assert_allclose(got, want, rtol=0.25)
     # the population is the mixture of the two fitted chains, fed as the kinds entered
@@ -632,6 +638,57 @@ def test_a_chain_per_size_recovers_kinds_that_never_change():
     assert mean == pytest.approx(truth_mean, rel=0.03) and var == pytest.approx(truth_var, rel=0.08)
     alone, _fits = phases.table_with_phases(table_with(None), both, 0.0, 1, starts=1)
     assert abs(exact_rtd_moments(alone.phases, inlet())[1] / truth_var - 1) > 0.2
+
+
+def test_little_residence_time_is_the_mean_stay_when_all_leave():
+    """Every particle stays 7 dumps and leaves: hold-up over inflow is 0.7 s however the
+    entries are spread, and a window with no inflow is refused."""
+    rng = np.random.default_rng(5)
+    start = np.sort(rng.integers(0, 60, 500))
+    obs = np.full((500, 8), -1, np.int16)
+    obs[:, :7], obs[:, 7] = 0, 1  # seven dumps in the compartment, then the absorbing state
+    seq = phases.sequences_from_padded(obs, start, np.ones(500, int), np.arange(80) * 0.1, 0.1, 1, 1)
+    assert phases.little_residence_time(seq, (-1.0, 7.9)) == pytest.approx(0.7)
+    with pytest.raises(ValueError, match="no particle entered"):
+        phases.little_residence_time(seq, (7.0, 7.9))
+
+
+def test_a_dead_zone_per_size_class_is_held_to_its_little_law():
+    """Small particles that park (:func:`dead_zone_model`) and large ones that never do:
+    with the diameters each class gets moving phases and a dead zone, and each class's
+    chain keeps its particles as long as Little's law of its sequences says (the zone's
+    size is held to it). The parking kind's zone holds the truth's share of its hold-up
+    (22 %), the other's next to nothing, and the population's RTD is the truth's; without the zone
+    (``zone_residences=None``) the classes have no phase 0 to park in."""
+    parks = dataclasses.replace(dead_zone_model(), interval_s=INTERVAL)
+    runs = _one_phase(5.0, 1.0)
+    rng = np.random.default_rng(8)
+    both = _joined(*(phases.simulate_sequences(m, inlet(), 6000, 4000, rng) for m in (parks, runs)))
+    diameters = np.where(np.arange(both.n_particles) < 6000, 0.0055, 0.0065)
+    window = (0.0, float(both.snapshot_t[-1]))
+    table, fits = phases.table_with_phases(table_with(None), both, 0.0, 1, starts=1, diameters=diameters)
+    assert phases.phases_per_kind(table.phases) == 2 and table.phases.n_phases == 4
+    zone_share = []
+    for fit, rows in zip(fits, (np.arange(6000), np.arange(6000, 12000))):
+        entering = phases.first_compartments(phases.prepare(both.subset(rows), window))
+        little = phases.little_residence_time(both.subset(rows), window)
+        stays = phases.mean_residence_time(fit.transport, entering)
+        scale = fit.transport.attrs["zone_entry_scale"]
+        # held to Little's law, or as fitted where that is short of it (the zone never grows)
+        assert stays == pytest.approx(little, rel=1e-5) or (scale == 1 and stays < little)
+        assert stays == pytest.approx(little, rel=0.03)  # the dumps count stays half a dump long
+        held = phases.steady_occupancy(fit.transport, entering)
+        zone_share.append(held[:, 0].sum() / held.sum())
+    truth_held = phases.steady_occupancy(parks, inlet())
+    assert zone_share[0] == pytest.approx(truth_held[:, 0].sum() / truth_held.sum(), rel=0.1)
+    assert zone_share[1] < 0.01
+    mean, var = exact_rtd_moments(table.phases, inlet())
+    truth_mean, truth_var = exact_rtd_moments(population([parks, runs], [1.0, 1.0]), inlet())
+    assert mean == pytest.approx(truth_mean, rel=0.03) and var == pytest.approx(truth_var, rel=0.15)
+    plain, _fits = phases.table_with_phases(table_with(None), both, 0.0, 1, starts=1, diameters=diameters, zone_residences=None)
+    assert phases.phases_per_kind(plain.phases) == 1
+    with pytest.raises(ValueError, match="zone_residences = 0"):
+        phases.table_with_phases(table_with(None), both, 0.0, 1, diameters=diameters, zone_residences=0)
 
 
 def test_a_small_size_class_joins_its_smaller_neighbour():

@@ -10,7 +10,7 @@ chain is told nothing about. This study measures it on one DEM run:
   run's entry window, the run's horizon, the same block bootstrap as the whole run's
   (:func:`dem.steady.pooled_rtd`), and the share still inside at the horizon;
 * the post-processing's phase model fitted both ways (:func:`dem.phases.table_with_phases`):
-  one chain for every size, and a chain per size class (their population,
+  one chain for every size, and a chain per size class with its dead zone (their population,
   :func:`coupling.phases.population`: each class its own chain, the feed dealt over the
   classes by their shares): each class's pooled RTD, and for the whole feed the mean,
   variance, hold-up and RTD overlap of both against the DEM.
@@ -55,7 +55,8 @@ class SizeStudy:
     """What :func:`size_study` measures (module docstring): the classes, and for the whole
     feed the DEM against one phase model for every size (``one_chain``, the run's own) and
     the population of per-class models (``by_size``), each as mean [s], variance [s²] and
-    steady hold-up [particles]."""
+    steady hold-up [particles]; ``n_phases``: of each class's chain (K moving and, where
+    there are classes, the dead zone: :func:`dem.phases.table_with_phases`)."""
 
     classes: tuple[SizeRtd, ...]
     n_phases: int
@@ -120,7 +121,7 @@ def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_ph
         numbers["overlap_noise_low"] = overlap_noise_band(e_pbm, bin_s, n).low
     return SizeStudy(
         tuple(rows),
-        k,
+        phases.phases_per_kind(by_size.phases),
         {"mean_s": target.mean_s, "variance_s2": target.variance_s2, "holdup": target.holdup},
         {key: float(whole["one"][key]) for key in WHOLE},
         {key: float(whole["by"][key]) for key in WHOLE},
@@ -132,7 +133,7 @@ def markdown(study: SizeStudy) -> str:
     """The study's two tables: by size class, and for the whole feed."""
     lines = [
         f"| diameter [mm] | share | tracers | DEM mean [s] | DEM variance [s²] | DEM beyond H | "
-        f"K = {study.n_phases} per class: mean / variance / beyond H |",
+        f"{study.n_phases} phases per class: mean / variance / beyond H |",
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for c in study.classes:
