@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from coupling.errors import ConfigError
-from dem.dumps import format_snapshot
 from dem import phases
+from dem.dumps import format_snapshot
 from dem.phases import MAX_CLASSES, QUANTILE_CLASSES, size_classes
 from tests.dem.test_phases import exact_rtd_moments
 from workflows.analysis.memory import MemoryCheck
