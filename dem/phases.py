@@ -1528,7 +1528,9 @@ def table_with_phases(
     zone = {}
     if not one and zone_residences is not None:
         if not (math.isfinite(zone_residences) and zone_residences > 0):
-            raise ValueError(f"zone_residences = {zone_residences!r}: expected a number of residence times > 0, or None")
+            raise ValueError(
+                f"zone_residences = {zone_residences!r}: expected a number of residence times > 0, or None"
+            )
         zone = {"stagnant_exit_max": 1.0 / (zone_residences * little_residence_time(sequences, window))}
     fits = []
     for rows in kinds:
@@ -1548,7 +1550,9 @@ def table_with_phases(
         )
         axial = phase_model.population([f.transport for f in fits], shares)
         sizes = [float(np.nanmean(np.asarray(diameters, float)[rows])) for rows in kinds]
-        axial = dataclasses.replace(axial, attrs={**axial.attrs, "diameters_m": sizes, "phases_per_kind": fits[0].n_phases})
+        axial = dataclasses.replace(
+            axial, attrs={**axial.attrs, "diameters_m": sizes, "phases_per_kind": fits[0].n_phases}
+        )
     transverse = steady_transverse(table, window[0]) if sequences.ny > 1 else None
     model = axial if transverse is None else with_transverse(axial, transverse)
     return table.replace(phases=model), tuple(fits)
@@ -1594,5 +1598,9 @@ def fit_record(fit: PhaseFit) -> dict:
         "entry_phase_A": model.entry[0].tolist(),
         "entry_phase_B": model.entry[1].tolist(),
         "implied_timescales_s": fit.implied_timescales().tolist(),
-        **{key: float(model.attrs[key]) for key in ("stagnant_exit_max_per_s", "zone_entry_scale") if key in model.attrs},
+        **{
+            key: float(model.attrs[key])
+            for key in ("stagnant_exit_max_per_s", "zone_entry_scale")
+            if key in model.attrs
+        },
     }

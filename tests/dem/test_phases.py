@@ -685,7 +685,9 @@ def test_a_dead_zone_per_size_class_is_held_to_its_little_law():
     mean, var = exact_rtd_moments(table.phases, inlet())
     truth_mean, truth_var = exact_rtd_moments(population([parks, runs], [1.0, 1.0]), inlet())
     assert mean == pytest.approx(truth_mean, rel=0.03) and var == pytest.approx(truth_var, rel=0.15)
-    plain, _fits = phases.table_with_phases(table_with(None), both, 0.0, 1, starts=1, diameters=diameters, zone_residences=None)
+    plain, _fits = phases.table_with_phases(
+        table_with(None), both, 0.0, 1, starts=1, diameters=diameters, zone_residences=None
+    )
     assert phases.phases_per_kind(plain.phases) == 1
     with pytest.raises(ValueError, match="zone_residences = 0"):
         phases.table_with_phases(table_with(None), both, 0.0, 1, diameters=diameters, zone_residences=0)
