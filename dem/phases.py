@@ -1551,7 +1551,7 @@ def table_with_phases(
         axial = phase_model.population([f.transport for f in fits], shares)
         sizes = [float(np.nanmean(np.asarray(diameters, float)[rows])) for rows in kinds]
         axial = dataclasses.replace(
-            axial, attrs={**axial.attrs, "diameters_m": sizes, "phases_per_kind": fits[0].n_phases}
+            axial, attrs={**axial.attrs, "diameters_m": sizes, "phases_per_kind": fits[0].n_phases, "moving_phases": n_phases}
         )
     transverse = steady_transverse(table, window[0]) if sequences.ny > 1 else None
     model = axial if transverse is None else with_transverse(axial, transverse)
@@ -1562,6 +1562,12 @@ def phases_per_kind(model: PhaseTransport) -> int:
     """The phases of each kind of a population (:func:`table_with_phases` by size), or all
     of a model fitted as one chain."""
     return int(model.attrs.get("phases_per_kind", model.n_phases))
+
+
+def moving_phases(model: PhaseTransport) -> int:
+    """The K that :func:`table_with_phases` was asked for to fit ``model``, so that a refit
+    fits the same way: a chain per size class has its dead zone beside the K."""
+    return int(model.attrs.get("moving_phases", phases_per_kind(model)))
 
 
 def fits_record(fits: tuple[PhaseFit, ...], model: PhaseTransport) -> dict:

@@ -172,7 +172,7 @@ def refit_phases(results: DemResults, t_use_s: float, steady_time_s: float) -> P
             results.table,
             short,
             steady_time_s,
-            phases.phases_per_kind(results.table.phases),
+            phases.moving_phases(results.table.phases),
             diameters=sequence_diameters(short, results.particles),
         )
     except (ValueError, FloatingPointError, np.linalg.LinAlgError):

@@ -258,7 +258,7 @@ def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
         table,
         results.sequences,
         t_ss,
-        phases.phases_per_kind(table.phases),
+        phases.moving_phases(table.phases),
         entered_s=(float(t_ss), float(mid)),
         diameters=sequence_diameters(results.sequences, results.particles),
     )

@@ -211,6 +211,7 @@ def test_refit_at_the_end_is_the_post_processings_own_model():
     to rounding, since the shipped file was fitted on another CPU, whose vector units may
     sum in another order), and before the end the model is fitted again."""
     from dem import phases
+    from dem.post import sequence_diameters
     from workflows.analysis.budget import refit_phases
     from workflows.pipeline.results import load_results
     from workflows.shipped import VALIDATION_DIR
@@ -220,7 +221,11 @@ def test_refit_at_the_end_is_the_post_processings_own_model():
     own = refit_phases(results, end, steady)
     assert own is results.table.phases
     again, _fit = phases.table_with_phases(
-        results.table, results.sequences.until(end), steady, results.table.phases.n_phases
+        results.table,
+        results.sequences.until(end),
+        steady,
+        phases.moving_phases(results.table.phases),
+        diameters=sequence_diameters(results.sequences, results.particles),
     )
     np.testing.assert_allclose(again.phases.rates, own.rates, rtol=1e-9, atol=0)
     np.testing.assert_allclose(again.phases.switching, own.switching, rtol=1e-9, atol=0)
