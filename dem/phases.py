@@ -1551,7 +1551,8 @@ def table_with_phases(
         axial = phase_model.population([f.transport for f in fits], shares)
         sizes = [float(np.nanmean(np.asarray(diameters, float)[rows])) for rows in kinds]
         axial = dataclasses.replace(
-            axial, attrs={**axial.attrs, "diameters_m": sizes, "phases_per_kind": fits[0].n_phases, "moving_phases": n_phases}
+            axial,
+            attrs={**axial.attrs, "diameters_m": sizes, "phases_per_kind": fits[0].n_phases, "moving_phases": n_phases},
         )
     transverse = steady_transverse(table, window[0]) if sequences.ny > 1 else None
     model = axial if transverse is None else with_transverse(axial, transverse)
