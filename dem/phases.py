@@ -102,7 +102,8 @@ FEEDERS = (1, 2)
 #: brings the pooled means of the reduced run, the validation baseline, feeds x0.5, x1.5,
 #: x2 and 150 rpm inside, but holds 1-4 % too much at five of them (up to +20 % in a
 #: slice): 13 of their 18 mean, variance and hold-up intervals against K = 3's 12. Not
-#: adopted while the zone's size is not the DEM's.
+#: adopted for one chain for every size; a chain per size class has one
+#: (:data:`ZONE_RESIDENCES`).
 PHASES = 3
 
 #: The interval [s] between the observations the phases are fitted to: every 4th dump at
