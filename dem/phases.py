@@ -1434,11 +1434,11 @@ def zone_held_to_little(model: PhaseTransport, data: PhaseData, residence_s: flo
     sequences' :func:`little_residence_time`), or leaves it as fitted where even that is
     short of it: the zone only shrinks (its size is what the likelihood saw at most; in a
     class that hardly parks, the largest, a grown zone would be a tail the DEM lacks), and
-    there is none when the moving phases alone stay longer. The likelihood sizes the zone by the exchange it sees inside the window and
-    leaves the hold-up free: fitted per size class with the zone left at most once per 2
-    residence times, the reduced run's steady hold-up came out 2265 against the DEM's 2250
-    [2238, 2263]; held to Little's law, 2248 (:data:`ZONE_RESIDENCES`). The factor is kept
-    in the model's attributes (``zone_entry_scale``)."""
+    there is none when the moving phases alone stay longer. The likelihood sizes the zone
+    by the exchange it sees inside the window and leaves the hold-up free: with the zone
+    left at most once per 2 residence times, the reduced run's steady hold-up came out 2265
+    against the DEM's 2250 [2238, 2263], and 2248 once held (:data:`ZONE_RESIDENCES`). The
+    factor is kept in the model's attributes (``zone_entry_scale``)."""
     entering = first_compartments(data)
 
     def with_scale(c: float) -> PhaseTransport:
