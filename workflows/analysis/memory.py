@@ -16,7 +16,9 @@ the phase model refitted to the particles that entered in the first half (and th
 when it opened), followed as long as the run follows them, predicts the pooled RTD of the
 other particles, those that entered in the second half, judged against the DEM's 95 %
 intervals of that RTD (the same block bootstrap as the whole run's,
-:func:`dem.steady.pooled_rtd`).
+:func:`dem.steady.pooled_rtd`). The DEM's RTD of the first half's particles is reported
+beside it: where the run itself moved between its halves, a stationary model fitted to the
+first cannot follow.
 
 The held-out choice of K (score of the second half under a fit on the first) and the grids
 are the phase study's (``pbmdem study phases``).
@@ -106,14 +108,26 @@ class OutOfSample(_JudgedRtd):
     dem_variance_s2: Estimate
     pbm_mean_s: float
     pbm_variance_s2: float
+    # the DEM's pooled RTD of the particles that entered in the fit window, followed for the
+    # same horizon: how far the run itself moved between its halves, which a stationary
+    # model fitted to the first cannot follow
+    dem_fit_half_mean_s: Estimate | None = None
+    dem_fit_half_variance_s2: Estimate | None = None
 
     def record(self) -> dict[str, Any]:
+        fit_half = {}
+        if self.dem_fit_half_mean_s is not None and self.dem_fit_half_variance_s2 is not None:
+            fit_half = {
+                "dem_fit_half_mean_s": self.dem_fit_half_mean_s.record(),
+                "dem_fit_half_variance_s2": self.dem_fit_half_variance_s2.record(),
+            }
         return {
             "fit_window_s": list(self.fit_window_s),
             "entry_window_s": list(self.entry_window_s),
             "horizon_s": self.horizon_s,
             "n_entered": self.n_entered,
             **self.judged_record(),
+            **fit_half,
         }
 
 
@@ -266,6 +280,8 @@ def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
     pbm = pooled_rtd(refit, config, tuple(dem["entry_window_s"]), dem["horizon_s"])
     if not (math.isfinite(pbm.mean_s) and math.isfinite(pbm.variance_s2)):
         raise ValueError("the PBM recovered no tracer within the horizon")
+    fit_half = dem_pooled_rtd(results.particles, t_ss, mid + float(dem["horizon_s"]), little, float(table.window_s))
+    has_fit_half = bool(fit_half.get("n_entered"))
     return OutOfSample(
         (float(t_ss), float(mid)),
         tuple(float(v) for v in dem["entry_window_s"]),
@@ -275,4 +291,6 @@ def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
         Estimate.from_record(dem["rtd_variance_s2"]),
         float(pbm.mean_s),
         float(pbm.variance_s2),
+        Estimate.from_record(fit_half["mean_residence_time_s"]) if has_fit_half else None,
+        Estimate.from_record(fit_half["rtd_variance_s2"]) if has_fit_half else None,
     )

@@ -84,18 +84,32 @@ def memory_html(check: MemoryCheck, figure: str | None) -> str:
         out += f"<p>{html.escape(check.out_of_sample_note)}</p>"
         return out
 
-    def row(name: str, dem, pbm: float, inside: bool) -> str:
+    def interval(e) -> str:
+        return "–" if e is None else f"{fmt(e.value)} [{fmt(e.low)}, {fmt(e.high)}]"
+
+    def row(name: str, dem, pbm: float, inside: bool, fit_half) -> str:
         verdict = "inside" if inside else "<b>outside</b>"
-        return f"<tr><td>{name}</td><td>{fmt(dem.value)}</td><td>{fmt(dem.low)} – {fmt(dem.high)}</td><td>{fmt(pbm)}</td><td>{verdict}</td></tr>"
+        return (
+            f"<tr><td>{name}</td><td>{fmt(dem.value)}</td><td>{fmt(dem.low)} – {fmt(dem.high)}</td><td>{fmt(pbm)}</td>"
+            f"<td>{verdict}</td><td>{interval(fit_half)}</td></tr>"
+        )
 
     out += (
         "<h3>Out of sample</h3>"
         f"<p>Phase model refitted on the particles that entered in {held.fit_window_s[0]:.0f}–{held.fit_window_s[1]:.0f} s "
         f"alone; pooled RTD of the {held.n_entered} particles that entered in {held.entry_window_s[0]:.0f}–"
-        f"{held.entry_window_s[1]:.0f} s (horizon {held.horizon_s:g} s).</p>"
-        "<table><tr><th>quantity</th><th>DEM</th><th>DEM 95 % interval</th><th>PBM, phases</th><th>verdict</th></tr>"
-        + row("mean residence time [s]", held.dem_mean_s, held.pbm_mean_s, held.mean_inside)
-        + row("RTD variance [s²]", held.dem_variance_s2, held.pbm_variance_s2, held.variance_inside)
+        f"{held.entry_window_s[1]:.0f} s (horizon {held.horizon_s:g} s). The last column is the DEM's RTD of the "
+        "particles the refit was fitted on: how far the run itself moved between its halves.</p>"
+        "<table><tr><th>quantity</th><th>DEM</th><th>DEM 95 % interval</th><th>PBM, phases</th><th>verdict</th>"
+        "<th>DEM, first half [95 %]</th></tr>"
+        + row("mean residence time [s]", held.dem_mean_s, held.pbm_mean_s, held.mean_inside, held.dem_fit_half_mean_s)
+        + row(
+            "RTD variance [s²]",
+            held.dem_variance_s2,
+            held.pbm_variance_s2,
+            held.variance_inside,
+            held.dem_fit_half_variance_s2,
+        )
         + "</table>"
     )
     return out

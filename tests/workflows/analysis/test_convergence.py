@@ -18,7 +18,8 @@ def test_criterion_on_the_shipped_validation_baseline():
     config = campaign_configs()["baseline"]
     side = run_campaign(solver=False, configs={"baseline": config}, log=lambda message: None)["baseline"]
     early = converged(side.results, config, 60.0)
-    assert not early.converged and "steady window" in early.why
+    # at 60 s the run is either too young for a steady window or still moving; which one is the realisation's
+    assert not early.converged and ("steady window" in early.why or "moved by more" in early.why)
     # no pooled RTD yet (the run is younger than its horizon): nothing of the RTD is judged, so no stop
     import dataclasses
 

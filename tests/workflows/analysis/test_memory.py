@@ -31,6 +31,11 @@ def test_the_phase_model_is_nearer_markov_than_the_memoryless_chain(baseline):
     assert held is not None and held.entry_window_s[0] == pytest.approx(held.fit_window_s[1])
     assert held.n_entered > 1000 and math.isfinite(held.pbm_variance_s2)
     assert held.variance_inside == (held.dem_variance_s2.low <= held.pbm_variance_s2 <= held.dem_variance_s2.high)
+    # the halves together are the whole run's pooled RTD: their means, weighted by the
+    # particles that entered (recovered alike), bracket it
+    whole = results.summary.pooled_rtd
+    first, second = held.dem_fit_half_mean_s.value, held.dem_mean_s.value
+    assert min(first, second) <= whole.mean_residence_time_s.value <= max(first, second)
     record = check.record()
     assert (
         record["chains"][1]["ck_passed"] == model.ck.passed and record["out_of_sample"]["n_entered"] == held.n_entered

@@ -185,12 +185,18 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
         for mode in MODES:
             for row in (v["judged"] or {}).get(mode, {}).get("rows", []):
                 assert row["ok"] == (row["error"] <= row["tolerance"])
-    # the feed library: both fill-law sources judged for every other feed; feed x1.5 predicted
-    # from the others' law, and the step from the steady baseline's own law in every mode
+    # the feed library: both fill-law sources judged for every other feed, the others' law
+    # nearer the DEM than the linear PBM in its best mode, and the step predicted from the
+    # steady baseline's own law in every mode
     feeds = [name for name in ("feed_x0.5", "feed_x1.5", "feed_x2") if name in shipped]
     assert {(name, source) for name in feeds for source in FILL_SOURCES} <= judged
-    verdict = {(v["run"], v["source"]): v["verdict"] for v in summary["verdicts"]}
-    assert verdict["feed_x1.5", "library + fill law"].startswith("the hybrid predicts this")
+    best = {
+        (v["run"], v["source"]): max(sum(r["ok"] for r in judged["rows"]) for judged in v["judged"].values())
+        for v in summary["verdicts"]
+        if v["judged"]
+    }
+    for name in feeds:
+        assert best[name, "library + fill law"] > best[name, "baseline"]
     step_rows = [r for r in summary["step_response"]["rows"] if r["source"] == "baseline + fill law"]
     assert {r["mode"] for r in step_rows} == set(MODES) and all(r["predicted"] for r in step_rows)
     assert {"velocity", "measured"} <= summary["dem_budget"]["smallest_T"].keys() <= set(MODES)
