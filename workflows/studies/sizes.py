@@ -64,6 +64,9 @@ class SizeStudy:
     one_chain: dict[str, float]
     by_size: dict[str, float]
     fit_wall_s: float
+    #: each class's dead zone is left at most once per this many Little's-law residence
+    #: times of the run; None: no zone
+    zone_residences: float | None = phases.ZONE_RESIDENCES
 
 
 def diameters_from_dumps(pattern: str | Path) -> dict[int, float]:
@@ -94,9 +97,16 @@ def _diameters(results, run_dir: str | Path | None, source: str) -> np.ndarray:
     return np.array([seen.get(int(i), math.nan) for i in results.sequences.ids.tolist()])
 
 
-def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_phases: int | None = None) -> SizeStudy:
+def size_study(
+    results_path: str | Path,
+    run_dir: str | Path | None = None,
+    n_phases: int | None = None,
+    zone_residences: float | None = phases.ZONE_RESIDENCES,
+) -> SizeStudy:
     """:class:`SizeStudy` of the DEM results ``results_path`` (module docstring); K =
-    ``n_phases`` per class, default the post-processing's (:data:`dem.phases.PHASES`)."""
+    ``n_phases`` per class, default the post-processing's (:data:`dem.phases.PHASES`);
+    ``zone_residences`` bounds each class's dead zone as :func:`dem.phases.table_with_phases`
+    does (None: no zone)."""
     results, config = load_results(results_path)
     summary, table, seq = results.summary, results.table, results.sequences
     if seq is None:
@@ -106,7 +116,9 @@ def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_ph
     diameters = _diameters(results, run_dir, str(results_path))
     t_ss = float(summary.steady_time)
     wall0 = time.perf_counter()
-    by_size, _fits = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k, diameters=diameters)
+    by_size, _fits = phases.table_with_phases(
+        table.replace(phases=None), seq, t_ss, k, diameters=diameters, zone_residences=zone_residences
+    )
     one_chain, _fit = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k)
     wall = time.perf_counter() - wall0
     records = results.particles
@@ -126,14 +138,18 @@ def size_study(results_path: str | Path, run_dir: str | Path | None = None, n_ph
         {key: float(whole["one"][key]) for key in WHOLE},
         {key: float(whole["by"][key]) for key in WHOLE},
         wall,
+        zone_residences,
     )
 
 
 def markdown(study: SizeStudy) -> str:
     """The study's two tables: by size class, and for the whole feed."""
+    zone = (
+        "no zone" if study.zone_residences is None else f"zone left once per {study.zone_residences:g} residence times"
+    )
     lines = [
         f"| diameter [mm] | share | tracers | DEM mean [s] | DEM variance [s²] | DEM beyond H | "
-        f"{study.n_phases} phases per class: mean / variance / beyond H |",
+        f"{study.n_phases} phases per class ({zone}): mean / variance / beyond H |",
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for c in study.classes:
@@ -180,14 +196,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the run's directory, whose dumps give the diameters when the results file records none",
     )
     parser.add_argument("--k", type=int, default=None, help="phases per size class (default: the run's own model's)")
+    parser.add_argument(
+        "--zone",
+        default=str(phases.ZONE_RESIDENCES),
+        metavar="R",
+        help="each class's dead zone is left at most once per R Little's-law residence times of the run, its "
+        "entry then held to the class's Little's law; 'none' fits no zone (default: the product's, %(default)s)",
+    )
     parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
+
+
+def zone_argument(text: str) -> float | None:
+    """``--zone``'s value: a positive number of residence times, or None for 'none'."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"--zone {text}: expected a number of residence times > 0, or 'none' for no dead zone")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
     if args.k is not None and args.k < 1:
         raise ConfigError(f"--k {args.k}: expected a number of phases >= 1")
     started = time.perf_counter()
-    study = size_study(args.results, args.run_dir, args.k)
+    study = size_study(args.results, args.run_dir, args.k, zone_argument(args.zone))
     print(markdown(study))
     print(f"per-class fits {study.fit_wall_s:.0f} s")
     out = Path(args.out)

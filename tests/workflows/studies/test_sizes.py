@@ -88,3 +88,12 @@ def test_sizes_that_carry_nothing_change_nothing(tmp_path):
     # the report's table of the classes
     page = _sizes_html(MemoryCheck((), (0.0, 1.0), 0, 0, by_size=study.classes))
     assert "By particle size" in page and page.count("<tr><td>5.40") == 1 and page.count("<tr><td>6.60") == 1
+
+
+def test_the_zone_option_reads_residence_times_or_none():
+    from workflows.studies.sizes import zone_argument
+
+    assert zone_argument("2") == 2.0 and zone_argument("0.5") == 0.5 and zone_argument("None") is None
+    for bad in ("0", "-1", "nan", "inf", "one"):
+        with pytest.raises(ConfigError, match=f"--zone {bad}: expected a number of residence times > 0"):
+            zone_argument(bad)
