@@ -25,7 +25,8 @@ class PbmConfig(BaseModel):
     feed_weights_a: list[float] | None = Field(
         None,
         description="NY relative weights of feed A over the first slice's compartments "
-        "(j = 0 at y = -D/2); None = uniformly over the y > 0 half",
+        "(j = 0 at y = -D/2), or NX * NY over every compartment (i * NY + j) for a feed zone "
+        "that spans slices; None = uniformly over the first slice's y > 0 half",
     )
     feed_weights_b: list[float] | None = Field(
         None, description="NY relative weights of feed B; None = uniformly over the y < 0 half"
@@ -82,7 +83,7 @@ class PbmConfig(BaseModel):
         if weights is None:
             return None
         if len(weights) == 0:
-            raise ValueError("must hold NY weights (one per transverse compartment), got an empty list")
+            raise ValueError("must hold NY weights (the first slice) or NX * NY (every compartment), got an empty list")
         bad = [w for w in weights if not math.isfinite(w) or w < 0]
         if bad:
             raise ValueError(f"weights must be finite and >= 0, got {bad[0]}")

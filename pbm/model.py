@@ -220,9 +220,10 @@ def default_feed_weights(y_edges: np.ndarray, side: int) -> np.ndarray:
 def feed_distribution(table: VelocityTable, weights_a, weights_b, rates: str = "velocity") -> np.ndarray:
     """(n, 2) matrix: how one particle/s of feed A (column 0) and B (column 1) enters.
 
-    Only the first axial slice (i = 0) receives feed; each column sums to 1. ``weights_a``
-    / ``weights_b`` are NY relative weights or None for the default halves. Raises
-    ConfigError when a weight list does not have NY entries. With ``rates`` = "phases"
+    Each column sums to 1. ``weights_a`` / ``weights_b`` are NY relative weights over the
+    first axial slice, NX * NY over the whole grid (flat index i * NY + j: a feed zone that
+    spans slices), or None for the default halves of the first slice. Raises ConfigError
+    when a weight list has neither length. With ``rates`` = "phases"
     n is NX*NY*K: each compartment's share is split over the phases by the model's
     entry-phase distribution of that feeder.
     """
@@ -238,13 +239,14 @@ def feed_distribution(table: VelocityTable, weights_a, weights_b, rates: str = "
             w = default_feed_weights(table.y_edges, side)
         else:
             w = np.asarray(weights, dtype=float)
-            if w.shape != (ny,):
+            if w.shape not in ((ny,), (table.nx * ny,)):
                 raise ConfigError(
-                    f"{name} has {w.size} entries; the velocity table has NY = {ny} transverse compartments"
+                    f"{name} has {w.size} entries; the velocity table needs NY = {ny} (the first slice) or "
+                    f"NX * NY = {table.nx * ny} (every compartment)"
                 )
             w = w / w.sum()
         column = np.zeros(table.nx * ny)
-        column[:ny] = w
+        column[: w.size] = w
         columns.append(column)
     return np.stack(columns, axis=1)
 

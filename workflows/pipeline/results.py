@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from coupling.cache import load_entry, load_head
-from coupling.compartments import inlet_weights
+from coupling.compartments import feed_zone_weights
 from coupling.tables import VelocityTable
 from dem.geometry import feed_zones
 from dem.summary import DemSummary
@@ -66,15 +66,19 @@ def rtd_pulse(dem_summary: DemSummary) -> float | None:
 
 def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | None) -> PbmConfig:
     """The PBM configuration that describes the same process as the DEM run: the DEM's
-    feed rates, each feeder's zone mapped onto the inlet compartments by overlap in y."""
+    feed rates, each feeder's zone mapped onto the compartments by overlap in x and y."""
     zones = feed_zones(config.dem.geometry)
     operation = config.dem.operation
     return config.pbm.model_copy(
         update={
             "feed_rate_a_per_s": operation.feed_rate_a_per_s,
             "feed_rate_b_per_s": operation.feed_rate_b_per_s,
-            "feed_weights_a": inlet_weights(table.y_edges, zones["A"].ymin, zones["A"].ymax),
-            "feed_weights_b": inlet_weights(table.y_edges, zones["B"].ymin, zones["B"].ymax),
+            **{
+                f"feed_weights_{name.lower()}": feed_zone_weights(
+                    table.x_edges, table.y_edges, (zone.xmin, zone.xmax), (zone.ymin, zone.ymax)
+                )
+                for name, zone in zones.items()
+            },
             "rtd_pulse_s": rtd_pulse_s,
         }
     )

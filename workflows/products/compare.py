@@ -318,7 +318,13 @@ def grid_sensitivity(config: Config, dem: DemSide, pbm_config, modes, runs_root:
     except (LookupError, ResourceLimitError) as exc:  # a finer grid this machine cannot afford is no failure
         log(f"grid sensitivity skipped: {exc}")
         return None
-    return nx_sensitivity(fine_dem.table, pbm_config, config.steady_state, dem.results.summary, modes)
+    # the feed zones mapped onto the finer compartments: a zone inside the first of NX slices
+    # may span two of 2 NX
+    on_fine = pbm_config_for(config, fine_dem.table, pbm_config.rtd_pulse_s)
+    fine_config = pbm_config.model_copy(
+        update={"feed_weights_a": on_fine.feed_weights_a, "feed_weights_b": on_fine.feed_weights_b}
+    )
+    return nx_sensitivity(fine_dem.table, fine_config, config.steady_state, dem.results.summary, modes)
 
 
 def write_paraview(config: Config, dem: DemSide, out_dir: Path, log: Log, max_snapshots: int = 60) -> None:

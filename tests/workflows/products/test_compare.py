@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from coupling.cache import cache_path, load_entry, save_entry
-from coupling.compartments import inlet_weights
+from coupling.compartments import feed_zone_weights, inlet_weights
 from coupling.errors import ConfigError
 from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
@@ -24,6 +24,30 @@ def test_feed_weights_are_the_overlap_in_y():
     np.testing.assert_allclose(w, [0] * 5 + [1 / 6, 1 / 3, 1 / 3, 1 / 6, 0], atol=1e-12)
     with pytest.raises(ConfigError, match="outside the compartments"):
         inlet_weights(edges, 0.06, 0.07)
+
+
+def test_a_feed_zone_wider_than_the_first_slice_feeds_the_next_one():
+    from coupling.tables import make_table
+    from pbm.model import feed_distribution
+
+    y = np.linspace(-0.05, 0.05, 11)
+    # inside the first of 10 slices of 33 mm: the first slice's NY weights, as in y alone
+    assert feed_zone_weights(np.linspace(0, 0.33, 11), y, (0.006, 0.030), (0.005, 0.035)) == inlet_weights(
+        y, 0.005, 0.035
+    )
+    # 6-30 mm over slices of 16.5 mm: 10.5 of 24 mm in the first, 13.5 in the second
+    x = np.linspace(0, 0.33, 21)
+    w = np.asarray(feed_zone_weights(x, y, (0.006, 0.030), (0.005, 0.035))).reshape(20, 10)
+    np.testing.assert_allclose(w.sum(axis=1)[:3], [10.5 / 24, 13.5 / 24, 0], atol=1e-12)
+    np.testing.assert_allclose(w[1] / w[1].sum(), inlet_weights(y, 0.005, 0.035), atol=1e-12)
+    # the PBM feeds those compartments; a list of neither NY nor NX * NY entries is refused
+    table = make_table([0.0], x, y, 0.01, 0, 0.1, 0.1)
+    feed = feed_distribution(table, w.ravel().tolist(), None)
+    np.testing.assert_allclose(feed[:, 0], w.ravel(), atol=1e-12)
+    with pytest.raises(ConfigError, match="needs NY = 10 .* or NX \\* NY = 200"):
+        feed_distribution(table, [1.0] * 20, None)
+    with pytest.raises(ConfigError, match="feed zone x in .* lies outside the compartments"):
+        feed_zone_weights(x, y, (0.4, 0.5), (0.005, 0.035))
 
 
 def test_pbm_config_takes_the_dem_feed(rng):
