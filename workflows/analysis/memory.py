@@ -113,6 +113,8 @@ class OutOfSample(_JudgedRtd):
     # model fitted to the first cannot follow
     dem_fit_half_mean_s: Estimate | None = None
     dem_fit_half_variance_s2: Estimate | None = None
+    #: phases of each kind of the refit: the same structure as the run's own model
+    refit_phases_per_kind: int | None = None
 
     def record(self) -> dict[str, Any]:
         fit_half = {}
@@ -126,6 +128,7 @@ class OutOfSample(_JudgedRtd):
             "entry_window_s": list(self.entry_window_s),
             "horizon_s": self.horizon_s,
             "n_entered": self.n_entered,
+            "refit_phases_per_kind": self.refit_phases_per_kind,
             **self.judged_record(),
             **fit_half,
         }
@@ -293,4 +296,5 @@ def out_of_sample(results: DemResults, pbm_config: PbmConfig) -> OutOfSample:
         float(pbm.variance_s2),
         Estimate.from_record(fit_half["mean_residence_time_s"]) if has_fit_half else None,
         Estimate.from_record(fit_half["rtd_variance_s2"]) if has_fit_half else None,
+        phases.phases_per_kind(refit.phases),
     )

@@ -5,6 +5,7 @@ import math
 
 import pytest
 
+from dem.phases import phases_per_kind
 from workflows.analysis.memory import memory_check
 from workflows.pipeline.results import load_results, pbm_config_for, rtd_pulse
 from workflows.shipped import VALIDATION_DIR
@@ -29,6 +30,9 @@ def test_the_phase_model_is_nearer_markov_than_the_memoryless_chain(baseline):
     assert model.timescales_s[0] > memoryless.timescales_s[0]
     held = check.out_of_sample
     assert held is not None and held.entry_window_s[0] == pytest.approx(held.fit_window_s[1])
+    # the refit fits the way the run's own model was fitted: a chain per size class with the
+    # same moving phases and its dead zone, not the zone fitted again as a moving phase
+    assert held.refit_phases_per_kind == phases_per_kind(results.table.phases)
     assert held.n_entered > 1000 and math.isfinite(held.pbm_variance_s2)
     assert held.variance_inside == (held.dem_variance_s2.low <= held.pbm_variance_s2 <= held.dem_variance_s2.high)
     # the halves together are the whole run's pooled RTD: their means, weighted by the
