@@ -116,6 +116,14 @@ class OutOfSample(_JudgedRtd):
     #: phases of each kind of the refit: the same structure as the run's own model
     refit_phases_per_kind: int | None = None
 
+    @property
+    def mean_within_halves_noise(self) -> bool | None:
+        return _within_halves_noise(self.pbm_mean_s, self.dem_mean_s, self.dem_fit_half_mean_s)
+
+    @property
+    def variance_within_halves_noise(self) -> bool | None:
+        return _within_halves_noise(self.pbm_variance_s2, self.dem_variance_s2, self.dem_fit_half_variance_s2)
+
     def record(self) -> dict[str, Any]:
         fit_half = {}
         if self.dem_fit_half_mean_s is not None and self.dem_fit_half_variance_s2 is not None:
@@ -129,9 +137,22 @@ class OutOfSample(_JudgedRtd):
             "horizon_s": self.horizon_s,
             "n_entered": self.n_entered,
             "refit_phases_per_kind": self.refit_phases_per_kind,
+            "mean_within_halves_noise": self.mean_within_halves_noise,
+            "variance_within_halves_noise": self.variance_within_halves_noise,
             **self.judged_record(),
             **fit_half,
         }
+
+
+def _within_halves_noise(pbm: float, second: Estimate, first: Estimate | None) -> bool | None:
+    """Whether a refit on the first half misses the second half's value by no more than the
+    two halves' 95 % half-widths combined (the refit carries the first half's sampling
+    noise, the DEM's value the second's); None without the first half's estimate. Beside
+    the verdict, not instead of it: it says whether a miss is one the DEM can resolve."""
+    if first is None:
+        return None
+    half = [(e.high - e.low) / 2 for e in (first, second)]
+    return bool(abs(pbm - second.value) <= math.hypot(*half))
 
 
 @dataclass(frozen=True)

@@ -87,8 +87,10 @@ def memory_html(check: MemoryCheck, figure: str | None) -> str:
     def interval(e) -> str:
         return "–" if e is None else f"{fmt(e.value)} [{fmt(e.low)}, {fmt(e.high)}]"
 
-    def row(name: str, dem, pbm: float, inside: bool, fit_half) -> str:
+    def row(name: str, dem, pbm: float, inside: bool, fit_half, within_noise) -> str:
         verdict = "inside" if inside else "<b>outside</b>"
+        if not inside and within_noise is not None:
+            verdict += " (within the two halves' noise)" if within_noise else " (beyond the two halves' noise)"
         return (
             f"<tr><td>{name}</td><td>{fmt(dem.value)}</td><td>{fmt(dem.low)} – {fmt(dem.high)}</td><td>{fmt(pbm)}</td>"
             f"<td>{verdict}</td><td>{interval(fit_half)}</td></tr>"
@@ -99,16 +101,26 @@ def memory_html(check: MemoryCheck, figure: str | None) -> str:
         f"<p>Phase model refitted on the particles that entered in {held.fit_window_s[0]:.0f}–{held.fit_window_s[1]:.0f} s "
         f"alone; pooled RTD of the {held.n_entered} particles that entered in {held.entry_window_s[0]:.0f}–"
         f"{held.entry_window_s[1]:.0f} s (horizon {held.horizon_s:g} s). The last column is the DEM's RTD of the "
-        "particles the refit was fitted on: how far the run itself moved between its halves.</p>"
+        "particles the refit was fitted on: how far the run itself moved between its halves. A miss is "
+        "within the two halves' noise when it is no larger than their 95 % half-widths combined (the refit "
+        "carries the first half's sampling noise): the verdict stands, but the DEM cannot resolve that miss.</p>"
         "<table><tr><th>quantity</th><th>DEM</th><th>DEM 95 % interval</th><th>PBM, phases</th><th>verdict</th>"
         "<th>DEM, first half [95 %]</th></tr>"
-        + row("mean residence time [s]", held.dem_mean_s, held.pbm_mean_s, held.mean_inside, held.dem_fit_half_mean_s)
+        + row(
+            "mean residence time [s]",
+            held.dem_mean_s,
+            held.pbm_mean_s,
+            held.mean_inside,
+            held.dem_fit_half_mean_s,
+            held.mean_within_halves_noise,
+        )
         + row(
             "RTD variance [s²]",
             held.dem_variance_s2,
             held.pbm_variance_s2,
             held.variance_inside,
             held.dem_fit_half_variance_s2,
+            held.variance_within_halves_noise,
         )
         + "</table>"
     )

@@ -52,3 +52,19 @@ def test_no_phase_model_no_check(baseline):
     import dataclasses
 
     assert memory_check(dataclasses.replace(results, table=plain), pbm_config_for(config, plain, None)) is None
+
+
+def test_a_miss_within_the_two_halves_noise_is_told_apart_from_one_beyond_it():
+    from dem.summary import Estimate
+    from workflows.analysis.memory import OutOfSample
+
+    second, first = Estimate(20.71, 20.38, 20.98), Estimate(21.51, 20.74, 22.46)  # half widths 0.30, 0.86
+
+    def held(pbm_mean, fit_half):
+        return OutOfSample((35, 63), (63, 91), 109, 2000, second, second, pbm_mean, 20.7, fit_half, fit_half, 4)
+
+    near, far, alone = held(21.07, first), held(21.70, first), held(21.07, None)
+    assert not near.mean_inside and near.mean_within_halves_noise  # 0.36 <= hypot(0.30, 0.86) = 0.91
+    assert not far.mean_inside and far.mean_within_halves_noise is False  # 0.99 > 0.91
+    assert alone.mean_within_halves_noise is None and alone.record()["mean_within_halves_noise"] is None
+    assert held(20.8, first).mean_inside  # inside the second half's interval: the verdict itself
