@@ -35,6 +35,17 @@ def bin_particles(x, y, length_m: float, diameter_m: float, nx: int, ny: int) ->
     return inside, i * ny + j
 
 
+def _overlap_shares(edges: np.ndarray, zone_min_m: float, zone_max_m: float, axis: str) -> np.ndarray:
+    """Each compartment's overlap with [zone_min, zone_max] along one axis, normalised."""
+    overlap = np.clip(np.minimum(edges[1:], zone_max_m) - np.maximum(edges[:-1], zone_min_m), 0.0, None)
+    if overlap.sum() <= 0:
+        raise ConfigError(
+            f"feed zone {axis} in [{zone_min_m}, {zone_max_m}] m lies outside the compartments "
+            f"[{edges[0]}, {edges[-1]}] m"
+        )
+    return overlap / overlap.sum()
+
+
 def inlet_weights(y_edges: np.ndarray, zone_y_min_m: float, zone_y_max_m: float) -> list[float]:
     """Shares of a feed zone's particles landing in each y compartment of the first slice:
     the overlap of each compartment with the zone's y range [y_min, y_max], normalised.
@@ -42,15 +53,7 @@ def inlet_weights(y_edges: np.ndarray, zone_y_min_m: float, zone_y_max_m: float)
     The DEM feeder inserts particles uniformly over its zone and they fall nearly straight
     down onto the bed, so the overlap in y is what each inlet compartment receives.
     """
-    lo = np.maximum(y_edges[:-1], zone_y_min_m)
-    hi = np.minimum(y_edges[1:], zone_y_max_m)
-    overlap = np.clip(hi - lo, 0.0, None)
-    if overlap.sum() <= 0:
-        raise ConfigError(
-            f"feed zone y in [{zone_y_min_m}, {zone_y_max_m}] m lies outside the compartments "
-            f"[{y_edges[0]}, {y_edges[-1]}] m"
-        )
-    return [float(w) for w in overlap / overlap.sum()]
+    return [float(w) for w in _overlap_shares(y_edges, zone_y_min_m, zone_y_max_m, "y")]
 
 
 def feed_zone_weights(
@@ -65,16 +68,8 @@ def feed_zone_weights(
     particles are first seen in the second slice, and feeding them all into the first adds
     half a slice to every path.
     """
-    y_share = np.asarray(inlet_weights(y_edges, *zone_y_m))
-    lo = np.maximum(x_edges[:-1], zone_x_m[0])
-    hi = np.minimum(x_edges[1:], zone_x_m[1])
-    x_overlap = np.clip(hi - lo, 0.0, None)
-    if x_overlap.sum() <= 0:
-        raise ConfigError(
-            f"feed zone x in [{zone_x_m[0]}, {zone_x_m[1]}] m lies outside the compartments "
-            f"[{x_edges[0]}, {x_edges[-1]}] m"
-        )
-    x_share = x_overlap / x_overlap.sum()
+    y_share = _overlap_shares(y_edges, *zone_y_m, "y")
+    x_share = _overlap_shares(x_edges, *zone_x_m, "x")
     if np.count_nonzero(x_share) == 1 and x_share[0] > 0:
         return [float(w) for w in y_share]
     return [float(w) for w in np.outer(x_share, y_share).ravel()]

@@ -104,7 +104,7 @@ def size_study(
     zone_residences: float | None = phases.ZONE_RESIDENCES,
 ) -> SizeStudy:
     """:class:`SizeStudy` of the DEM results ``results_path`` (module docstring); K =
-    ``n_phases`` per class, default the post-processing's (:data:`dem.phases.PHASES`);
+    ``n_phases`` per class, default the run's own model's (:func:`dem.phases.moving_phases`);
     ``zone_residences`` bounds each class's dead zone as :func:`dem.phases.table_with_phases`
     does (None: no zone)."""
     results, config = load_results(results_path)
@@ -112,7 +112,7 @@ def size_study(
     if seq is None:
         raise ConfigError(f"{results_path} holds no compartment sequences: post-process the run again")
     target = dem_target(summary, str(results_path))
-    k = n_phases or phases.PHASES
+    k = n_phases or (phases.moving_phases(table.phases) if table.phases is not None else phases.PHASES)
     diameters = _diameters(results, run_dir, str(results_path))
     t_ss = float(summary.steady_time)
     wall0 = time.perf_counter()
