@@ -53,6 +53,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -217,19 +218,32 @@ def fit_phases(
     diameters: np.ndarray | None = None,
 ) -> tuple[VelocityTable, dict[str, Any] | None, str | None]:
     """The table carrying the hidden-phase transport (:func:`dem.phases.table_with_phases`,
-    K = :data:`dem.phases.PHASES`, a chain per size class where ``diameters`` are known)
-    fitted to the particles that entered during the steady period, with a record of the
-    fit; a run with no steady state, or no particle entering after it, keeps its table
-    without phases and gets a note saying why."""
+    K chosen for the grid by :func:`dem.phases.choose_phases`, a chain per size class where
+    ``diameters`` are known) fitted to the particles that entered during the steady period,
+    with a record of the fit; a run with no steady state, or no particle entering after it,
+    keeps its table without phases and gets a note saying why. Where the halves hold too few
+    particles to choose, K is :data:`dem.phases.PHASES`."""
     if steady_time_s is None:
         return table, None, "no phase model: the run never reached the steady state it is fitted to"
+    started = time.perf_counter()
     try:
-        with_phases, fits = phases.table_with_phases(
-            table, sequences, steady_time_s, phases.PHASES, diameters=diameters
-        )
+        k, gain = phases.choose_phases(sequences, steady_time_s)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError):  # too few data to compare: the default
+        k, gain = phases.PHASES, None
+    choosing_s = time.perf_counter() - started
+    try:
+        with_phases, fits = phases.table_with_phases(table, sequences, steady_time_s, k, diameters=diameters)
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:  # too few data to fit
         return table, None, f"no phase model: {exc}"
-    return with_phases, phases.fits_record(fits, with_phases.phases), None
+    record = phases.fits_record(fits, with_phases.phases)
+    # the fit's cost is the choice's fits and the model's: the budget judges both
+    record = {
+        **record,
+        "wall_time_s": float(record["wall_time_s"]) + choosing_s,
+        "moving_phases": k,
+        "held_out_gain_per_step": gain,
+    }
+    return with_phases, record, None
 
 
 def refit_phases(results: DemResults) -> DemResults:

@@ -205,6 +205,13 @@ def test_held_out_likelihood_prefers_the_true_number_of_phases(synthetic_two_pha
     assert two.score(test) > one.score(test) + 100.0
 
 
+def test_a_grid_whose_memory_three_phases_hold_keeps_three(synthetic_two_phase):
+    # the truth has two phases: two more than three add nothing the held-out half can see
+    _truth, sequences, _data, _fit = synthetic_two_phase
+    k, gain = phases.choose_phases(sequences, 0.0)
+    assert k == phases.PHASES and abs(gain) < phases.PHASE_GAIN_MIN / 4
+
+
 def test_chapman_kolmogorov_tells_markovian_from_hidden_phases(synthetic_two_phase):
     truth, _seq, data, fit_two = synthetic_two_phase
     one_on_two = phases.fit(data, 1)
