@@ -158,7 +158,9 @@ def pooled_rtd(
         rows[b] = _tracked_rows(z, n)
 
     pulse_index = np.arange(n_pulses)[:, None]
-    discharged = rows[at, 1, pulse_index]  # (pulse, edge)
+    # The count discharged cannot fall; once a pulse has left, the propagation's rounding
+    # (~1e-16 of the pulse) would otherwise show as negative density in the empty bins.
+    discharged = np.maximum.accumulate(rows[at, 1, pulse_index], axis=1)  # (pulse, edge)
     density = (np.diff(discharged, axis=1) / (amount * np.diff(edges))).mean(axis=0)
     last = rows[at[:, -1], :, np.arange(n_pulses)]  # (pulse, row): state at entry + H
     # Every tracer column starts at its pulse with zero integrals: the columns are empty
