@@ -1508,8 +1508,8 @@ def table_with_phases(
     (:func:`with_transverse`); a schema-3 table that ``pbm`` runs with ``rates =
     "phases"``. ``entered_s`` = (t0, t1): fit to the particles first seen then instead
     (and those inside at t0). ``diameters`` (one per sequence [m], NaN unknown): each
-    size class (:func:`kinds_by_size`, :data:`MIN_KIND_PARTICLES`) gets its own K-phase
-    chain, and the table carries their population (:func:`coupling.phases.population`,
+    size class (:func:`kinds_by_size` over the whole steady window, whatever ``entered_s``
+    fits, :data:`MIN_KIND_PARTICLES`) gets its own K-phase chain, and the table carries their population (:func:`coupling.phases.population`,
     K per class, fed in the classes' shares among the particles entering in the window,
     feeder by feeder); one class, or none known, fits one chain as without. A class's chain
     has a dead zone beside its K moving phases (phase 0 of K + 1, left at most once per
@@ -1520,11 +1520,15 @@ def table_with_phases(
     no steady state or no particle entered after it."""
     if (table.nx, table.ny) != (sequences.nx, sequences.ny):
         raise ValueError(f"table grid {table.nx}x{table.ny} differs from the sequences' {sequences.nx}x{sequences.ny}")
-    window = steady_window(sequences, steady_time_s) if entered_s is None else entered_s
+    run_window = steady_window(sequences, steady_time_s)
+    window = run_window if entered_s is None else entered_s
     lag = max(1, round(PHASE_LAG_S / sequences.interval_s))
     kinds = [np.arange(sequences.n_particles)]
     if diameters is not None and np.isfinite(np.asarray(diameters, float)).any():
-        kinds = kinds_by_size(sequences, diameters, window)
+        # The run's classes, whatever part of it is fitted: counted on a half window, the
+        # feed x0.5 run's three classes fell below MIN_KIND_PARTICLES and merged into one
+        # chain without a zone, whose mean was 2.6 s above both halves' DEM.
+        kinds = kinds_by_size(sequences, diameters, run_window)
     one = len(kinds) == 1
     zone = {}
     if not one and zone_residences is not None:

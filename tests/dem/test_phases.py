@@ -647,6 +647,31 @@ def test_a_chain_per_size_recovers_kinds_that_never_change():
     assert abs(exact_rtd_moments(alone.phases, inlet())[1] / truth_var - 1) > 0.2
 
 
+def test_a_refit_on_part_of_the_run_keeps_the_runs_size_classes():
+    """Fitted to an entry window where each kind has fewer entrants than a class needs on
+    its own (:data:`dem.phases.MIN_KIND_PARTICLES`), the model keeps the classes of the
+    whole run: a refit on half a run is the run's structure fitted again, not one chain
+    for every size (the out-of-sample check refits so)."""
+    fast, slow = _one_phase(5.0, 1.0), _one_phase(1.5, 0.8)
+    rng = np.random.default_rng(3)
+    both = _joined(*(phases.simulate_sequences(m, inlet(), 2000, 2400, rng) for m in (fast, slow)))
+    diameters = np.where(np.arange(both.n_particles) < 2000, 0.0055, 0.0065)
+    t_end = float(both.snapshot_t[-1])
+    first_seen = both.snapshot_t[both.start]
+    part = (0.0, float(np.quantile(first_seen, 0.12)))
+    entering = (first_seen > part[0]) & (first_seen <= part[1])
+    assert (
+        0 < entering[:2000].sum() < phases.MIN_KIND_PARTICLES and 0 < entering[2000:].sum() < phases.MIN_KIND_PARTICLES
+    )
+    assert len(phases.kinds_by_size(both, diameters, part)) == 1  # the part alone would merge them
+    assert len(phases.kinds_by_size(both, diameters, (0.0, t_end))) == 2
+    table, fits = phases.table_with_phases(
+        table_with(None), both, 0.0, 1, starts=1, entered_s=part, diameters=diameters
+    )
+    assert len(fits) == 2 and phases.phases_per_kind(table.phases) == 2
+    assert table.phases.attrs["diameters_m"] == pytest.approx([0.0055, 0.0065])
+
+
 def test_little_residence_time_is_the_mean_stay_when_all_leave():
     """Every particle stays 7 dumps and leaves: hold-up over inflow is 0.7 s however the
     entries are spread, and a window with no inflow is refused."""

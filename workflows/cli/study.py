@@ -16,6 +16,7 @@ STUDIES = (
     ("phases", "workflows.studies.phases"),
     ("composition", "workflows.studies.composition"),
     ("sizes", "workflows.studies.sizes"),
+    ("holdout", "workflows.studies.holdout"),
     ("blocks", "workflows.studies.blocks"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),

@@ -1,0 +1,120 @@
+"""``pbmdem study holdout``: the phase model out of sample, run by run.
+
+The memory check (:func:`workflows.analysis.memory.out_of_sample`) refits a run's phase
+model to the particles that entered in the first half of its steady entries and predicts
+the pooled RTD of those that entered in the second half; ``compare`` runs it on the
+preset's run alone. This study runs it on any set of results files (by default the shipped
+reduced run and the whole validation campaign), so that how often the check passes, and
+whether a miss is beyond the two halves' noise, is measured over runs rather than read
+from one. It needs only what the results store (the compartment sequences and the
+particle records). Writes ``holdout.json`` and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from coupling.errors import ConfigError
+from coupling.jsonable import write_json
+from dem.phases import phases_per_kind
+from workflows.analysis.memory import OutOfSample, out_of_sample
+from workflows.pipeline.results import load_results, pbm_config_for
+from workflows.shipped import REDUCED_RUN, VALIDATION_DIR
+
+HELP = "the phase model refitted on each run's first half against the DEM's second half, over many runs"
+OUT = Path("results/holdout")
+
+
+@dataclass(frozen=True)
+class Holdout:
+    """One run's out-of-sample check: its file and configuration name, its own model's
+    phases per kind (what the refit must repeat), the check, and the seconds it took."""
+
+    results: str
+    name: str
+    run_phases_per_kind: int
+    check: OutOfSample
+    wall_time_s: float
+
+    def record(self) -> dict:
+        return {
+            "results": self.results,
+            "name": self.name,
+            "run_phases_per_kind": self.run_phases_per_kind,
+            "wall_time_s": self.wall_time_s,
+            **self.check.record(),
+        }
+
+
+def holdout(path: str | Path) -> Holdout:
+    """:class:`Holdout` of the results file ``path``. Raises ConfigError naming the file
+    when the run has no phase model, no sequences, or halves too short to fit and judge;
+    CacheError for a missing or corrupt file."""
+    started = time.perf_counter()
+    results, config = load_results(path)
+    if results.sequences is None or not results.table.has_phases:
+        raise ConfigError(f"{path}: the results carry no phase model with compartment sequences to refit")
+    try:
+        check = out_of_sample(results, pbm_config_for(config, results.table, None))
+    except ValueError as exc:
+        raise ConfigError(f"{path}: no out-of-sample check: {exc}") from exc
+    return Holdout(str(path), config.name, phases_per_kind(results.table.phases), check, time.perf_counter() - started)
+
+
+def _judged(pbm: float, dem, first, within: bool | None, digits: int) -> str:
+    inside = "✓" if dem.low <= pbm <= dem.high else "✗"
+    noise = "" if inside == "✓" or within is None else (" (within noise)" if within else " (beyond noise)")
+    first_text = "" if first is None else f"{first.value:.{digits}f}"
+    return (
+        f"{pbm:.{digits}f} {inside}{noise} | {dem.value:.{digits}f} [{dem.low:.{digits}f}, {dem.high:.{digits}f}] "
+        f"| {first_text}"
+    )
+
+
+def markdown(rows: list[Holdout]) -> str:
+    """One line per run: the refit's prediction against the DEM's second half (the
+    verdict, and whether a miss is within the two halves' noise), the first half beside it."""
+    lines = [
+        "| run | tracers | phases per kind, run / refit | refit mean [s] | DEM 2nd half | DEM 1st half "
+        "| refit variance [s²] | DEM 2nd half | DEM 1st half |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in rows:
+        c = row.check
+        lines.append(
+            f"| {row.name} | {c.n_entered} | {row.run_phases_per_kind} / {c.refit_phases_per_kind} | "
+            f"{_judged(c.pbm_mean_s, c.dem_mean_s, c.dem_fit_half_mean_s, c.mean_within_halves_noise, 2)} | "
+            f"{_judged(c.pbm_variance_s2, c.dem_variance_s2, c.dem_fit_half_variance_s2, c.variance_within_halves_noise, 0)} |"
+        )
+    means = sum(r.check.mean_inside for r in rows)
+    variances = sum(r.check.variance_inside for r in rows)
+    both = sum(r.check.mean_inside and r.check.variance_inside for r in rows)
+    lines += ["", f"inside: mean {means} of {len(rows)}, variance {variances} of {len(rows)}, both {both}"]
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--results",
+        nargs="+",
+        default=[str(REDUCED_RUN), *sorted(str(p) for p in VALIDATION_DIR.glob("dem-*.h5"))],
+        metavar="FILE",
+        help="DEM results files with compartment sequences and a phase model (default: the shipped reduced run "
+        "and the validation campaign)",
+    )
+    parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
+
+
+def run(args: argparse.Namespace) -> int:
+    rows = []
+    for path in args.results:
+        rows.append(holdout(path))
+        print(f"{Path(path).name}: {rows[-1].wall_time_s:.0f} s", flush=True)
+    print(markdown(rows))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"wrote {write_json(out / 'holdout.json', {'runs': [r.record() for r in rows]})}")
+    return 0
