@@ -1,11 +1,12 @@
 """Resampling statistics: the 95 % intervals every DEM number carries.
 
-* :func:`block_bootstrap` -- percentile interval of any statistic of time-correlated data,
-  by resampling whole blocks (e.g. particles grouped by 5-s blocks of entry time, or dump
+* :func:`block_bootstrap` -- expanded percentile interval of any statistic of
+  time-correlated data, by resampling whole blocks (e.g. particles grouped by 5-s blocks of entry time, or dump
   snapshots grouped in 5-s blocks). Resampling single items would treat neighbours in
   time as independent and give intervals that are too narrow.
 * :func:`block_draw_counts` -- the same replicates as counts of each block, for statistics
-  that are one matrix product over all replicates; :func:`percentile_interval` -- their ends.
+  that are one matrix product over all replicates; :func:`percentile_interval` -- their ends;
+  :func:`expanded_interval` -- those ends made honest for few blocks.
 * :func:`time_blocks` -- the block label of each item from its time.
 * :func:`batch_means_interval` -- Student-t interval of any smooth statistic of a series of
   blocks whose correlation outlasts the blocks: overlapping batch means of the statistic's
@@ -29,7 +30,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from scipy.special import stdtrit
+from scipy.special import ndtri, stdtrit
 
 from coupling.metrics import rtd_overlap
 
@@ -95,7 +96,9 @@ def block_bootstrap(
     should be longer than the correlation time.
 
     Returns :class:`Interval` (estimate, low, high) with low/high the (1 - level)/2 and
-    (1 + level)/2 percentiles of the replicates. A replicate that is NaN makes the
+    (1 + level)/2 percentiles of the replicates, moved away from the estimate by
+    :func:`expansion_factor` of the number of blocks (the expanded percentile interval:
+    the plain ends cover too rarely when the blocks are few). A replicate that is NaN makes the
     interval NaN rather than being dropped, since dropping it would bias the interval.
     Needs at least two blocks (one block resamples to itself: no interval).
     """
@@ -120,7 +123,36 @@ def block_bootstrap(
         # plus the block's start in `order`: the run of each chosen block, end to end
         offsets = np.repeat(starts[chosen] - (np.cumsum(size) - size), size)
         replicates[b] = statistic(order[offsets + np.arange(size.sum())])
-    return percentile_interval(estimate, replicates, level)
+    return expanded_interval(percentile_interval(estimate, replicates, level), n_blocks, level)
+
+
+def expansion_factor(n_blocks: int, level: float = 0.95) -> float:
+    """sqrt(n / (n - 1)) t_(n-1) / z at ``level``: how much wider than the bootstrap's
+    percentile ends the interval of a statistic over n blocks has to be.
+
+    The percentile bootstrap of a mean over n independent blocks spreads like s / sqrt(n)
+    times sqrt((n - 1) / n) (the plug-in variance) with normal quantiles, where the honest
+    interval has Student's t with n - 1 degrees of freedom; the expanded percentile
+    interval (Hesterberg 2015, "What teachers should know about the bootstrap") puts both
+    back. On synthetic pooled RTDs (blocks of gamma-distributed residence times with a
+    block-level drift), the plain percentile ends covered the true mean 77 / 86 / 91 / 93 %
+    of the time with 3 / 6 / 12 / 25 blocks, and its variance 73 / 85 / 90 / 92 %; expanded,
+    94-95 % and 92-95 % (the factors 2.69 / 1.44 / 1.17 / 1.08)."""
+    n_blocks = _check_count("n_blocks", n_blocks, minimum=2)
+    level = _check_level(level)
+    q = (1 + level) / 2
+    return float(math.sqrt(n_blocks / (n_blocks - 1)) * stdtrit(n_blocks - 1, q) / ndtri(q))
+
+
+def expanded_interval(interval: Interval, n_blocks: int, level: float = 0.95) -> Interval:
+    """``interval`` with each end moved away from the estimate by
+    :func:`expansion_factor` (``n_blocks``, ``level``): the bootstrap's own asymmetry
+    kept, its width made honest for few blocks."""
+    f = expansion_factor(n_blocks, level)
+    est = np.asarray(interval.estimate, dtype=float)
+    low = est - f * (est - np.asarray(interval.low, dtype=float))
+    high = est + f * (np.asarray(interval.high, dtype=float) - est)
+    return Interval(est[()], low[()], high[()])
 
 
 def _drawn_blocks(n_blocks: int, n_boot: int, seed) -> np.ndarray:

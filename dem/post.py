@@ -163,7 +163,7 @@ class DemResults:
             **plain,
             sequences=sequences,
         )
-        if intervals_are_current(results.summary.steady):
+        if intervals_are_current(results.summary.steady, entry.summary.get("pooled_rtd")):
             return results
         try:
             return recompute_steady(results)

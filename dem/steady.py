@@ -74,10 +74,12 @@ STALE_INTERVALS = (
 )
 
 
-def intervals_are_current(steady: dict[str, Any]) -> bool:
+def intervals_are_current(steady: dict[str, Any], pooled: dict[str, Any] | None = None) -> bool:
     """Whether steady quantities were computed this version's way (their batches are
-    recorded); empty ones (no steady state) are the same either way."""
-    return not steady or "batch_s" in steady
+    recorded), and the pooled RTD's intervals too (expanded for their blocks, whose count is
+    recorded); empty ones (no steady state, no tracers) are the same either way."""
+    pooled_current = not pooled or not pooled.get("n_entered") or "n_blocks" in pooled
+    return (not steady or "batch_s" in steady) and pooled_current
 
 
 def _entry(value, interval) -> dict[str, Any]:
@@ -217,7 +219,8 @@ def pooled_rtd(
             return np.array([np.nan, np.nan, 0.0])
         return np.array([r.mean(), r.var(), r.size / idx.size])
 
-    est, low, high = block_bootstrap(stat, _blocks(e_in, window[0], block_s), n_boot=N_BOOT, level=LEVEL)
+    blocks = _blocks(e_in, window[0], block_s)
+    est, low, high = block_bootstrap(stat, blocks, n_boot=N_BOOT, level=LEVEL)
     return {
         "horizon_s": h,
         "entry_window_s": list(window),
@@ -228,4 +231,5 @@ def pooled_rtd(
         "rtd_variance_s2": _entry(pooled.variance_s2, (low[1], high[1])),
         "recovered_fraction": _entry(pooled.recovered_fraction, (low[2], high[2])),
         "bin_s": RTD_BIN_S,
+        "n_blocks": int(np.unique(blocks).size),
     }

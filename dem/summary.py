@@ -50,6 +50,8 @@ class PooledRtdSummary:
     recovered_fraction: Estimate | None = None
     bin_s: float | None = None
     note: str | None = None
+    #: the 5-s blocks of entry time the intervals resample (their expansion's n)
+    n_blocks: int | None = None
 
     @property
     def has_tracers(self) -> bool:
@@ -70,6 +72,7 @@ class PooledRtdSummary:
             Estimate.from_record(record.get("recovered_fraction")),
             record.get("bin_s"),
             record.get("note"),
+            None if record.get("n_blocks") is None else int(record["n_blocks"]),
         )
 
     def record(self) -> dict[str, Any]:
@@ -91,6 +94,8 @@ class PooledRtdSummary:
                     "bin_s": self.bin_s,
                 }
             )
+            if self.n_blocks is not None:
+                out["n_blocks"] = self.n_blocks
         return out
 
 

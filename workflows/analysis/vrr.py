@@ -13,8 +13,8 @@ derivation). Here:
   RTD is, so H(0) = 1 exactly; the reduced run recovers 99.8 %, and a tail beyond H
   (>= 5 mean residence times) moves H by at most the unrecovered share. The 95 % intervals
   of |H| and VRR (and of the noise VRRs) are a block bootstrap over entry time
-  (:func:`coupling.intervals.block_bootstrap`, 5-s blocks, 2000 replicates, seeded), as for
-  the pooled RTD's mean in :mod:`dem.steady`.
+  (:func:`coupling.intervals.block_bootstrap`, 5-s blocks, 2000 replicates, seeded, the
+  ends expanded for the number of blocks), as for the pooled RTD's mean in :mod:`dem.steady`.
 * the sampling floor: a mean of N unit phasors with unrelated phases has |H| ~ 1/sqrt(N)
   (E|H_hat|^2 = |H|^2 + (1 - |H|^2) / N for independent particles), so above a few times
   1 / mean residence time the DEM's |H| is noise, and its VRR saturates at ~N. Frequencies
@@ -61,6 +61,7 @@ from coupling.intervals import (
     SEED,
     Interval,
     block_draw_counts,
+    expanded_interval,
     inside,
     percentile_interval,
     time_blocks,
@@ -473,7 +474,9 @@ def dem_transfer(
     # a replicate's mean phasor is (draws per block) @ sums / (draws @ counts): every
     # replicate of block_bootstrap's at once
     draws = block_draw_counts(n_blocks, n_boot, seed)
-    est, low, high = percentile_interval(statistic(np.ones((1, n_blocks)))[0], statistic(draws), level)
+    est, low, high = expanded_interval(
+        percentile_interval(statistic(np.ones((1, n_blocks)))[0], statistic(draws), level), n_blocks, level
+    )
     est, low, high = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (est, low, high))
     h = sums[:, :n_f].sum(axis=0) / counts.sum()
     n_rec = int(counts.sum())
