@@ -8,7 +8,8 @@ from the summary that ``make full-comparison`` (``pbmdem compare``) writes:
 * the ``phases`` PBM (transport with memory): steady hold-up of every axial slice within
   10 % of the DEM's and the total inside its 95 % interval; mean residence time and RTD
   variance inside the DEM's 95 % intervals; RTD overlap >= 0.9 and inside its noise band;
-  mean and variance change < 5 % between NX and 2 NX;
+  mean and variance change < 5 % between NX and 2 NX; refitted on the first half of the
+  steady entries, the second half's pooled mean and variance inside their intervals;
 * the VRR of feeder A for white noise and first-order noise of tau = 5 s and 20 s inside
   the DEM's 95 % intervals (feeder B's, and tau = 1 s, are printed as information);
 * post-processing, and the phase fit within it, <= 5 % of the DEM's wall time.
@@ -60,6 +61,24 @@ def _vrr_lines(summary: dict, mode: str, target: bool | None) -> list[tuple[str,
                 )
             )
     return out
+
+
+def _out_of_sample_line(summary: dict) -> tuple[str, str, bool]:
+    """The phase model refitted on the first half of the steady entries against the DEM's
+    RTD of the second half (``memory.out_of_sample``); a summary without it fails, saying why."""
+    name = (
+        "phases: out of sample (refitted on the first half), the second half's mean and variance inside its intervals"
+    )
+    memory = summary.get("memory") or {}
+    held = memory.get("out_of_sample")
+    if not held:
+        return name, memory.get("out_of_sample_note") or "no out-of-sample check in the summary", False
+    m, v = held["dem_mean_s"], held["dem_variance_s2"]
+    numbers = (
+        f"mean {held['pbm_mean_s']:.2f} vs DEM {m['value']:.2f} [{m['low']:.2f}, {m['high']:.2f}], "
+        f"variance {held['pbm_variance_s2']:.4g} vs DEM {v['value']:.4g} [{v['low']:.4g}, {v['high']:.4g}]"
+    )
+    return name, numbers, bool(held["mean_inside"]) and bool(held["variance_inside"])
 
 
 def check(summary: dict) -> list[tuple[str, str, bool | None]]:
@@ -137,6 +156,8 @@ def check(summary: dict) -> list[tuple[str, str, bool | None]]:
                     (abs(sens["change_mean"]) < 0.05 and abs(sens["change_variance"]) < 0.05) if target else None,
                 )
             )
+    if any("pbm_phases" in r for r in rows.values()):
+        out.append(_out_of_sample_line(summary))
     prov = summary.get("provenance") or {}
     dem_s, post_s = prov.get("dem_wall_time_s"), prov.get("dem_postprocess_time_s")
     if dem_s and post_s:

@@ -70,3 +70,26 @@ def test_the_vrr_target_is_feeder_a_white_5_and_20_s_the_rest_informs():
     assert verdicts(s)["phases: VRR of feeder A inside the DEM intervals"] is False
     s["agreement"].append(row("rsd_outlet", 0.315, 0.306, 0.323, {"phases": 0.319, "measured": 0.2}))
     assert verdicts(s)["phases: rsd_outlet inside the DEM interval"] is None  # composition informs
+
+
+OUT_OF_SAMPLE = (
+    "phases: out of sample (refitted on the first half), the second half's mean and variance inside its intervals"
+)
+
+
+def test_the_out_of_sample_target_needs_both_moments_inside_and_fails_without_the_check():
+    s = summary(258.0)
+    assert verdicts(s)[OUT_OF_SAMPLE] is False  # no memory check in the summary
+    held = {
+        "dem_mean_s": {"value": 20.7, "low": 20.2, "high": 21.1},
+        "dem_variance_s2": {"value": 250.0, "low": 218.0, "high": 288.0},
+        "pbm_mean_s": 21.07,
+        "pbm_variance_s2": 258.0,
+        "mean_inside": True,
+        "variance_inside": True,
+    }
+    s["memory"] = {"out_of_sample": held}
+    assert verdicts(s)[OUT_OF_SAMPLE] is True
+    s["memory"] = {"out_of_sample": {**held, "pbm_mean_s": 21.3, "mean_inside": False}}
+    assert verdicts(s)[OUT_OF_SAMPLE] is False
+    assert verdicts(summary(258.0, with_phases=False)).get(OUT_OF_SAMPLE) is None  # no phases mode, no line
