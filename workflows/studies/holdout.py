@@ -7,7 +7,8 @@ preset's run alone. This study runs it on any set of results files (by default t
 reduced run and the whole validation campaign), so that how often the check passes, and
 whether a miss is beyond the two halves' noise, is measured over runs rather than read
 from one. It needs only what the results store (the compartment sequences and the
-particle records). Writes ``holdout.json`` and prints a table.
+particle records). Writes ``holdout.json`` and ``holdout.png`` (each run's refit against
+the DEM's two halves) and prints a table.
 """
 
 from __future__ import annotations
@@ -17,7 +18,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from coupling.errors import ConfigError
+from coupling.files import writable_directory
 from coupling.jsonable import write_json
 from dem.phases import phases_per_kind
 from workflows.analysis.memory import OutOfSample, out_of_sample
@@ -96,6 +100,45 @@ def markdown(rows: list[Holdout]) -> str:
     return "\n".join(lines)
 
 
+def plot_holdout(rows: list[Holdout], path: Path) -> Path:
+    """Each run's refit against the DEM's halves, relative to the second half: its 95 %
+    interval as a bar, the first half as a hollow mark, the refit as a filled one; the
+    mean on the left, the variance on the right."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 0.5 * len(rows) + 1.6), layout="constrained")
+    axes = fig.subplots(1, 2, sharey=True)
+    y = np.arange(len(rows))[::-1]
+    for ax, what, pbm_of, second_of, first_of in (
+        (axes[0], "pooled mean", lambda c: c.pbm_mean_s, lambda c: c.dem_mean_s, lambda c: c.dem_fit_half_mean_s),
+        (
+            axes[1],
+            "pooled variance",
+            lambda c: c.pbm_variance_s2,
+            lambda c: c.dem_variance_s2,
+            lambda c: c.dem_fit_half_variance_s2,
+        ),
+    ):
+        for yi, row in zip(y, rows):
+            second, first = second_of(row.check), first_of(row.check)
+            ax.plot([second.low / second.value, second.high / second.value], [yi, yi], color="#9e9e9e", lw=6)
+            if first is not None:
+                ax.plot(first.value / second.value, yi, "o", mfc="none", mec="#1f77b4")
+            inside = second.low <= pbm_of(row.check) <= second.high
+            ax.plot(pbm_of(row.check) / second.value, yi, "D", color="#2ca02c" if inside else "#d62728")
+        ax.axvline(1.0, color="k", lw=0.6)
+        ax.set(xlabel=f"{what} / the DEM's second half", title=what)
+        ax.grid(alpha=0.3)
+    axes[0].set_yticks(y, [row.name for row in rows])
+    axes[0].plot([], [], color="#9e9e9e", lw=6, label="DEM 2nd half, 95 %")
+    axes[0].plot([], [], "o", mfc="none", mec="#1f77b4", label="DEM 1st half (fitted on)")
+    axes[0].plot([], [], "D", color="#2ca02c", label="refit: inside")
+    axes[0].plot([], [], "D", color="#d62728", label="refit: outside")
+    axes[0].legend(fontsize=7, loc="best")
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--results",
@@ -114,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
         rows.append(holdout(path))
         print(f"{Path(path).name}: {rows[-1].wall_time_s:.0f} s", flush=True)
     print(markdown(rows))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {write_json(out / 'holdout.json', {'runs': [r.record() for r in rows]})}")
+    out = writable_directory(args.out, "--out")
+    written = write_json(out / "holdout.json", {"runs": [r.record() for r in rows]})
+    print(f"wrote {written} and {plot_holdout(rows, out / 'holdout.png')}")
     return 0

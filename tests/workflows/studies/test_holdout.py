@@ -22,6 +22,7 @@ def test_the_study_reports_each_runs_refit_against_its_second_half(tmp_path, cap
     assert run["mean_inside"] == (second["low"] <= run["pbm_mean_s"] <= second["high"])
     inside = int(run["mean_inside"]), int(run["variance_inside"])
     assert f"inside: mean {inside[0]} of 1, variance {inside[1]} of 1" in printed
+    assert (tmp_path / "holdout.png").stat().st_size > 5_000
 
 
 def test_a_file_without_a_phase_model_is_refused_by_name(tmp_path, capsys):
