@@ -217,3 +217,32 @@ def test_paper_hold_up_is_scaled_from_the_shipped_reduced_run():
 
     held, source = reference_holdup(load_preset("paper").dem)
     assert "dem-" in source and 30_000 < held < 45_000
+
+
+def test_the_grid_check_feeds_the_finer_grid_where_the_zone_lands(tmp_path, monkeypatch):
+    """On 20 slices of 16.5 mm the feeders' zones (x = 6-30 mm) span the first two: the
+    grid check's PBM gets the zone mapped onto the finer table's own compartments (both
+    slices, by overlap), not the coarse run's first-slice weights."""
+    from workflows.products import compare
+
+    config = load_preset("reduced")
+    data = config.to_dict()
+    data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
+    config = config_from_dict(data)
+    dem = dem_stage(config, runs_root=tmp_path / "runs", solver=False)
+    coarse = pbm_config_for(config, dem.table, None)
+    assert len(coarse.feed_weights_a) == dem.table.ny  # inside the first of 10 slices
+    seen = {}
+
+    def capture(table, pbm_config, *_args, **_kwargs):
+        seen["table"], seen["config"] = table, pbm_config
+        return {}
+
+    monkeypatch.setattr(compare, "nx_sensitivity", capture)
+    compare.grid_sensitivity(config, dem, coarse, ("phases",), tmp_path / "runs", lambda _line: None)
+    fine, fed = seen["table"], seen["config"]
+    assert fine.nx == 2 * dem.table.nx
+    for weights in (fed.feed_weights_a, fed.feed_weights_b):
+        by_slice = np.asarray(weights).reshape(fine.nx, fine.ny).sum(axis=1)
+        assert by_slice[0] > 0 and by_slice[1] > 0 and by_slice[2:].sum() == 0
+        assert by_slice[1] / by_slice.sum() == pytest.approx(13.5 / 24, rel=0.05)
