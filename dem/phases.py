@@ -1600,21 +1600,17 @@ def choose_phases(sequences: CompartmentSequences, steady_time_s: float | None, 
     middle = 0.5 * (t0 + float(entered.max()))  # the entries' halves
     grid = (sequences.nx, 1)
     lag = max(1, round(PHASE_LAG_S / sequences.interval_s))
-    train = prepare(sequences, (t0, middle), grid=grid, lag=lag, residents=True)
-    test = prepare(sequences, (middle, t1), grid=grid, lag=lag)
-    if test.n_steps == 0:
-        raise ValueError("no particle entered in the second half of the steady window to score the phases on")
-    fits = {k: fit(train, k, starts=1, seed=seed, tol=PHASE_TOL) for k in (PHASES, PHASES_FINE)}
     # the held-out particles in blocks of entry time: the gain per block, paired, so that a
     # gain the held-out data cannot tell from noise (a small run) keeps the default
     edges = np.linspace(middle, float(entered.max()), GAIN_BLOCKS + 1)
-    gains, steps = [], []
-    for a, b in zip(edges[:-1], edges[1:]):
-        block = prepare(sequences, (a, b), grid=grid, lag=lag)
-        if block.n_steps:
-            gains.append((fits[PHASES_FINE].score(block) - fits[PHASES].score(block)) / block.n_steps)
-            steps.append(block.n_steps)
-    gains_a, weights = np.asarray(gains), np.asarray(steps, float)
+    blocks = [prepare(sequences, (a, b), grid=grid, lag=lag) for a, b in zip(edges[:-1], edges[1:])]
+    blocks = [block for block in blocks if block.n_steps]
+    if not blocks:
+        raise ValueError("no particle entered in the second half of the steady window to score the phases on")
+    train = prepare(sequences, (t0, middle), grid=grid, lag=lag, residents=True)
+    fits = {k: fit(train, k, starts=1, seed=seed, tol=PHASE_TOL) for k in (PHASES, PHASES_FINE)}
+    gains = [(fits[PHASES_FINE].score(block) - fits[PHASES].score(block)) / block.n_steps for block in blocks]
+    gains_a, weights = np.asarray(gains), np.asarray([block.n_steps for block in blocks], float)
     gain = float(np.average(gains_a, weights=weights))
     if gains_a.size < 2:
         return PHASES, gain

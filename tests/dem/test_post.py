@@ -499,3 +499,13 @@ def test_results_with_an_earlier_versions_intervals_are_brought_up_to_date_on_re
     kept = DemResults.from_cache_entry(bare.to_cache_entry({"key": "test"}))
     assert kept.summary.steady["holdup"]["low"] == 19.99
     assert any("earlier version's, over 5-s blocks" in w for w in kept.summary.warnings)
+    # a pooled RTD whose intervals were not expanded for their blocks (no block count
+    # recorded) is computed again too, with current steady quantities beside it
+    record = res.summary.record()
+    plain = {k: v for k, v in record["pooled_rtd"].items() if k != "n_blocks"}
+    plain["mean_residence_time_s"] = {**plain["mean_residence_time_s"], "low": 0.0}
+    record["pooled_rtd"] = plain
+    unexpanded = dataclasses.replace(res, summary=DemSummary.from_record(record))
+    again = DemResults.from_cache_entry(unexpanded.to_cache_entry({"key": "test"}))
+    _assert_same(again.summary.pooled_rtd, res.summary.pooled_rtd)
+    assert again.summary.pooled_rtd.n_blocks == res.summary.pooled_rtd.n_blocks >= 2
