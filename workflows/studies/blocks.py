@@ -19,7 +19,9 @@ known mean (a hold-up that is a fast and a slow Ornstein-Uhlenbeck process, the 
 relaxing in a given fraction of the residence time), each run through
 :func:`dem.steady.steady_quantities` (this version's interval) and through a bootstrap
 over 5-s blocks (the earlier one); the share of intervals that hold the true mean is the
-coverage, 95 % nominal. Writes ``blocks.json``.
+coverage, 95 % nominal. It also checks the pooled RTD's intervals on N synthetic pooled
+RTDs of 3 to 25 entry blocks (:func:`rtd_coverage_row`): the bootstrap's plain percentile
+ends against the expanded ones the results carry. Writes ``blocks.json``.
 """
 
 from __future__ import annotations
@@ -34,7 +36,14 @@ import pandas as pd
 from scipy.signal import lfilter
 
 from coupling.errors import ConfigError
-from coupling.intervals import LEVEL, N_BOOT, batch_means_error, block_draw_counts, percentile_interval
+from coupling.intervals import (
+    LEVEL,
+    N_BOOT,
+    batch_means_error,
+    block_draw_counts,
+    expanded_interval,
+    percentile_interval,
+)
 from coupling.jsonable import write_json
 from dem.post import DemResults
 from dem.steady import steady_quantities
@@ -79,6 +88,20 @@ class CoverageRow:
     series: int
     batch_means: float
     bootstrap_5s: float
+
+
+@dataclass(frozen=True)
+class RtdCoverageRow:
+    """Coverage of a synthetic pooled RTD's true mean and variance over ``series`` samples
+    of ``n_blocks`` entry blocks: by the bootstrap's plain percentile ends and by the
+    expanded ones the results carry (:func:`coupling.intervals.expanded_interval`)."""
+
+    n_blocks: int
+    series: int
+    mean_plain: float
+    mean_expanded: float
+    variance_plain: float
+    variance_expanded: float
 
 
 def _half(low, high) -> float:
@@ -182,6 +205,35 @@ def coverage_row(
     )
 
 
+def rtd_coverage_row(n_blocks: int, series: int, seed: int = 0, per_block: int = 150) -> RtdCoverageRow:
+    """:class:`RtdCoverageRow` of pooled RTDs whose ``n_blocks`` entry blocks hold
+    ``per_block`` residence times each: gamma-distributed (shape 2.5, scale 8 s: mean 20 s,
+    variance 160 s²), every block shifted by a drift of standard deviation 1.5 s (a slow
+    fluctuation its particles share), so the truth is 20 s and 160 + 1.5² s²."""
+    rng = np.random.default_rng(seed)
+    true_mean, true_variance = 20.0, 160.0 + 1.5**2
+    draws = block_draw_counts(n_blocks, N_BOOT, seed)
+    ones = np.ones((1, n_blocks))
+    held = np.zeros((2, 2))  # (plain, expanded) x (mean, variance)
+    for _ in range(series):
+        tau = rng.gamma(2.5, 8.0, (n_blocks, per_block)) + rng.normal(0.0, 1.5, (n_blocks, 1))
+        sums, squares, sizes = tau.sum(axis=1), (tau**2).sum(axis=1), np.full(n_blocks, float(per_block))
+
+        def moments(w, sums=sums, squares=squares, sizes=sizes):
+            mean = (w @ sums) / (w @ sizes)
+            return np.column_stack([mean, (w @ squares) / (w @ sizes) - mean**2])
+
+        plain = percentile_interval(moments(ones)[0], moments(draws), LEVEL)
+        for row, ends in enumerate((plain, expanded_interval(plain, n_blocks, LEVEL))):
+            held[row] += (ends.low <= (true_mean, true_variance)) & ((true_mean, true_variance) <= ends.high)
+    (mean_plain, variance_plain), (mean_expanded, variance_expanded) = (held / series).tolist()
+    return RtdCoverageRow(n_blocks, series, mean_plain, mean_expanded, variance_plain, variance_expanded)
+
+
+#: entry blocks the pooled RTD's coverage is checked at: half a steady period holds 3-13 of
+#: the shipped runs' 5-s blocks, a whole one 5-26
+RTD_COVERAGE_BLOCKS = (3, 6, 12, 25)
+
 #: (residence time, steady period, slow relaxation) [s]: the campaign's runs hold 6-8
 #: residence times of steady period, and their hold-up's slow part relaxes in about a
 #: third to a half of a residence time (its integrated autocorrelation time).
@@ -197,7 +249,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="also check the hold-up intervals' coverage on N synthetic steady periods per case (e.g. 400; default: none)",
+        help="also check the hold-up and pooled-RTD intervals' coverage on N synthetic samples per case (e.g. 400; default: none)",
     )
     parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
 
@@ -238,8 +290,26 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"| {c.residence_time_s:g} | {c.steady_s:g} | {c.slow_s:g} | {c.batch_means:.3f} | {c.bootstrap_5s:.3f} |"
             )
+    rtd_coverage = [rtd_coverage_row(n, args.coverage, seed=n) for n in RTD_COVERAGE_BLOCKS] if args.coverage else []
+    if rtd_coverage:
+        print(
+            f"\ncoverage of a pooled RTD's true mean and variance (nominal {LEVEL:.0%}), {args.coverage} samples each"
+        )
+        print(
+            "| entry blocks | mean: percentile ends | expanded (the results') | variance: percentile ends | expanded |"
+        )
+        print("| --- | --- | --- | --- | --- |")
+        for c in rtd_coverage:
+            print(
+                f"| {c.n_blocks} | {c.mean_plain:.3f} | {c.mean_expanded:.3f} | {c.variance_plain:.3f} | "
+                f"{c.variance_expanded:.3f} |"
+            )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    record = {"rows": [asdict(r) for r in rows], "coverage": [asdict(c) for c in coverage]}
+    record = {
+        "rows": [asdict(r) for r in rows],
+        "coverage": [asdict(c) for c in coverage],
+        "rtd_coverage": [asdict(c) for c in rtd_coverage],
+    }
     print(f"wrote {write_json(out / 'blocks.json', record)}")
     return 0
