@@ -17,6 +17,7 @@ STUDIES = (
     ("composition", "workflows.studies.composition"),
     ("sizes", "workflows.studies.sizes"),
     ("holdout", "workflows.studies.holdout"),
+    ("startup", "workflows.studies.startup"),
     ("blocks", "workflows.studies.blocks"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),
