@@ -26,7 +26,7 @@ from coupling.jsonable import write_json
 from dem.phases import phases_per_kind
 from workflows.analysis.memory import OutOfSample, out_of_sample
 from workflows.pipeline.results import load_results, pbm_config_for
-from workflows.shipped import REDUCED_RUN, VALIDATION_DIR
+from workflows.studies import add_runs_arguments
 
 HELP = "the phase model refitted on each run's first half against the DEM's second half, over many runs"
 OUT = Path("results/holdout")
@@ -140,15 +140,7 @@ def plot_holdout(rows: list[Holdout], path: Path) -> Path:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--results",
-        nargs="+",
-        default=[str(REDUCED_RUN), *sorted(str(p) for p in VALIDATION_DIR.glob("dem-*.h5"))],
-        metavar="FILE",
-        help="DEM results files with compartment sequences and a phase model (default: the shipped reduced run "
-        "and the validation campaign)",
-    )
-    parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
+    add_runs_arguments(parser, "compartment sequences and a phase model", str(OUT))
 
 
 def run(args: argparse.Namespace) -> int:

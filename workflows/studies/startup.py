@@ -34,7 +34,7 @@ from pbm.frequency import stationary_system
 from pbm.simulate import simulate
 from workflows.analysis.agreement import pbm_steady
 from workflows.pipeline.results import load_results, pbm_config_for
-from workflows.shipped import REDUCED_RUN, VALIDATION_DIR
+from workflows.studies import add_runs_arguments
 
 HELP = "the phase model's hold-up from empty against its own steady state and the DEM's, run by run"
 OUT = Path("results/startup")
@@ -212,14 +212,7 @@ def plot_startup(rows: list[Startup], path: Path) -> Path:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--results",
-        nargs="+",
-        default=[str(REDUCED_RUN), *sorted(str(p) for p in VALIDATION_DIR.glob("dem-*.h5"))],
-        metavar="FILE",
-        help="DEM results files with a phase model (default: the shipped reduced run and the validation campaign)",
-    )
-    parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
+    add_runs_arguments(parser, "a phase model", str(OUT))
 
 
 def run(args: argparse.Namespace) -> int:
