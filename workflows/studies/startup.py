@@ -216,9 +216,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = writable_directory(args.out, "--out")
     rows = [startup(path) for path in args.results]
     print(markdown(rows))
-    out = writable_directory(args.out, "--out")
     written = write_json(out / "startup.json", {"within": WITHIN, "runs": [r.record() for r in rows]})
     print(f"wrote {written} and {plot_startup(rows, out / 'startup.png')}")
     return 0
