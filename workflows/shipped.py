@@ -12,6 +12,9 @@ running LIGGGHTS:
 * :data:`VALIDATION_DIR`: the validation campaign's runs, also the design tool's table
   library;
 * :data:`STEP_DIR`: the feed-step run of the dynamic check;
+* :data:`UNSEEN_DIR`: a run at an operating point outside the campaign (200 rpm, the feed
+  x1.25) with its 20-slice twin and its ``config.toml``: the phase model judged on a run
+  it was not built on, and not part of the design tool's library;
 * :data:`PAPER_SCALE_DIR`: the paper-scale probe's summary, thermo rows and throughput.
 """
 
@@ -30,9 +33,10 @@ REFERENCE_DIR = Path(__file__).resolve().parent / "reference"
 REDUCED_RUN = REFERENCE_DIR / "dem-17ea4c9cc143cd3e.h5"
 VALIDATION_DIR = REFERENCE_DIR / "validation"
 STEP_DIR = REFERENCE_DIR / "step"
+UNSEEN_DIR = REFERENCE_DIR / "unseen"
 PAPER_SCALE_DIR = REFERENCE_DIR / "paper_scale"
 #: every folder of shipped DEM results, where the DEM stage looks for a run's results
-SHIPPED_RESULTS_DIRS = (REFERENCE_DIR, VALIDATION_DIR, STEP_DIR)
+SHIPPED_RESULTS_DIRS = (REFERENCE_DIR, VALIDATION_DIR, STEP_DIR, UNSEEN_DIR)
 PAPER_SCALE_SUMMARY = PAPER_SCALE_DIR / "summary.json"
 PAPER_SCALE_THERMO = PAPER_SCALE_DIR / "thermo.csv"
 

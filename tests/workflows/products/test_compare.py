@@ -3,6 +3,7 @@ reference, no solver installed), and the smoke preset end to end with the real L
 (DEM -> tables -> PBM -> report)."""
 
 import json
+import tomllib
 
 import numpy as np
 import pandas as pd
@@ -15,6 +16,7 @@ from workflows.cli.main import main
 from workflows.config import config_from_dict, load_preset
 from workflows.pipeline.results import pbm_config_for
 from workflows.pipeline.stages import dem_stage, post_hash, results_key
+from workflows.shipped import UNSEEN_DIR
 
 
 def test_feed_weights_are_the_overlap_in_y():
@@ -200,6 +202,18 @@ def test_shipped_reference_covers_the_grid_sensitivity(tmp_path):
     data["dem"]["tables"]["nx"] = 2 * data["dem"]["tables"]["nx"]
     dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
     assert dem.source == "reference" and dem.table.nx == 20 and dem.table.has_rates
+
+
+def test_shipped_reference_covers_the_run_outside_the_campaign(tmp_path):
+    """The run at an operating point the campaign does not hold ships with its config and
+    its 20-slice twin: its comparison needs no solver either."""
+    data = tomllib.loads((UNSEEN_DIR / "config.toml").read_text())
+    data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
+    dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
+    assert dem.source == "reference" and dem.table.has_phases and dem.results.sequences is not None
+    data["dem"]["tables"] = {**data["dem"].get("tables", {}), "nx": 2 * dem.table.nx}
+    twin = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
+    assert twin.source == "reference" and twin.table.nx == 2 * dem.table.nx
 
 
 def test_without_a_solver_run_nothing_is_started(tmp_path):
