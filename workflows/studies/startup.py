@@ -15,7 +15,8 @@ it takes from empty to come within 1 % of that steady state against the DEM's st
 time; and the same PBM with the fill law (``rate_law = "fill"``, :mod:`pbm.fill`, its
 exponents fitted to the run's own windows): rates that follow each slice's fill let the
 model fill as fast as the DEM, where the linear model's rates, fitted at the steady fill,
-move an empty blender's first particles as slowly as a full one's. Writes ``startup.json`` and ``startup.png`` (the hold-up curves) and prints a table.
+move an empty blender's first particles as slowly as a full one's. Writes
+``startup.json`` and ``startup.png`` (the hold-up curves) and prints a table.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 
 from coupling.errors import ConfigError
 from coupling.files import writable_directory
+from coupling.intervals import inside
 from coupling.jsonable import write_json
 from dem.summary import Estimate
 from pbm.frequency import stationary_system
@@ -67,17 +69,20 @@ class Startup:
     dem_times_s: np.ndarray
     dem_holdup_curve: np.ndarray
 
+    def _inside(self, holdup: float) -> bool:
+        return bool(inside(holdup, self.dem_holdup.low, self.dem_holdup.high))
+
     @property
     def judged_inside(self) -> bool:
-        return bool(self.dem_holdup.low <= self.pbm_judged_holdup <= self.dem_holdup.high)
+        return self._inside(self.pbm_judged_holdup)
 
     @property
     def fill_law_inside(self) -> bool:
-        return bool(self.dem_holdup.low <= self.fill_law_judged_holdup <= self.dem_holdup.high)
+        return self._inside(self.fill_law_judged_holdup)
 
     @property
     def stationary_inside(self) -> bool:
-        return bool(self.dem_holdup.low <= self.pbm_stationary_holdup <= self.dem_holdup.high)
+        return self._inside(self.pbm_stationary_holdup)
 
     def record(self) -> dict:
         return {
