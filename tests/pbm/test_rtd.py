@@ -186,6 +186,25 @@ def test_pooled_rtd_of_a_time_varying_table_averages_the_pulse_responses_at_thei
     assert pooled.mean_s == pytest.approx(np.sum(weights * means) / weights.sum(), rel=1e-9)
 
 
+def test_pooled_rtd_of_identical_windows_equals_the_one_window_model_propagated_once():
+    """Twelve windows of one table propagate the whole comb of pulses; the same table as
+    one window propagates a single pulse for all: both must give the same pooled RTD."""
+    one = synthetic_table(nx=4, ny=3, n_windows=1, window_s=60.0, seed=17)
+    per_window = {
+        name: np.repeat(value, 12, axis=0)
+        for name, value in vars(one).items()
+        if isinstance(value, np.ndarray) and value.shape == (1, one.nx, one.ny)
+    }
+    repeated = one.replace(t=5.0 * np.arange(12), window_s=5.0, **per_window)
+    config = PbmConfig(duration_s=60.0, feed_rate_a_per_s=300.0, feed_rate_b_per_s=100.0)
+    comb, single = (pooled_rtd(t, config, entry_window=(8.0, 20.0), horizon_s=35.0) for t in (repeated, one))
+    assert comb.n_pulses == single.n_pulses == 12
+    np.testing.assert_allclose(comb.density_per_s, single.density_per_s, rtol=1e-9, atol=1e-13)
+    assert comb.mean_s == pytest.approx(single.mean_s, rel=1e-10)
+    assert comb.variance_s2 == pytest.approx(single.variance_s2, rel=1e-9)
+    assert comb.recovered_fraction == pytest.approx(single.recovered_fraction, rel=1e-10)
+
+
 def test_pooled_rtd_pulses_are_one_spacing_apart_in_any_window():
     """A window that is not a whole number of spacings (the DEM's never is) still gets a
     comb exactly one spacing apart, centred in it, so every pulse is read on one time grid."""
