@@ -18,6 +18,7 @@ STUDIES = (
     ("sizes", "workflows.studies.sizes"),
     ("holdout", "workflows.studies.holdout"),
     ("startup", "workflows.studies.startup"),
+    ("feeders", "workflows.studies.feeders"),
     ("blocks", "workflows.studies.blocks"),
     ("vrr", "workflows.studies.vrr"),
     ("budget", "workflows.studies.budget"),
