@@ -12,9 +12,10 @@ running LIGGGHTS:
 * :data:`VALIDATION_DIR`: the validation campaign's runs, also the design tool's table
   library;
 * :data:`STEP_DIR`: the feed-step run of the dynamic check;
-* :data:`UNSEEN_DIR`: a run at an operating point outside the campaign (200 rpm, the feed
-  x1.25) with its 20-slice twin and its ``config.toml``: the phase model judged on a run
-  it was not built on, and not part of the design tool's library;
+* :data:`UNSEEN_DIR`: runs at operating points outside the campaign, each with its
+  20-slice twin and its configuration (``200rpm-x1.25.toml``: 200 rpm, the feed x1.25;
+  ``300rpm-mono-a30.toml``: 300 rpm, particles of one size, feeder A 30 % of 60 /s): the
+  phase model judged on runs it was not built on, not part of the design tool's library;
 * :data:`PAPER_SCALE_DIR`: the paper-scale probe's summary, thermo rows and throughput.
 """
 

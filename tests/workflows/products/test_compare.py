@@ -204,10 +204,11 @@ def test_shipped_reference_covers_the_grid_sensitivity(tmp_path):
     assert dem.source == "reference" and dem.table.nx == 20 and dem.table.has_rates
 
 
-def test_shipped_reference_covers_the_run_outside_the_campaign(tmp_path):
-    """The run at an operating point the campaign does not hold ships with its config and
-    its 20-slice twin: its comparison needs no solver either."""
-    data = tomllib.loads((UNSEEN_DIR / "config.toml").read_text())
+@pytest.mark.parametrize("config", ["200rpm-x1.25.toml", "300rpm-mono-a30.toml"])
+def test_shipped_reference_covers_the_runs_outside_the_campaign(tmp_path, config):
+    """The runs at operating points the campaign does not hold ship with their configs and
+    their 20-slice twins: their comparisons need no solver either."""
+    data = tomllib.loads((UNSEEN_DIR / config).read_text())
     data["dem"]["run"]["liggghts"] = "no-such-liggghts-executable"
     dem = dem_stage(config_from_dict(data), runs_root=tmp_path / "runs", solver=False)
     assert dem.source == "reference" and dem.table.has_phases and dem.results.sequences is not None
