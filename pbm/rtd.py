@@ -36,7 +36,7 @@ from pbm.simulate import (
     recovered_moments,
     tracer_pulse,
 )
-from pbm.solver import TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
+from pbm.solver import ACTION_MAX_BYTES, TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
 
 
 @dataclass(frozen=True)
@@ -137,11 +137,56 @@ def pooled_rtd(
     switches = props.schedule.t[1:]
     varying = bool(np.any((switches > entries[0] + TIME_TOLERANCE_S) & (switches < entries[-1] + horizon)))
     pulses = entries if varying else entries[:1]
+    # The action kernel keeps every breakpoint's state of every column: a comb whose
+    # states would pass its memory bound is propagated in groups of pulses, each group over
+    # its own span, so that the cheaper kernel still runs (the fill law's 91 pulses on a
+    # 1203-state phase chain: 3 s by groups, 32 s by the dense path the bound forced);
+    # the operators the dense path computes are kept across groups.
+    times = breakpoints(pulses[0], pulses[-1] + horizon, (pulses[:, None] + edges[None, :]).ravel(), props.schedule.t)
+    group = max(1, ACTION_MAX_BYTES // (times.size * m * 8))
+    parts = [
+        _propagate(props, pulses[i : i + group], edges, horizon, vector, n, config)
+        for i in range(0, pulses.size, group)
+    ]
+    discharged = np.concatenate([d for d, _last in parts])  # (pulse, edge)
+    last = np.concatenate([row for _d, row in parts])  # (pulse, row): state at entry + H
+    columns = pulses.size
+    density = (np.diff(discharged, axis=1) / (amount * np.diff(edges))).mean(axis=0)
+    # Every tracer column starts at its pulse with zero integrals: the columns are empty
+    # before, so the integrals accumulated from the march's start are those since entry.
+    recovered, m1, m2 = recovered_moments(amount, last[:, 0], last[:, 2], last[:, 3], horizon)
+    total = recovered.sum()
+    # never a negative time or variance (coupling.metrics.residence_moments)
+    moments = residence_moments(amount * columns, total, m1.sum(), m2.sum())
+    mean, variance = moments["mean_s"], moments["variance_s2"]
+    return PooledRtd(
+        bin_edges=edges,
+        density_per_s=density,
+        recovered_fraction=float(total / (amount * columns)),
+        mean_s=mean,
+        variance_s2=variance,
+        n_pulses=n_pulses,
+        entry_times_s=entries,
+    )
+
+
+def _propagate(
+    props: Propagators,
+    pulses: np.ndarray,
+    edges: np.ndarray,
+    horizon: float,
+    vector: np.ndarray,
+    n: int,
+    config: PbmConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One march of a tracer column per pulse (entering at ``pulses`` [s] as ``vector``):
+    (pulse, edge) the count discharged at each bin edge after its entry, never falling;
+    (pulse, 4) tracer held, discharged and the two hold-up integrals at entry + H."""
+    m = props.n_states
+    columns = pulses.size
     record = pulses[:, None] + edges[None, :]  # (pulse, edge): absolute times to read
     times = breakpoints(pulses[0], pulses[-1] + horizon, record.ravel(), props.schedule.t)
     at = np.clip(np.searchsorted(times, record - TIME_TOLERANCE_S), 0, times.size - 1)
-
-    columns = pulses.size
     injections = {}
     for p, b in enumerate(at[:, 0].tolist()):
         inj = np.zeros((m, columns))
@@ -164,29 +209,11 @@ def pooled_rtd(
         atol=BDF_ATOL_PARTICLES,
     ):
         rows[b] = _tracked_rows(z, n)
-
     pulse_index = np.arange(columns)[:, None]
     # The count discharged cannot fall; once a pulse has left, the propagation's rounding
     # (~1e-16 of the pulse) would otherwise show as negative density in the empty bins.
-    discharged = np.maximum.accumulate(rows[at, 1, pulse_index], axis=1)  # (pulse, edge)
-    density = (np.diff(discharged, axis=1) / (amount * np.diff(edges))).mean(axis=0)
-    last = rows[at[:, -1], :, np.arange(columns)]  # (pulse, row): state at entry + H
-    # Every tracer column starts at its pulse with zero integrals: the columns are empty
-    # before, so the integrals accumulated from the march's start are those since entry.
-    recovered, m1, m2 = recovered_moments(amount, last[:, 0], last[:, 2], last[:, 3], horizon)
-    total = recovered.sum()
-    # never a negative time or variance (coupling.metrics.residence_moments)
-    moments = residence_moments(amount * columns, total, m1.sum(), m2.sum())
-    mean, variance = moments["mean_s"], moments["variance_s2"]
-    return PooledRtd(
-        bin_edges=edges,
-        density_per_s=density,
-        recovered_fraction=float(total / (amount * columns)),
-        mean_s=mean,
-        variance_s2=variance,
-        n_pulses=n_pulses,
-        entry_times_s=entries,
-    )
+    discharged = np.maximum.accumulate(rows[at, 1, pulse_index], axis=1)
+    return discharged, rows[at[:, -1], :, np.arange(columns)]
 
 
 def _tracked_rows(z: np.ndarray, n: int) -> np.ndarray:

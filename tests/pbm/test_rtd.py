@@ -205,6 +205,23 @@ def test_pooled_rtd_of_identical_windows_equals_the_one_window_model_propagated_
     assert comb.recovered_fraction == pytest.approx(single.recovered_fraction, rel=1e-10)
 
 
+def test_pooled_rtd_in_groups_of_pulses_equals_the_whole_comb(monkeypatch):
+    """A comb too large for the action kernel's memory bound is propagated in groups of
+    pulses, each over its own span: the same RTD as the whole comb in one march."""
+    import pbm.rtd
+
+    table = synthetic_table(nx=4, ny=3, n_windows=12, window_s=5.0, seed=13)
+    config = PbmConfig(duration_s=60.0, feed_rate_a_per_s=300.0, feed_rate_b_per_s=100.0, kernel="action")
+    whole = pooled_rtd(table, config, entry_window=(8.0, 20.0), horizon_s=35.0)
+    # room for about three columns' states over the comb's breakpoints: groups of 3
+    monkeypatch.setattr(pbm.rtd, "ACTION_MAX_BYTES", 3 * 60 * (table.nx * table.ny + 3) * 8)
+    grouped = pooled_rtd(table, config, entry_window=(8.0, 20.0), horizon_s=35.0)
+    assert grouped.n_pulses == whole.n_pulses == 12
+    np.testing.assert_allclose(grouped.density_per_s, whole.density_per_s, rtol=1e-10, atol=1e-14)
+    assert grouped.mean_s == pytest.approx(whole.mean_s, rel=1e-12)
+    assert grouped.variance_s2 == pytest.approx(whole.variance_s2, rel=1e-11)
+
+
 def test_pooled_rtd_pulses_are_one_spacing_apart_in_any_window():
     """A window that is not a whole number of spacings (the DEM's never is) still gets a
     comb exactly one spacing apart, centred in it, so every pulse is read on one time grid."""
