@@ -9,9 +9,12 @@ The PBM's like-for-like quantity follows from linearity: tracer entering uniform
 (t0, t1] is the average over entry times s of the pulse responses E_s(tau), each pulse
 spread over the inlet like the total feed (A and B weighted by their feed rates). The
 average is taken at the centres of equal sub-intervals of (t0, t1] (midpoint rule), one
-pulse per centre, every pulse a column of one exact propagation through the table's own
+pulse per centre, every pulse a column of an exact propagation through the table's own
 windows: for a time-varying table each pulse sees the windows in force after its entry.
 (The outlet flux of a rectangular feed would instead mix the entry times into one curve.)
+Pulses that all see one generator have one response, so a time-invariant model propagates
+a single column; a comb too large for the uniformization kernel's memory bound is
+propagated in groups of pulses.
 """
 
 from __future__ import annotations
