@@ -180,7 +180,7 @@ def startup(path: str | Path) -> Startup:
     dem_holdup = Estimate.from_record(summary.steady["holdup"])
     at_dem_steady = float(np.interp(summary.steady_time, run.times, holdup))
     tau, horizon = _dem_residence_times(results)
-    linear_times = np.asarray(run.times, float)[run.times <= horizon]
+    linear_times = np.asarray(run.times, float)[run.times <= horizon] if tau.size else np.empty(0)
     linear = np.array([linear_holdup(tau, float(feed.sum()), t) for t in linear_times])
     return Startup(
         results=str(path),
