@@ -76,3 +76,16 @@ def test_the_phase_models_feeders_alone_add_up_to_its_pooled_rtd(tmp_path, capsy
     assert both.variance_s2 == pytest.approx(second - mean**2, rel=1e-3)
     assert run["dem"]["variance_A"]["low"] < run["dem"]["variance_A"]["value"] < run["dem"]["variance_A"]["high"]
     assert (tmp_path / "feeders.png").stat().st_size > 5_000
+
+
+def test_a_file_without_a_phase_model_is_refused_by_name(tmp_path, capsys):
+    import dataclasses
+
+    from coupling.cache import load_entry, save_entry
+
+    entry = load_entry(REDUCED_RUN)
+    plain = tmp_path / "plain.h5"
+    save_entry(plain, dataclasses.replace(entry, table=entry.table.replace(phases=None)))
+    assert main(["study", "feeders", "--results", str(plain), "--out", str(tmp_path)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(plain) in err[0] and "no phase model" in err[0]
