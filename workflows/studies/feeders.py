@@ -23,11 +23,13 @@ survive the pooling. Writes ``feeders.json`` and ``feeders.png`` and prints a ta
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.special import ndtri
 
 from coupling.errors import ConfigError
 from coupling.files import writable_directory
@@ -176,8 +178,9 @@ def feeder_rtds(path: str | Path) -> FeederRtds:
 @dataclass(frozen=True)
 class Pooled:
     """The DEM's A - B variance differences over the runs: how many are positive, how many
-    intervals exclude 0, and their inverse-variance mean with its 95 % interval (each
-    run's standard error from its interval's half-width over 1.96)."""
+    intervals exclude 0, and their inverse-variance mean with its interval at the runs'
+    :data:`coupling.intervals.LEVEL` (each run's standard error from its interval's
+    half-width over the normal quantile of that level)."""
 
     runs: int
     positive: int
@@ -187,15 +190,16 @@ class Pooled:
     high_s2: float
 
     def record(self) -> dict:
-        return dict(self.__dict__)
+        return dataclasses.asdict(self)
 
 
 def pooled_difference(rows: list[FeederRtds]) -> Pooled:
     d = [r.dem["variance_difference"] for r in rows]
-    se = np.array([(v.high - v.low) / (2 * 1.959964) for v in d])
+    z = float(ndtri((1 + LEVEL) / 2))
+    se = np.array([(v.high - v.low) / (2 * z) for v in d])
     w = 1.0 / se**2
     mean = float(np.sum(w * np.array([v.estimate for v in d])) / w.sum())
-    half = 1.959964 / math.sqrt(w.sum())
+    half = z / math.sqrt(w.sum())
     return Pooled(
         runs=len(rows),
         positive=sum(v.estimate > 0 for v in d),
@@ -237,8 +241,9 @@ def markdown(rows: list[FeederRtds], pooled: Pooled) -> str:
 
 def plot_feeders(rows: list[FeederRtds], pooled: Pooled, path: Path) -> Path:
     """Left: each run's RTD variance per feeder relative to the DEM's of both feeders, the
-    DEM's with its interval and the phase model's as a marker. Right: the A - B differences, the DEM's with its interval, the
-    model's, and the pooled DEM difference as a band."""
+    DEM's with its interval and the phase model's as a marker. Right: the A - B
+    differences, the DEM's with its interval, the model's, and the pooled DEM difference
+    as a band."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(11, 0.45 * len(rows) + 1.6), layout="constrained")
