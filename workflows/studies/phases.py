@@ -7,7 +7,8 @@ version on; the sequences are stored in the results file, so no dumps are needed
 
 For every grid (NX x NY, a coarsening of the run's) and number of phases K:
 
-1. fit on every particle first seen after the steady-state time (:func:`dem.phases.fit`);
+1. fit on every particle first seen after the steady-state time (:class:`dem.phases.PhaseEstimator`,
+   the product's :class:`dem.phases.PhaseSettings` unless the command line says otherwise);
 2. held out: fit on those first seen in the first half of that period, score the second
    half (log-likelihood per particle-step: higher is better; comparable across K on the
    same grid only);
@@ -28,12 +29,13 @@ Reproduce (a run directory with its dumps, ``runs/<key>``)::
 
 and for NX = 20 the same post-processing with ``[dem.tables] nx = 20`` in a ``--config``
 file, then ``--grids 20x1``. ``--stagnant R`` makes phase 0 of every K >= 2 a dead zone
-(:func:`dem.phases.fit`'s ``stagnant_exit_max``, at one over R times the run's Little's-law
+(:attr:`dem.phases.PhaseSettings.stagnant_exit_max_per_s`, at one over R times the run's Little's-law
 mean residence time: a particle parked there stays R residence times or more; R = 1 bare).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -203,46 +205,44 @@ def evaluate(
     config: Config,
     target: DemTarget,
     grid: tuple[int, int],
-    k: int,
     fit_window,
-    starts: int,
-    max_iterations: int,
-    seed: int = 0,
+    settings: phases.PhaseSettings,
     residents: bool = True,
-    lag: int = 1,
-    max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
     stagnant: float | None = None,
-    tol: float = phases.PHASE_TOL,
 ) -> ModelResult:
-    """One row of the study (module docstring). ``residents``: fit also to the moves of
-    the particles already inside when the window opens (:func:`dem.phases.prepare`); the
-    held-out particles are only those that enter in the second half. ``lag``: fit to every
-    ``lag``-th dump (the product's is :data:`dem.phases.PHASE_LAG_S`); the held-out score
-    and the CK test read the same observations, the CK test at 1, 2, 5 and 10 s.
+    """One row of the study (module docstring): the K = ``settings.n_phases`` chain fitted
+    with ``settings``, observed every ``settings.lag_s``. ``residents``: fit also
+    to the moves of the particles already inside when the window opens
+    (:func:`dem.phases.prepare`); the held-out particles are only those that enter in the
+    second half, the held-out fit one start of the same settings. The held-out score and
+    the CK test read the same observations, the CK test at 1, 2, 5 and 10 s.
     ``observed_nx``: fit the chain on ``grid`` (NY = 1) to the observations on this many
-    axial slices (:func:`dem.phases.fit`'s ``refine``); it is scored and CK-tested on its
-    own grid."""
+    axial slices (:attr:`dem.phases.PhaseSettings.refine`); it is scored and CK-tested on
+    its own grid. ``stagnant`` = R: phase 0 of a K >= 2 chain is a dead zone left at most
+    once per R of the target's Little's-law mean residence times."""
     t0, t1 = fit_window
+    lag = settings.lag_dumps(sequences.interval_s)
     data = phases.prepare(sequences, (t0, t1), grid, residents=residents, lag=lag)
     observed, refine = grid, 1
     if observed_nx is not None:
         if grid[1] != 1 or observed_nx < 1 or grid[0] % observed_nx:
             raise ConfigError(f"--observed-nx {observed_nx}: must divide the grid's NX {grid[0]}, with NY = 1")
         observed, refine = (observed_nx, 1), grid[0] // observed_nx
-    fit_data = data if refine == 1 else phases.prepare(sequences, (t0, t1), observed, residents=residents, lag=lag)
-    wall0 = time.perf_counter()
-    bound = {"max_rate_x_interval": max_rate_x_interval, "refine": refine}
-    if stagnant is not None and k >= 2:
+    settings = dataclasses.replace(settings, refine=refine)
+    if stagnant is not None and settings.n_phases >= 2:
         if not target.little_mean_residence_time_s > 0:
             raise ConfigError(f"{target.source}: no Little's-law mean residence time to bound a stagnant phase by")
-        bound["stagnant_exit_max"] = 1.0 / (stagnant * target.little_mean_residence_time_s)
-    fit = phases.fit(fit_data, k, starts=starts, seed=seed, max_iterations=max_iterations, tol=tol, **bound)
+        exit_max = 1.0 / (stagnant * target.little_mean_residence_time_s)
+        settings = dataclasses.replace(settings, stagnant_exit_max_per_s=exit_max)
+    fit_data = data if refine == 1 else phases.prepare(sequences, (t0, t1), observed, residents=residents, lag=lag)
+    wall0 = time.perf_counter()
+    fit = phases.PhaseEstimator(settings).fit(fit_data).fetch_model()
     wall = time.perf_counter() - wall0
     middle = 0.5 * (t0 + t1)
     train = phases.prepare(sequences, (t0, middle), observed, residents=residents, lag=lag)
     test = phases.prepare(sequences, (middle, t1), grid, lag=lag)
-    held = phases.fit(train, k, starts=1, seed=seed, max_iterations=max_iterations, tol=tol, **bound)
+    held = phases.PhaseEstimator(dataclasses.replace(settings, starts=1)).fit(train).fetch_model()
     ck = fit.chapman_kolmogorov(data, tuple(max(1, round(v / data.interval_s)) for v in (1.0, 2.0, 5.0, 10.0)))
     pbm = pbm_numbers(fit.transport, config, target)
     # slice hold-ups: the DEM's are on 10 slices; a coarser or finer PBM grid is compared
@@ -253,10 +253,10 @@ def evaluate(
     dem_c = dem_slices.reshape(n, -1).sum(axis=1)
     pbm_c = pbm_slices.reshape(n, -1).sum(axis=1)
     lls = fit.start_log_likelihoods
-    stagnant_numbers = _stagnant_numbers(fit) if "stagnant_exit_max" in bound else {}
+    stagnant_numbers = {} if settings.stagnant_exit_max_per_s is None else _stagnant_numbers(fit)
     return ModelResult(
         grid=grid,
-        n_phases=k,
+        n_phases=settings.n_phases,
         n_parameters=fit.n_parameters(),
         log_likelihood_per_step=fit.log_likelihood / data.n_steps,
         held_out_per_step=held.score(test) / test.n_steps,
@@ -328,21 +328,20 @@ def phase_study(
     target: str | Path | None = None,
     grids=((10, 10), (10, 1)),
     ks=(1, 2, 3),
-    starts: int = 3,
-    max_iterations: int = 200,
+    settings: phases.PhaseSettings | None = None,
     fit_window_s: tuple[float, float] | None = None,
     target_override: DemTarget | None = None,
     residents: bool = True,
     log=print,
-    lag_s: float = phases.PHASE_LAG_S,
-    max_rate_x_interval: float = phases.PHASE_MAX_RATE_X_INTERVAL,
     observed_nx: int | None = None,
     stagnant: float | None = None,
-    tol: float = phases.PHASE_TOL,
 ) -> PhaseStudy:
     """The study on the DEM results file ``results`` (with sequences), judged against the
     DEM results ``target`` (default the same file) or ``target_override``. The fit window
-    defaults to (the target's steady-state time, the last dump]."""
+    defaults to (the target's steady-state time, the last dump]. Every fit is ``settings``'
+    (default the product's, :class:`dem.phases.PhaseSettings`) with K each of ``ks``."""
+    settings = phases.PhaseSettings() if settings is None else settings
+    variants = [dataclasses.replace(settings, n_phases=k) for k in ks]  # refused before any fit
     entry, reason = try_load_entry(Path(results))
     if entry is None:
         raise ConfigError(f"results {results}: {reason}")
@@ -364,29 +363,13 @@ def phase_study(
     last = float(seq.snapshot_t[-1])
     window = fit_window_s or (goal.steady_time_s, last)
     window = (float(window[0]), min(float(window[1]), last))  # a run still going ends at its last dump
-    lag = max(1, round(lag_s / seq.interval_s))
-    data = phases.prepare(seq, window, residents=residents, lag=lag)
+    data = phases.prepare(seq, window, residents=residents, lag=settings.lag_dumps(seq.interval_s))
     out = []
     for grid in grids:
-        for k in ks:
-            row = evaluate(
-                seq,
-                config,
-                goal,
-                tuple(grid),
-                k,
-                window,
-                starts,
-                max_iterations,
-                residents=residents,
-                lag=lag,
-                max_rate_x_interval=max_rate_x_interval,
-                observed_nx=observed_nx,
-                stagnant=stagnant,
-                tol=tol,
-            )
+        for variant in variants:
+            row = evaluate(seq, config, goal, tuple(grid), window, variant, residents, observed_nx, stagnant)
             log(
-                f"{grid[0]}x{grid[1]} K={k}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
+                f"{grid[0]}x{grid[1]} K={variant.n_phases}: mean {row.mean_s:.2f} s, variance {row.variance_s2:.1f} s^2, "
                 f"worst slice {row.worst_slice_error():+.1%}, held-out {row.held_out_per_step:.4f}, "
                 f"CK max z {row.ck_max_z:.1f}, fit {row.fit_wall_s:.0f} s"
                 + (
@@ -513,9 +496,10 @@ def compare_time(
     grid=(10, 1),
     k: int = 2,
     fit_window_s: tuple[float, float] | None = None,
-    max_iterations: int = 200,
+    settings: phases.PhaseSettings | None = None,
 ) -> TimeComparison:
-    """:class:`TimeComparison` on the DEM results ``results`` (with sequences)."""
+    """:class:`TimeComparison` on the DEM results ``results`` (with sequences), both chains
+    fitted with ``settings`` (default the product's) from one start, at every dump."""
     from pbm.model import feed_distribution
 
     entry, reason = try_load_entry(Path(results))
@@ -528,9 +512,10 @@ def compare_time(
     window = (float(window[0]), min(float(window[1]), last))
     data = phases.prepare(dem.sequences, window, tuple(grid), residents=True)
     wall0 = time.perf_counter()
-    cont = phases.fit(data, k, starts=1, max_iterations=max_iterations)
+    settings = dataclasses.replace(settings or phases.PhaseSettings(), n_phases=k, starts=1)
+    cont = phases.PhaseEstimator(settings).fit(data).fetch_model()
     wall1 = time.perf_counter()
-    disc = phases.fit_discrete(data, k, cont.transport, max_iterations=max_iterations)
+    disc = phases.fit_discrete(data, cont.transport, settings)
     wall2 = time.perf_counter()
     projected = phases.generator_from_transition(disc, data.nx, data.ny)
     g = config.dem.geometry
@@ -564,11 +549,13 @@ def timescales_over_lags(
     fit_window_s: tuple[float, float] | None = None,
     count: int = 3,
     steady_time_s: float | None = None,
+    settings: phases.PhaseSettings | None = None,
 ) -> dict[int, tuple[float, ...]]:
     """The ``count`` longest implied timescales [s] of the K = ``n_phases`` chain fitted at
-    each lag (in dumps), the MSM test of Markovianity: a Markovian chain's are the same at
-    every lag, a chain on states that forget too much speeds up (shorter timescales) at
-    short lags. Returns lag -> timescales."""
+    each lag (in dumps; ``settings``, default the product's, from one start), the MSM test
+    of Markovianity: a Markovian chain's are the same at every lag, a chain on states that
+    forget too much speeds up (shorter timescales) at short lags. Returns lag -> timescales."""
+    settings = dataclasses.replace(settings or phases.PhaseSettings(), n_phases=n_phases, starts=1)
     entry, reason = try_load_entry(Path(results))
     if entry is None:
         raise ConfigError(f"results {results}: {reason}")
@@ -578,7 +565,7 @@ def timescales_over_lags(
     out = {}
     for lag in lags:
         data = phases.prepare(seq, window, tuple(grid), lag=int(lag))
-        model = phases.fit(data, n_phases, starts=1)
+        model = phases.PhaseEstimator(settings).fit(data).fetch_model()
         out[int(lag)] = tuple(float(v) for v in model.implied_timescales(count))
     return out
 
@@ -596,6 +583,15 @@ def _grids(text: str) -> tuple[tuple[int, int], ...]:
     return grids
 
 
+#: the command line's flags for the fit's settings: flag, field, type, help
+SETTING_FLAGS = (
+    ("--starts", "starts", int, "EM starts per fit"),
+    ("--lag-s", "lag_s", float, "interval between the observations fitted [s]"),
+    ("--max-rate-x-interval", "max_rate_x_interval", float, "the fit's bound on every rate x the observation interval"),
+    ("--tol", "tol", float, "stop EM when a step gains less than this per particle-step [nats]"),
+)
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("--results", required=True, help="DEM results file with compartment sequences (dem-*.h5)")
     parser.add_argument(
@@ -603,31 +599,17 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--grids", default="10x10,10x1", help="comma-separated NXxNY coarsenings (default %(default)s)")
     parser.add_argument("--ks", default="1,2,3", help="numbers of phases (default %(default)s)")
-    parser.add_argument("--starts", type=int, default=3, help="EM starts per fit (default 3)")
-    parser.add_argument(
-        "--lag-s",
-        type=float,
-        default=phases.PHASE_LAG_S,
-        help="interval between the observations fitted [s] (default %(default)s, the product's)",
-    )
-    parser.add_argument(
-        "--max-rate-x-interval",
-        type=float,
-        default=phases.PHASE_MAX_RATE_X_INTERVAL,
-        help="the fit's bound on every rate x the observation interval (default %(default)s, the product's)",
-    )
+    product = phases.PhaseSettings()
+    for flag, name, kind, text in SETTING_FLAGS:
+        parser.add_argument(
+            flag, type=kind, default=getattr(product, name), help=text + " (default %(default)s, the product's)"
+        )
     parser.add_argument(
         "--observed-nx",
         type=int,
         default=None,
         help="fit each NXx1 grid's chain to the observations on this many slices instead (the sub-slice "
         "hidden beside the phase; must divide NX)",
-    )
-    parser.add_argument(
-        "--tol",
-        type=float,
-        default=phases.PHASE_TOL,
-        help="stop EM when a step gains less than this per particle-step [nats] (default %(default)s, the product's)",
     )
     parser.add_argument(
         "--stagnant",
@@ -641,32 +623,35 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", default="results/phases", help="where phases.json goes (default %(default)s)")
 
 
+def settings_of(args) -> phases.PhaseSettings:
+    """The product's settings with the command line's (:data:`SETTING_FLAGS`); ConfigError
+    naming the flag for a value the settings refuse."""
+    settings = phases.PhaseSettings()
+    for flag, name, _kind, _text in SETTING_FLAGS:
+        try:
+            settings = dataclasses.replace(settings, **{name: getattr(args, name)})
+        except ConfigError as exc:
+            raise ConfigError(f"{flag} {getattr(args, name)}: {exc}") from None
+    return settings
+
+
 def run(args) -> int:
     try:
         ks = tuple(int(k) for k in args.ks.split(","))
     except ValueError:
         raise ConfigError(f"--ks {args.ks!r}: expected comma-separated whole numbers, e.g. 1,2,3") from None
-    if not ks or min(ks) < 1 or args.starts < 1:
-        raise ConfigError(f"--ks {args.ks!r} and --starts {args.starts}: all must be >= 1")
-    if not args.lag_s > 0:
-        raise ConfigError(f"--lag-s {args.lag_s}: expected an interval > 0 s")
-    if not args.tol > 0:
-        raise ConfigError(f"--tol {args.tol}: expected a gain > 0 nats per particle-step, e.g. 1e-5")
+    if not ks or min(ks) < 1:
+        raise ConfigError(f"--ks {args.ks!r}: all must be >= 1")
     if args.stagnant is not None and not args.stagnant > 0:
         raise ConfigError(f"--stagnant {args.stagnant}: expected a number of mean residence times > 0, e.g. 1")
-    if not args.max_rate_x_interval > 0:
-        raise ConfigError(f"--max-rate-x-interval {args.max_rate_x_interval}: expected a bound > 0")
     study = phase_study(
         args.results,
         args.target,
         _grids(args.grids),
         ks,
-        starts=args.starts,
-        lag_s=args.lag_s,
-        max_rate_x_interval=args.max_rate_x_interval,
+        settings_of(args),
         observed_nx=args.observed_nx,
         stagnant=args.stagnant,
-        tol=args.tol,
     )
     print(markdown(study))
     out = writable_directory(args.out, "--out")

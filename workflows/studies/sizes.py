@@ -106,7 +106,8 @@ def size_study(
     """:class:`SizeStudy` of the DEM results ``results_path`` (module docstring); K =
     ``n_phases`` per class, default the run's own model's (:func:`dem.phases.moving_phases`);
     ``zone_residences`` bounds each class's dead zone as :func:`dem.phases.table_with_phases`
-    does (None: no zone)."""
+    does (:attr:`dem.phases.PhaseSettings.zone_residences`; None: no zone); every other
+    setting is the product's."""
     results, config = load_results(results_path)
     summary, table, seq = results.summary, results.table, results.sequences
     if seq is None:
@@ -116,9 +117,8 @@ def size_study(
     diameters = _diameters(results, run_dir, str(results_path))
     t_ss = float(summary.steady_time)
     wall0 = time.perf_counter()
-    by_size, _fits = phases.table_with_phases(
-        table.replace(phases=None), seq, t_ss, k, diameters=diameters, zone_residences=zone_residences
-    )
+    settings = phases.PhaseSettings(zone_residences=zone_residences)
+    by_size, _fits = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k, settings, diameters=diameters)
     one_chain, _fit = phases.table_with_phases(table.replace(phases=None), seq, t_ss, k)
     wall = time.perf_counter() - wall0
     records = results.particles
