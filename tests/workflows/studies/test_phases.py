@@ -8,12 +8,15 @@ import json
 import pytest
 
 from coupling.cache import save_entry
+from dem.phases import PhaseSettings
 from dem.post import postprocess
 from tests.known_dumps import STEADY, config, write_synthetic
 from workflows.cli.main import main
 from workflows.config import Config, dump_toml
 from workflows.shipped import REDUCED_RUN
-from workflows.studies.phases import phase_study
+from workflows.studies.phases import add_arguments, phase_study, settings_of
+
+ONE_START = PhaseSettings(starts=1)
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +33,7 @@ def results_file(tmp_path_factory):
 
 
 def test_two_phases_for_two_hidden_classes(results_file):
-    study = phase_study(results_file, grids=((4, 1),), ks=(1, 2), starts=1, log=lambda message: None)
+    study = phase_study(results_file, grids=((4, 1),), ks=(1, 2), settings=ONE_START, log=lambda message: None)
     assert study.target.mean_s.value == pytest.approx(5.0, rel=1e-6)
     one, two = study.results
     assert (one.n_phases, two.n_phases) == (1, 2)
@@ -54,6 +57,8 @@ def test_the_command_writes_its_record(results_file, tmp_path):
         (["--ks", "0"], "must be >= 1"),
         (["--target", "no-such-file.h5"], "--target no-such-file.h5"),
         (["--stagnant", "0"], "--stagnant 0.0"),
+        (["--tol", "0"], "--tol 0.0: PhaseSettings.tol = 0.0: expected a gain"),
+        (["--lag-s", "-1"], "--lag-s -1.0: PhaseSettings.lag_s"),
     ],
 )
 def test_bad_arguments_are_one_line(results_file, tmp_path, capsys, extra, message):
@@ -110,7 +115,8 @@ def test_the_study_reports_where_a_stagnant_phase_parks_and_how_fast_it_lets_go(
 
     truth = dead_zone_model()
     sequences = phases.simulate_sequences(truth, inlet(), 20000, 3000, np.random.default_rng(11))
-    fit = phases.fit(phases.prepare(sequences), 2, starts=1, tol=1e-7, stagnant_exit_max=0.2)
+    settings = PhaseSettings(n_phases=2, starts=1, tol=1e-7, stagnant_exit_max_per_s=0.2)
+    fit = phases.PhaseEstimator(settings).fit(phases.prepare(sequences)).fetch_model()
     numbers = _stagnant_numbers(fit)
     assert numbers["stagnant_slices"] == (0, NX - 1)
     assert numbers["stagnant_exit_per_s"] == pytest.approx(0.05, rel=0.1)
@@ -121,7 +127,9 @@ def test_a_stagnant_phase_is_left_at_most_once_per_r_residence_times(results_fil
     """``stagnant=R`` bounds phase 0's leaving rate by 1 / (R x the Little's-law mean
     residence time): the fitted rate respects it for R = 1 and R = 4."""
     for r in (1.0, 4.0):
-        study = phase_study(results_file, grids=((4, 1),), ks=(2,), starts=1, stagnant=r, log=lambda message: None)
+        study = phase_study(
+            results_file, grids=((4, 1),), ks=(2,), settings=ONE_START, stagnant=r, log=lambda message: None
+        )
         (row,) = study.results
         assert 0 < row.stagnant_exit_per_s <= 1.0 / (r * study.target.little_mean_residence_time_s) * (1 + 1e-9)
 
@@ -149,3 +157,15 @@ def test_the_study_takes_the_pbms_hold_up_after_its_own_steady_state():
     numbers = pbm_numbers(model, cfg, target)
     assert numbers["holdup"] == pytest.approx(stationary, rel=0.03)
     assert numbers["by_slice"][-1] == pytest.approx(feed * 50.0, rel=0.03)
+
+
+def test_the_study_fits_with_the_products_settings_unless_told_otherwise():
+    """The command line's defaults are the product's settings, one default each; a flag
+    changes its field alone."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert settings_of(parser.parse_args(["--results", "r.h5"])) == PhaseSettings()
+    changed = settings_of(parser.parse_args(["--results", "r.h5", "--tol", "1e-7", "--starts", "3"]))
+    assert changed == PhaseSettings(tol=1e-7, starts=3)

@@ -80,7 +80,8 @@ def test_sizes_that_carry_nothing_change_nothing(tmp_path):
     seq, t_ss = results.sequences, float(results.summary.steady_time)
     diameters = np.where(seq.ids % 2 == 0, 0.0054, 0.0066)
     bare = results.table.replace(phases=None)
-    plain, _fits = phases.table_with_phases(bare, seq, t_ss, phases.PHASES, diameters=diameters, zone_residences=None)
+    no_zone = phases.PhaseSettings(zone_residences=None)
+    plain, _fits = phases.table_with_phases(bare, seq, t_ss, phases.PHASES, no_zone, diameters=diameters)
     one_chain, _fit = phases.table_with_phases(bare, seq, t_ss, phases.PHASES)
     entering = phases.first_compartments(phases.prepare(seq, phases.steady_window(seq, t_ss)))
     for got, want in zip(exact_rtd_moments(plain.phases, entering), exact_rtd_moments(one_chain.phases, entering)):
