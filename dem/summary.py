@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
+
+from coupling.summary import ProcessSummary
 
 
 @dataclass(frozen=True)
@@ -118,31 +120,31 @@ def is_accounting(key: str) -> bool:
     return key in ACCOUNTING_KEYS or key.startswith(ACCOUNTING_PREFIXES)
 
 
-@dataclass(frozen=True)
-class DemSummary:
+@dataclass(frozen=True, kw_only=True)
+class DemSummary(ProcessSummary):
     """The scalars of one DEM run's post-processing (units in the names). ``steady``: the
     steady-state statistics by quantity (:func:`dem.steady.steady_quantities`: an
     :class:`Estimate` record per quantity, the hold-up per slice, the outlet's particle
     numbers); ``pooled_rtd``: None for a run with no steady state; ``accounting``: the
     particle balance of dumps, discharge files and solver; ``rtd_*`` without ``pooled``:
-    the paper's 1-s tag window."""
+    the paper's 1-s tag window.
 
-    mean_residence_time_s: float = math.nan
-    rtd_variance_s2: float = math.nan
-    rtd_recovered_fraction: float = math.nan
+    The quantities the PBM reports too are the fields of
+    :class:`coupling.summary.ProcessSummary`, inherited rather than held in a member: a
+    reader asks ``summary.steady_C_A`` of either side's summary alike, and a function that
+    compares the sides takes two :class:`~coupling.summary.ProcessSummary`. The DEM's own
+    fields add what only a finite sample has (the random-mixture floors, the tag window,
+    the particle accounting, the intervals of ``steady`` and ``pooled_rtd``). Here
+    ``steady_state_time_s`` is NaN, not None, when no steady state was found (as
+    post-processing has always written it); :attr:`steady_time` reads both."""
+
     rtd_recovered_ok: bool = False
     rtd_tagged: int = 0
     rtd_tag_time_s: float | None = None
     rtd_tag_window_s: float | None = None
-    steady_state_time_s: float | None = None
     steady_state_reached: bool = False
-    steady_outflow_per_s: float = math.nan
-    steady_C_A: float = math.nan
-    final_rsd_outlet: float = math.nan
     final_rsd_outlet_floor: float = math.nan
-    final_rsd_blender: float = math.nan
     final_rsd_blender_floor: float = math.nan
-    holdup_final: float = math.nan
     t_end_s: float = math.nan
     last_dump_step: int | None = None
     n_snapshots: int = 0
@@ -153,18 +155,12 @@ class DemSummary:
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     @property
-    def steady_time(self) -> float | None:
-        """The steady-state time when the run reached one (finite), else None."""
-        t = self.steady_state_time_s
-        return float(t) if t is not None and math.isfinite(t) else None
-
-    @property
     def has_pooled_rtd(self) -> bool:
         return self.pooled_rtd is not None and self.pooled_rtd.has_tracers
 
     @classmethod
     def from_record(cls, record: Mapping[str, Any]) -> DemSummary:
-        known = {f.name for f in fields(cls)} - {"steady", "pooled_rtd", "warnings", "accounting", "extra"}
+        known = set(RECORD_SCALARS)
         scalars = {k: record[k] for k in known if k in record}
         return cls(
             **scalars,
@@ -181,10 +177,7 @@ class DemSummary:
 
     def record(self) -> dict[str, Any]:
         """The dict the cache and ``summary.json`` hold (keys as post-processing writes them)."""
-        known = [
-            f.name for f in fields(self) if f.name not in ("steady", "pooled_rtd", "warnings", "accounting", "extra")
-        ]
-        out = {name: getattr(self, name) for name in known}
+        out = {name: getattr(self, name) for name in RECORD_SCALARS}
         out.update(self.accounting)
         out.update(
             {
@@ -195,3 +188,29 @@ class DemSummary:
         )
         out.update(self.extra)
         return out
+
+
+#: the scalar keys of a DEM record, in the order post-processing writes them (the shared
+#: fields among the DEM's own): :meth:`DemSummary.record` keeps it, so a record read and
+#: written back is the same dict, key order included
+RECORD_SCALARS: tuple[str, ...] = (
+    "mean_residence_time_s",
+    "rtd_variance_s2",
+    "rtd_recovered_fraction",
+    "rtd_recovered_ok",
+    "rtd_tagged",
+    "rtd_tag_time_s",
+    "rtd_tag_window_s",
+    "steady_state_time_s",
+    "steady_state_reached",
+    "steady_outflow_per_s",
+    "steady_C_A",
+    "final_rsd_outlet",
+    "final_rsd_outlet_floor",
+    "final_rsd_blender",
+    "final_rsd_blender_floor",
+    "holdup_final",
+    "t_end_s",
+    "last_dump_step",
+    "n_snapshots",
+)

@@ -71,7 +71,7 @@ def plot_holdup(result: PbmResult, ax: Axes | None = None, label: str = "PBM") -
     ax.plot(result.times, result.holdup_A + result.holdup_B, label=f"{label} total")
     ax.plot(result.times, result.holdup_A, label=f"{label} A", lw=1)
     ax.plot(result.times, result.holdup_B, label=f"{label} B", lw=1)
-    steady = result.summary.get("steady_state_time_s")
+    steady = result.summary.steady_state_time_s
     if steady is not None:
         ax.axvline(steady, color="grey", ls=":", label="steady state detected")
     ax.set(xlabel="time [s]", ylabel="hold-up [particles]", title="Hold-up")
@@ -83,7 +83,7 @@ def plot_rtd(result: PbmResult, ax: Axes | None = None, label: str = "PBM") -> A
     """E(t) [1/s] against residence time [s], with the mean residence time marked."""
     ax = _axes(ax)
     ax.step(result.rtd_t, result.rtd_E, where="mid", label=label)
-    mean = result.summary.get("mean_residence_time_s")
+    mean = result.summary.mean_residence_time_s
     if mean is not None and np.isfinite(mean):
         ax.axvline(mean, color="grey", ls=":", label=f"mean {mean:.1f} s")
     ax.set(xlabel="residence time [s]", ylabel="E(t) [1/s]", title=f"RTD (pulse at {result.rtd_pulse_s:g} s)")

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,9 +23,10 @@ from coupling.errors import ConfigError
 from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, residence_moments, rsd
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
-from pbm.fill import config_schedule
+from pbm.fill import FillLaw, config_schedule
 from pbm.model import N_ACCUMULATORS, collapse_phases, feed_distribution, filled_table, n_phases, n_populations
 from pbm.solver import TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
+from pbm.summary import PbmSummary, nested_tuples
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -48,7 +49,8 @@ class PbmResult:
     ``x_centres`` (NX,) [m] for plotting it.
     RTD: ``rtd_t`` [s, residence-time bin centres], ``rtd_E`` [1/s] (tracer discharged in
     the bin / tracer fed / bin width), ``rtd_pulse_s`` [s] the pulse time.
-    ``summary``: JSON-ready dict of scalars (see :func:`simulate`).
+    ``summary``: the run's scalars, :class:`pbm.summary.PbmSummary` (its ``record()`` is
+    the JSON-ready dict).
     ``schedule``: under ``rate_law`` = "fill", the generators the run marched on (its bulk
     solved once; :func:`pbm.rtd.pooled_rtd` of the same run takes it); None otherwise.
     """
@@ -71,7 +73,7 @@ class PbmResult:
     rtd_t: np.ndarray
     rtd_E: np.ndarray
     rtd_pulse_s: float
-    summary: dict[str, Any] = field(default_factory=dict)
+    summary: PbmSummary
     schedule: Schedule | None = None
 
     def timeseries(self) -> pd.DataFrame:
@@ -173,7 +175,7 @@ def simulate(
     steady state that ``steady`` detects on the total hold-up (the rule the DEM is judged
     by, :class:`coupling.metrics.SteadyStateRule`; if it
     is never detected, at the output time of least relative hold-up change, or at 0 for a
-    run shorter than two steady windows -- ``summary['rtd_pulse_rule']`` says which).
+    run shorter than two steady windows -- ``summary.rtd_pulse_rule`` says which).
     ``initial_counts`` (2, NX, NY) [particles]: A and B already in the blender at t = 0
     (default empty).
 
@@ -187,29 +189,122 @@ def simulate(
     as the nominal feed delivers in one second (1 if the feed is 0), distributed over the
     inlet like the nominal total feed; E(t) is normalised by it, so the amount is moot.
 
-    ``summary`` keys: mean_residence_time_s, rtd_variance_s2, rtd_recovered_fraction
-    (moments exact, over the tracer recovered by the end), steady_outflow_per_s and
-    steady_C_A (means from the steady-state time to the end; the last steady window if
-    no steady state), final_rsd_outlet, final_rsd_blender, final_rsd_by_slice (list,
-    inlet -> outlet, None where undefined), holdup_final, holdup_final_A, holdup_final_B,
-    steady_state_time_s (None if not detected), rtd_pulse_s, rtd_pulse_rule,
-    filled_compartment_windows (of the fields ``config.rates`` reads), nx, ny, duration_s,
-    method, wall_time_s. Raises
+    ``summary``: a :class:`pbm.summary.PbmSummary`. The steps, in order:
+    :func:`prepare_run` (validate, feed, rates, initial state), :func:`march_run` (A, B
+    and the tracer pulse), :func:`tracer_rtd`, :func:`cqa_series`,
+    :func:`steady_span_means`, :func:`run_summary`. Raises
     ConfigError for settings this table cannot satisfy (rates = "measured" on a table
     without measured rates), TableError for an empty table.
     """
     wall0 = time.perf_counter()
     config = config or PbmConfig()
+    setup = prepare_run(table, config, rtd_pulse_s, initial_counts, steady)
+    marched = march_run(setup, steady)
+    rtd_t, rtd_E, moments = tracer_rtd(setup, marched)
+    series = cqa_series(setup, marched)
+    outflow, c_a = steady_span_means(setup.out_times, series.discharged, marched.steady_time, setup.t_end, steady)
+    summary = run_summary(setup, marched, series, moments, outflow, c_a, time.perf_counter() - wall0)
+    return PbmResult(
+        times=setup.out_times,
+        outflow_A=series.increments[:, 0] / config.output_interval_s,
+        outflow_B=series.increments[:, 1] / config.output_interval_s,
+        C_A=outflow_fraction_a(series.increments[:, 0], series.increments[:, 1]),
+        rsd_outlet=series.rsd_outlet,
+        rsd_blender=series.rsd_blender,
+        holdup_A=series.holdup[:, 0],
+        holdup_B=series.holdup[:, 1],
+        fed_A=series.fed[:, 0],
+        fed_B=series.fed[:, 1],
+        discharged_A=series.discharged[:, 0].copy(),
+        discharged_B=series.discharged[:, 1].copy(),
+        counts=series.counts,
+        rsd_by_slice_final=series.rsd_slices,
+        x_centres=0.5 * (table.x_edges[:-1] + table.x_edges[1:]),
+        rtd_t=rtd_t,
+        rtd_E=rtd_E,
+        rtd_pulse_s=float(marched.pulse),
+        summary=summary,
+        schedule=setup.schedule,
+    )
+
+
+@dataclass(frozen=True)
+class RunSetup:
+    """A run validated and ready to march (:func:`prepare_run`).
+
+    ``t_end`` [s]; ``pulse`` [s] the requested tracer pulse (None: at the steady state);
+    ``filled_mask``: the compartment-windows filled in the fields the rates read; ``n``
+    populations (NX * NY, times the phases in mode "phases", ``k_phases``); ``z0`` (m, 2)
+    the augmented initial state of A and B (m = n + accumulators); ``out_times`` [s];
+    ``factors`` (intervals, 2) the feed factors and ``rates`` (2,) [1/s] the nominal
+    feed; the tracer pulse's ``tracer_amount`` [particles] and (m,) ``tracer_vector``;
+    ``schedule`` and its fill ``law`` (None under the table's rates); ``props`` the
+    propagators.
+    """
+
+    table: VelocityTable
+    config: PbmConfig
+    t_end: float
+    pulse: float | None
+    filled_mask: np.ndarray
+    n: int
+    k_phases: int
+    z0: np.ndarray
+    out_times: np.ndarray
+    factors: np.ndarray
+    rates: np.ndarray
+    tracer_amount: float
+    tracer_vector: np.ndarray
+    schedule: Schedule | None
+    law: FillLaw | None
+    props: Propagators
+
+
+def prepare_run(
+    table: VelocityTable,
+    config: PbmConfig,
+    rtd_pulse_s: float | None,
+    initial_counts: np.ndarray | None,
+    steady: SteadyStateRule,
+) -> RunSetup:
+    """Validate the run :func:`simulate` is asked for and build what it marches on."""
     t_end = check_run(table, config)
     pulse = config.rtd_pulse_s if rtd_pulse_s is None else float(rtd_pulse_s)
     if pulse is not None and not (0.0 <= pulse < t_end):
         raise ConfigError(f"RTD pulse time {pulse} s must lie in [0, {t_end}) s, the simulated time")
     filled, filled_mask = filled_table(table, config.rates)
     feed = feed_distribution(table, config.feed_weights_a, config.feed_weights_b, config.rates)
-    # populations: NX*NY compartments, times K phases in mode "phases" (collapsed below)
+    # populations: NX*NY compartments, times K phases in mode "phases" (collapsed in cqa_series)
     n, k_phases = n_populations(table, config.rates), n_phases(table, config.rates)
     m = n + N_ACCUMULATORS
+    z0 = initial_state(table, config.rates, initial_counts, n, m)
+    factors = feed_factors(config, noise_intervals(config, t_end))[:, 0]
+    rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
+    tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)
+    schedule, law = config_schedule(table, config, feed, factors, t_end, z0[:n, 0] + z0[:n, 1], steady)
+    return RunSetup(
+        table=table,
+        config=config,
+        t_end=t_end,
+        pulse=pulse,
+        filled_mask=filled_mask,
+        n=n,
+        k_phases=k_phases,
+        z0=z0,
+        out_times=multiples(config.output_interval_s, config.output_interval_s, t_end),
+        factors=factors,
+        rates=rates,
+        tracer_amount=tracer_amount,
+        tracer_vector=tracer_vector,
+        schedule=schedule,
+        law=law,
+        props=Propagators(filled, feed, config.rates, config.kernel, schedule),
+    )
 
+
+def initial_state(table: VelocityTable, rates: str, initial_counts: np.ndarray | None, n: int, m: int) -> np.ndarray:
+    """(m, 2) augmented state of A and B at t = 0: ``initial_counts`` (2, NX, NY)
+    [particles] on the populations (empty when None), nothing accumulated."""
     z0 = np.zeros((m, 2))
     if initial_counts is not None:
         init = np.asarray(initial_counts, dtype=float)
@@ -218,36 +313,56 @@ def simulate(
                 f"initial_counts must be finite, >= 0 and shaped (2, NX, NY) = (2, {table.nx}, {table.ny}); "
                 f"got shape {init.shape}"
             )
-        z0[:n, 0] = initial_populations(init[0], table, config.rates, 0)
-        z0[:n, 1] = initial_populations(init[1], table, config.rates, 1)
+        z0[:n, 0] = initial_populations(init[0], table, rates, 0)
+        z0[:n, 1] = initial_populations(init[1], table, rates, 1)
+    return z0
 
-    dt_out = config.output_interval_s
-    out_times = multiples(dt_out, dt_out, t_end)
-    n_noise = noise_intervals(config, t_end)
-    factors = feed_factors(config, n_noise)[:, 0]
-    rates = np.array([config.feed_rate_a_per_s, config.feed_rate_b_per_s])
-    tracer_amount, tracer_vector = tracer_pulse(feed, rates, m)
-    schedule, law = config_schedule(table, config, feed, factors, t_end, z0[:n, 0] + z0[:n, 1], steady)
-    props = Propagators(filled, feed, config.rates, config.kernel, schedule)
+
+@dataclass(frozen=True)
+class Marched:
+    """The marched states (:func:`march_run`): ``main`` (K, m, >= 2) at the output times
+    (columns A, B); ``steady_time`` [s] on the total hold-up (None if never steady); the
+    tracer ``pulse`` [s] and the ``rule`` that placed it; the RTD's ``bins`` [s, edges];
+    ``tracer_t`` [s] and ``tracer`` (T, m, 1) the tracer's states at those times."""
+
+    main: np.ndarray
+    steady_time: float | None
+    pulse: float
+    rule: str
+    bins: np.ndarray
+    tracer_t: np.ndarray
+    tracer: np.ndarray
+
+
+def march_run(setup: RunSetup, steady: SteadyStateRule) -> Marched:
+    """March A, B and the tracer. A given pulse rides along with A and B in one march; at
+    the steady state (:func:`_choose_pulse`) it needs A and B's hold-up first, so the
+    tracer is marched after them, from the pulse."""
+    config, n, out_times = setup.config, setup.n, setup.out_times
 
     def run(t_start, columns, pulse_at, record):
+        z0 = _initial_columns(setup.z0, columns)
         return _run_columns(
-            props, config, t_start, t_end, columns, z0_for(columns), factors, rates, record, pulse_at, tracer_vector
+            setup.props,
+            config,
+            t_start,
+            setup.t_end,
+            columns,
+            z0,
+            setup.factors,
+            setup.rates,
+            record,
+            pulse_at,
+            setup.tracer_vector,
         )
 
-    def z0_for(columns):
-        z = np.zeros((m, len(columns)))
-        for col, species in enumerate(columns):
-            if species in (0, 1):
-                z[:, col] = z0[:, species]
-        return z
-
+    pulse = setup.pulse
     if pulse is not None:
-        bins = _bin_edges(pulse, config.rtd_bin_s, t_end)
+        bins = _bin_edges(pulse, config.rtd_bin_s, setup.t_end)
         rec_t, rec_z = run(0.0, (0, 1, 2), pulse, np.concatenate([out_times, bins]))
         main_z = _select(rec_t, rec_z, out_times)
         holdup_total = main_z[:, :n, 0].sum(axis=1) + main_z[:, :n, 1].sum(axis=1)
-        tracer_rec_t, tracer_rec = rec_t, rec_z[:, :, 2:3]
+        tracer_t, tracer = rec_t, rec_z[:, :, 2:3]
         rule = "given"
         steady_time = steady.time(out_times, holdup_total)
     else:
@@ -256,33 +371,96 @@ def simulate(
         holdup_total = main_z[:, :n, 0].sum(axis=1) + main_z[:, :n, 1].sum(axis=1)
         steady_time = steady.time(out_times, holdup_total)
         pulse, rule = _choose_pulse(out_times, holdup_total, steady_time, steady)
-        bins = _bin_edges(pulse, config.rtd_bin_s, t_end)
-        tracer_rec_t, tracer_rec = run(pulse, (2,), pulse, bins)
+        bins = _bin_edges(pulse, config.rtd_bin_s, setup.t_end)
+        tracer_t, tracer = run(pulse, (2,), pulse, bins)
+    return Marched(main_z, steady_time, pulse, rule, bins, tracer_t, tracer)
 
-    # RTD: discharged tracer at the bin edges, and exact moments from the final state.
-    tracer_at_bins = _select(tracer_rec_t, tracer_rec, bins)[:, n, 0]
-    rtd_E = np.diff(tracer_at_bins) / (tracer_amount * config.rtd_bin_s)
-    rtd_t = config.rtd_bin_s * (np.arange(rtd_E.size) + 0.5)
-    final_tracer = tracer_rec[-1, :, 0]
+
+def _initial_columns(z0: np.ndarray, columns) -> np.ndarray:
+    """The initial state of each marched column: A's and B's from ``z0``, the tracer's 0."""
+    z = np.zeros((z0.shape[0], len(columns)))
+    for col, species in enumerate(columns):
+        if species in (0, 1):
+            z[:, col] = z0[:, species]
+    return z
+
+
+def tracer_rtd(setup: RunSetup, marched: Marched) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    """``(rtd_t, rtd_E, moments)``: E(t) [1/s] at the bin centres [s] from the tracer
+    discharged at the bin edges, and the exact moments (:func:`rtd_moments`) from the
+    tracer's final state."""
+    n, bin_s = setup.n, setup.config.rtd_bin_s
+    tracer_at_bins = _select(marched.tracer_t, marched.tracer, marched.bins)[:, n, 0]
+    rtd_E = np.diff(tracer_at_bins) / (setup.tracer_amount * bin_s)
+    rtd_t = bin_s * (np.arange(rtd_E.size) + 0.5)
+    final_tracer = marched.tracer[-1, :, 0]
     moments = rtd_moments(
-        tracer_amount, final_tracer[:n].sum(), final_tracer[n + 1], final_tracer[n + 2], t_end - pulse
+        setup.tracer_amount,
+        final_tracer[:n].sum(),
+        final_tracer[n + 1],
+        final_tracer[n + 2],
+        setup.t_end - marched.pulse,
     )
+    return rtd_t, rtd_E, moments
 
+
+@dataclass(frozen=True)
+class Series:
+    """The CQA series at the output times (:func:`cqa_series`): ``counts`` (K, 2, NX, NY),
+    ``discharged`` (K, 2) and ``fed`` (K, 2) [particles, cumulative], ``increments`` (K, 2)
+    discharged per interval, ``holdup`` (K, 2), ``rsd_outlet`` and ``rsd_blender`` (K,),
+    ``rsd_slices`` (NX,) at the end."""
+
+    counts: np.ndarray
+    discharged: np.ndarray
+    increments: np.ndarray
+    fed: np.ndarray
+    holdup: np.ndarray
+    rsd_outlet: np.ndarray
+    rsd_blender: np.ndarray
+    rsd_slices: np.ndarray
+
+
+def cqa_series(setup: RunSetup, marched: Marched) -> Series:
+    """The CQA series of A and B (:mod:`coupling.metrics`), phases collapsed."""
+    table, config, n, out_times = setup.table, setup.config, setup.n, setup.out_times
+    main_z = marched.main
     counts = (
-        collapse_phases(main_z[:, :n, :2], k_phases, axis=1)
+        collapse_phases(main_z[:, :n, :2], setup.k_phases, axis=1)
         .transpose(0, 2, 1)
         .reshape(out_times.size, 2, table.nx, table.ny)
     )
     discharged = main_z[:, n, :2]
     increments = np.diff(np.vstack([np.zeros(2), discharged]), axis=0)
-    fed = np.stack([cumulative_feed(out_times, rates[s], factors[:, s], config.noise_interval_s) for s in (0, 1)], 1)
-    holdup = counts.sum(axis=(2, 3))
-    rsd_outlet = rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1)
+    fed = np.stack(
+        [cumulative_feed(out_times, setup.rates[s], setup.factors[:, s], config.noise_interval_s) for s in (0, 1)], 1
+    )
     cells = table.nx * table.ny
-    rsd_blender = rsd(counts[:, 0].reshape(out_times.size, cells), counts[:, 1].reshape(out_times.size, cells), axis=1)
-    rsd_slices = rsd(counts[-1, 0], counts[-1, 1], axis=1)
+    return Series(
+        counts=counts,
+        discharged=discharged,
+        increments=increments,
+        fed=fed,
+        holdup=counts.sum(axis=(2, 3)),
+        rsd_outlet=rsd(counts[:, 0, -1, :], counts[:, 1, -1, :], axis=1),
+        rsd_blender=rsd(
+            counts[:, 0].reshape(out_times.size, cells), counts[:, 1].reshape(out_times.size, cells), axis=1
+        ),
+        rsd_slices=rsd(counts[-1, 0], counts[-1, 1], axis=1),
+    )
 
-    # Steady-state means: exact, from the discharge accumulated over the span.
+
+def steady_span_means(
+    out_times: np.ndarray,
+    discharged: np.ndarray,
+    steady_time: float | None,
+    t_end: float,
+    steady: SteadyStateRule,
+) -> tuple[float, float]:
+    """``(outflow [1/s], C_A)`` from the steady-state time to the end, exact from the
+    discharge ``discharged`` (K, 2) accumulated over the span, which starts at the output
+    time nearest the steady state (the last ``steady.window_s`` if none was found, or it
+    falls at the end). C_A by :func:`coupling.metrics.outflow_fraction_a`."""
     if steady_time is not None and steady_time < t_end - TIME_TOLERANCE_S:
         span_start = steady_time
     else:
@@ -294,52 +472,45 @@ def simulate(
         span_start, d_start = float(out_times[start_idx]), discharged[start_idx]
     span = out_times[-1] - span_start
     d_span = discharged[-1] - d_start
-    summary = {
-        "mean_residence_time_s": moments["mean_s"],
-        "rtd_variance_s2": moments["variance_s2"],
-        "rtd_recovered_fraction": moments["recovered_fraction"],
-        "steady_outflow_per_s": float(d_span.sum() / span) if span > 0 else float("nan"),
-        "steady_C_A": float(d_span[0] / d_span.sum()) if d_span.sum() > 0 else float("nan"),
-        "final_rsd_outlet": float(rsd_outlet[-1]),
-        "final_rsd_blender": float(rsd_blender[-1]),
-        "final_rsd_by_slice": [float(v) for v in rsd_slices],
-        "holdup_final": float(holdup[-1].sum()),
-        "holdup_final_A": float(holdup[-1, 0]),
-        "holdup_final_B": float(holdup[-1, 1]),
-        "steady_state_time_s": steady_time,
-        "rtd_pulse_s": float(pulse),
-        "rtd_pulse_rule": rule,
-        "filled_compartment_windows": int(filled_mask.sum()),
-        "nx": table.nx,
-        "ny": table.ny,
-        "duration_s": t_end,
-        "method": config.method,
-        "rate_law": config.rate_law,
-        "fill_law_form": None if law is None else law.form,
-        "fill_exponents": None if law is None else law.beta.tolist(),
-    }
-    summary["wall_time_s"] = time.perf_counter() - wall0
-    return PbmResult(
-        times=out_times,
-        outflow_A=increments[:, 0] / dt_out,
-        outflow_B=increments[:, 1] / dt_out,
-        C_A=outflow_fraction_a(increments[:, 0], increments[:, 1]),
-        rsd_outlet=rsd_outlet,
-        rsd_blender=rsd_blender,
-        holdup_A=holdup[:, 0],
-        holdup_B=holdup[:, 1],
-        fed_A=fed[:, 0],
-        fed_B=fed[:, 1],
-        discharged_A=discharged[:, 0].copy(),
-        discharged_B=discharged[:, 1].copy(),
-        counts=counts,
-        rsd_by_slice_final=rsd_slices,
-        x_centres=0.5 * (table.x_edges[:-1] + table.x_edges[1:]),
-        rtd_t=rtd_t,
-        rtd_E=rtd_E,
-        rtd_pulse_s=float(pulse),
-        summary=summary,
-        schedule=schedule,
+    outflow = float(d_span.sum() / span) if span > 0 else float("nan")
+    return outflow, float(outflow_fraction_a(d_span[0], d_span[1]))
+
+
+def run_summary(
+    setup: RunSetup,
+    marched: Marched,
+    series: Series,
+    moments: dict[str, float],
+    steady_outflow_per_s: float,
+    steady_c_a: float,
+    wall_time_s: float,
+) -> PbmSummary:
+    """The run's :class:`pbm.summary.PbmSummary` from its steps' results."""
+    config, law, holdup = setup.config, setup.law, series.holdup
+    return PbmSummary(
+        mean_residence_time_s=moments["mean_s"],
+        rtd_variance_s2=moments["variance_s2"],
+        rtd_recovered_fraction=moments["recovered_fraction"],
+        steady_outflow_per_s=steady_outflow_per_s,
+        steady_C_A=steady_c_a,
+        final_rsd_outlet=float(series.rsd_outlet[-1]),
+        final_rsd_blender=float(series.rsd_blender[-1]),
+        final_rsd_by_slice=tuple(float(v) for v in series.rsd_slices),
+        holdup_final=float(holdup[-1].sum()),
+        holdup_final_A=float(holdup[-1, 0]),
+        holdup_final_B=float(holdup[-1, 1]),
+        steady_state_time_s=marched.steady_time,
+        rtd_pulse_s=float(marched.pulse),
+        rtd_pulse_rule=marched.rule,
+        filled_compartment_windows=int(setup.filled_mask.sum()),
+        nx=setup.table.nx,
+        ny=setup.table.ny,
+        duration_s=setup.t_end,
+        method=config.method,
+        rate_law=config.rate_law,
+        fill_law_form=None if law is None else law.form,
+        fill_exponents=None if law is None else nested_tuples(law.beta.tolist()),
+        wall_time_s=wall_time_s,
     )
 
 

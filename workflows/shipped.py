@@ -28,6 +28,7 @@ from pathlib import Path
 from coupling.cache import try_load_entry
 from coupling.errors import ConfigError, error_line
 from dem.config import DemConfig
+from dem.summary import DemSummary
 from workflows.config import config_from_dict
 
 REFERENCE_DIR = Path(__file__).resolve().parent / "reference"
@@ -63,7 +64,7 @@ def reference_holdup(dem_config: DemConfig, directory: Path = REFERENCE_DIR) -> 
         ref = config_from_dict(tomllib.loads(entry.provenance["config_toml"])).dem
         if not _same_vessel(ref, dem_config):
             continue
-        held = float(entry.summary["holdup_final"])
+        held = float(DemSummary.from_record(entry.summary).holdup_final)
         scale = (ref.particles.diameter_m / dem_config.particles.diameter_m) ** 3
         return (
             held * scale,

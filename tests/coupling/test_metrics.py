@@ -150,8 +150,8 @@ def test_dem_and_pbm_give_the_same_cqas_for_the_same_counts(tmp_path):
     pbm = simulate(
         table, PbmConfig(feed_rate_a_per_s=0, feed_rate_b_per_s=0, duration_s=1.0), initial_counts=counts
     ).summary
-    assert pbm["final_rsd_outlet"] == pytest.approx(dem.final_rsd_outlet)
-    assert pbm["final_rsd_blender"] == pytest.approx(dem.final_rsd_blender)
+    assert pbm.final_rsd_outlet == pytest.approx(dem.final_rsd_outlet)
+    assert pbm.final_rsd_blender == pytest.approx(dem.final_rsd_blender)
 
 
 # --- Lacey index, sampled RSD / Lacey -------------------------------------------------------

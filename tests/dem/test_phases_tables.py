@@ -83,8 +83,8 @@ def test_pbm_one_phase_equals_measured():
         res = simulate(table, cfg)
         rtd = pooled_rtd(table, cfg, (30.0, 60.0), 100.0)
         out[mode] = (
-            res.summary["mean_residence_time_s"],
-            res.summary["rtd_variance_s2"],
+            res.summary.mean_residence_time_s,
+            res.summary.rtd_variance_s2,
             res.counts[-1],
             rtd.mean_s,
             rtd.variance_s2,

@@ -87,7 +87,7 @@ def test_bulk_and_composition_against_bdf_on_the_nonlinear_system(shipped):
         result.fed_A + result.fed_B - result.discharged_A - result.discharged_B - result.holdup_A - result.holdup_B
     )
     assert np.abs(balance).max() <= 1e-9 * (result.fed_A[-1] + result.fed_B[-1])
-    assert result.summary["rate_law"] == "fill" and result.summary["fill_law_form"] == "given"
+    assert result.summary.rate_law == "fill" and result.summary.fill_law_form == "given"
 
 
 def test_more_feed_holds_less_than_proportionally_more(shipped):
@@ -100,7 +100,7 @@ def test_more_feed_holds_less_than_proportionally_more(shipped):
             cfg = _config(shipped, fill_exponents=exps, duration_s=min(250.0, shipped.t_end)).model_copy(
                 update={"feed_rate_a_per_s": FEED * f, "feed_rate_b_per_s": FEED * f}
             )
-            held[beta, f] = simulate(shipped, cfg).summary["holdup_final"]
+            held[beta, f] = simulate(shipped, cfg).summary.holdup_final
     assert held[0.0, 2.0] / held[0.0, 1.0] == pytest.approx(2.0, rel=1e-3)
     assert 1.05 < held[1.5, 2.0] / held[1.5, 1.0] < 1.6
 

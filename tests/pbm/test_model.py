@@ -102,8 +102,8 @@ def test_missing_outlet_velocity_is_not_read_as_zero():
         min_samples=10,
     )
     result = simulate(table, PbmConfig(duration_s=120.0))
-    assert result.summary["filled_compartment_windows"] == ny
-    assert result.summary["steady_outflow_per_s"] == pytest.approx(1990.0, rel=1e-3)
+    assert result.summary.filled_compartment_windows == ny
+    assert result.summary.steady_outflow_per_s == pytest.approx(1990.0, rel=1e-3)
 
 
 def test_default_feed_weights_split_the_diameter():
@@ -132,8 +132,8 @@ def test_scale_blender_length_doubles_plug_residence_time():
     )
     long = scale_blender(table, length_factor=2.0)
     np.testing.assert_allclose(long.x_edges, 2 * table.x_edges)
-    base = simulate(table, PbmConfig(duration_s=200.0), rtd_pulse_s=0.0).summary["mean_residence_time_s"]
-    doubled = simulate(long, PbmConfig(duration_s=200.0), rtd_pulse_s=0.0).summary["mean_residence_time_s"]
+    base = simulate(table, PbmConfig(duration_s=200.0), rtd_pulse_s=0.0).summary.mean_residence_time_s
+    doubled = simulate(long, PbmConfig(duration_s=200.0), rtd_pulse_s=0.0).summary.mean_residence_time_s
     k = v / (0.33 / nx)
     assert base == pytest.approx(
         nx / k * gamma.cdf(200, nx + 1, scale=1 / k) / gamma.cdf(200, nx, scale=1 / k), rel=1e-9

@@ -200,7 +200,7 @@ def test_studies_run_and_plot(small_table, tmp_path):
     config = PbmConfig(duration_s=20.0)
     geo = geometry_study(small_table, config, length_factors=(1.0, 2.0), diameter_factors=(1.0,), rtd_pulse_s=0.0)
     # A longer blender holds the particles longer.
-    assert geo["length"][2.0].summary["mean_residence_time_s"] > geo["length"][1.0].summary["mean_residence_time_s"]
+    assert geo["length"][2.0].summary.mean_residence_time_s > geo["length"][1.0].summary.mean_residence_time_s
     grids = grid_study(small_table, config, grids=((3, 2), (10, 8)), rtd_pulse_s=0.0)
     assert grids[(10, 8)].rsd_by_slice_final.shape == (10,)
     ens = noise_study(small_table, config, sigmas=(0.0, 0.2), members=3)

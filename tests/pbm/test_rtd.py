@@ -59,7 +59,7 @@ def test_measured_rates_equal_to_v_over_dx_give_the_velocity_results_exactly():
     for name in ("outflow_A", "outflow_B", "counts", "rtd_E", "rsd_outlet"):
         np.testing.assert_array_equal(getattr(by_rates, name), getattr(by_velocity, name), err_msg=name)
     for key in ("mean_residence_time_s", "rtd_variance_s2", "steady_outflow_per_s"):
-        assert by_rates.summary[key] == by_velocity.summary[key], key
+        assert getattr(by_rates.summary, key) == getattr(by_velocity.summary, key), key
 
 
 def test_measured_mode_reads_the_rates_closes_the_walls_and_leaves_the_table_alone():
@@ -85,13 +85,12 @@ def test_tanks_in_series_from_measured_rates_have_the_erlang_moments():
     result = simulate(chain(nx, k), PbmConfig(duration_s=duration, rates="measured"), rtd_pulse_s=pulse)
     s = result.summary
     tau = duration - pulse
-    assert s["rtd_recovered_fraction"] == pytest.approx(gamma.cdf(tau, nx, scale=1 / k), rel=1e-9)
-    assert s["mean_residence_time_s"] == pytest.approx(nx / k, rel=1e-9)
-    assert s["rtd_variance_s2"] == pytest.approx(nx / k**2, rel=1e-8)
+    assert s.rtd_recovered_fraction == pytest.approx(gamma.cdf(tau, nx, scale=1 / k), rel=1e-9)
+    assert s.mean_residence_time_s == pytest.approx(nx / k, rel=1e-9)
+    assert s.rtd_variance_s2 == pytest.approx(nx / k**2, rel=1e-8)
     # The velocity mode on the same table sees still powder: nothing leaves.
     assert (
-        simulate(chain(nx, k), PbmConfig(duration_s=duration), rtd_pulse_s=pulse).summary["rtd_recovered_fraction"]
-        == 0.0
+        simulate(chain(nx, k), PbmConfig(duration_s=duration), rtd_pulse_s=pulse).summary.rtd_recovered_fraction == 0.0
     )
 
 
@@ -119,7 +118,7 @@ def test_unmeasured_rates_are_filled_by_the_velocity_rule():
         values = getattr(table, name)
         np.testing.assert_array_equal(getattr(filled, name)[~np.isnan(values)], values[~np.isnan(values)])
     summary = simulate(table, PbmConfig(rates="measured", duration_s=20.0), rtd_pulse_s=1.0).summary
-    assert summary["filled_compartment_windows"] == 5
+    assert summary.filled_compartment_windows == 5
     with pytest.raises(TableError, match="'rate_x_neg' is NaN"):
         fill_missing_rates(table.replace(rate_x_neg=np.full(shape, np.nan)))
 
@@ -144,9 +143,9 @@ def test_pooled_rtd_of_a_stationary_table_is_the_single_pulse_rtd_truncated_at_t
     np.testing.assert_allclose(pooled.bin_edges, np.arange(41.0))
     np.testing.assert_allclose(pooled.density_per_s, single.rtd_E, rtol=1e-9, atol=1e-13)
     s = single.summary
-    assert pooled.recovered_fraction == pytest.approx(s["rtd_recovered_fraction"], rel=1e-9)
-    assert pooled.mean_s == pytest.approx(s["mean_residence_time_s"], rel=1e-9)
-    assert pooled.variance_s2 == pytest.approx(s["rtd_variance_s2"], rel=1e-8)
+    assert pooled.recovered_fraction == pytest.approx(s.rtd_recovered_fraction, rel=1e-9)
+    assert pooled.mean_s == pytest.approx(s.mean_residence_time_s, rel=1e-9)
+    assert pooled.variance_s2 == pytest.approx(s.rtd_variance_s2, rel=1e-8)
     assert np.sum(pooled.density_per_s * np.diff(pooled.bin_edges)) == pytest.approx(
         pooled.recovered_fraction, rel=1e-12
     )
@@ -180,8 +179,8 @@ def test_pooled_rtd_of_a_time_varying_table_averages_the_pulse_responses_at_thei
         simulate(table, config.model_copy(update={"duration_s": s + horizon}), rtd_pulse_s=s) for s in (12.75, 14.25)
     ]
     np.testing.assert_allclose(pooled.density_per_s, np.mean([r.rtd_E for r in singles], axis=0), rtol=1e-9, atol=1e-13)
-    weights = np.array([r.summary["rtd_recovered_fraction"] for r in singles])
-    means = np.array([r.summary["mean_residence_time_s"] for r in singles])
+    weights = np.array([r.summary.rtd_recovered_fraction for r in singles])
+    means = np.array([r.summary.mean_residence_time_s for r in singles])
     assert pooled.recovered_fraction == pytest.approx(weights.mean(), rel=1e-9)
     assert pooled.mean_s == pytest.approx(np.sum(weights * means) / weights.sum(), rel=1e-9)
 

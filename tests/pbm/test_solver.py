@@ -59,9 +59,9 @@ def test_tanks_in_series_rtd_is_erlang():
     mean = nx / k * gamma.cdf(tau, nx + 1, scale=1 / k) / recovered
     second = nx * (nx + 1) / k**2 * gamma.cdf(tau, nx + 2, scale=1 / k) / recovered
     s = result.summary
-    assert s["rtd_recovered_fraction"] == pytest.approx(recovered, rel=1e-9)
-    assert s["mean_residence_time_s"] == pytest.approx(mean, rel=1e-9)
-    assert s["rtd_variance_s2"] == pytest.approx(second - mean**2, rel=1e-8)
+    assert s.rtd_recovered_fraction == pytest.approx(recovered, rel=1e-9)
+    assert s.mean_residence_time_s == pytest.approx(mean, rel=1e-9)
+    assert s.rtd_variance_s2 == pytest.approx(second - mean**2, rel=1e-8)
     # Hold-up fed at F from t = 0: F int_0^T survival = F [T (1 - G_N(T)) + N/k G_{N+1}(T)].
     held = 1990.0 * (duration * gamma.sf(duration, nx, scale=1 / k) + nx / k * gamma.cdf(duration, nx + 1, scale=1 / k))
     assert result.holdup_A[-1] + result.holdup_B[-1] == pytest.approx(held, rel=1e-9)
@@ -148,7 +148,7 @@ def test_particles_conserved_with_time_varying_tables_and_noise(method):
     # The noise really varied the feed: factors differ from 1.
     assert not np.allclose(np.diff(result.fed_A), np.diff(result.fed_A)[0])
     # Tracer: everything fed is either discharged or held; E integrates to the recovered part.
-    assert np.sum(result.rtd_E) <= result.summary["rtd_recovered_fraction"] + 1e-9
+    assert np.sum(result.rtd_E) <= result.summary.rtd_recovered_fraction + 1e-9
 
 
 def test_mirror_symmetric_blender_gives_C_A_one_half_at_all_times(rng):
@@ -176,9 +176,9 @@ def test_equal_feeds_give_steady_C_A_one_half():
     table = synthetic_table(nx=5, ny=4, n_windows=1, seed=3)  # one window: constant velocities
     result = simulate(table, PbmConfig(duration_s=150.0))
     assert result.C_A[-1] == pytest.approx(0.5, abs=1e-6)
-    assert result.summary["steady_C_A"] == pytest.approx(0.5, abs=1e-3)
-    assert result.summary["steady_outflow_per_s"] == pytest.approx(1990.0, rel=1e-3)
-    assert result.summary["steady_state_time_s"] is not None
+    assert result.summary.steady_C_A == pytest.approx(0.5, abs=1e-3)
+    assert result.summary.steady_outflow_per_s == pytest.approx(1990.0, rel=1e-3)
+    assert result.summary.steady_state_time_s is not None
 
 
 def test_exact_and_bdf_agree():
@@ -189,7 +189,7 @@ def test_exact_and_bdf_agree():
     for name in ("holdup_A", "holdup_B", "discharged_A", "discharged_B", "outflow_A", "outflow_B", "rtd_E"):
         a, b = getattr(exact, name), getattr(bdf, name)
         assert np.max(np.abs(a - b)) <= 1e-5 * np.max(np.abs(b)), name
-    assert exact.summary["mean_residence_time_s"] == pytest.approx(bdf.summary["mean_residence_time_s"], rel=1e-5)
+    assert exact.summary.mean_residence_time_s == pytest.approx(bdf.summary.mean_residence_time_s, rel=1e-5)
 
 
 def test_pulse_off_the_output_grid_and_beyond_table_end():
@@ -200,5 +200,5 @@ def test_pulse_off_the_output_grid_and_beyond_table_end():
     result = simulate(table, PbmConfig(duration_s=37.0), rtd_pulse_s=2.25)
     edges = np.arange(result.rtd_E.size + 1) * 1.0
     np.testing.assert_allclose(result.rtd_E, np.diff(gamma.cdf(edges, nx, scale=1 / k)), rtol=1e-9, atol=1e-13)
-    assert result.rtd_pulse_s == 2.25 and result.summary["rtd_pulse_rule"] == "given"
+    assert result.rtd_pulse_s == 2.25 and result.summary.rtd_pulse_rule == "given"
     assert math.isclose(result.times[-1], 37.0)

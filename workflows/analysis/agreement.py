@@ -94,8 +94,8 @@ def run_modes(
 def steady_outputs(result: PbmResult) -> np.ndarray:
     """Which of the PBM's outputs are steady: after its own steady-state time (the rule
     the DEM's own curve is judged by), none when it has none."""
-    t_ss = result.summary.get("steady_state_time_s")
-    return result.times > (t_ss if t_ss is not None and math.isfinite(t_ss) else result.times[-1])
+    t_ss = result.summary.steady_time
+    return result.times > (t_ss if t_ss is not None else result.times[-1])
 
 
 def pbm_steady(
@@ -327,7 +327,7 @@ def nx_sensitivity(
     measured rates re-fitted to the DEM's moves between the finer compartments, not
     regridded), against the same on the coarse table: the relative changes."""
     fine = run_modes(fine_table, config, steady, dem_summary)
-    out: dict[str, Any] = {"nx": [int(next(iter(coarse.values())).result.summary.get("nx", 0)), fine_table.nx]}
+    out: dict[str, Any] = {"nx": [int(next(iter(coarse.values())).result.summary.nx), fine_table.nx]}
     for mode in MODES:
         a, b = coarse.get(mode), fine.get(mode)
         if a is None or b is None or a.pooled is None or b.pooled is None:

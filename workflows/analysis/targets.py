@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import math
 
+from dem.summary import DemSummary
+
 
 def _rows(summary: dict) -> dict[str, dict]:
     return {row["key"]: row for row in summary.get("agreement") or []}
@@ -84,9 +86,11 @@ def _out_of_sample_line(summary: dict) -> tuple[str, str, bool]:
 def check(summary: dict) -> list[tuple[str, str, bool | None]]:
     """(target, the numbers, passed) for every target; passed None = information only."""
     rows = _rows(summary)
-    pooled = (summary.get("dem_summary") or {}).get("pooled_rtd") or {}
+    dem = DemSummary.from_record(summary.get("dem_summary") or {})
+    pooled = dem.pooled_rtd
     out: list[tuple[str, str, bool | None]] = []
-    n, rec = pooled.get("n_entered", 0), (pooled.get("recovered_fraction") or {}).get("value", math.nan)
+    n = pooled.n_entered if pooled is not None else 0
+    rec = pooled.recovered_fraction.value if pooled is not None and pooled.recovered_fraction else math.nan
     out.append(
         (
             "pooled RTD from >= 10 000 particles, >= 95 % recovered",
@@ -168,7 +172,7 @@ def check(summary: dict) -> list[tuple[str, str, bool | None]]:
                 post_s / dem_s <= 0.05,
             )
         )
-    fit_s = ((summary.get("dem_summary") or {}).get("phase_fit") or {}).get("wall_time_s")
+    fit_s = (dem.extra.get("phase_fit") or {}).get("wall_time_s")
     if dem_s and fit_s:
         out.append(
             (

@@ -184,7 +184,7 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
         )
         for name, rec in records.items()
     }
-    keys = ("holdup_final", "discharged", "inserted", "lost", "accounting_mismatch", "discharge_crosscheck_diff")
+    accounting_keys = ("discharged", "inserted", "lost", "accounting_mismatch", "discharge_crosscheck_diff")
     return {
         "preset": preset,
         "duration_s": duration,
@@ -192,7 +192,10 @@ def restart_scatter(preset: str, duration_s: float | None, root: Path, np_ranks:
         "wall_time_s": {name: rec.wall_time_s for name, rec in records.items()},
         "scatter_seed_a_vs_seed_b": _table_difference(results["seed_a"].table, results["seed_b"].table),
         "resumed_vs_seed_a": _table_difference(results["seed_a"].table, results["resumed"].table),
-        "summaries": {name: {k: r.summary.get(k) for k in keys} for name, r in results.items()},
+        "summaries": {
+            name: {"holdup_final": r.summary.holdup_final, **{k: r.summary.accounting.get(k) for k in accounting_keys}}
+            for name, r in results.items()
+        },
     }
 
 

@@ -353,8 +353,8 @@ def run_benchmark(
         },
         "max_rel_diff_derived": {name: _max_rel_diff(getattr(exact, name), getattr(bdf, name)) for name in DERIVED},
         "mean_residence_time_s": {
-            "expm": exact.summary["mean_residence_time_s"],
-            "bdf": bdf.summary["mean_residence_time_s"],
+            "expm": exact.summary.mean_residence_time_s,
+            "bdf": bdf.summary.mean_residence_time_s,
         },
         "ensemble": {
             "members": members,

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from coupling.cache import try_load_entry
 from coupling.jsonable import write_json
+from dem.summary import DemSummary
 from workflows.shipped import REFERENCE_DIR
 
 OUT = Path("results/bench/reference.json")
@@ -49,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
                     "dem_wall_time_s": dem_s,
                     "postprocess_time_s": post_s,
                     "postprocess_fraction": post_s / dem_s if dem_s and post_s else None,
-                    "holdup_final": entry.summary.get("holdup_final"),
+                    "holdup_final": DemSummary.from_record(entry.summary).holdup_final,
                     "made": prov.get("created"),
                 }
             )

@@ -77,10 +77,10 @@ def run_command(args: argparse.Namespace) -> int:
     for mode, (result, paths) in runs.items():
         s = result.summary
         print(
-            f"PBM ({mode} rates) {s['nx']}x{s['ny']}, {s['duration_s']:g} s ({s['method']}) in "
-            f"{s['wall_time_s'] * 1e3:.1f} ms: steady outflow {s['steady_outflow_per_s']:.1f}/s, "
-            f"C_A {s['steady_C_A']:.4f}, mean residence {s['mean_residence_time_s']:.2f} s "
-            f"(recovered {s['rtd_recovered_fraction']:.3f}), final outlet RSD {s['final_rsd_outlet']:.3g}"
+            f"PBM ({mode} rates) {s.nx}x{s.ny}, {s.duration_s:g} s ({s.method}) in "
+            f"{s.wall_time_s * 1e3:.1f} ms: steady outflow {s.steady_outflow_per_s:.1f}/s, "
+            f"C_A {s.steady_C_A:.4f}, mean residence {s.mean_residence_time_s:.2f} s "
+            f"(recovered {s.rtd_recovered_fraction:.3f}), final outlet RSD {s.final_rsd_outlet:.3g}"
         )
         print(json.dumps({k: str(v) for k, v in paths.items()}, indent=2))
     return 0

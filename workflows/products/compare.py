@@ -186,11 +186,11 @@ def _compare(
         dem.results.timeseries,
         dem.results.rtd[["t_s", "E_per_s"]],
         dem.results.rsd_by_slice,
-        dem.results.summary.record(),
+        dem.results.summary,
         rsd_by_slice_floor=dem.results.rsd_by_slice_floor,
     )
     pbm_view = SideResults(
-        "PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final, dict(pbm_result.summary)
+        "PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final, pbm_result.summary
     )
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
     rows = agreement_rows(dem.results.summary, dem.results.particles, modes, dem.results.steady_outlet_counts())
@@ -281,10 +281,10 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         "nx_sensitivity": c.sensitivity,
         "vrr": None if c.vrr is None else c.vrr.record(),
         "memory": None if c.memory is None else c.memory.record(),
-        "pbm_modes": {mode: m.result.summary for mode, m in c.modes.items()},
+        "pbm_modes": {mode: m.result.summary.record() for mode, m in c.modes.items()},
         "provenance": {k: v for k, v in provenance.items() if k != "config_toml"},
         "dem_summary": c.dem.results.summary.record(),
-        "pbm_summary": c.pbm_result.summary,
+        "pbm_summary": c.pbm_result.summary.record(),
         "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
         "notes": notes,
     }

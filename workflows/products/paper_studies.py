@@ -68,9 +68,9 @@ def geometry_section(parameter: str, results: dict[float, PbmResult], base_size_
                 f"{parameter} [mm]": round(size * 1000, 1),
                 "late outlet RSD": _late_mean(result),
                 "mean blender RSD at end": float(np.nanmean(result.rsd_by_slice_final)),
-                "mean residence time [s]": result.summary.get("mean_residence_time_s"),
-                "tracer recovered": result.summary.get("rtd_recovered_fraction"),
-                "hold-up at end": result.summary.get("holdup_final"),
+                "mean residence time [s]": result.summary.mean_residence_time_s,
+                "tracer recovered": result.summary.rtd_recovered_fraction,
+                "hold-up at end": result.summary.holdup_final,
             }
         )
     figure = _study_figure(out_dir / f"study_{parameter}.png", f"Blender {parameter}", curves)

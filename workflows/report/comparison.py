@@ -21,7 +21,10 @@ from matplotlib.figure import Figure
 
 from coupling.metrics import TIMESERIES_COLUMNS
 from coupling.metrics import rtd_overlap as shared_rtd_overlap
+from coupling.summary import ProcessSummary
 from dem.steady import intervals_are_current
+from dem.summary import DemSummary
+from pbm.summary import PbmSummary
 from workflows.analysis.agreement import AgreementRow
 
 DEM_COLOUR, PBM_COLOUR = "#b2182b", "#2166ac"
@@ -32,13 +35,15 @@ class SideResults:
     """One side's CQAs. ``timeseries`` has :data:`TIMESERIES_COLUMNS` (DEM may add
     ``rsd_outlet_floor`` and ``rsd_blender_floor``, the random-mixture RSD); ``rtd`` has
     ``t_s`` and ``E_per_s``; ``rsd_by_slice`` is the RSD of each axial slice at the end
-    (inlet to outlet), ``rsd_by_slice_floor`` its random-mixture floor (DEM only)."""
+    (inlet to outlet), ``rsd_by_slice_floor`` its random-mixture floor (DEM only);
+    ``summary`` the side's scalars (:class:`dem.summary.DemSummary`,
+    :class:`pbm.summary.PbmSummary`)."""
 
     label: str
     timeseries: pd.DataFrame
     rtd: pd.DataFrame
     rsd_by_slice: np.ndarray
-    summary: dict[str, Any]
+    summary: DemSummary | PbmSummary
     rsd_by_slice_floor: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -78,42 +83,47 @@ def rtd_overlap(dem_rtd: pd.DataFrame, pbm_rtd: pd.DataFrame) -> float:
 
 
 def comparison_metrics(dem: SideResults, pbm: SideResults, feed_rate_per_s: float) -> dict[str, Any]:
-    """Every number of the report's metrics table (also written to summary.json)."""
+    """Every number of the report's metrics table (also written to summary.json): the
+    shared fields (:class:`coupling.summary.ProcessSummary`) side by side, the DEM's
+    random-mixture floors beside its RSDs, and the wall times."""
     d, p = dem.summary, pbm.summary
 
     def rel(a, b):
         return (b - a) / a if a and np.isfinite(a) and np.isfinite(b) else float("nan")
 
+    floors = isinstance(d, DemSummary)
     return {
-        "mean_residence_time_dem_s": d.get("mean_residence_time_s"),
-        "mean_residence_time_pbm_s": p.get("mean_residence_time_s"),
-        "mean_residence_time_rel_diff": rel(
-            d.get("mean_residence_time_s", np.nan), p.get("mean_residence_time_s", np.nan)
-        ),
-        "rtd_variance_dem_s2": d.get("rtd_variance_s2"),
-        "rtd_variance_pbm_s2": p.get("rtd_variance_s2"),
+        "mean_residence_time_dem_s": d.mean_residence_time_s,
+        "mean_residence_time_pbm_s": p.mean_residence_time_s,
+        "mean_residence_time_rel_diff": rel(d.mean_residence_time_s, p.mean_residence_time_s),
+        "rtd_variance_dem_s2": d.rtd_variance_s2,
+        "rtd_variance_pbm_s2": p.rtd_variance_s2,
         "rtd_overlap": rtd_overlap(dem.rtd, pbm.rtd),
-        "rtd_recovered_fraction_dem": d.get("rtd_recovered_fraction"),
-        "rtd_recovered_fraction_pbm": p.get("rtd_recovered_fraction"),
+        "rtd_recovered_fraction_dem": d.rtd_recovered_fraction,
+        "rtd_recovered_fraction_pbm": p.rtd_recovered_fraction,
         "feed_rate_per_s": feed_rate_per_s,
-        "steady_outflow_dem_per_s": d.get("steady_outflow_per_s"),
-        "steady_outflow_pbm_per_s": p.get("steady_outflow_per_s"),
-        "steady_C_A_dem": d.get("steady_C_A"),
-        "steady_C_A_pbm": p.get("steady_C_A"),
-        "final_rsd_outlet_dem": d.get("final_rsd_outlet"),
-        "final_rsd_outlet_dem_floor": d.get("final_rsd_outlet_floor"),
-        "final_rsd_outlet_pbm": p.get("final_rsd_outlet"),
-        "final_rsd_blender_dem": d.get("final_rsd_blender"),
-        "final_rsd_blender_dem_floor": d.get("final_rsd_blender_floor"),
-        "final_rsd_blender_pbm": p.get("final_rsd_blender"),
-        "holdup_final_dem": d.get("holdup_final"),
-        "holdup_final_pbm": p.get("holdup_final"),
-        "dem_wall_time_s": d.get("wall_time_s"),
-        "pbm_wall_time_s": p.get("wall_time_s"),
-        "speedup_pbm_over_dem": (
-            d["wall_time_s"] / p["wall_time_s"] if d.get("wall_time_s") and p.get("wall_time_s") else None
-        ),
+        "steady_outflow_dem_per_s": d.steady_outflow_per_s,
+        "steady_outflow_pbm_per_s": p.steady_outflow_per_s,
+        "steady_C_A_dem": d.steady_C_A,
+        "steady_C_A_pbm": p.steady_C_A,
+        "final_rsd_outlet_dem": d.final_rsd_outlet,
+        "final_rsd_outlet_dem_floor": d.final_rsd_outlet_floor if floors else None,
+        "final_rsd_outlet_pbm": p.final_rsd_outlet,
+        "final_rsd_blender_dem": d.final_rsd_blender,
+        "final_rsd_blender_dem_floor": d.final_rsd_blender_floor if floors else None,
+        "final_rsd_blender_pbm": p.final_rsd_blender,
+        "holdup_final_dem": d.holdup_final,
+        "holdup_final_pbm": p.holdup_final,
+        "dem_wall_time_s": _wall_time_s(d),
+        "pbm_wall_time_s": _wall_time_s(p),
+        "speedup_pbm_over_dem": (_wall_time_s(d) / _wall_time_s(p) if _wall_time_s(d) and _wall_time_s(p) else None),
     }
+
+
+def _wall_time_s(summary: ProcessSummary) -> float | None:
+    """The side's wall time [s]: a field of the PBM's summary; the DEM's as the pipeline
+    added it to the record (None for results post-processed outside it)."""
+    return summary.wall_time_s if isinstance(summary, PbmSummary) else summary.extra.get("wall_time_s")
 
 
 # --- figures -------------------------------------------------------------------------------

@@ -559,8 +559,9 @@ def timescales_over_lags(
     entry, reason = try_load_entry(Path(results))
     if entry is None:
         raise ConfigError(f"results {results}: {reason}")
-    seq = DemResults.from_cache_entry(entry).sequences
-    t0 = steady_time_s if steady_time_s is not None else float(entry.summary.get("steady_state_time_s"))
+    dem = DemResults.from_cache_entry(entry)
+    seq = dem.sequences
+    t0 = steady_time_s if steady_time_s is not None else float(dem.summary.steady_state_time_s)
     window = fit_window_s or (t0, float(seq.snapshot_t[-1]))
     out = {}
     for lag in lags:

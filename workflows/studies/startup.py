@@ -154,8 +154,8 @@ def _dem_residence_times(results) -> tuple[np.ndarray, float]:
 
 
 def _steady_time(run) -> float:
-    t_ss = run.summary.get("steady_state_time_s")
-    return float("nan") if t_ss is None else float(t_ss)
+    t_ss = run.summary.steady_time
+    return float("nan") if t_ss is None else t_ss
 
 
 def startup(path: str | Path) -> Startup:

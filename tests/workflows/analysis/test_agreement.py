@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from coupling.summary import ProcessSummary
 from dem.post import postprocess
 from pbm.config import PbmConfig
 from tests.known_dumps import STEADY, config, write_synthetic
@@ -83,7 +84,7 @@ def _mixed_pbm(ny: int = 2):
     counts = np.full((times.size, 2, 3, ny), 10.0)
     flux = np.ones(times.size)
     return SimpleNamespace(
-        summary={"steady_state_time_s": 0.0}, times=times, counts=counts, outflow_A=flux, outflow_B=flux
+        summary=ProcessSummary(steady_state_time_s=0.0), times=times, counts=counts, outflow_A=flux, outflow_B=flux
     )
 
 

@@ -22,7 +22,12 @@ def summary(phases_variance: float, with_phases: bool = True):
             row("holdup_slice_1", 200.0, 190.0, 210.0, modes(205.0, 230.0)),
         ],
         "dem_summary": {
-            "pooled_rtd": {"n_entered": 12000, "recovered_fraction": {"value": 0.99}},
+            "pooled_rtd": {
+                "horizon_s": 106.0,
+                "entry_window_s": [55.0, 200.0],
+                "n_entered": 12000,
+                "recovered_fraction": {"value": 0.99},
+            },
             "phase_fit": {"wall_time_s": 20.0},
         },
         "provenance": {"dem_wall_time_s": 1000.0, "dem_postprocess_time_s": 40.0},

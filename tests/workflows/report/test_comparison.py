@@ -4,6 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from dem.summary import DemSummary
+from pbm.summary import PbmSummary
 from workflows.report.comparison import (
     SideResults,
     Study,
@@ -42,16 +44,38 @@ def _side(label, rng):
             "holdup_B": np.linspace(0, 300, t.size),
         }
     )
-    summary = {"mean_residence_time_s": 8.0, "rtd_variance_s2": 4.0, "wall_time_s": 100.0, "steady_C_A": 0.5}
+    shared = {"mean_residence_time_s": 8.0, "rtd_variance_s2": 4.0, "steady_C_A": 0.5}
+    if label == "DEM":
+        summary = DemSummary(**shared, final_rsd_outlet_floor=0.1, extra={"wall_time_s": 100.0})
+    else:
+        summary = pbm_summary(**shared, wall_time_s=0.05)
     return SideResults(label, ts, _rtd(8.0), rng.uniform(0, 1, 10), summary)
+
+
+def pbm_summary(**fields) -> PbmSummary:
+    """A PBM summary of a 10 x 2 grid with ``fields`` set (the PBM-only ones made up)."""
+    own = {
+        "final_rsd_by_slice": (0.1,) * 10,
+        "holdup_final_A": 300.0,
+        "holdup_final_B": 300.0,
+        "rtd_pulse_s": 10.0,
+        "rtd_pulse_rule": "given",
+        "filled_compartment_windows": 0,
+        "nx": 10,
+        "ny": 2,
+        "duration_s": 30.0,
+        "method": "expm",
+        "rate_law": "table",
+    }
+    return PbmSummary(**{**own, **fields})
 
 
 def test_report_writes_figures_and_page(tmp_path, rng):
     dem, pbm = _side("DEM", rng), _side("PBM", rng)
-    pbm.summary["wall_time_s"] = 0.05
     metrics = comparison_metrics(dem, pbm, feed_rate_per_s=73.7)
     assert metrics["speedup_pbm_over_dem"] == pytest.approx(2000)
     assert metrics["mean_residence_time_rel_diff"] == 0.0
+    assert metrics["final_rsd_outlet_dem_floor"] == 0.1 and metrics["steady_C_A_pbm"] == 0.5
     figures = plot_comparison(dem, pbm, tmp_path)
     for name in figures.values():
         assert (tmp_path / name).stat().st_size > 5000
@@ -69,7 +93,7 @@ def test_report_writes_figures_and_page(tmp_path, rng):
 def test_side_results_requires_every_column(rng):
     side = _side("DEM", rng)
     with pytest.raises(ValueError, match="lacks columns"):
-        SideResults("DEM", side.timeseries.drop(columns=["C_A"]), side.rtd, side.rsd_by_slice, {})
+        SideResults("DEM", side.timeseries.drop(columns=["C_A"]), side.rtd, side.rsd_by_slice, DemSummary())
 
 
 def test_the_report_says_how_the_dem_intervals_were_had():
