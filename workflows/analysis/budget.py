@@ -421,56 +421,78 @@ def budget_study(
     log("PBM on the per-window table")
     window_rows = rows_of(table)
     modes = [mode for mode in MODES if math.isfinite(whole_rows[0].value(mode))]
-    whole = {}
-    for mode in modes:
-        whole[mode] = [
-            WholeRow(
-                row.key,
-                row.quantity,
-                row.value(mode),
-                row.dem,
-                row.pbm[mode].noise_low if row.pbm[mode].noise_low is not None else row.dem_ci_low,
-                row.dem_ci_high,
-                row.half_width(mode),
-            )
-            for row in whole_rows
-            if row.key not in SKIPPED
-        ]
+    whole = {mode: whole_run_rows(whole_rows, mode) for mode in modes}
     holding = {mode: verdict(judge(whole_rows, window_rows, mode)) for mode in modes}
-
-    times = results.timeseries["t_s"].to_numpy(float)
-    holdup = (results.timeseries["holdup_A"] + results.timeseries["holdup_B"]).to_numpy(float)
-    budgets = []
-    for t_use in sorted(float(t) for t in t_values):
-        entry = Budget(t_use, min(t_use / t_end, 1.0))
-        budgets.append(entry)
-        seen = times <= t_use + 1e-9
-        steady_time = config.steady_state.time(times[seen], holdup[seen])
-        if steady_time is None:
-            entry.error = f"T = {t_use:g} s: the DEM's first {t_use:g} s never reach the steady state"
-            log(entry.error)
-            continue
-        entry.steady_time_s = steady_time
-        try:
-            table_t = table_from_first(results, t_use, steady_time)
-        except ValueError as exc:
-            entry.error = str(exc)
-            log(entry.error)
-            continue
-        entry.table = {
-            key.removeprefix("budget_"): value
-            for key, value in table_t.attrs.items()
-            if key.startswith("budget_") and key != "budget_rule"
-        }
-        if t_use >= t_end - 1e-9 * table.window_s:  # the whole run: its PBM is the reference itself
-            rows_t = whole_rows
-        else:
-            log(f"PBM on the first {t_use:g} s")
-            rows_t = rows_of(table_t)
-        entry.modes = {mode: verdict(judge(rows_t, whole_rows, mode)) for mode in modes}
+    budgets = [
+        judge_budget(results, config, t_use, whole_rows, modes, rows_of, log)
+        for t_use in sorted(float(t) for t in t_values)
+    ]
     smallest, without_slices = {}, {}
     for mode in modes:
         for out, flag in ((smallest, "all_inside"), (without_slices, "all_inside_without_slices")):
             t_best = smallest_budget({b.t_s: mode in b.modes and getattr(b.modes[mode], flag) for b in budgets})
             out[mode] = (t_best, None if t_best is None else min(t_best / t_end, 1.0))
     return BudgetStudy(t_end, steady_full, whole, holding, budgets, smallest, without_slices)
+
+
+def whole_run_rows(whole_rows: list[AgreementRow], mode: str) -> list[WholeRow]:
+    """The whole-run PBM's rows of ``mode`` (all but :data:`SKIPPED`) with the DEM interval
+    and the yardstick's half width; the RTD overlap's lower bound is the mode's noise low."""
+    return [
+        WholeRow(
+            row.key,
+            row.quantity,
+            row.value(mode),
+            row.dem,
+            row.pbm[mode].noise_low if row.pbm[mode].noise_low is not None else row.dem_ci_low,
+            row.dem_ci_high,
+            row.half_width(mode),
+        )
+        for row in whole_rows
+        if row.key not in SKIPPED
+    ]
+
+
+def judge_budget(
+    results: DemResults,
+    config: Config,
+    t_use: float,
+    whole_rows: list[AgreementRow],
+    modes: list[str],
+    rows_of: Callable[[VelocityTable], list[AgreementRow]],
+    log: Log,
+) -> Budget:
+    """One DEM budget of :func:`budget_study`: the steady-state time the first ``t_use``
+    seconds [s] show, the table built from them and every mode's :func:`verdict` against
+    the whole run's rows; a budget with no steady state or no complete steady window
+    carries its ``error`` instead."""
+    table = results.table
+    t_end = table.t_end
+    entry = Budget(t_use, min(t_use / t_end, 1.0))
+    times = results.timeseries["t_s"].to_numpy(float)
+    holdup = (results.timeseries["holdup_A"] + results.timeseries["holdup_B"]).to_numpy(float)
+    seen = times <= t_use + 1e-9
+    steady_time = config.steady_state.time(times[seen], holdup[seen])
+    if steady_time is None:
+        entry.error = f"T = {t_use:g} s: the DEM's first {t_use:g} s never reach the steady state"
+        log(entry.error)
+        return entry
+    entry.steady_time_s = steady_time
+    try:
+        table_t = table_from_first(results, t_use, steady_time)
+    except ValueError as exc:
+        entry.error = str(exc)
+        log(entry.error)
+        return entry
+    entry.table = {
+        key.removeprefix("budget_"): value
+        for key, value in table_t.attrs.items()
+        if key.startswith("budget_") and key != "budget_rule"
+    }
+    if t_use >= t_end - 1e-9 * table.window_s:  # the whole run: its PBM is the reference itself
+        rows_t = whole_rows
+    else:
+        log(f"PBM on the first {t_use:g} s")
+        rows_t = rows_of(table_t)
+    entry.modes = {mode: verdict(judge(rows_t, whole_rows, mode)) for mode in modes}
+    return entry

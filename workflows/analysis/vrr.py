@@ -426,58 +426,18 @@ def dem_transfer(
         raise ConfigError(f"frequencies must be a non-empty 1-D array of finite values >= 0 Hz, got {frequencies!r}")
     taus = tuple(float(t) for t in noise_taus_s)
 
-    mine = particles["component"].to_numpy() == COMPONENT_CODES[feeder]
-    entry = particles["entry_t_s"].to_numpy(float)[mine]
-    exit_ = particles["exit_t_s"].to_numpy(float)[mine]
-    try:
-        pooled = rtd_pooled(entry, exit_, window, horizon)
-    except ValueError as exc:  # the shared definition's checks, as this module's error type
-        raise ConfigError(f"feeder {feeder}: {exc}") from None
-    entered = (entry > window[0]) & (entry <= window[1])
-    tau = exit_[entered] - entry[entered]
-    recovered = tau <= horizon  # NaN (still inside) is never recovered
-    # Every entered particle's block counts, even one whose particles all stayed beyond
-    # H: resampling it is resampling what the entry window held, as dem.steady does.
-    block_ids, block_of = np.unique(time_blocks(entry[entered], block_s, origin=window[0]), return_inverse=True)
-    n_blocks = block_ids.size
-    counts = np.bincount(block_of[recovered], minlength=n_blocks).astype(float)
-    if pooled.residence_s.size == 0 or np.count_nonzero(counts) < 2:
-        raise ConfigError(
-            f"feeder {feeder} has {pooled.residence_s.size} recovered particle(s) in "
-            f"{np.count_nonzero(counts)} {block_s:g}-s block(s) of the entry window ({window[0]:g}, "
-            f"{window[1]:g}] s; an interval needs at least two blocks with recovered particles"
-        )
+    pooled, tau, block_of, counts = _recovered_by_block(particles, feeder, window, horizon, block_s)
+    n_blocks = counts.size
 
     # Per block, the sum of exp(-i w tau) over its recovered particles: a bootstrap
     # replicate of the mean phasor is then (draws per block) @ sums / (draws @ counts),
     # the same number as resampling the particles block by block, at a fraction of the cost.
     grid = noise_frequencies(noise_f_max_hz, quadrature_points) if taus else np.empty(0)
     all_freqs = np.concatenate([freqs, grid])
-    sums = _block_phasor_sums(tau[recovered], block_of[recovered], n_blocks, all_freqs)
-    # real and imaginary parts apart: float products, no complex cast per replicate
-    sums_re, sums_im = np.ascontiguousarray(sums.real), np.ascontiguousarray(sums.imag)
+    sums = _block_phasor_sums(tau, block_of, n_blocks, all_freqs)
     spectra = [noise_spectrum(grid, t) for t in taus]
     n_f = freqs.size
-
-    def statistic(draws: np.ndarray) -> np.ndarray:
-        """(R, n_f + taus) for (R, blocks) draw counts: |H| at ``freqs``, then each
-        noise VRR; NaN for a draw without a recovered particle."""
-        n = draws @ counts
-        with np.errstate(invalid="ignore", divide="ignore"):
-            abs2 = ((draws @ sums_re) ** 2 + (draws @ sums_im) ** 2) / (n**2)[:, None]
-        corrected = _floor_corrected(abs2[:, n_f:], n[:, None])
-        noise = [vrr_spectrum(grid, corrected, s) for s in spectra]
-        out = np.column_stack([np.sqrt(abs2[:, :n_f]), *noise])
-        out[n == 0] = np.nan
-        return out
-
-    # a replicate's mean phasor is (draws per block) @ sums / (draws @ counts): every
-    # replicate of block_bootstrap's at once
-    draws = block_draw_counts(n_blocks, n_boot, seed)
-    est, low, high = expanded_interval(
-        percentile_interval(statistic(np.ones((1, n_blocks)))[0], statistic(draws), level), n_blocks, level
-    )
-    est, low, high = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (est, low, high))
+    est, low, high = _bootstrap_intervals(sums, counts, n_f, grid, spectra, n_boot, seed, level)
     h = sums[:, :n_f].sum(axis=0) / counts.sum()
     n_rec = int(counts.sum())
     floor = 1.0 / math.sqrt(n_rec)
@@ -505,6 +465,76 @@ def dem_transfer(
         noise=tuple(Interval(float(est[n_f + i]), float(low[n_f + i]), float(high[n_f + i])) for i in range(len(taus))),
         noise_uncorrected=uncorrected,
     )
+
+
+def _recovered_by_block(
+    particles: pd.DataFrame, feeder: str, window: tuple[float, float], horizon: float, block_s: float
+) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    """The pooled RTD of ``feeder``'s particles (:func:`coupling.metrics.rtd_pooled`), the
+    residence times [s] of its recovered particles with each one's block of entry time,
+    and the recovered particles per block (float). ConfigError when fewer than two blocks
+    hold recovered particles: no interval can be had from them."""
+    mine = particles["component"].to_numpy() == COMPONENT_CODES[feeder]
+    entry = particles["entry_t_s"].to_numpy(float)[mine]
+    exit_ = particles["exit_t_s"].to_numpy(float)[mine]
+    try:
+        pooled = rtd_pooled(entry, exit_, window, horizon)
+    except ValueError as exc:  # the shared definition's checks, as this module's error type
+        raise ConfigError(f"feeder {feeder}: {exc}") from None
+    entered = (entry > window[0]) & (entry <= window[1])
+    tau = exit_[entered] - entry[entered]
+    recovered = tau <= horizon  # NaN (still inside) is never recovered
+    # Every entered particle's block counts, even one whose particles all stayed beyond
+    # H: resampling it is resampling what the entry window held, as dem.steady does.
+    block_ids, block_of = np.unique(time_blocks(entry[entered], block_s, origin=window[0]), return_inverse=True)
+    counts = np.bincount(block_of[recovered], minlength=block_ids.size).astype(float)
+    if pooled.residence_s.size == 0 or np.count_nonzero(counts) < 2:
+        raise ConfigError(
+            f"feeder {feeder} has {pooled.residence_s.size} recovered particle(s) in "
+            f"{np.count_nonzero(counts)} {block_s:g}-s block(s) of the entry window ({window[0]:g}, "
+            f"{window[1]:g}] s; an interval needs at least two blocks with recovered particles"
+        )
+    return pooled, tau[recovered], block_of[recovered], counts
+
+
+def _bootstrap_intervals(
+    sums: np.ndarray,
+    counts: np.ndarray,
+    n_f: int,
+    grid: np.ndarray,
+    spectra: list[np.ndarray],
+    n_boot: int,
+    seed: int,
+    level: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(estimate, low, high), each (n_f + noise spectra,): |H| at the first ``n_f`` of the
+    phasor sums' frequencies, then the floor-corrected VRR of each noise spectrum on
+    ``grid``; the block bootstrap's percentile interval, expanded for its number of
+    blocks (:func:`coupling.intervals.expanded_interval`)."""
+    # real and imaginary parts apart: float products, no complex cast per replicate
+    sums_re, sums_im = np.ascontiguousarray(sums.real), np.ascontiguousarray(sums.imag)
+    n_blocks = counts.size
+
+    def statistic(draws: np.ndarray) -> np.ndarray:
+        """(R, n_f + taus) for (R, blocks) draw counts: |H| at ``freqs``, then each
+        noise VRR; NaN for a draw without a recovered particle."""
+        n = draws @ counts
+        with np.errstate(invalid="ignore", divide="ignore"):
+            abs2 = ((draws @ sums_re) ** 2 + (draws @ sums_im) ** 2) / (n**2)[:, None]
+        corrected = _floor_corrected(abs2[:, n_f:], n[:, None])
+        noise = [vrr_spectrum(grid, corrected, s) for s in spectra]
+        out = np.column_stack([np.sqrt(abs2[:, :n_f]), *noise])
+        out[n == 0] = np.nan
+        return out
+
+    # a replicate's mean phasor is (draws per block) @ sums / (draws @ counts): every
+    # replicate of block_bootstrap's at once
+    draws = block_draw_counts(n_blocks, n_boot, seed)
+    est, low, high = expanded_interval(
+        percentile_interval(statistic(np.ones((1, n_blocks)))[0], statistic(draws), level), n_blocks, level
+    )
+    est, low, high = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (est, low, high))
+    return est, low, high
 
 
 def _block_phasor_sums(tau: np.ndarray, block_of: np.ndarray, n_blocks: int, freqs: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ from dem.dumps import dump_paths
 from dem.post import DemResults, postprocess
 from dem.run import prepare_run, read_status
 from workflows.analysis.convergence import CHECK_EVERY_S, RunDirectoryCheck
-from workflows.config import add_config_arguments, resolve_config
+from workflows.config import Config, add_config_arguments, resolve_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,7 +80,9 @@ def _differences(a: DemResults, b: DemResults) -> list[str]:
     return differ
 
 
-def run(args: argparse.Namespace) -> int:
+def completed_run(args: argparse.Namespace) -> tuple[Config, str, Path, dict]:
+    """The configuration, its run key, the completed run directory and its status;
+    ConfigError naming the directory when it is not the configuration's completed run."""
     config = resolve_config(args.preset, args.config) if (args.preset or args.config) else resolve_config("validation")
     key = prepare_run(config.dem).key
     run_dir = Path(args.run_dir) if args.run_dir else Path(args.runs_dir) / key
@@ -94,25 +96,30 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{run_dir} holds run {status.get('key')!r}, but the configuration's run is {key!r}")
     if not (math.isfinite(args.every) and args.every > 0):
         raise ConfigError(f"--every must be a number of seconds > 0, got {args.every}")
-    dem_wall = float(status["wall_time_s"])
-    files = dump_paths(str(run_dir / deck.DUMP_GLOB))
-    dt = config.dem.timestep_s
-    steps = [deck.dump_step(p) for p in files]
-    t_last = steps[-1] * dt
-    print(f"run {key} in {run_dir}: {len(files)} dumps to {t_last:g} s, DEM wall time {dem_wall:.0f} s", flush=True)
-    t0 = time.perf_counter()
-    whole = postprocess(files, config.dem, config.steady_state, massflow_dir=run_dir)
-    post_all = time.perf_counter() - t0
-    print(f"post-processing every dump in one pass: {post_all:.0f} s", flush=True)
+    return config, key, run_dir, status
 
-    check = RunDirectoryCheck(run_dir, config, args.every)
+
+def replay_checks(
+    check: RunDirectoryCheck,
+    files: list,
+    steps: list[int],
+    dt: float,
+    every_s: float,
+    holdup: pd.DataFrame,
+    dem_wall: float,
+) -> tuple[list[dict], tuple | None]:
+    """The checks the watch would have made every ``every_s`` simulated seconds [s] from
+    2 x that until the first converged one: a row per check (its costs [s] and the DEM's
+    wall time [s] since the previous one), and at the stop (T [s], the dumps up to T, the
+    DEM's wall time to T [s], the converged check's cost [s]), None when none converged."""
     rows, stop = [], None
-    t, t_prev_wall = 2 * args.every, 0.0
+    t, t_prev_wall = 2 * every_s, 0.0
+    t_last = steps[-1] * dt
     while t <= t_last + 0.5 * dt and stop is None:
         upto = [p for p, s in zip(files, steps) if s <= round(t / dt)]
         answer = check(t)
         cost = check.costs[-1]
-        wall_t = _dem_wall_to(t, whole.holdup, dem_wall)
+        wall_t = _dem_wall_to(t, holdup, dem_wall)
         row = {
             "t_s": t,
             "dumps_read": cost.dumps_read,
@@ -135,8 +142,54 @@ def run(args: argparse.Namespace) -> int:
         if answer.converged:
             stop = (t, upto, wall_t, row["check_s"])
         t_prev_wall = wall_t
-        t += args.every
+        t += every_s
+    return rows, stop
 
+
+def stopped_run(
+    check: RunDirectoryCheck, config: Config, run_dir: Path, stop: tuple, rows: list[dict], complete_wall_s: float
+) -> dict:
+    """What the run stopped at ``stop`` (:func:`replay_checks`) would have cost [s], and
+    whether the results finished from the checks' reading differ from one pass over the
+    dumps up to T (the names of the quantities that differ)."""
+    t_stop, upto, wall_stop, check_stop = stop
+    # the run's own post-processing finishes what the checks read (dem_stage)
+    t0 = time.perf_counter()
+    finished = check.post.results(config.steady_state, massflow_dir=run_dir)
+    post_stop = time.perf_counter() - t0
+    # before, every check and the stopped run's post-processing read every dump again
+    t0 = time.perf_counter()
+    once = postprocess(upto, config.dem, config.steady_state, massflow_dir=run_dir)
+    scratch_post = time.perf_counter() - t0
+    stopped = wall_stop + check_stop + post_stop
+    return dict(
+        stop_t_s=t_stop,
+        dem_wall_to_stop_s=wall_stop,
+        post_at_stop_s=post_stop,
+        post_at_stop_from_scratch_s=scratch_post,
+        last_check_from_scratch_s=scratch_post + rows[-1]["criterion_s"],
+        checks_total_s=sum(r["check_s"] for r in rows),
+        stopped_run_wall_s=stopped,
+        saved_fraction=1 - stopped / complete_wall_s,
+        differs_from_one_pass=_differences(finished, once),
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    config, key, run_dir, status = completed_run(args)
+    dem_wall = float(status["wall_time_s"])
+    files = dump_paths(str(run_dir / deck.DUMP_GLOB))
+    dt = config.dem.timestep_s
+    steps = [deck.dump_step(p) for p in files]
+    t_last = steps[-1] * dt
+    print(f"run {key} in {run_dir}: {len(files)} dumps to {t_last:g} s, DEM wall time {dem_wall:.0f} s", flush=True)
+    t0 = time.perf_counter()
+    whole = postprocess(files, config.dem, config.steady_state, massflow_dir=run_dir)
+    post_all = time.perf_counter() - t0
+    print(f"post-processing every dump in one pass: {post_all:.0f} s", flush=True)
+
+    check = RunDirectoryCheck(run_dir, config, args.every)
+    rows, stop = replay_checks(check, files, steps, dt, args.every, whole.holdup, dem_wall)
     record = {
         "run": key,
         "run_dir": str(run_dir),
@@ -151,34 +204,15 @@ def run(args: argparse.Namespace) -> int:
     if stop is None:
         print("never converged: the run would have gone to its end (plus the checks' cost)")
     else:
-        t_stop, upto, wall_stop, check_stop = stop
-        # the run's own post-processing finishes what the checks read (dem_stage)
-        t0 = time.perf_counter()
-        finished = check.post.results(config.steady_state, massflow_dir=run_dir)
-        post_stop = time.perf_counter() - t0
-        # before, every check and the stopped run's post-processing read every dump again
-        t0 = time.perf_counter()
-        once = postprocess(upto, config.dem, config.steady_state, massflow_dir=run_dir)
-        scratch_post = time.perf_counter() - t0
-        differing = _differences(finished, once)
-        stopped = wall_stop + check_stop + post_stop
-        record.update(
-            stop_t_s=t_stop,
-            dem_wall_to_stop_s=wall_stop,
-            post_at_stop_s=post_stop,
-            post_at_stop_from_scratch_s=scratch_post,
-            last_check_from_scratch_s=scratch_post + rows[-1]["criterion_s"],
-            checks_total_s=sum(r["check_s"] for r in rows),
-            stopped_run_wall_s=stopped,
-            saved_fraction=1 - stopped / record["complete_run_wall_s"],
-            differs_from_one_pass=differing,
-        )
+        record.update(stopped_run(check, config, run_dir, stop, rows, record["complete_run_wall_s"]))
+        differing = record["differs_from_one_pass"]
         print(
-            f"stopped at T = {t_stop:g} s: DEM {wall_stop:.0f} s + the converged check {check_stop:.0f} s + "
-            f"post-processing {post_stop:.0f} s = {stopped:.0f} s against {record['complete_run_wall_s']:.0f} s "
+            f"stopped at T = {record['stop_t_s']:g} s: DEM {record['dem_wall_to_stop_s']:.0f} s + the converged "
+            f"check {stop[3]:.0f} s + post-processing {record['post_at_stop_s']:.0f} s = "
+            f"{record['stopped_run_wall_s']:.0f} s against {record['complete_run_wall_s']:.0f} s "
             f"for the complete run ({record['saved_fraction']:.0%} saved). All checks: "
             f"{record['checks_total_s']:.0f} s; the last one reading every dump again would take "
-            f"{record['last_check_from_scratch_s']:.0f} s, not {check_stop:.0f} s. The results finished from "
+            f"{record['last_check_from_scratch_s']:.0f} s, not {stop[3]:.0f} s. The results finished from "
             "the checks' reading " + (f"DIFFER from one pass in {differing}" if differing else "equal one pass's")
         )
     out = write_json(args.out, json_ready(record))

@@ -577,11 +577,12 @@ def variant_costs(results: dict[str, list[Measurement]], summary: dict, nps: lis
     return costs
 
 
-def run(args: argparse.Namespace) -> int:
+def parse_plan(args: argparse.Namespace):
+    """The preset with every ``--set`` applied, the rank counts, the variants and the fill's
+    ranks; ConfigError naming a bad value and what would be valid."""
     config = load_preset(args.preset)
     for assignment in args.set:
         config = override(config, assignment)
-    run_config = config.dem.run
     nps = [int(n) for n in args.nps.split(",") if n.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
@@ -589,8 +590,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--variants: unknown {unknown}; known: {', '.join(VARIANTS)}")
     if args.repeats < 1 or args.steps < 1 or not nps or min(nps) < 1:
         raise ConfigError(f"--repeats {args.repeats}, --steps {args.steps}, --nps {args.nps}: all must be >= 1")
-    fill_np = args.fill_np or run_config.np
-    version = liggghts_version(run_config.liggghts)
+    return config, nps, variants, args.fill_np or config.dem.run.np
+
+
+def warn_if_loaded() -> tuple[tuple[float, float, float], list[str]]:
+    """The load average before the runs and the LIGGGHTS processes already running; a
+    warning on stderr when the load would slow the timings down."""
     load_before = os.getloadavg()
     others = _liggghts_running()
     if load_before[0] > LOAD_WARN:
@@ -599,6 +604,45 @@ def run(args: argparse.Namespace) -> int:
             f"by other jobs" + (f" ({len(others)} LIGGGHTS processes running)" if others else "")
         )
         print(f"WARNING: {msg}", file=sys.stderr, flush=True)
+    return load_before, others
+
+
+def _rate(summary: dict, key: str) -> float | None:
+    """The particle-steps per second of the runs ``key`` (:func:`summarise`), None when none ran."""
+    return summary[key]["particle_steps_per_s"] if key in summary else None
+
+
+def rank_rates(summary: dict, fills: dict[int, Measurement], nps: list[int]) -> dict:
+    """Per rank count: the particle-steps per second of every kind of run, the blender's
+    efficiency against the drum and the speed-ups over one rank (None where a run is
+    missing)."""
+
+    def rate(key: str) -> float | None:
+        return _rate(summary, key)
+
+    def ratio(a: float | None, b: float | None) -> float | None:
+        return a / b if a and b else None
+
+    record: dict = {}
+    for np in nps:
+        tag = "serial" if np == 1 else f"np{np}"
+        for kind in ("blender", "blender_nodump", "drum"):
+            record[f"{kind}_particle_steps_per_s_{tag}"] = rate(f"{kind}_np{np}")
+        record[f"efficiency_{tag}"] = ratio(rate(f"blender_np{np}"), rate(f"drum_np{np}"))
+        record[f"efficiency_nodump_{tag}"] = ratio(rate(f"blender_nodump_np{np}"), rate(f"drum_np{np}"))
+        if np != 1:
+            for kind in ("blender", "blender_nodump", "drum"):
+                record[f"speedup_np{np}_{kind}"] = ratio(rate(f"{kind}_np{np}"), rate(f"{kind}_np1"))
+            if 1 in fills and np in fills:
+                record[f"speedup_np{np}_whole_run"] = fills[1].loop_s / fills[np].loop_s
+                record[f"speedup_np{np}_whole_run_wall"] = fills[1].wall_s / fills[np].wall_s
+    return record
+
+
+def run(args: argparse.Namespace) -> int:
+    config, nps, variants, fill_np = parse_plan(args)
+    version = liggghts_version(config.dem.run.liggghts)
+    load_before, others = warn_if_loaded()
     print(
         f"DEM deck benchmark: preset {args.preset}, {args.steps} steps, ranks {nps}, {args.repeats} repeats, "
         f"variants {variants}, LIGGGHTS {version}",
@@ -610,13 +654,6 @@ def run(args: argparse.Namespace) -> int:
     load_after = os.getloadavg()
 
     summary = {key: summarise(runs) for key, runs in results.items()}
-
-    def rate(key: str) -> float | None:
-        return summary[key]["particle_steps_per_s"] if key in summary else None
-
-    def ratio(a: float | None, b: float | None) -> float | None:
-        return a / b if a and b else None
-
     record: dict = {
         "preset": args.preset,
         "liggghts_version": version,
@@ -639,31 +676,20 @@ def run(args: argparse.Namespace) -> int:
         },
         "rates": "medians over the repeats of mean Atoms x steps / Loop time",
     }
-    for np in nps:
-        tag = "serial" if np == 1 else f"np{np}"
-        for kind in ("blender", "blender_nodump", "drum"):
-            record[f"{kind}_particle_steps_per_s_{tag}"] = rate(f"{kind}_np{np}")
-        record[f"efficiency_{tag}"] = ratio(rate(f"blender_np{np}"), rate(f"drum_np{np}"))
-        record[f"efficiency_nodump_{tag}"] = ratio(rate(f"blender_nodump_np{np}"), rate(f"drum_np{np}"))
-        if np != 1:
-            for kind in ("blender", "blender_nodump", "drum"):
-                record[f"speedup_np{np}_{kind}"] = ratio(rate(f"{kind}_np{np}"), rate(f"{kind}_np1"))
-            if 1 in fills and np in fills:
-                record[f"speedup_np{np}_whole_run"] = fills[1].loop_s / fills[np].loop_s
-                record[f"speedup_np{np}_whole_run_wall"] = fills[1].wall_s / fills[np].wall_s
+    record.update(rank_rates(summary, fills, nps))
     costs = variant_costs(results, summary, nps, variants)
     record["variant_costs"] = costs
     for np in nps:
         nodump = costs.get(_key("blender", np, "nodump"))
         record[f"dump_overhead_{'serial' if np == 1 else f'np{np}'}"] = nodump["loop"]["cost"] if nodump else None
     record["targets"] = dict(TARGETS)
-    if rate("blender_np1"):
+    if _rate(summary, "blender_np1"):
         record["paper_core_hours"] = paper_core_hours(
-            rate("blender_np1"),
+            _rate(summary, "blender_np1"),
             record.get("speedup_np2_blender"),
             summary["blender_np1"]["atoms_mean"],
             config,
-            rate("drum_np1"),
+            _rate(summary, "drum_np1"),
         )
     record["summary"] = summary
     record["fills"] = {f"np{np}": asdict(m) for np, m in fills.items()}

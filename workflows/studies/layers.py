@@ -42,6 +42,7 @@ from dem import rates as rates_module
 from dem.dumps import iter_snapshots
 from dem.massflow import latest_records
 from dem.post import DemResults
+from dem.summary import PooledRtdSummary
 from workflows.config import load_preset
 
 OUT = Path("results/bench/layers.json")
@@ -230,23 +231,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=str(OUT))
 
 
+#: what the study reads from a run directory's deck.json
+DECK_KEYS = ("length_m", "timestep_s", "dump_every_steps", "massflow_globs", "dump_glob")
+
+
+def read_deck(run_dir: Path) -> dict:
+    """The run directory's ``deck.json``; ConfigError naming the directory when it has
+    none or lacks one of :data:`DECK_KEYS`."""
+    deck_file = run_dir / "deck.json"
+    if not deck_file.is_file():
+        raise ConfigError(f"--run-dir {run_dir}: no deck.json (not a run directory of this project)")
+    deck = json.loads(deck_file.read_text())
+    missing = [key for key in DECK_KEYS if key not in deck]
+    if missing:
+        raise ConfigError(f"--run-dir {run_dir}: deck.json lacks {missing} (written by another version?)")
+    return deck
+
+
+def read_results(path: str) -> tuple[DemResults, PooledRtdSummary]:
+    """The run's results and its pooled RTD; ConfigError naming the file when it cannot be
+    read or has no pooled RTD with tracers."""
+    entry, reason = try_load_entry(Path(path))
+    if entry is None:
+        raise ConfigError(f"--results {path}: {reason}")
+    dem = DemResults.from_cache_entry(entry)
+    spec = dem.summary.pooled_rtd
+    if spec is None or not spec.has_tracers:
+        note = spec.note if spec is not None and spec.note else "too short a run"
+        raise ConfigError(f"--results {path}: no pooled RTD in this run's results ({note})")
+    return dem, spec
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         grids = [parse_grid(g) for g in args.grids.split(",")]
     except ValueError as error:
         raise ConfigError(str(error)) from None
     run_dir = Path(args.run_dir)
-    deck_file = run_dir / "deck.json"
-    if not deck_file.is_file():
-        raise ConfigError(f"--run-dir {run_dir}: no deck.json (not a run directory of this project)")
-    deck = json.loads(deck_file.read_text())
-    entry, reason = try_load_entry(Path(args.results))
-    if entry is None:
-        raise ConfigError(f"--results {args.results}: {reason}")
-    dem = DemResults.from_cache_entry(entry)
-    spec = dem.summary.pooled_rtd
-    if not spec:
-        raise ConfigError(f"--results {args.results}: no pooled RTD in this run's results (too short a run)")
+    deck = read_deck(run_dir)
+    dem, spec = read_results(args.results)
     try:
         config = load_preset(args.preset).dem
     except (KeyError, ValueError, OSError) as error:
@@ -254,8 +277,8 @@ def run(args: argparse.Namespace) -> int:
     length, diameter = float(deck["length_m"]), float(config.geometry.diameter_m)
     timestep = float(deck["timestep_s"])
     interval = float(deck["dump_every_steps"]) * timestep
-    window = tuple(spec["entry_window_s"])
-    horizon = float(spec["horizon_s"])
+    window = tuple(spec.entry_window_s)
+    horizon = float(spec.horizon_s)
     massflow = [
         Path(p) for pattern in deck["massflow_globs"].values() for p in sorted(glob.glob(str(run_dir / pattern)))
     ]
@@ -269,20 +292,20 @@ def run(args: argparse.Namespace) -> int:
     entry_t = records["entry_t_s"].to_numpy()
     tracers = (entry_t > window[0]) & (entry_t <= window[1])
     tracer_ids = records["id"].to_numpy()[tracers]
-    dem_mean, dem_var = spec["mean_residence_time_s"], spec["rtd_variance_s2"]
+    dem_mean, dem_var = spec.mean_residence_time_s, spec.rtd_variance_s2
     out = {
         "run_dir": str(run_dir),
         "results": str(args.results),
         "entry_window_s": window,
         "horizon_s": horizon,
         "dump_interval_s": interval,
-        "dem": {"mean_s": dem_mean, "variance_s2": dem_var},
+        "dem": {"mean_s": dem_mean.record(), "variance_s2": dem_var.record()},
         "grids": {},
     }
     print(
-        f"DEM pooled RTD ({int(tracers.sum())} tracers): mean {dem_mean['value']:.2f} s "
-        f"[{dem_mean['low']:.2f}, {dem_mean['high']:.2f}], variance {dem_var['value']:.1f} s^2 "
-        f"[{dem_var['low']:.1f}, {dem_var['high']:.1f}]"
+        f"DEM pooled RTD ({int(tracers.sum())} tracers): mean {dem_mean.value:.2f} s "
+        f"[{dem_mean.low:.2f}, {dem_mean.high:.2f}], variance {dem_var.value:.1f} s^2 "
+        f"[{dem_var.low:.1f}, {dem_var.high:.1f}]"
     )
     for grid in grids:
         z_edges = layer_edges(snaps, window[0], length, grid[2])
@@ -293,7 +316,7 @@ def run(args: argparse.Namespace) -> int:
         rtd = chain_rtd(q, np.bincount(start, minlength=q.shape[0] - 1) / start.size, horizon, interval)
         name = "x".join(str(v) for v in grid)
         inside = {
-            key: dem_val["low"] <= rtd[key] <= dem_val["high"]
+            key: dem_val.low <= rtd[key] <= dem_val.high
             for key, dem_val in (("mean_s", dem_mean), ("variance_s2", dem_var))
         }
         out["grids"][name] = {"z_edges_m": z_edges.tolist(), **fit, **rtd, "inside": inside}
@@ -305,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
     z3 = layer_edges(snaps, window[0], length, 3)
-    out["occupancy"] = occupancy_by_class(snaps, records, tracers, dem_mean["value"], length, 10, z3)
+    out["occupancy"] = occupancy_by_class(snaps, records, tracers, dem_mean.value, length, 10, z3)
     print("where the DEM's tracers spend their time (10 slices; 3 layers of equal steady occupancy, bottom first):")
     for name, row in out["occupancy"].items():
         print(
