@@ -141,6 +141,23 @@ class OperatingPoint:
         """A copy with some fields changed, validated again."""
         return replace(self, **changes)
 
+    def scaled(self, length_factor: float = 1.0, diameter_factor: float = 1.0) -> OperatingPoint:
+        """The same blender stretched ``length_factor`` x along x and ``diameter_factor`` x
+        across (blade stations and feed zones with it): the point of a table whose
+        compartments were scaled so (:func:`pbm.studies.scale_blender`)."""
+        lf, df = float(length_factor), float(diameter_factor)
+        zones = {
+            name: FeedZone(z.x_min_m * lf, z.x_max_m * lf, z.y_min_m * df, z.y_max_m * df)
+            for name, z in self.feed_zones.items()
+        }
+        return replace(
+            self,
+            length_m=self.length_m * lf,
+            diameter_m=self.diameter_m * df,
+            blade_x_m=tuple(x * lf for x in self.blade_x_m),
+            feed_zones=zones,
+        )
+
     def record(self) -> dict[str, Any]:
         """The JSON-ready record (lists for tuples), with its layout's version."""
         data = asdict(self)

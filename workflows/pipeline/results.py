@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
 from coupling.cache import CacheEntry, CacheHead, load_entry, load_head
+from coupling.operating import OperatingPoint
 from coupling.tables import VelocityTable
 from dem.operating import operating_point
 from dem.summary import DemSummary
@@ -87,6 +88,12 @@ def table_with_operating_point(table: VelocityTable) -> VelocityTable:
         return table
     config = config_from_dict(tomllib.loads(text), "the configuration stored with the velocity table")
     return table.replace(operating_point=operating_point(config.dem))
+
+
+def run_operating_point(table: VelocityTable, config: Config) -> OperatingPoint:
+    """The operating point of the DEM run of ``config`` whose table is ``table``: as the
+    table records it, else (a table made without it) the configuration's."""
+    return table.operating_point if table.operating_point is not None else operating_point(config.dem)
 
 
 def rtd_pulse(dem_summary: DemSummary) -> float | None:
