@@ -51,6 +51,11 @@ Schema 3 adds one optional subgroup, ``phases``: the hidden-phase transport mode
 ``phase_entry`` (2, K) [-] and attributes ``interval_s`` (the dump interval it was fitted
 at) and ``attrs`` (JSON provenance). Only a table that carries it is written as version 3;
 every other table is still written as version 2, byte for byte as before.
+
+The optional root attribute ``operating_point`` (JSON, :class:`coupling.operating.OperatingPoint`)
+records the speed, feed rates, blender, blade stations, size classes and feed zones the
+table was measured at. It adds no dataset and changes no other, so it needs no new schema
+version: a reader that does not know it sees one more provenance attribute.
 """
 
 from __future__ import annotations
@@ -68,6 +73,8 @@ import numpy as np
 from coupling import phases as phase_model
 from coupling.errors import TableError, os_reason
 from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5, read_dataset
+from coupling.operating import ATTR as OPERATING_ATTR
+from coupling.operating import OperatingPoint
 from coupling.phases import PhaseTransport
 
 SCHEMA_VERSION = 2
@@ -131,6 +138,9 @@ class VelocityTable:
     rate_y_neg: np.ndarray | None = None
     #: the hidden-phase transport model (schema 3), time-invariant; None without it
     phases: PhaseTransport | None = None
+    #: the speed, feed and blender the table was measured at; None when unknown (a
+    #: synthetic table, or a file written before it was recorded)
+    operating_point: OperatingPoint | None = None
 
     def __post_init__(self) -> None:
         present = [name for name in RATE_NAMES if getattr(self, name) is not None]
@@ -238,6 +248,12 @@ def _validate(table: VelocityTable) -> None:
     for name in present:
         # NaN is how the DEM post-processing marks a rate it observed too few transitions for.
         _check_values(name, getattr(table, name), shape, True, MAX_RATE_PER_S, "/s")
+    point = table.operating_point
+    if point is not None and not np.isclose(table.x_edges[-1], point.length_m, rtol=1e-9, atol=0):
+        raise TableError(
+            f"the operating point's blender is {point.length_m:.6g} m long but the compartments end at "
+            f"x = {table.x_edges[-1]:.6g} m; a table's last edge is the weir"
+        )
     if table.phases is not None and (table.phases.nx, table.phases.ny) != shape[1:]:
         raise TableError(
             f"the phase model's grid {table.phases.nx}x{table.phases.ny} differs from the table's {shape[1]}x{shape[2]}"
@@ -391,6 +407,8 @@ def table_to_group(group: h5py.Group, table: VelocityTable) -> None:
     group.attrs["window_s"] = table.window_s
     group.attrs["min_samples"] = table.min_samples
     group.attrs["units"] = json.dumps(UNITS)
+    if table.operating_point is not None:
+        group.attrs[OPERATING_ATTR] = table.operating_point.to_json()
 
 
 def table_from_group(group: h5py.Group, source: str = "", values: dict | None = None) -> VelocityTable:
@@ -427,7 +445,9 @@ def table_from_group(group: h5py.Group, source: str = "", values: dict | None = 
             raise TableError(f"attribute '{name}' is missing{where}")
     if int(version) >= 3 and PHASES_GROUP in group:
         arrays["phases"] = _phases_from_group(group[PHASES_GROUP], where, values)
-    reserved = {"schema_version", "window_s", "min_samples", "units"}
+    if OPERATING_ATTR in group.attrs:
+        arrays["operating_point"] = OperatingPoint.from_json(_attr_text(group.attrs[OPERATING_ATTR]), source)
+    reserved = {"schema_version", "window_s", "min_samples", "units", OPERATING_ATTR}
     attrs = {k: _attr_python(v) for k, v in group.attrs.items() if k not in reserved}
     min_samples = group.attrs["min_samples"]
     if isinstance(min_samples, (bool, np.bool_)) or not isinstance(min_samples, (int, np.integer)):
@@ -530,6 +550,10 @@ def _attr_value(value: Any) -> Any:
     if value is None:
         return "null"
     return value
+
+
+def _attr_text(value: Any) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def _attr_python(value: Any) -> Any:

@@ -70,6 +70,7 @@ from coupling.tables import VELOCITY_NAMES, VelocityTable
 from dem import deck, phases
 from dem.config import DemConfig
 from dem.massflow import massflow_files
+from dem.operating import operating_point
 from dem.rates import fit_windows
 from dem.resources import check_postprocess_resources
 from dem.steady import STALE_INTERVALS, intervals_are_current, pooled_rtd, steady_quantities
@@ -344,6 +345,7 @@ def velocity_table(acc: Accumulation, config: DemConfig, attrs: dict[str, Any]) 
         window_s=window,
         min_samples=int(tables.min_samples),
         attrs=attrs,
+        operating_point=operating_point(config),
     )
 
 

@@ -2,7 +2,8 @@
 
 Every field carries its unit in its name. Values that depend on the velocity table (the
 length of the feed-weight lists must equal NY, the pulse time must fall inside the run) are
-checked when the table is known, in :func:`pbm.simulate.simulate`, and raise
+checked when the table is known; the feed left None is taken from the table's operating
+point there (:func:`pbm.feed.resolve_feed`). Both are done in :func:`pbm.simulate.simulate`, and raise
 :class:`coupling.errors.ConfigError` there.
 """
 
@@ -20,16 +21,25 @@ class PbmConfig(BaseModel):
     # (not read as 1 or as the number it spells); an integer is still a valid float
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
-    feed_rate_a_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)
-    feed_rate_b_per_s: float = Field(995.0, ge=0, allow_inf_nan=False)
+    feed_rate_a_per_s: float | None = Field(
+        None,
+        ge=0,
+        allow_inf_nan=False,
+        description="feeder A's rate [particles/s]; None = the velocity table's operating point (pbm.feed), "
+        "the paper's 995 /s on a table that records none. A rate that differs from the table's is named",
+    )
+    feed_rate_b_per_s: float | None = Field(
+        None, ge=0, allow_inf_nan=False, description="feeder B's rate [particles/s]; None as feed_rate_a_per_s"
+    )
     feed_weights_a: list[float] | None = Field(
         None,
         description="NY relative weights of feed A over the first slice's compartments "
         "(j = 0 at y = -D/2), or NX * NY over every compartment (i * NY + j) for a feed zone "
-        "that spans slices; None = uniformly over the first slice's y > 0 half",
+        "that spans slices; None = feeder A's zone of the table's operating point (pbm.feed), uniformly over "
+        "the first slice's y > 0 half on a table that records none",
     )
     feed_weights_b: list[float] | None = Field(
-        None, description="NY relative weights of feed B; None = uniformly over the y < 0 half"
+        None, description="NY relative weights of feed B; None as feed_weights_a, on the y < 0 side"
     )
     duration_s: float | None = Field(
         None, gt=0, allow_inf_nan=False, description="simulated time; None = the velocity table's end"

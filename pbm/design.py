@@ -44,6 +44,7 @@ from coupling.blas import free_cores, single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.feed import resolve_feed
 from pbm.fill import fill_samples, fit_fill_law, steady_table, steady_windows
 from pbm.frequency import (
     noise_frequencies,
@@ -155,6 +156,8 @@ class TableLibrary:
         if not (math.isfinite(self.length_m) and self.length_m > 0):
             raise ConfigError(f"the library's blender length must be > 0 m, got {self.length_m}")
         object.__setattr__(self, "points", tuple(sorted(((float(v), t) for v, t in self.points), key=lambda p: p[0])))
+        # a feed left None: the slowest run's operating point's (pbm.feed)
+        object.__setattr__(self, "pbm_config", resolve_feed(self.pbm_config, self.points[0][1])[0])
 
     @property
     def rpm_range(self) -> tuple[float, float]:
@@ -557,7 +560,9 @@ def feed_library(
     runs: list[tuple[float, VelocityTable]], pbm_config: PbmConfig, rpm: float, length_m: float
 ) -> FeedLibrary:
     """The :class:`FeedLibrary` of ``runs`` (total feed, table), its law fitted in
-    ``pbm_config.rates``' rates. Raises ConfigError for fewer than two distinct feeds."""
+    ``pbm_config.rates``' rates. Raises ConfigError for fewer than two distinct feeds.
+    A feed left None in ``pbm_config`` is the first run's operating point's (pbm.feed)."""
+    pbm_config = resolve_feed(pbm_config, runs[0][1])[0] if runs else pbm_config
     feeds = sorted(float(f) for f, _ in runs)
     if len(runs) < 2 or len(set(feeds)) != len(feeds):
         raise ConfigError(f"a feed library needs >= 2 runs at distinct feed rates, got {feeds}")

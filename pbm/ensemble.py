@@ -24,6 +24,7 @@ from coupling.errors import ConfigError
 from coupling.metrics import outflow_fraction_a, rsd
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.feed import resolve_feed
 from pbm.model import collapse_phases, feed_distribution, filled_table, n_phases
 from pbm.resources import check_ensemble_memory
 from pbm.simulate import check_run, feed_factors, noise_intervals
@@ -104,7 +105,7 @@ def noise_ensemble(
     :func:`pbm.simulate.simulate` uses. Exact propagation only (the BDF
     path is a cross-check of single runs). No tracer: the RTD does not depend on the feed.
     """
-    config = config or PbmConfig()
+    config, _ = resolve_feed(config, table)  # the run's simulate() names any override
     sigma = config.noise_sigma if sigma is None else float(sigma)
     if not (math.isfinite(sigma) and sigma >= 0):
         raise ConfigError(f"noise sigma must be a finite number >= 0, got {sigma}")

@@ -46,6 +46,7 @@ from scipy.linalg import expm, schur
 from coupling.errors import ConfigError, TableError
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.feed import resolve_feed
 from pbm.fill import fill_reference, law_for, linearised
 from pbm.model import feed_distribution, filled_table, generator_matrix, n_populations
 
@@ -102,7 +103,7 @@ def stationary_system(
     :func:`pbm.simulate.simulate` does. Raises ConfigError for a window index outside
     0..K-1 or a ``t_start_s`` after the last window's start.
     """
-    config = config or PbmConfig()
+    config, _ = resolve_feed(config, table)  # the run's simulate() names any override
     k_count = table.n_windows
     if window is not None:
         if isinstance(window, bool) or int(window) != window or not 0 <= window < k_count:
@@ -371,7 +372,7 @@ def vrr_noise(
     """VRR of first-order noise of correlation time ``tau_s`` [s] on ``feeder``, band-limited
     to [0, ``f_max_hz``] (default the Nyquist frequency 1 / (2 config.noise_interval_s)),
     through the PBM's stationary system (:func:`transfer_function`)."""
-    config = config or PbmConfig()
+    config, _ = resolve_feed(config, table)  # the run's simulate() names any override
     f_max = 0.5 / config.noise_interval_s if f_max_hz is None else float(f_max_hz)
     freqs = noise_frequencies(f_max, n_frequencies)
     spectrum = noise_spectrum(freqs, tau_s)

@@ -24,7 +24,8 @@ def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) 
         out.mkdir(parents=True, exist_ok=True)
         result.timeseries().to_csv(paths["timeseries"], index=False, float_format="%.10g", na_rep="nan")
         result.rtd().to_csv(paths["rtd"], index=False, float_format="%.10g", na_rep="nan")
-        write_json(paths["summary"], result.summary.record())
+        overrides = {"feed_overrides": [o.message for o in result.feed_overrides]} if result.feed_overrides else {}
+        write_json(paths["summary"], {**result.summary.record(), **overrides})
         if figures:
             paths.update(save_figures(result, out))
     except OSError as exc:

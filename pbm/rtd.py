@@ -29,6 +29,7 @@ from coupling.errors import ConfigError
 from coupling.metrics import residence_moments
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.feed import resolve_feed
 from pbm.fill import config_schedule
 from pbm.model import feed_distribution, filled_table, n_populations
 from pbm.simulate import (
@@ -101,7 +102,7 @@ def pooled_rtd(
     not solved again, and the tracer sees that run's fill); default the one ``config``
     gives (:func:`pbm.fill.config_schedule`).
     """
-    config = config or PbmConfig()
+    config, _ = resolve_feed(config, table)  # the run's simulate() names any override
     t_end = check_run(table, config)
     t0, t1 = (float(v) for v in entry_window)
     horizon = float(horizon_s)

@@ -23,6 +23,7 @@ from coupling.errors import ConfigError
 from coupling.metrics import TIMESERIES_COLUMNS, SteadyStateRule, outflow_fraction_a, residence_moments, rsd
 from coupling.tables import VelocityTable
 from pbm.config import PbmConfig
+from pbm.feed import FeedOverride, resolve_feed
 from pbm.fill import FillLaw, config_schedule
 from pbm.model import N_ACCUMULATORS, collapse_phases, feed_distribution, filled_table, n_phases, n_populations
 from pbm.solver import TIME_TOLERANCE_S, Propagators, Schedule, breakpoints, march, multiples
@@ -53,6 +54,8 @@ class PbmResult:
     the JSON-ready dict).
     ``schedule``: under ``rate_law`` = "fill", the generators the run marched on (its bulk
     solved once; :func:`pbm.rtd.pooled_rtd` of the same run takes it); None otherwise.
+    ``feed_overrides``: the configuration's feed rates that differ from the table's
+    operating point (:func:`pbm.feed.resolve_feed`), each named by its ``message``.
     """
 
     times: np.ndarray
@@ -75,6 +78,8 @@ class PbmResult:
     rtd_pulse_s: float
     summary: PbmSummary
     schedule: Schedule | None = None
+    #: the configured feed rates that contradict the table's operating point (pbm.feed)
+    feed_overrides: tuple[FeedOverride, ...] = ()
 
     def timeseries(self) -> pd.DataFrame:
         """The CQA series in :data:`coupling.metrics.TIMESERIES_COLUMNS`."""
@@ -170,7 +175,8 @@ def simulate(
 ) -> PbmResult:
     """Run the compartment PBM driven by ``table`` and return its CQAs.
 
-    ``config`` defaults to :class:`PbmConfig` (the paper's feed). ``rtd_pulse_s`` [s]
+    ``config`` defaults to :class:`PbmConfig`; its feed left None is the table's
+    operating point's (:func:`pbm.feed.resolve_feed`; the paper's on a table without one). ``rtd_pulse_s`` [s]
     overrides ``config.rtd_pulse_s``; when both are None the tracer pulse is fed at the
     steady state that ``steady`` detects on the total hold-up (the rule the DEM is judged
     by, :class:`coupling.metrics.SteadyStateRule`; if it
@@ -197,7 +203,7 @@ def simulate(
     without measured rates), TableError for an empty table.
     """
     wall0 = time.perf_counter()
-    config = config or PbmConfig()
+    config, overrides = resolve_feed(config, table)
     setup = prepare_run(table, config, rtd_pulse_s, initial_counts, steady)
     marched = march_run(setup, steady)
     rtd_t, rtd_E, moments = tracer_rtd(setup, marched)
@@ -225,6 +231,7 @@ def simulate(
         rtd_pulse_s=float(marched.pulse),
         summary=summary,
         schedule=setup.schedule,
+        feed_overrides=overrides,
     )
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from coupling import phases as phase_model
 from coupling.errors import ConfigError
 from coupling.metrics import SteadyStateRule
+from coupling.operating import OperatingPoint
 from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from pbm.model import fill_missing_rates, fill_missing_velocities
 from pbm.simulate import simulate
@@ -36,8 +37,13 @@ def scale_blender(table: VelocityTable, length_factor: float = 1.0, diameter_fac
         }
     if table.has_phases:  # the same, phase by phase; the phases' exchange keeps its pace
         rates["phases"] = phase_model.scaled(table.phases, 1 / length_factor, 1 / diameter_factor)
+    point = table.operating_point
     return table.replace(
-        x_edges=table.x_edges * length_factor, y_edges=table.y_edges * diameter_factor, attrs=attrs, **rates
+        x_edges=table.x_edges * length_factor,
+        y_edges=table.y_edges * diameter_factor,
+        attrs=attrs,
+        operating_point=None if point is None else point.scaled(length_factor, diameter_factor),
+        **rates,
     )
 
 
@@ -52,6 +58,9 @@ def scale_speed(table: VelocityTable, factor: float) -> VelocityTable:
     if table.has_phases:
         fields["phases"] = phase_model.scaled(table.phases, factor, factor, factor)
     attrs = {**table.attrs, "speed_scaling": float(factor)}
+    if table.operating_point is not None:
+        point = table.operating_point
+        fields["operating_point"] = point.replace(impeller_rpm=point.impeller_rpm * factor)
     return table.replace(attrs=attrs, **fields)
 
 
@@ -98,7 +107,20 @@ def interpolate_tables(points, at: float) -> VelocityTable:
     if a.has_phases and b.has_phases:
         phases = phase_model.blend(a.phases, b.phases, w)
     attrs = {**t0.attrs, "interpolated": {"at": float(at), "between": [v0, v1]}}
-    return a.replace(min_samples=1, attrs=attrs, phases=phases, **fields, **rates)
+    point = _interpolated_point(t0.operating_point, t1.operating_point, at)
+    return a.replace(min_samples=1, attrs=attrs, phases=phases, operating_point=point, **fields, **rates)
+
+
+def _interpolated_point(p0: OperatingPoint | None, p1: OperatingPoint | None, at: float) -> OperatingPoint | None:
+    """The operating point of a table interpolated at ``at``: a speed library's (the two
+    points differ in the speed alone) at that speed, one point when both are it, else
+    unknown (None)."""
+    if p0 is None or p1 is None:
+        return None
+    differences = p0.differences(p1)
+    if not differences:
+        return p0
+    return p0.replace(impeller_rpm=float(at)) if differences == ("impeller_rpm",) else None
 
 
 def _overlap(old_edges: np.ndarray, new_edges: np.ndarray) -> np.ndarray:
@@ -115,7 +137,7 @@ def regrid(
 
     New edges are ``x_edges`` / ``y_edges`` if given, else ``nx`` / ``ny`` uniform
     compartments over the old extent (unchanged axis if neither is given). They must span
-    exactly the old extent.
+    exactly the old extent (the operating point is kept: the same vessel).
 
     Rule (conservative, particle-flux weighted): first the table's missing
     compartment-windows are filled (:func:`pbm.model.fill_missing_velocities`). Particles

@@ -178,6 +178,16 @@ def same_but_feed(config: Config) -> dict[str, Any]:
     return config_without(config, *FEED_LIBRARY_KEYS)
 
 
+#: what the runs of a speed library may differ in: the impeller speed (its value is read
+#: from each run's operating point, :class:`coupling.operating.OperatingPoint`)
+SPEED_LIBRARY_KEYS = ("dem.operation.impeller_rpm",)
+
+
+def same_but_speed(config: Config) -> dict[str, Any]:
+    """What two runs of one speed library share: ``config`` less :data:`SPEED_LIBRARY_KEYS`."""
+    return config_without(config, *SPEED_LIBRARY_KEYS)
+
+
 def dump_toml(config: Config) -> str:
     """TOML text of a resolved configuration (every value explicit), loadable by load_config."""
     data = config.to_dict()

@@ -15,9 +15,9 @@ from pbm.fill import fill_samples, fit_fill_law
 from pbm.model import supported_modes
 from pbm.studies import interpolate_tables, scale_blender, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, Judged, agreement_rows, run_modes
-from workflows.config import Config, config_without, same_but_feed
+from workflows.config import Config, same_but_feed, same_but_speed
 from workflows.pipeline.log import Log, stderr_log
-from workflows.pipeline.results import pbm_config_for, rtd_pulse
+from workflows.pipeline.results import pbm_config_for, rtd_pulse, run_operating_point
 from workflows.pipeline.stages import DemSide
 
 # --------------------------------------------------------------------------- predictions
@@ -74,11 +74,12 @@ def prediction_tables(
     its own windows (its filling transient: one DEM run); and "library + fill law", the
     steady rates of the nearest other run in feed (one with a phase model if any) under
     the law of the other runs' steady points (leave one out). A prediction that cannot be
-    made is a string saying why."""
-    base_cfg, base_table = configs[baseline], sides[baseline].table
-    rpm_key = "dem.operation.impeller_rpm"
+    made is a string saying why. Speeds, lengths and feed rates are each run's operating
+    point's (:func:`workflows.pipeline.results.run_operating_point`)."""
+    base_table = sides[baseline].table
+    point = {name: run_operating_point(side.table, configs[name]) for name, side in sides.items()}
     feed_runs = [r for r in feed_library(configs, baseline) if r in sides]
-    feed = {r: configs[r].dem.operation.feed_rate_total_per_s for r in feed_runs}
+    feed = {r: point[r].feed_rate_total_per_s for r in feed_runs}
     out: dict[str, dict[str, Source | str]] = {}
     for name, config in configs.items():
         if name not in sides:  # a run the campaign does not have (yet)
@@ -86,22 +87,22 @@ def prediction_tables(
         tables: dict[str, Source | str] = {"self": Source(sides[name].table)}
         if name != baseline:
             table = base_table
-            length_factor = config.dem.geometry.length_m / base_cfg.dem.geometry.length_m
+            length_factor = point[name].length_m / point[baseline].length_m
             if not math.isclose(length_factor, 1.0):
                 table = scale_blender(table, length_factor=length_factor)
-            speed = config.dem.operation.impeller_rpm / base_cfg.dem.operation.impeller_rpm
+            speed = point[name].impeller_rpm / point[baseline].impeller_rpm
             if not math.isclose(speed, 1.0):
                 table = scale_speed(table, speed)
             tables["baseline"] = Source(table)
-        same_but_rpm = config_without(config, rpm_key)
+        same = same_but_speed(config)
         library = [
-            (other.dem.operation.impeller_rpm, sides[o].table)
+            (point[o].impeller_rpm, sides[o].table)
             for o, other in configs.items()
-            if o != name and o in sides and config_without(other, rpm_key) == same_but_rpm
+            if o != name and o in sides and same_but_speed(other) == same
         ]
         if len(library) >= 2:
             try:
-                tables["library"] = Source(interpolate_tables(library, config.dem.operation.impeller_rpm))
+                tables["library"] = Source(interpolate_tables(library, point[name].impeller_rpm))
             except ConfigError as exc:
                 tables["library"] = str(exc)
         if name in feed_runs and name != baseline:

@@ -33,6 +33,7 @@ import numpy as np
 from coupling.blas import single_threaded_blas
 from coupling.jsonable import json_ready, write_json
 from pbm.config import PbmConfig
+from pbm.feed import resolve_feed
 from pbm.frequency import (
     FEEDERS,
     NOISE_TAUS_S,
@@ -61,7 +62,7 @@ def run_benchmark(
 ) -> dict:
     """Run the measurements; return them as a JSON-ready dict (times in seconds)."""
     table = synthetic_table(seed=seed)
-    config = PbmConfig()
+    config, _ = resolve_feed(PbmConfig(), table)
     freqs = np.logspace(-3, 0, points)
     with single_threaded_blas():
         t0 = time.perf_counter()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from coupling.errors import ConfigError
 from coupling.files import refuse_output_over_inputs
@@ -75,6 +76,8 @@ def run_command(args: argparse.Namespace) -> int:
         rates=args.rates,
     )
     for mode, (result, paths) in runs.items():
+        for override in result.feed_overrides:
+            print(f"warning: {override.message}", file=sys.stderr)
         s = result.summary
         print(
             f"PBM ({mode} rates) {s.nx}x{s.ny}, {s.duration_s:g} s ({s.method}) in "

@@ -36,6 +36,7 @@ from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
 from workflows.config import Config, dump_toml
 from workflows.pipeline.log import Log, quiet
+from workflows.pipeline.results import table_with_operating_point, with_operating_point
 from workflows.shipped import SHIPPED_RESULTS_DIRS
 
 #: Bump when the post-processing computes anything differently: cached results are redone.
@@ -110,6 +111,7 @@ def _find_cached(inputs: RunInputs, post: str, roots: list[tuple[Path, str]], lo
                 post,
             ):
                 continue
+            entry = with_operating_point(entry)  # a file written before tables recorded it: its config's
             return DemSide(entry.table, DemResults.from_cache_entry(entry), entry.provenance, path, source)
     return None
 
@@ -298,11 +300,13 @@ def run_pbm(
     """``pbmdem pbm run``: the PBM of ``config`` (its ``[pbm]`` section and steady-state
     rule) on the velocity table in ``tables``, in the rate mode ``rates`` ("velocity",
     "measured", "phases", or "all": every mode the table supports, one subdirectory of
-    ``out`` each; default the config's).
+    ``out`` each; default the config's). The feed rates and zones ``config.pbm`` leaves
+    None are the table's operating point's (:mod:`pbm.feed`); a rate that contradicts it is
+    named in each result's ``feed_overrides`` and its ``summary.json``.
     Returns mode -> (result, files written)."""
     updates = {"method": method} if method is not None else {}
     refuse_output_over_inputs(out, [tables], "output directory", ConfigError)
-    table = read_table(tables)
+    table = table_with_operating_point(read_table(tables))
     modes = supported_modes(table) if rates == "all" else (rates or config.pbm.rates,)
     check_pbm_memory(table.nx, table.ny, table.n_windows)
     for mode in modes:  # refused before anything is written

@@ -17,16 +17,15 @@ from coupling.errors import ConfigError, OutputError, os_reason
 from coupling.files import writable_directory
 from coupling.forked import Prepared
 from coupling.jsonable import json_ready, write_json
+from coupling.operating import OperatingPoint
 from coupling.tables import VelocityTable
 from dem.summary import DemSummary
 from pbm.design import DesignResult, DesignSpec, TableLibrary, ThroughputResult, design, feed_library, max_feed
-from workflows.config import Config, config_without, same_but_feed
+from workflows.config import Config, same_but_feed, same_but_speed
 from workflows.pipeline.log import Log
 from workflows.pipeline.results import load_table, pbm_config_for
 from workflows.report import DESIGN_FIGURES
 from workflows.shipped import VALIDATION_DIR
-
-RPM_KEY = "dem.operation.impeller_rpm"
 
 
 class LibraryRun(NamedTuple):
@@ -36,6 +35,13 @@ class LibraryRun(NamedTuple):
     table: VelocityTable
     summary: DemSummary
     config: Config
+
+    @property
+    def point(self) -> OperatingPoint:
+        """The run's operating point, as its table records it (:func:`load_table`)."""
+        if self.table.operating_point is None:
+            raise ConfigError(f"table library: {self.path} records no operating point")
+        return self.table.operating_point
 
 
 def library_runs(directory: str | Path = VALIDATION_DIR) -> list[LibraryRun]:
@@ -58,8 +64,7 @@ def load_library(runs: list[LibraryRun], rates: str = "velocity", log: Log | Non
     directory = runs[0].path.parent
     groups: dict[str, list] = {}
     for run in runs:
-        key = repr(config_without(run.config, RPM_KEY))
-        groups.setdefault(key, []).append((run.config.dem.operation.impeller_rpm, run))
+        groups.setdefault(repr(same_but_speed(run.config)), []).append((run.point.impeller_rpm, run))
     members = max(groups.values(), key=lambda g: (len(g), max(m[0] for m in g) - min(m[0] for m in g)))
     speeds = [m[0] for m in members]
     if len(set(speeds)) != len(speeds):
@@ -75,9 +80,7 @@ def load_library(runs: list[LibraryRun], rates: str = "velocity", log: Log | Non
         )
     pbm_config = pbm_config_for(first.config, first.table, None).model_copy(update={"rates": rates})
     steady = max(m[1].summary.steady_time for m in members)
-    return TableLibrary(
-        tuple((m[0], m[1].table) for m in members), pbm_config, float(steady), float(first.config.dem.geometry.length_m)
-    )
+    return TableLibrary(tuple((m[0], m[1].table) for m in members), pbm_config, float(steady), first.point.length_m)
 
 
 def load_feed_library(runs: list[LibraryRun], rates: str = "measured", log: Log | None = None):
@@ -92,15 +95,14 @@ def load_feed_library(runs: list[LibraryRun], rates: str = "measured", log: Log 
     members = max(groups.values(), key=len, default=[])
     if len(members) < 2:
         return None
-    members.sort(key=lambda m: m.config.dem.operation.feed_rate_total_per_s)
+    members.sort(key=lambda m: m.point.feed_rate_total_per_s)
     (log or (lambda _: None))(
-        "feed library: "
-        + ", ".join(f"{m.config.dem.operation.feed_rate_total_per_s:g} /s ({m.path.name})" for m in members)
+        "feed library: " + ", ".join(f"{m.point.feed_rate_total_per_s:g} /s ({m.path.name})" for m in members)
     )
-    config = members[0].config
-    pbm_config = pbm_config_for(config, members[0].table, None).model_copy(update={"rates": rates})
-    tables = [(m.config.dem.operation.feed_rate_total_per_s, m.table) for m in members]
-    return feed_library(tables, pbm_config, config.dem.operation.impeller_rpm, config.dem.geometry.length_m)
+    first = members[0]
+    pbm_config = pbm_config_for(first.config, first.table, None).model_copy(update={"rates": rates})
+    tables = [(m.point.feed_rate_total_per_s, m.table) for m in members]
+    return feed_library(tables, pbm_config, first.point.impeller_rpm, first.point.length_m)
 
 
 def run_design(

@@ -1,8 +1,10 @@
 """Does the hybrid predict what it was not built from? The validation campaign.
 
-1. :data:`CHANGES` -- the ``validation`` preset (coarse particles, long enough for a pooled
-   RTD) and one factor changed at a time: blender length x1.25 (more paddle stations at the
-   same spacing), impeller 150 and 350 rpm, feed rate x2. :func:`run_campaign` runs each
+1. The campaign file ``workflows/presets/campaigns/validation.toml``
+   (:func:`workflows.products.campaign.load_campaign`) -- the ``validation`` preset (coarse
+   particles, long enough for a pooled RTD) and one factor changed at a time: blender length
+   x1.25 (more paddle stations at the same spacing), impeller 150 and 350 rpm, feed rate
+   x0.5, x1.5 and x2. :func:`run_campaign` runs each
    through the normal DEM stage (LIGGGHTS, post-processing, cache by input hash), so an
    interrupted campaign continues where it stopped; the shipped campaign results in
    :data:`VALIDATION_DIR` serve a fresh clone without LIGGGHTS (``pbmdem validate``,
@@ -27,7 +29,6 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,55 +42,18 @@ from workflows.analysis.validation import campaign_span_s, library_law, predicti
 from workflows.config import Config, load_preset, override
 from workflows.pipeline.log import Log, stderr_log
 from workflows.pipeline.stages import DemSide, dem_stage
+from workflows.products.campaign import Campaign, load_campaign
 from workflows.report.budget import plot_budget
 from workflows.report.step import plot_step, step_html
 from workflows.report.validation import plot_parity, plot_profiles, render_report
 from workflows.shipped import STEP_DIR, VALIDATION_DIR
 
-PRESET = "validation"
 
-
-@dataclass(frozen=True)
-class Change:
-    """One run of the campaign: ``overrides`` (``dotted.path=value``) of the baseline."""
-
-    name: str
-    label: str
-    overrides: tuple[str, ...] = ()
-
-
-#: The baseline's blade stations sit 28.3 mm apart from x = 45 mm; x1.25 the length keeps
-#: that spacing with 13 stations, the last 27.5 mm upstream of the weir (30 mm in the baseline).
-CHANGES = (
-    Change("baseline", "baseline (validation preset)"),
-    Change(
-        "length_x1.25",
-        "blender length x1.25",
-        ("dem.geometry.length_m=0.4125", "dem.geometry.blade_stations=13", "dem.geometry.last_blade_x_m=0.385"),
-    ),
-    Change("rpm_150", "impeller 150 rpm", ("dem.operation.impeller_rpm=150",)),
-    Change("rpm_350", "impeller 350 rpm", ("dem.operation.impeller_rpm=350",)),
-    Change("feed_x2", "feed rate x2", ("dem.operation.feed_rate_total_per_s=147.4",)),
-    # Half the feed keeps particles ~1.6x longer: 320 s leave the pooled RTD its entry window.
-    Change(
-        "feed_x0.5",
-        "feed rate x0.5",
-        ("dem.operation.feed_rate_total_per_s=36.85", "dem.operation.duration_s=320"),
-    ),
-    Change("feed_x1.5", "feed rate x1.5", ("dem.operation.feed_rate_total_per_s=110.55",)),
-)
-
-
-def campaign_configs(base: Config | None = None) -> dict[str, Config]:
-    """Each change's configuration, validated before any run starts."""
-    base = base if base is not None else load_preset(PRESET)
-    configs = {}
-    for change in CHANGES:
-        config = base
-        for assignment in change.overrides:
-            config = override(config, assignment)
-        configs[change.name] = config.model_copy(update={"name": f"{base.name}-{change.name}"})
-    return configs
+def campaign_configs(base: Config | None = None, campaign: Campaign | None = None) -> dict[str, Config]:
+    """Each change's configuration (``campaign``, default the shipped validation campaign,
+    on ``base``, default its preset), every one validated before any run starts."""
+    campaign = campaign if campaign is not None else load_campaign()
+    return campaign.configs(base)
 
 
 def run_campaign(
@@ -101,7 +65,7 @@ def run_campaign(
     configs: dict[str, Config] | None = None,
     solver: bool = True,
 ) -> dict[str, DemSide]:
-    """Every run of the campaign, in :data:`CHANGES` order: from the cache under
+    """Every run of the campaign, in the campaign file's order: from the cache under
     ``runs_root``, the shipped results, else LIGGGHTS (an interrupted run continues from its
     newest restart file). ``fresh`` reruns every solver run; ``solver=False`` never starts
     LIGGGHTS: a run that is neither cached nor shipped is left out, with a line in the log
@@ -139,13 +103,14 @@ def validation_report(
     """``make validate``: the campaign (:func:`run_campaign`), every prediction and verdict,
     ``summary.json``, the figures and ``report.html`` in ``out_dir``. Returns the page."""
     out_dir = writable_directory(out_dir, "validation output directory")
-    configs = campaign_configs()
+    changes = load_campaign()
+    configs = changes.configs()
     sides = run_campaign(
         runs_root, fresh=fresh, nprocs=nprocs, log=log, reference_dir=reference_dir, configs=configs, solver=solver
     )
     preds = predictions(sides, configs, log=log)
     judged = verdicts(preds)
-    campaign = _campaign_rows(sides)
+    campaign = _campaign_rows(sides, changes.labels())
     span_s = campaign_span_s(sides)
     base = sides["baseline"].results
     budget_t = [round(f * base.table.t_end / base.table.window_s) * base.table.window_s for f in BUDGET_FRACTIONS]
@@ -248,9 +213,8 @@ def campaign_run(
     )
 
 
-def _campaign_rows(sides: dict[str, DemSide]) -> list[dict[str, Any]]:
+def _campaign_rows(sides: dict[str, DemSide], labels: dict[str, str]) -> list[dict[str, Any]]:
     rows = []
-    labels = {c.name: c.label for c in CHANGES}
     for name, side in sides.items():
         summary = side.results.summary
         pooled, steady = summary.pooled_rtd, summary.steady

@@ -13,7 +13,8 @@ from coupling.tables import make_table
 from pbm.studies import interpolate_tables, scale_speed
 from workflows.analysis.agreement import MODES, AgreementRow, ModeValue
 from workflows.analysis.validation import FILL_SOURCES, feed_library, judge, prediction_tables, verdict_text
-from workflows.products.validate import CHANGES, campaign_configs
+from workflows.products.campaign import load_campaign
+from workflows.products.validate import campaign_configs
 
 X, Y = np.linspace(0, 0.33, 6), np.linspace(-0.05, 0.05, 5)
 
@@ -36,7 +37,7 @@ def table(v: float, rates: bool = True, x_edges=X):
 
 def test_campaign_changes_one_factor_at_a_time_and_keeps_the_blade_spacing():
     configs = campaign_configs()
-    assert list(configs) == [c.name for c in CHANGES]
+    assert list(configs) == [c.name for c in load_campaign().changes]
     base = configs["baseline"]
     spacing = lambda g: (g.last_blade_x_m - g.first_blade_x_m) / (g.blade_stations - 1)  # noqa: E731
     longer = configs["length_x1.25"].dem.geometry
@@ -172,7 +173,7 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
     summary = json.loads((page.parent / "summary.json").read_text())
     # every shipped run, in the campaign's order (runs not shipped yet are left out)
     shipped = [row["run"] for row in summary["campaign"]]
-    assert shipped == [c.name for c in CHANGES if c.name in shipped]
+    assert shipped == [c.name for c in load_campaign().changes if c.name in shipped]
     assert {"baseline", "length_x1.25", "rpm_150", "rpm_350", "feed_x2"} <= set(shipped)
     assert all(row["source"] == "reference" for row in summary["campaign"])
     walls = [row["dem_wall_time_s"] for row in summary["campaign"]]
