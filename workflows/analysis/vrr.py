@@ -71,6 +71,7 @@ from coupling.tables import RATE_NAMES, VELOCITY_NAMES, VelocityTable
 from dem.summary import DemSummary, PooledRtdSummary
 from pbm.config import PbmConfig
 from pbm.ensemble import noise_ensemble
+from pbm.feed import resolve_feed
 from pbm.frequency import (
     FEEDERS,
     NOISE_TAUS_S,
@@ -646,6 +647,7 @@ def ensemble_check(
     of the variance over members, averaged over the outputs once the blender has filled)
     and :func:`pbm.frequency.sampled_ca_sd`, both on :func:`steady_table`, so that the
     ensemble's blender is the transfer function's. One :class:`EnsembleCheck` per sigma."""
+    config, _ = resolve_feed(config, table)  # the rates weigh the two feeders' responses below
     steady = steady_table(table, config.rates, t_start_s)
     system = stationary_system(steady, config)
     rates = [config.feed_rate_a_per_s, config.feed_rate_b_per_s]
