@@ -59,7 +59,7 @@ from coupling.errors import OutputError, SolverNotFoundError, SolverRunError
 from coupling.files import output_directory_path
 from dem import deck
 from dem.config import DemConfig
-from dem.liggghts import liggghts_version, run_solver, solver_command, text_tail
+from dem.liggghts import SolverResult, liggghts_version, run_solver, solver_command, text_tail
 from dem.liggghts_log import ThermoParser
 
 __all__ = [
@@ -193,8 +193,11 @@ def run_dem(
     a simulation. Without a solver (``inputs.key`` None), a completed run of the same deck
     (same deck hash) under ``runs_root`` is still reused; only a run that must actually
     start raises SolverNotFoundError.
+
+    The steps: reuse (:func:`completed_run`), the run's key, the directory claimed
+    (:func:`_claim_run_dir`), its files written (:func:`_write_run_files`), the solver run
+    and followed (:func:`_solve`), its outcome judged (:func:`_judge_run`).
     """
-    config = inputs.config
     # a symlink loop or a file in the way of the runs directory: one line, before anything
     output_directory_path(runs_root, "runs directory (--runs-dir)", OutputError)
     if not fresh:
@@ -203,15 +206,41 @@ def run_dem(
             return done
     if inputs.key is None:
         # asked again for the message naming what is missing (or the solver appeared since)
-        version = liggghts_version(config.run.liggghts)
+        version = liggghts_version(inputs.config.run.liggghts)
         inputs = replace(inputs, liggghts_version=version, key=run_key(inputs.files, version))
+    nprocs = int(np if np is not None else inputs.config.run.np)
+    run_dir, status, command = _claim_run_dir(inputs, Path(runs_root) / inputs.key, nprocs, resume, fresh)
+    resumed_from = _write_run_files(inputs, run_dir, resume)
+    base = {
+        "key": inputs.key,
+        "deck_hash": inputs.deck_hash,
+        "liggghts_version": inputs.liggghts_version,
+        "command": command,
+        "np": nprocs,
+        "started": _now(),
+        "resumed_from": resumed_from,
+        "previous": status if resume else None,
+    }
+    _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid())})
+    if resume:
+        with open(run_dir / SOLVER_OUT, "a") as out:
+            out.write(f"\n{RESUME_MARKER} {resumed_from} at {base['started']} ---\n")
+    # wall time accumulates over the attempts of a resumed run
+    prior_wall = float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0
+    return _solve(inputs.config, run_dir, base, prior_wall, resume, progress, on_line)
+
+
+def _claim_run_dir(
+    inputs: RunInputs, run_dir: Path, nprocs: int, resume: bool, fresh: bool
+) -> tuple[Path, dict[str, Any] | None, list[str]]:
+    """The run directory made ready to be written, its earlier status (None after
+    ``fresh``) and the solver command. Every argument and program is checked before
+    anything in the directory changes: a typo must never cost the outputs of an
+    interrupted run. Raises SolverRunError for a run still going, or for outputs that
+    neither ``resume`` nor ``fresh`` allows to touch."""
     key = inputs.key
-    run_dir = Path(runs_root) / key
     status = diagnose_stale_status(run_dir, read_status(run_dir), resume=resume)
-    nprocs = int(np if np is not None else config.run.np)
-    # Every argument and program is checked before anything in the run directory changes:
-    # a typo must never cost the outputs of an interrupted run.
-    command = solver_command(config.run, nprocs, deck.RESUME_DECK if resume else deck.MAIN_DECK)
+    command = solver_command(inputs.config.run, nprocs, deck.RESUME_DECK if resume else deck.MAIN_DECK)
     if status and status.get("state") == "running":
         state, why = _liveness(status)
         hint = (
@@ -225,10 +254,15 @@ def run_dem(
         status = None
     if not resume and run_dir.exists():
         _refuse_to_discard(run_dir, key, status)
+    return run_dir, status, command
 
+
+def _write_run_files(inputs: RunInputs, run_dir: Path, resume: bool) -> str | None:
+    """The deck written into ``run_dir`` (the resume deck from the newest restart file when
+    ``resume``; returns that file's name, else None)."""
     if resume:
-        resumed_from = _prepare_resume(run_dir, key, float(config.timestep_s))
-        run_files = deck.build_deck(config, resume_from=resumed_from)
+        resumed_from = _prepare_resume(run_dir, inputs.key, float(inputs.config.timestep_s))
+        run_files = deck.build_deck(inputs.config, resume_from=resumed_from)
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
         _clear_outputs(run_dir)
@@ -236,25 +270,25 @@ def run_dem(
     # LIGGGHTS reads its input while it runs, so a deck is never edited in place: the run
     # directory is this run's alone and every file is written before the solver starts.
     deck.write_deck(run_files, run_dir)
+    return resumed_from
 
-    started = _now()
-    base = {
-        "key": key,
-        "deck_hash": inputs.deck_hash,
-        "liggghts_version": inputs.liggghts_version,
-        "command": command,
-        "np": nprocs,
-        "started": started,
-        "resumed_from": resumed_from,
-        "previous": status if resume else None,
-    }
-    _write_status(run_dir, {**base, "state": "running", **_process_identity(os.getpid())})
-    if resume:
-        with open(run_dir / SOLVER_OUT, "a") as out:
-            out.write(f"\n{RESUME_MARKER} {resumed_from} at {started} ---\n")
 
+def _solve(
+    config: DemConfig,
+    run_dir: Path,
+    base: dict[str, Any],
+    prior_wall: float,
+    resume: bool,
+    progress: bool,
+    on_line: Callable[[str], None] | None,
+) -> RunRecord:
+    """Run the solver of ``base["command"]`` in ``run_dir``, following its thermo output
+    (progress bar, ``on_line``) and keeping ``status.json`` true at every exit: stopped
+    early on purpose (:class:`StopRun`), interrupted, crashed, or judged by
+    :func:`_judge_run`."""
     dt, duration = float(config.timestep_s), float(config.operation.duration_s)
     parser = ThermoParser(deck.THERMO_DISCHARGED, deck.THERMO_INSERTED, deck.THERMO_COLUMNS)
+    resumed_from = base["resumed_from"]
     bar = _Progress(duration, _step_of(Path(resumed_from)) * dt if resumed_from else 0.0, progress)
 
     def follow(line: str) -> None:
@@ -275,12 +309,12 @@ def run_dem(
             },
         )
 
-    # wall time accumulates over the attempts of a resumed run
-    prior_wall = float(status.get("wall_time_s") or 0.0) if (resume and status) else 0.0
     t0 = time.monotonic()
     try:
         with _terminate_as_interrupt():
-            result = run_solver(command, run_dir, SOLVER_OUT, append=resume, on_start=solver_started, on_line=follow)
+            result = run_solver(
+                base["command"], run_dir, SOLVER_OUT, append=resume, on_start=solver_started, on_line=follow
+            )
     except StopRun as stop:
         # asked for by the caller (it has what it needs): the run is kept, marked as stopped
         # early so that it is never taken for a complete one; --resume continues it
@@ -307,18 +341,27 @@ def run_dem(
             _write_status(run_dir, {**base, **stopped, "state": "crashed"})
         raise
     bar.close()
-    problem = result.failure
-    if problem is None and not list(run_dir.glob(deck.DUMP_GLOB)):
-        problem = "LIGGGHTS finished but wrote no particle dump"
-    elif problem is None and (parser.step is None or parser.step * dt < duration - 2 * dt - 1e-9):
-        reached = "no thermo output" if parser.step is None else f"t = {parser.step * dt:.3f} s"
-        problem = f"LIGGGHTS stopped before the end time {duration} s ({reached})"
     final = {
         **base,
         "finished": _now(),
         "wall_time_s": prior_wall + result.wall_s,
         "solver_counters": parser.counters(),
     }
+    reached_s = None if parser.step is None else parser.step * dt
+    return _judge_run(run_dir, final, result, reached_s, duration, dt)
+
+
+def _judge_run(
+    run_dir: Path, final: dict[str, Any], result: SolverResult, reached_s: float | None, duration: float, dt: float
+) -> RunRecord:
+    """The finished solver's run marked completed, or crashed (SolverRunError with the
+    log's tail) when it failed, wrote no dump or stopped before ``duration`` [s]."""
+    problem = result.failure
+    if problem is None and not list(run_dir.glob(deck.DUMP_GLOB)):
+        problem = "LIGGGHTS finished but wrote no particle dump"
+    elif problem is None and (reached_s is None or reached_s < duration - 2 * dt - 1e-9):
+        reached = "no thermo output" if reached_s is None else f"t = {reached_s:.3f} s"
+        problem = f"LIGGGHTS stopped before the end time {duration} s ({reached})"
     if problem:
         _write_status(run_dir, {**final, "state": "crashed", "error": problem})
         log_path = run_dir / deck.LOG_FILE if (run_dir / deck.LOG_FILE).exists() else run_dir / SOLVER_OUT
