@@ -680,25 +680,7 @@ def _results(
             "apart: their particle moves are left out of the measured rates"
         )
 
-    notes: list[str] = []
-    if acc.other_types:
-        notes.append(
-            f"atom types {sorted(acc.other_types)} are neither A {types_a} nor B {types_b}; counted in neither"
-        )
-    if acc.reappeared:
-        notes.append(f"{acc.reappeared} particle-snapshots reappeared after vanishing from the dumps (ID reuse?)")
-    if not np.isfinite(tag_time):
-        notes.append("steady state not detected: no RTD (tag window undefined)")
-    elif not recovered_ok:
-        notes.append(
-            f"RTD: only {recovered:.1%} of the {n_tagged} tagged particles were recovered "
-            "(the paper requires >= 95 %); run longer"
-        )
-    if pooled.get("n_entered") and not pooled["recovered_ok"]:
-        notes.append(
-            f"pooled RTD: only {pooled['recovered_fraction']['value']:.1%} of "
-            f"{pooled['n_entered']} particles recovered within the horizon"
-        )
+    notes = _run_notes(acc, types_a, types_b, tag_time, recovered_ok, recovered, n_tagged, pooled)
     last_a, last_b = acc.snapshot_counts[-1]
     summary: dict[str, Any] = {
         "mean_residence_time_s": float(residence.mean()) if residence.size else float("nan"),
@@ -747,3 +729,38 @@ def _results(
         sequences=sequences,
         snapshot_counts=_compact_counts(acc.snapshot_counts),
     )
+
+
+def _run_notes(
+    acc: Accumulation,
+    types_a: Any,
+    types_b: Any,
+    tag_time: float,
+    recovered_ok: bool,
+    recovered: float,
+    n_tagged: int,
+    pooled: dict[str, Any],
+) -> list[str]:
+    """What a reader of the summary must know about the run's data: particles counted in
+    neither component, IDs that reappeared, an RTD that could not be tagged or was not
+    recovered (the paper's 95 %)."""
+    notes: list[str] = []
+    if acc.other_types:
+        notes.append(
+            f"atom types {sorted(acc.other_types)} are neither A {types_a} nor B {types_b}; counted in neither"
+        )
+    if acc.reappeared:
+        notes.append(f"{acc.reappeared} particle-snapshots reappeared after vanishing from the dumps (ID reuse?)")
+    if not np.isfinite(tag_time):
+        notes.append("steady state not detected: no RTD (tag window undefined)")
+    elif not recovered_ok:
+        notes.append(
+            f"RTD: only {recovered:.1%} of the {n_tagged} tagged particles were recovered "
+            "(the paper requires >= 95 %); run longer"
+        )
+    if pooled.get("n_entered") and not pooled["recovered_ok"]:
+        notes.append(
+            f"pooled RTD: only {pooled['recovered_fraction']['value']:.1%} of "
+            f"{pooled['n_entered']} particles recovered within the horizon"
+        )
+    return notes

@@ -29,7 +29,7 @@ from dem.geometry import build_geometry, write_stl
 from dem.massflow import massflow_files
 from dem.post import DemResults, Postprocessor, postprocess
 from dem.resources import check_postprocess_resources
-from dem.run import STOPPED, RunInputs, completed_run, prepare_run, read_status, run_dem, solver_counters
+from dem.run import STOPPED, RunInputs, RunRecord, completed_run, prepare_run, read_status, run_dem, solver_counters
 from pbm.model import require_rates, supported_modes
 from pbm.outputs import write_outputs
 from pbm.resources import check_pbm_memory
@@ -203,25 +203,7 @@ def dem_stage(
         "post-processing the dumps"
     )
     t0 = time.monotonic()
-    provenance = {
-        "key": key,
-        "input_hash": key,
-        "run_key": record.key,
-        "deck_hash": inputs.deck_hash,
-        "post_hash": post,
-        "liggghts_version": record.liggghts_version,
-        "preset": config.name,
-        "config_toml": dump_toml(config),
-        "run_dir": str(record.run_dir),
-        "run_started": record.started,
-        "run_finished": record.finished,
-        "wall_time_s": record.wall_time_s,
-        "np": record.np,
-        "resumed_from": record.resumed_from,
-        "created": _now(),
-        "run_state": record.state,
-        "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
-    }
+    provenance = _run_provenance(config, inputs, post, record, key)
     table_attrs = {k: provenance[k] for k in ("input_hash", "liggghts_version", "preset", "config_toml", "created")}
     # a watch's checks have read the dumps up to their last one: only the rest is read here
     reader = (on_line.postprocessor() if on_line is not None else None) or Postprocessor(config.dem)
@@ -241,6 +223,31 @@ def dem_stage(
     provenance["postprocess_time_s"] = time.monotonic() - t0
     path = save_entry(cache_path(cache_root, key), results.to_cache_entry(provenance))
     return DemSide(results.table, results, provenance, path, "run")
+
+
+def _run_provenance(config: Config, inputs: RunInputs, post: str, record: RunRecord, key: str) -> dict[str, Any]:
+    """What the cache entry of ``record``'s results says of where they came from: the keys
+    and hashes they are found by, the configuration, the solver run and its state."""
+    stopped = record.state == STOPPED
+    return {
+        "key": key,
+        "input_hash": key,
+        "run_key": record.key,
+        "deck_hash": inputs.deck_hash,
+        "post_hash": post,
+        "liggghts_version": record.liggghts_version,
+        "preset": config.name,
+        "config_toml": dump_toml(config),
+        "run_dir": str(record.run_dir),
+        "run_started": record.started,
+        "run_finished": record.finished,
+        "wall_time_s": record.wall_time_s,
+        "np": record.np,
+        "resumed_from": record.resumed_from,
+        "created": _now(),
+        "run_state": record.state,
+        "stop_reason": (read_status(record.run_dir) or {}).get("stop_reason") if stopped else None,
+    }
 
 
 def postprocess_dumps(

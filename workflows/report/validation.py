@@ -192,22 +192,37 @@ def render_report(
         if name in figures:
             parts.append(f"<p><img src='{figures[name]}' style='max-width:100%'></p>")
     if budget is not None:
-        parts.append(
-            "<h2>How little DEM does the PBM need?</h2><p>PBMs built from the baseline's first T "
-            "seconds (the transient as measured, the steady flow seen by T held for the rest), each "
-            "quantity against the same PBM built from the whole run, judged by the half width of the "
-            "DEM's 95 % interval.</p><table><tr><th>rate mode</th><th>smallest T [s]</th>"
-            "<th>fraction of the run</th><th>without the slice hold-ups [s]</th></tr>"
-        )
-        for mode, (t_s, fraction) in budget.smallest_T.items():
-            other = budget.smallest_T_without_slices.get(mode, (None, None))[0]
-            parts.append(f"<tr><td>{mode}</td><td>{fmt(t_s)}</td><td>{fmt(fraction, 2)}</td><td>{fmt(other)}</td></tr>")
-        parts.append("</table>")
-        if "budget" in figures:
-            parts.append(f"<p><img src='{figures['budget']}' style='max-width:100%'></p>")
+        parts.extend(_budget_section(budget, figures))
     if step_section:
         parts.append(step_section)
-    parts.append("<h2>The numbers behind each verdict</h2>")
+    parts.extend(_numbers_section(judged))
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _budget_section(budget: BudgetStudy, figures: dict[str, str]) -> list[str]:
+    """The budget study's table (the smallest DEM span each rate mode needs) and figure."""
+    parts: list[str] = []
+    parts.append(
+        "<h2>How little DEM does the PBM need?</h2><p>PBMs built from the baseline's first T "
+        "seconds (the transient as measured, the steady flow seen by T held for the rest), each "
+        "quantity against the same PBM built from the whole run, judged by the half width of the "
+        "DEM's 95 % interval.</p><table><tr><th>rate mode</th><th>smallest T [s]</th>"
+        "<th>fraction of the run</th><th>without the slice hold-ups [s]</th></tr>"
+    )
+    for mode, (t_s, fraction) in budget.smallest_T.items():
+        other = budget.smallest_T_without_slices.get(mode, (None, None))[0]
+        parts.append(f"<tr><td>{mode}</td><td>{fmt(t_s)}</td><td>{fmt(fraction, 2)}</td><td>{fmt(other)}</td></tr>")
+    parts.append("</table>")
+    if "budget" in figures:
+        parts.append(f"<p><img src='{figures['budget']}' style='max-width:100%'></p>")
+    return parts
+
+
+def _numbers_section(judged: list[PredictionVerdict]) -> list[str]:
+    """One table per judged prediction: each quantity's DEM value and interval beside every
+    mode's prediction, self-built value and verdict."""
+    parts = ["<h2>The numbers behind each verdict</h2>"]
     for v in judged:
         if not v.judged:
             continue
@@ -235,5 +250,4 @@ def render_report(
                 f"<td>{fmt(first.dem_ci_low)} – {fmt(first.dem_ci_high)}</td>{cells}</tr>"
             )
         parts.append("</table>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    return parts
