@@ -1,7 +1,15 @@
 """``pbmdem study blocks``: the coverage check runs the product's interval and the old
-bootstrap on series with a known mean, and tells them apart."""
+bootstrap on series with a known mean, and tells them apart; the command runs on the
+shipped run, and a missing file is one line."""
 
-from workflows.studies.blocks import coverage_row, rtd_coverage_row
+import json
+
+import pytest
+
+from workflows.cli.main import main
+from workflows.pipeline.results import load_results
+from workflows.shipped import REDUCED_RUN
+from workflows.studies.blocks import COVERAGE_CASES, RTD_COVERAGE_BLOCKS, coverage_row, rtd_coverage_row
 
 
 def test_the_coverage_check_separates_the_results_interval_from_short_block_bootstraps():
@@ -21,3 +29,33 @@ def test_the_pooled_rtd_coverage_check_separates_expanded_from_plain_percentile_
     row = rtd_coverage_row(3, series=200, seed=1)
     assert row.mean_expanded >= 0.89 and row.variance_expanded >= 0.89
     assert row.mean_plain <= 0.84 and row.variance_plain <= 0.84
+
+
+def test_the_command_reads_the_shipped_run_and_checks_coverage(tmp_path, capsys):
+    """On the shipped reduced run the hold-up's batch-means error grows with the block
+    length (it stays correlated for longer than a second), and the interval the results
+    carry is at least the 5-s blocks' error; with ``--coverage`` the results' batch means
+    hold the true mean more often than a bootstrap over 5-s blocks in every case."""
+    assert main(["study", "blocks", "--results", str(REDUCED_RUN), "--coverage", "40", "--out", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "blocks.json").read_text())
+    (row,) = record["rows"]
+    summary = load_results(REDUCED_RUN)[0].summary
+    holdup = summary.steady["holdup"]
+    assert row["holdup"] == pytest.approx(holdup["value"], rel=0.01)
+    errors = dict(zip(row["blocks_s"], row["holdup_error"]))
+    assert errors[1.0] < errors[5.0] <= row["holdup_interval_error"]
+    assert row["rtd_mean_interval_error"] == pytest.approx(
+        (summary.pooled_rtd.mean_residence_time_s.high - summary.pooled_rtd.mean_residence_time_s.low) / (2 * 1.96),
+        rel=0.01,
+    )
+    assert len(record["coverage"]) == len(COVERAGE_CASES) and len(record["rtd_coverage"]) == len(RTD_COVERAGE_BLOCKS)
+    for case in record["coverage"]:
+        assert case["batch_means"] > case["bootstrap_5s"], case
+    assert "| dem-17ea4c9cc143cd3e.h5 |" in capsys.readouterr().out
+
+
+def test_a_missing_results_file_is_one_line(tmp_path, capsys):
+    missing = tmp_path / "missing.h5"
+    assert main(["study", "blocks", "--results", str(missing), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(missing) in err[0]

@@ -1,14 +1,17 @@
 """The composition study: a random deal at known counts has a known RSD, and on the
 shipped reduced run the DEM's outlet RSD is that of a random mixture at its own counts,
-which the PBM, sampled at those counts dump by dump, reproduces."""
+which the PBM, sampled at those counts dump by dump, reproduces (the command run end to
+end); a missing file is one line."""
 
+import json
 import math
 
 import numpy as np
 import pytest
 
+from workflows.cli.main import main
 from workflows.shipped import REDUCED_RUN
-from workflows.studies.composition import composition_study, random_mixture_at
+from workflows.studies.composition import random_mixture_at
 
 
 def test_a_random_deal_at_known_counts():
@@ -20,16 +23,25 @@ def test_a_random_deal_at_known_counts():
     assert random_mixture_at(np.tile([[1, 1]], (50, 1)), totals, 3, rng) == 0.0
 
 
-def test_the_shipped_runs_outlet_is_a_random_mixture_at_its_counts():
-    study = composition_study(REDUCED_RUN)
-    low, high = study.dem_rsd.low, study.dem_rsd.high
-    assert low <= study.random_mixture_rsd <= high
-    assert (
-        max(
-            abs(f - 0.5) for f, n in zip(study.a_fraction_by_compartment, study.mean_particles_by_compartment) if n > 10
-        )
-        < 0.05
-    )
-    for mode, value in study.pbm_at_dump_counts.items():
+def test_the_shipped_runs_outlet_is_a_random_mixture_at_its_counts(tmp_path, capsys):
+    """Through the command line: what it writes is the study's answer."""
+    assert main(["study", "composition", "--results", str(REDUCED_RUN), "--out", str(tmp_path)]) == 0
+    study = json.loads((tmp_path / "composition.json").read_text())
+    low, high = study["dem_rsd"]["low"], study["dem_rsd"]["high"]
+    assert low <= study["dem_rsd"]["estimate"] <= high
+    assert low <= study["random_mixture_rsd"] <= high
+    shares = zip(study["a_fraction_by_compartment"], study["mean_particles_by_compartment"])
+    assert max(abs(f - 0.5) for f, n in shares if n > 10) < 0.05
+    assert set(study["pbm_at_dump_counts"]) == {"velocity", "measured", "phases"}
+    for mode, value in study["pbm_at_dump_counts"].items():
         assert low <= value <= high, mode
-        assert study.pbm_at_mean_counts[mode] < low, mode  # the mean counts' basis: too uniform
+        assert study["pbm_at_mean_counts"][mode] < low, mode  # the mean counts' basis: too uniform
+    assert "| measured |" in capsys.readouterr().out
+
+
+def test_a_missing_results_file_is_one_line(tmp_path, capsys):
+    missing = tmp_path / "missing.h5"
+    assert main(["study", "composition", "--results", str(missing), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(missing) in err[0]
+    assert not (tmp_path / "out").exists()
