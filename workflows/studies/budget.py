@@ -9,6 +9,7 @@ import dataclasses
 import time
 from pathlib import Path
 
+from coupling.errors import ConfigError
 from coupling.jsonable import write_json
 from workflows.analysis.budget import DEFAULT_T, budget_study
 from workflows.pipeline.results import load_results
@@ -33,6 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # A budget of no DEM at all is a typing slip, not a budget that fails to reach steady
+    # state: refuse it before the run is loaded.
+    bad = [t for t in args.t if not (t > 0)]
+    if bad:
+        raise ConfigError(f"--t {bad[0]:g}: expected DEM budgets in seconds > 0, e.g. --t 60 90")
     started = time.perf_counter()
     results, config = load_results(args.reference)
     study = budget_study(results, config, args.t, log=lambda message: print(message, flush=True))
