@@ -14,9 +14,12 @@ compartments with at least ``--min-observations`` observations, for
 and the fit time per window of :func:`dem.rates.fit_windows` (warm-started windows with
 ~1e5 observations each) for 10 x 10 and 20 x 10 compartments at rate x interval 1.0.
 
-Prints a table and writes ``results/bench/rates.json``. Run it with single-threaded BLAS
-(``OPENBLAS_NUM_THREADS=1``) on a shared machine: the matrices are small, and BLAS threads
-fighting other jobs for the cores made expm several times slower in our measurements.
+Prints a table and writes ``results/bench/rates.json``. BLAS runs single-threaded
+throughout (:func:`coupling.blas.single_threaded_blas`, as the product's fits do): the
+matrices are small, and BLAS threads fighting other jobs for the cores made expm several
+times slower in our measurements (on this 2-core machine at load 4-5, the whole benchmark
+at ``--particles 200000 --steps 10 --windows 2 --observations 10000`` took 158 s with
+OpenBLAS' default threads, 13 s with one).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import time
 import numpy as np
 from scipy.linalg import logm
 
+from coupling.blas import single_threaded_blas
 from coupling.jsonable import write_json
 from dem.rates import RATE_KEYS, fit_rates, fit_windows, generator, naive_rates, simulate_observations
 
@@ -161,7 +165,11 @@ def run_benchmark(
     observations: int = 100_000,
     seed: int = 2013,
 ) -> dict:
-    """Run the measurements; return them as a JSON-ready dict (times in seconds)."""
+    """Run the measurements with single-threaded BLAS; return them as a JSON-ready dict
+    (times in seconds)."""
+    with single_threaded_blas():
+        accuracy_rows = accuracy(10, 10, particles, steps, min_observations, seed)
+        timings = [timing(10, 10, windows, observations, seed), timing(20, 10, windows, observations, seed)]
     return {
         "scenario": {
             "interval_s": INTERVAL_S,
@@ -172,8 +180,8 @@ def run_benchmark(
             "seed": seed,
             "rates": "x_pos 4-8, x_neg 1-4, y_pos/y_neg 2-10 (relative), walls 0",
         },
-        "accuracy": accuracy(10, 10, particles, steps, min_observations, seed),
-        "timing": [timing(10, 10, windows, observations, seed), timing(20, 10, windows, observations, seed)],
+        "accuracy": accuracy_rows,
+        "timing": timings,
         "machine": {
             "platform": platform.platform(),
             "python": platform.python_version(),
