@@ -1,5 +1,6 @@
-"""The paper-scale probe's readers on synthetic logs and dumps with known answers, and the
-cluster estimate built on its shipped measurement."""
+"""The paper-scale probe's readers on synthetic logs and dumps with known answers, the
+cluster estimate built on its shipped measurement, the probe end to end on a short real
+run, and durations it could not summarise refused before LIGGGHTS starts."""
 
 import json
 import os
@@ -115,3 +116,51 @@ def test_shipped_measurement_drives_the_paper_estimate(tmp_path, capsys):
     assert main(["dem", "slurm", "--preset", "paper", "--np", "2", "--out", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
     assert "measured at paper scale" in out and "at 100% parallel efficiency" in out  # measured on 2 ranks
+
+
+@pytest.mark.liggghts
+def test_a_short_real_probe_inserts_at_the_configured_rate_and_loses_nothing(tmp_path, capsys):
+    """The probe end to end on a real LIGGGHTS run: the ``smoke`` preset's first 1.5 s
+    (the shortest it can fit an insertion rate from) on 2 ranks, about 15 s of wall time
+    (the paper preset's 1.5 s take 1.5 to 3 min on two shared cores). What it writes is what
+    ``pbmdem dem slurm`` reads, for runs of the probed particles only."""
+    out, figure = tmp_path / "out", tmp_path / "probe.png"
+    argv = ["study", "paper-scale", "--preset", "smoke", "--duration", "1.5", "--runs-dir", str(tmp_path / "runs")]
+    assert main([*argv, "--out", str(out), "--figure", str(figure)]) == 0
+    summary = json.loads((out / SUMMARY_FILE.name).read_text())
+    assert summary["preset"] == "smoke" and summary["state"] == "completed" and summary["np"] == 2
+    assert not summary["stopped_at_wall_limit"] and summary["simulated_s"] == pytest.approx(1.5, abs=0.01)
+    # measured: 72 /s fitted against 73.7 configured; per feeder 34 and 38 /s against 36.85
+    # (two thermo rows 0.5 s apart, a few particles per batch)
+    insertion = summary["insertion"]
+    assert abs(insertion["relative_error"]) < 0.05
+    assert insertion["fitted_A_per_s"] + insertion["fitted_B_per_s"] == pytest.approx(insertion["fitted_per_s"])
+    for feeder in "AB":
+        assert insertion[f"fitted_{feeder}_per_s"] == pytest.approx(73.7 / 2, rel=0.2)
+    assert summary["lost_max"] == 0
+    assert summary["particles_at_end"] + summary["discharged"] == insertion["inserted"]
+    check = summary["timestep_check"]
+    assert check["warnings"] == 0 and check["max_rayleigh_fraction"] <= check["rayleigh_limit"]
+    rows = np.genfromtxt(out / "thermo.csv", delimiter=",", names=True)
+    assert rows["simtime"][-1] == pytest.approx(1.5, abs=0.01) and np.all(np.diff(rows["Atoms"]) >= 0)
+    rate, _source, ranks = measured_throughput(load_preset("smoke").dem, out / SUMMARY_FILE.name)
+    assert rate == summary["throughput"]["late_particle_steps_per_s_per_core"] > 0 and ranks == 2
+    assert measured_throughput(load_preset("paper").dem, out / SUMMARY_FILE.name) is None
+    assert figure.stat().st_size > 5_000
+    assert "lost particles: 0" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--duration", "1.2"], "duration 1.2 s is too short to fit an insertion rate: expected >= 1.5 s"),
+        (["--duration", "0"], "the probe's duration must be > 0 s, got 0.0"),
+        (["--max-wall-min", "0"], "max_wall_s must be > 0 s"),
+    ],
+)
+def test_a_probe_that_cannot_be_summarised_is_refused_before_the_solver_starts(tmp_path, capsys, extra, message):
+    runs = tmp_path / "runs"
+    assert main(["study", "paper-scale", *extra, "--runs-dir", str(runs), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not runs.exists() and not (tmp_path / "out").exists()
