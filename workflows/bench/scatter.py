@@ -90,6 +90,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command line's options of this benchmark."""
     parser.add_argument("--preset", default="smoke")
     parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="PATH=VALUE",
+        help="change one value of the preset for every run, seeds and change alike, e.g. "
+        "dem.operation.duration_s=14 for a short check (repeatable)",
+    )
+    parser.add_argument(
         "--change",
         default="dem.geometry.inlet_margin_m=0.005",
         help="config path=value of the change to judge (default: the inlet margin of the "
@@ -104,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
     if args.seeds < 2:
         raise ConfigError(f"--seeds {args.seeds}: the scatter needs at least 2 seed runs")
     base = load_preset(args.preset)
+    if args.set:
+        base = override(base, *args.set)
     changed = override(base, args.change)
     seed0 = base.dem.numerics.seed
     runs: dict[str, DemSide] = {}
@@ -124,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
     within = {m: bool(effect[m] <= scatter[m]) for m in metrics}
     record = {
         "preset": args.preset,
+        "set": args.set,
         "change": args.change,
         "seeds": seeds,
         "seed_pairs": pairs,

@@ -1,12 +1,16 @@
 """The seed-scatter benchmark's pieces: config overrides, and the table difference that
-judges a deck change (zero for identical tables, the relative RMS otherwise)."""
+judges a deck change (zero for identical tables, the relative RMS otherwise); and (marked
+``liggghts``) the whole benchmark on two short real runs."""
+
+import json
 
 import numpy as np
 import pytest
 
 from coupling.errors import ConfigError
 from coupling.tables import make_table
-from workflows.bench.scatter import next_prime, table_difference
+from workflows.bench.scatter import FIELDS, next_prime, table_difference
+from workflows.cli.main import main
 from workflows.config import load_preset, override
 
 
@@ -48,3 +52,24 @@ def test_a_change_and_a_seed_are_config_overrides():
         override(base, "dem.geometry.inlet_margin_m")
     with pytest.raises(ConfigError, match="not prime"):
         override(base, "dem.numerics.seed=15486863")
+
+
+@pytest.mark.liggghts
+@pytest.mark.slow
+def test_two_short_seed_runs_and_a_change_that_changes_nothing(tmp_path, capsys):
+    """Two 6-s smoke runs (the fast variant: ``--set`` shortens every run) and, as the
+    change, smoke's own inlet margin: the same inputs, so the first seed's results serve
+    it, its difference from that seed is exactly zero and its effect is the seeds' scatter."""
+    out = tmp_path / "scatter.json"
+    argv = ["--seeds", "2", "--set", "dem.operation.duration_s=6", "--change", "dem.geometry.inlet_margin_m=0.12"]
+    assert main(["bench", "scatter", *argv, "--runs-dir", str(tmp_path / "runs"), "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    first, second = record["seeds"]
+    assert record["set"] == ["dem.operation.duration_s=6"] and first == f"seed {load_preset('smoke').dem.numerics.seed}"
+    assert record["runs"]["change"] == record["runs"][first] != record["runs"][second]
+    assert all(v == 0 for v in record["change_vs_seeds"][f"change vs {first}"].values())
+    for name in FIELDS:
+        # another seed fills another bed: the tables differ, by at most the relative RMS's bound of 2
+        assert 0 < record["seed_scatter"][name] < 2
+        assert record["change_effect"][name] == record["seed_scatter"][name] and record["within_scatter"][name]
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote {out}"
