@@ -1,6 +1,6 @@
 """Would compartments stacked in height give the chain the DEM's dispersion? Rates fitted on
 x-y-z grids, and the pooled RTD of each chain against the DEM's
-(``python -m workflows.studies.layers --run-dir runs/<key> --results <dem-*.h5> [--preset P]``).
+(``pbmdem study layers --run-dir runs/<key> --results <dem-*.h5> [--preset P]``).
 
 The measured-rate PBM's compartments span the vessel's full height, so the thin stream the
 blades throw over the bed and the slow bed below it share one state; its pooled RTD has too

@@ -1,10 +1,25 @@
-"""The layered-compartment study (workflows/study_layers.py): its grid, its binning, and its
-chain fit and RTD on chains with known answers."""
+"""The layered-compartment study (workflows/studies/layers.py): its grid, its binning, and its
+chain fit and RTD on chains with known answers; the command end to end on a run directory
+of the synthetic blender (tests/known_dumps.py), and bad input in one line.
+
+The study needs a run's dumps, which no shipped data holds, and a pooled RTD, which the
+smoke preset's 40 s real run (the session's LIGGGHTS fixture) is too short to have: the
+synthetic blender's dumps, discharge files and deck.json make the run directory, with a
+plug flow whose answers are known."""
+
+import json
+import math
 
 import numpy as np
 import pytest
 
+from coupling.cache import load_entry, save_entry
+from dem.post import postprocess
 from dem.rates import allowed_transitions, simulate_observations
+from dem.summary import DemSummary
+from tests.known_dumps import STEADY, L, config, write_synthetic
+from workflows.cli.main import main
+from workflows.config import Config, dump_toml
 from workflows.studies.layers import Snapshots, chain_data, chain_rtd, fit_chain, parse_grid, states
 
 DT = 0.1
@@ -101,3 +116,81 @@ def test_chain_data_counts_moves_and_discharges_from_dumps(tmp_path):
     expected[0, 1] = expected[1, 3] = expected[2, 4] = expected[0, 0] = 1
     np.testing.assert_array_equal(counts, expected)
     assert first[1:5].tolist() == [0, 2, 3, 0]
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory):
+    """(run directory, results file) of the synthetic blender over 80 s: dumps, the discharge
+    files a LIGGGHTS run writes (ID and time of each particle over the weir), the deck.json
+    keys the study reads, and the results post-processed from those dumps."""
+    run_dir = tmp_path_factory.mktemp("layers-run")
+    cfg = config()
+    truth = write_synthetic(run_dir / "dumps", cfg, end_s=80.0)
+    for feeder, ptype in (("A", 1), ("B", 2)):
+        rows = [
+            f"{pid} {exit_s:.4f} 0.006 {L} 0 0 0 0 0"
+            for pid, (kind, _entry, exit_s) in truth.items()
+            if kind == ptype and math.isfinite(exit_s)
+        ]
+        (run_dir / f"discharge_{feeder}.txt").write_text("# ID time  diameter x y z u v w\n" + "\n".join(rows) + "\n")
+    deck = {
+        "length_m": L,
+        "timestep_s": cfg.timestep_s,
+        "dump_every_steps": round(0.5 / cfg.timestep_s),
+        "massflow_globs": {"A": "discharge_A.txt*", "B": "discharge_B.txt*"},
+        "dump_glob": "dumps/dump.*.txt",
+    }
+    (run_dir / "deck.json").write_text(json.dumps(deck))
+    results = postprocess(str(run_dir / "dumps" / "dump.*.txt"), cfg, STEADY, massflow_dir=run_dir)
+    provenance = {"key": "synthetic", "config_toml": dump_toml(Config(dem=cfg, steady_state=STEADY))}
+    return run_dir, save_entry(run_dir / "dem.h5", results.to_cache_entry(provenance))
+
+
+def test_the_command_on_a_plug_flow(synthetic_run, tmp_path, capsys):
+    """A crosses in 4 s, B in 6 s, equal numbers: the DEM's pooled RTD is mean 5 s,
+    variance 1 s^2. No chain of memoryless compartments is that narrow: through NX
+    compartments in series its variance is at least mean^2 / NX (the Erlang's, the least
+    of any phase-type law of that order). Every particle at one height, layers add nothing:
+    4x1x2 is 4x1. A plug flow at constant speed spends equal time in each tenth of the
+    length."""
+    run_dir, results = synthetic_run
+    out = tmp_path / "layers.json"
+    argv = ["study", "layers", "--run-dir", str(run_dir), "--results", str(results), "--grids", "4x1,4x2,4x1x2"]
+    assert main([*argv, "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["dem"]["mean_s"]["value"] == pytest.approx(5.0, rel=1e-6)
+    assert record["dem"]["variance_s2"]["value"] == pytest.approx(1.0, rel=1e-5)
+    grids = record["grids"]
+    assert set(grids) == {"4x1x1", "4x2x1", "4x1x2"}
+    for name, chain in grids.items():
+        assert chain["mean_s"] == pytest.approx(5.0, rel=0.1), name  # measured 4.73 s
+        assert chain["recovered_fraction"] == pytest.approx(1.0, abs=1e-3), name
+        assert chain["inside"] == {"mean_s": False, "variance_s2": False}, name  # the DEM's interval is exact
+    one = grids["4x1x1"]
+    assert one["variance_s2"] >= one["mean_s"] ** 2 / 4  # measured 5.67 against 5.60
+    for key in ("mean_s", "variance_s2"):
+        assert grids["4x1x2"][key] == pytest.approx(one[key], rel=1e-6)
+    assert grids["4x1x2"]["z_edges_m"] == [0.0]
+    middle = record["occupancy"]["middle"]  # tau / mean 0.8 and 1.2: every tracer
+    assert middle["tracers"] == DemSummary.from_record(load_entry(results).summary).pooled_rtd.n_entered > 100
+    assert record["occupancy"]["fast"]["tracers"] == record["occupancy"]["slow"]["tracers"] == 0
+    np.testing.assert_allclose(middle["slice_share"], 0.1, atol=0.02)
+    assert "4x1x2: mean" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--run-dir", "{tmp}/no-run", "--results", "{results}"], "no deck.json"),
+        (["--run-dir", "{run}", "--results", "{tmp}/missing.h5"], "missing.h5"),
+        (["--run-dir", "{run}", "--results", "{results}", "--grids", "4by1"], "grid '4by1'"),
+    ],
+)
+def test_bad_input_is_one_line(synthetic_run, tmp_path, capsys, argv, message):
+    run_dir, results = synthetic_run
+    values = {"tmp": tmp_path, "run": run_dir, "results": results}
+    argv = [arg.format(**values) for arg in argv]
+    assert main(["study", "layers", *argv, "--out", str(tmp_path / "layers.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "layers.json").exists()
