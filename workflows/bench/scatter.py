@@ -95,7 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="PATH=VALUE",
         help="change one value of the preset for every run, seeds and change alike, e.g. "
-        "dem.operation.duration_s=14 for a short check (repeatable)",
+        "dem.operation.duration_s=3 (with dem.tables.window_s=1 and steady_state.window_s=1) for a short "
+        "check (repeatable)",
     )
     parser.add_argument(
         "--change",
