@@ -42,6 +42,13 @@ RUNS = Path("results/bench/scatter-runs")
 FIELDS = ("vx_pos", "vx_neg", "vy_pos", "vy_neg", "particles")
 
 
+def largest(values) -> float:
+    """The largest of ``values``, NaN if any is NaN (Python's ``max`` ignores a NaN unless
+    it comes first, so its answer would depend on the order of the runs)."""
+    values = [float(v) for v in values]
+    return float("nan") if any(math.isnan(v) for v in values) else max(values)
+
+
 def next_prime(n: int) -> int:
     """The smallest prime >= n (LIGGGHTS' random seeds must be primes > 10000)."""
     n = max(int(n), 10007)
@@ -130,9 +137,10 @@ def run(args: argparse.Namespace) -> int:
     pairs = {f"{a} vs {b}": difference(runs[a], runs[b]) for a, b in itertools.combinations(seeds, 2)}
     against = {f"change vs {a}": difference(runs[a], runs["change"]) for a in seeds}
     metrics = list(next(iter(pairs.values())))
-    scatter = {m: max(p[m] for p in pairs.values()) for m in metrics}
-    effect = {m: max(p[m] for p in against.values()) for m in metrics}
-    within = {m: bool(effect[m] <= scatter[m]) for m in metrics}
+    scatter = {m: largest(p[m] for p in pairs.values()) for m in metrics}
+    effect = {m: largest(p[m] for p in against.values()) for m in metrics}
+    # a metric undefined in some run (C_A of a run that discharged nothing) has no verdict
+    within = {m: None if math.isnan(effect[m] + scatter[m]) else bool(effect[m] <= scatter[m]) for m in metrics}
     record = {
         "preset": args.preset,
         "set": args.set,
@@ -143,13 +151,14 @@ def run(args: argparse.Namespace) -> int:
         "seed_scatter": scatter,
         "change_effect": effect,
         "within_scatter": within,
-        "all_within": all(within.values()),
+        "all_within": all(v is not False for v in within.values()),
         "load_average": load,
         "runs": {name: str(dem.cache_file) for name, dem in runs.items()},
     }
     print(f"\n{'metric':<16} {'seed scatter':>13} {'change':>10}  verdict")
     for m in metrics:
-        print(f"{m:<16} {scatter[m]:>13.3g} {effect[m]:>10.3g}  {'within' if within[m] else 'OUTSIDE'}")
+        verdict = "undefined" if within[m] is None else "within" if within[m] else "OUTSIDE"
+        print(f"{m:<16} {scatter[m]:>13.3g} {effect[m]:>10.3g}  {verdict}")
     out = write_json(args.out, record)
     print(f"wrote {out}")
     return 0

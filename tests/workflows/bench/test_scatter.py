@@ -9,7 +9,7 @@ import pytest
 
 from coupling.errors import ConfigError
 from coupling.tables import make_table
-from workflows.bench.scatter import FIELDS, next_prime, table_difference
+from workflows.bench.scatter import FIELDS, largest, next_prime, table_difference
 from workflows.cli.main import main
 from workflows.config import load_preset, override
 
@@ -77,3 +77,10 @@ def test_two_short_seed_runs_and_a_change_that_changes_nothing(tmp_path, capsys)
         assert 0 < record["seed_scatter"][name] < 2
         assert record["change_effect"][name] == record["seed_scatter"][name] and record["within_scatter"][name]
     assert capsys.readouterr().out.splitlines()[-1] == f"wrote {out}"
+
+
+def test_the_largest_difference_is_undefined_where_any_run_leaves_it_undefined():
+    nan = float("nan")
+    assert largest([0.1, 0.3, 0.2]) == 0.3
+    # whichever run comes first: max() alone gives 0.3 for one order and NaN for the other
+    assert np.isnan(largest([nan, 0.3])) and np.isnan(largest([0.3, nan]))
