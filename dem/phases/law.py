@@ -151,14 +151,31 @@ def law_chain(
 ) -> PhaseTransport:
     """The chain of the law ``coefficients`` on a grid with ``covariates`` (NX * NY, P)."""
     x = np.asarray(covariates, dtype=float)
-    values = {
-        name: np.exp(x[comp] @ coefficients[name]) for name, (_src, _dst, comp) in _families(nx, ny, n_phases).items()
-    }
+    values = {}
+    for name, (_src, _dst, comp) in _families(nx, ny, n_phases).items():
+        if name in coefficients:
+            values[name] = np.exp(x[comp] @ coefficients[name])
+        elif comp.size:
+            raise ConfigError(
+                f"the law has no rate for the moves {name!r} of a {nx}x{ny} grid: it was fitted on runs without "
+                f"them; valid grids have moves of {sorted(coefficients)} only"
+            )
+        else:
+            values[name] = np.zeros(0)
     return phase_model.from_move_rates(values, nx, ny, n_phases, entry, interval_s)
 
 
 def _families(nx: int, ny: int, k: int) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     return phase_model.transitions(nx, ny, k)
+
+
+def _kinds(runs: tuple[LawRun, ...], k: int) -> list[str]:
+    """The rate families with moves on some run's grid: the law's (an axial library has no
+    transverse ones)."""
+    names = {
+        name for run in runs for name, (src, _dst, _comp) in _families(run.data.nx, run.data.ny, k).items() if src.size
+    }
+    return [name for name in _families(2, 2, k) if name in names]
 
 
 def _as_runs(runs: LawRun | Sequence[LawRun], n_covariates: int | None = None) -> tuple[LawRun, ...]:
@@ -213,7 +230,8 @@ def _m_step(
         moves = _expected_moves(model, c, run.data.interval_s)
         families = _families(run.data.nx, run.data.ny, model.n_phases)
         for name, (jumps, dwell) in moves.items():
-            pooled[name].append((run.covariates[families[name][2]], jumps, dwell))
+            if name in pooled:
+                pooled[name].append((run.covariates[families[name][2]], jumps, dwell))
     out = {}
     for name, parts in pooled.items():
         if not parts or sum(p[0].shape[0] for p in parts) == 0:
@@ -292,20 +310,20 @@ def _one_phase_start(runs: tuple[LawRun, ...]) -> dict[str, np.ndarray]:
             rates = naive[key.split("/")[0]].ravel()[comp]
             hits.setdefault(key, []).extend(rates[np.isfinite(rates)].tolist())
     out = {}
-    for key in _families(2, 2, 1):
+    for key in _kinds(runs, 1):
         rates = np.asarray(hits.get(key, []), dtype=float)
         level = float(np.mean(rates)) if rates.size else 0.0
         out[key] = np.concatenate([[math.log(max(level, 1e-3))], np.zeros(width - 1)])
     return out
 
 
-def _split(one: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+def _split(one: dict[str, np.ndarray], runs: tuple[LawRun, ...], k: int) -> dict[str, np.ndarray]:
     """The one-phase law split into ``k`` phases (module constants :data:`START_FACTORS`,
     :data:`START_SWITCHING_PER_S`)."""
     factors = np.geomspace(*START_FACTORS, k) if k > 1 else np.ones(1)
     width = next(iter(one.values())).size
     out = {}
-    for key in _families(2, 2, k):
+    for key in _kinds(runs, k):
         parts = key.split("/")
         if parts[0] == "switch":
             out[key] = np.concatenate([[math.log(START_SWITCHING_PER_S)], np.zeros(width - 1)])
@@ -350,7 +368,7 @@ def fit_law(
     if len(names) != width:
         raise ConfigError(f"{len(names)} covariate names for {width} covariates: expected one name per column")
     one, entry1, _ll, _it, _ok = _em(_one_phase_start(runs), np.ones((2, 1)), runs, 1, ONE_PHASE_ITERATIONS, tol)
-    coefficients, entry = _split(one, k), np.full((2, k), 1.0 / k)
+    coefficients, entry = _split(one, runs, k), np.full((2, k), 1.0 / k)
     if k == 1:
         coefficients, entry = one, entry1
     coefficients, entry, log_likelihood, iterations, converged = _em(coefficients, entry, runs, k, max_iterations, tol)

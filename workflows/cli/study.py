@@ -24,6 +24,7 @@ STUDIES = (
     ("budget", "workflows.studies.budget"),
     ("fill", "workflows.studies.fill"),
     ("paper-scale", "workflows.studies.paper_scale"),
+    ("law", "workflows.studies.law"),
 )
 
 
