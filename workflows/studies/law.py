@@ -18,7 +18,9 @@ The covariates (``--covariates``, the constant always first):
   number of slices has longer slices, crossed more slowly;
 * ``position``: the slice's centre from inlet (-0.5) to weir (+0.5);
 * ``feed``: log(total feed rate / :data:`REFERENCE_FEED_PER_S`), the same in every slice
-  of a run (a proxy of the fill: the bed deepens with the feed).
+  of a run (a proxy of the fill: the bed deepens with the feed);
+* ``speed2``, ``position2``: the squares of ``speed`` and ``position`` (a law curved in
+  speed; the inlet wall and the weir at both ends of the slices).
 """
 
 from __future__ import annotations
@@ -50,8 +52,8 @@ OUT = Path("results/law")
 REFERENCE_RPM = 250.0
 REFERENCE_SLICE_M = 0.033
 REFERENCE_FEED_PER_S = 73.7
-COVARIATES = ("speed", "length", "position", "feed")
-DEFAULT_COVARIATES = ("speed", "length", "position", "feed")
+COVARIATES = ("speed", "length", "position", "feed", "speed2", "position2")
+DEFAULT_COVARIATES = ("speed", "length", "position", "feed", "speed2", "position2")
 #: the axial grid the law is fitted on (the product's phase model is axial)
 AXIAL_SLICES = 10
 LIBRARY_DIR = REFERENCE_DIR / "library"
@@ -67,6 +69,8 @@ def covariate_columns(point: OperatingPoint, nx: int, names: tuple[str, ...]) ->
         "length": np.full(nx, math.log(point.length_m / nx / REFERENCE_SLICE_M)),
         "position": position,
         "feed": np.full(nx, math.log(feed / REFERENCE_FEED_PER_S)),
+        "speed2": np.full(nx, math.log(point.impeller_rpm / REFERENCE_RPM) ** 2),
+        "position2": position**2,
     }
     return np.column_stack([np.ones(nx)] + [values[name] for name in names])
 
