@@ -278,8 +278,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    out = writable_directory(args.out, "--out")
     rows = [feeder_rtds(path) for path in args.results]
+    out = writable_directory(args.out, "--out")  # after the inputs are read: a bad one leaves nothing
     pooled = pooled_difference(rows)
     print(markdown(rows, pooled))
     written = write_json(out / "feeders.json", {"pooled": pooled.record(), "runs": [r.record() for r in rows]})

@@ -198,14 +198,14 @@ def law_study(
     unknown = sorted(set(names) - set(COVARIATES))
     if unknown:
         raise ConfigError(f"covariates {unknown} unknown; valid: {', '.join(COVARIATES)}")
-    if len(paths) < 2:
-        raise ConfigError(f"a law needs at least 2 runs to fit and judge, got {len(paths)}")
     resolved = [Path(p).resolve() for p in paths]
     left = resolved if held_out is None else [Path(p).resolve() for p in held_out]
     strangers = [str(p) for p in left if p not in resolved]
     if strangers:
         raise ConfigError(f"--held-out {', '.join(strangers)}: not among the runs fitted (--results)")
     runs = [library_run(path, names) for path in paths]
+    if len(runs) < 2:
+        raise ConfigError(f"a law needs at least 2 runs to fit and judge, got {len(runs)}")
     columns = ("1", *names)
     law = fit_law([r.law_run for r in runs], n_phases, columns, max_iterations, tol)
     self_judged = tuple(judged(law, run, True) for run in runs)

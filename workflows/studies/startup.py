@@ -277,8 +277,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    out = writable_directory(args.out, "--out")
     rows = [startup(path) for path in args.results]
+    out = writable_directory(args.out, "--out")  # after the inputs are read: a bad one leaves nothing
     print(markdown(rows))
     written = write_json(out / "startup.json", {"within": WITHIN, "runs": [r.record() for r in rows]})
     print(f"wrote {written} and {plot_startup(rows, out / 'startup.png')}")

@@ -52,10 +52,3 @@ def test_the_command_reads_the_shipped_run_and_checks_coverage(tmp_path, capsys)
     for case in record["coverage"]:
         assert case["batch_means"] > case["bootstrap_5s"], case
     assert "| dem-17ea4c9cc143cd3e.h5 |" in capsys.readouterr().out
-
-
-def test_a_missing_results_file_is_one_line(tmp_path, capsys):
-    missing = tmp_path / "missing.h5"
-    assert main(["study", "blocks", "--results", str(missing), "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(missing) in err[0]

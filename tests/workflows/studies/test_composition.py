@@ -37,11 +37,3 @@ def test_the_shipped_runs_outlet_is_a_random_mixture_at_its_counts(tmp_path, cap
         assert low <= value <= high, mode
         assert study["pbm_at_mean_counts"][mode] < low, mode  # the mean counts' basis: too uniform
     assert "| measured |" in capsys.readouterr().out
-
-
-def test_a_missing_results_file_is_one_line(tmp_path, capsys):
-    missing = tmp_path / "missing.h5"
-    assert main(["study", "composition", "--results", str(missing), "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(missing) in err[0]
-    assert not (tmp_path / "out").exists()

@@ -120,11 +120,3 @@ def test_the_command_on_the_shipped_run_finds_small_particles_stay_longer(tmp_pa
         assert c["pbm_mean_s"] == pytest.approx(c["dem_mean_s"]["value"], rel=0.03)
     assert study["by_size"]["holdup"] == pytest.approx(study["dem"]["holdup"]["value"], rel=0.01)
     assert "| 4.64 |" in capsys.readouterr().out
-
-
-def test_a_missing_results_file_is_one_line(tmp_path, capsys):
-    missing = tmp_path / "missing.h5"
-    assert main(["study", "sizes", "--results", str(missing), "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(missing) in err[0]
-    assert not (tmp_path / "out").exists()

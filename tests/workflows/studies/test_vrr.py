@@ -33,11 +33,3 @@ def test_the_pbm_filters_feeder_noise_as_the_shipped_run_does(tmp_path, capsys):
         assert 0 < pbm["n_inside"] <= pbm["n_judged"], mode
     assert (tmp_path / "vrr.png").stat().st_size > 5_000
     assert "velocity: VRR(f) inside the DEM interval" in capsys.readouterr().out
-
-
-def test_a_missing_results_file_is_one_line(tmp_path, capsys):
-    missing = tmp_path / "missing.h5"
-    assert main(["study", "vrr", "--reference", str(missing), "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(missing) in err[0]
-    assert not (tmp_path / "out").exists()
