@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import expm
@@ -47,6 +47,7 @@ from coupling.blas import single_threaded_blas
 from coupling.errors import ConfigError
 from coupling.phases import PhaseTransport
 from dem import rates as rate_fit
+from dem.phases import diagnostics
 from dem.phases.chain import initial_distribution
 from dem.phases.data import PhaseData
 from dem.phases.kernels import forward_backward
@@ -113,7 +114,6 @@ class PhaseLaw:
     iterations: int
     converged: bool
     wall_time_s: float = 0.0
-    attrs: dict = field(default_factory=dict)
 
     @property
     def n_parameters(self) -> int:
@@ -131,13 +131,8 @@ class PhaseLaw:
     def score(self, runs: LawRun | Sequence[LawRun]) -> float:
         """Log-likelihood [nats] of ``runs`` under the law (a held-out run's, say); the
         particles inside when a run's window opens start in the chain's steady phases."""
-        total = 0.0
-        for run in _as_runs(runs, len(self.covariate_names)):
-            model = self.run_chain(run)
-            p = expm(model.generator() * run.data.interval_s)
-            start = initial_distribution(model, run.data)
-            total += forward_backward(p, start, run.data, self.n_phases, backward=False).log_likelihood
-        return float(total)
+        runs = _as_runs(runs, len(self.covariate_names))
+        return float(sum(diagnostics.log_likelihood(self.run_chain(run), run.data) for run in runs))
 
 
 def law_chain(
@@ -152,7 +147,7 @@ def law_chain(
     """The chain of the law ``coefficients`` on a grid with ``covariates`` (NX * NY, P)."""
     x = np.asarray(covariates, dtype=float)
     values = {}
-    for name, (_src, _dst, comp) in _families(nx, ny, n_phases).items():
+    for name, (_src, _dst, comp) in phase_model.transitions(nx, ny, n_phases).items():
         if name in coefficients:
             values[name] = np.exp(x[comp] @ coefficients[name])
         elif comp.size:
@@ -165,17 +160,16 @@ def law_chain(
     return phase_model.from_move_rates(values, nx, ny, n_phases, entry, interval_s)
 
 
-def _families(nx: int, ny: int, k: int) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    return phase_model.transitions(nx, ny, k)
-
-
 def _kinds(runs: tuple[LawRun, ...], k: int) -> list[str]:
     """The rate families with moves on some run's grid: the law's (an axial library has no
     transverse ones)."""
     names = {
-        name for run in runs for name, (src, _dst, _comp) in _families(run.data.nx, run.data.ny, k).items() if src.size
+        name
+        for run in runs
+        for name, (src, _dst, _comp) in phase_model.transitions(run.data.nx, run.data.ny, k).items()
+        if src.size
     }
-    return [name for name in _families(2, 2, k) if name in names]
+    return [name for name in phase_model.transitions(2, 2, k) if name in names]
 
 
 def _as_runs(runs: LawRun | Sequence[LawRun], n_covariates: int | None = None) -> tuple[LawRun, ...]:
@@ -197,7 +191,7 @@ def _expected_moves(model: PhaseTransport, counts: np.ndarray, interval_s: float
     q = model.generator()
     _value, d_q = rate_fit.log_likelihood(q, counts, interval_s)
     out = {}
-    for name, (src, dst, _comp) in _families(model.nx, model.ny, model.n_phases).items():
+    for name, (src, dst, _comp) in phase_model.transitions(model.nx, model.ny, model.n_phases).items():
         out[name] = (np.maximum(q[src, dst] * d_q[src, dst], 0.0), np.maximum(d_q[src, src], 0.0))
     return out
 
@@ -228,7 +222,7 @@ def _m_step(
     pooled: dict[str, list[tuple]] = {name: [] for name in coefficients}
     for run, model, c in zip(runs, models, counts):
         moves = _expected_moves(model, c, run.data.interval_s)
-        families = _families(run.data.nx, run.data.ny, model.n_phases)
+        families = phase_model.transitions(run.data.nx, run.data.ny, model.n_phases)
         for name, (jumps, dwell) in moves.items():
             if name in pooled:
                 pooled[name].append((run.covariates[families[name][2]], jumps, dwell))
@@ -274,21 +268,21 @@ def _em(
         models = [
             law_chain(coefficients, entry, r.covariates, r.data.nx, r.data.ny, k, r.data.interval_s) for r in runs
         ]
-        expected = []
-        for n, (run, model) in enumerate(zip(runs, models)):
-            start = initial_distribution(model, run.data)
-            if residents[n] is not None:
-                start[2:] = residents[n]
-            p = expm(model.generator() * run.data.interval_s)
-            expected.append(forward_backward(p, start, run.data, k))
+        # the residents start in the chain's steady phases, then in their own posterior
+        starts = [
+            initial_distribution(m, r.data) if rows is None else np.vstack([entry, rows])
+            for m, r, rows in zip(models, runs, residents)
+        ]
+        expected = [
+            forward_backward(expm(m.generator() * r.data.interval_s), start, r.data, k)
+            for m, r, start in zip(models, runs, starts)
+        ]
         log_likelihood = float(sum(e.log_likelihood for e in expected))
         if (log_likelihood - previous) / n_steps < tol:
             return coefficients, entry, log_likelihood, iteration, True
         previous = log_likelihood
         entry = _shared_entry([e.entry for e in expected], entry)
-        residents = [
-            _residents(initial_distribution(m, r.data)[2:], e.entry[2:]) for m, r, e in zip(models, runs, expected)
-        ]
+        residents = [_residents(start[2:], e.entry[2:]) for start, e in zip(starts, expected)]
         counts = []
         for e in expected:
             c = np.array(e.counts, dtype=float)
@@ -306,7 +300,7 @@ def _one_phase_start(runs: tuple[LawRun, ...]) -> dict[str, np.ndarray]:
     for run in runs:
         counts = run.data.counts().astype(float)
         naive = rate_fit.naive_rates(counts, run.data.nx, run.data.ny, run.data.interval_s)
-        for key, (_src, _dst, comp) in _families(run.data.nx, run.data.ny, 1).items():
+        for key, (_src, _dst, comp) in phase_model.transitions(run.data.nx, run.data.ny, 1).items():
             rates = naive[key.split("/")[0]].ravel()[comp]
             hits.setdefault(key, []).extend(rates[np.isfinite(rates)].tolist())
     out = {}
@@ -383,5 +377,4 @@ def fit_law(
         iterations,
         converged,
         time.perf_counter() - wall0,
-        {"runs": [run.name for run in runs]},
     )

@@ -46,7 +46,7 @@ from coupling.operating import OperatingPoint
 from dem.phases.chain import steady_occupancy
 from dem.phases.data import first_compartments, prepare, steady_window
 from dem.phases.law import LawRun, PhaseLaw, fit_law
-from dem.phases.settings import PHASE_LAG_S
+from dem.phases.settings import PHASE_LAG_S, PhaseSettings
 from dem.summary import Estimate
 from workflows.pipeline.results import load_results, run_operating_point
 from workflows.shipped import REFERENCE_DIR, VALIDATION_DIR
@@ -108,7 +108,7 @@ def library_run(path: str | Path, names: tuple[str, ...], lag_s: float = PHASE_L
     if sequences.nx % AXIAL_SLICES:
         raise ConfigError(f"{path}: {sequences.nx} slices cannot be coarsened to the law's {AXIAL_SLICES}")
     point = run_operating_point(results.table, config)
-    lag = max(1, round(lag_s / sequences.interval_s))
+    lag = PhaseSettings(lag_s=lag_s).lag_dumps(sequences.interval_s)
     data = prepare(sequences, steady_window(sequences, summary.steady_time), (AXIAL_SLICES, 1), lag=lag, residents=True)
     feed = point.feed_rate_a_per_s + point.feed_rate_b_per_s
     entering = first_compartments(data)[:2]
@@ -154,8 +154,7 @@ class Judged:
 
 def judged(law: PhaseLaw, run: LibraryRun, fitted_with: bool) -> Judged:
     holdup = steady_holdup(law, run)
-    feed = run.point.feed_rate_a_per_s + run.point.feed_rate_b_per_s
-    return Judged(run.name, fitted_with, holdup, run.holdup, holdup / feed, run.little_s)
+    return Judged(run.name, fitted_with, holdup, run.holdup, holdup / run.entering.sum(), run.little_s)
 
 
 @dataclass(frozen=True)
