@@ -209,7 +209,8 @@ def run_dem(
         version = liggghts_version(inputs.config.run.liggghts)
         inputs = replace(inputs, liggghts_version=version, key=run_key(inputs.files, version))
     nprocs = int(np if np is not None else inputs.config.run.np)
-    run_dir, status, command = _claim_run_dir(inputs, Path(runs_root) / inputs.key, nprocs, resume, fresh)
+    run_dir = Path(runs_root) / inputs.key
+    status, command = _claim_run_dir(inputs, run_dir, nprocs, resume, fresh)
     resumed_from = _write_run_files(inputs, run_dir, resume)
     base = {
         "key": inputs.key,
@@ -232,9 +233,9 @@ def run_dem(
 
 def _claim_run_dir(
     inputs: RunInputs, run_dir: Path, nprocs: int, resume: bool, fresh: bool
-) -> tuple[Path, dict[str, Any] | None, list[str]]:
-    """The run directory made ready to be written, its earlier status (None after
-    ``fresh``) and the solver command. Every argument and program is checked before
+) -> tuple[dict[str, Any] | None, list[str]]:
+    """``run_dir`` made ready to be written: its earlier status (None after ``fresh``) and
+    the solver command. Every argument and program is checked before
     anything in the directory changes: a typo must never cost the outputs of an
     interrupted run. Raises SolverRunError for a run still going, or for outputs that
     neither ``resume`` nor ``fresh`` allows to touch."""
@@ -254,7 +255,7 @@ def _claim_run_dir(
         status = None
     if not resume and run_dir.exists():
         _refuse_to_discard(run_dir, key, status)
-    return run_dir, status, command
+    return status, command
 
 
 def _write_run_files(inputs: RunInputs, run_dir: Path, resume: bool) -> str | None:
