@@ -16,7 +16,9 @@ running LIGGGHTS:
   20-slice twin and its configuration (``200rpm-x1.25.toml``: 200 rpm, the feed x1.25;
   ``300rpm-mono-a30.toml``: 300 rpm, particles of one size, feeder A 30 % of 60 /s): the
   phase model judged on runs it was not built on, not part of the design tool's library;
-* :data:`PAPER_SCALE_DIR`: the paper-scale probe's summary, thermo rows and throughput.
+* :data:`PAPER_SCALE_DIR`: the paper-scale probe's summary, thermo rows and throughput;
+* :data:`LIBRARY_DIR`: DEM runs at further speeds, lengths and seeds, and in ``law/`` the
+  law fitted to them and the campaign (:data:`LIBRARY_MODEL`, ``pbmdem predict``'s).
 """
 
 from __future__ import annotations
@@ -37,6 +39,11 @@ VALIDATION_DIR = REFERENCE_DIR / "validation"
 STEP_DIR = REFERENCE_DIR / "step"
 UNSEEN_DIR = REFERENCE_DIR / "unseen"
 PAPER_SCALE_DIR = REFERENCE_DIR / "paper_scale"
+#: DEM runs beyond the campaign, at more speeds, lengths and seeds
+LIBRARY_DIR = REFERENCE_DIR / "library"
+#: the law fitted to the campaign and the library together, with its laws left out and
+#: its calibration (``pbmdem library fit``): what ``pbmdem predict`` runs on
+LIBRARY_MODEL = LIBRARY_DIR / "law" / "library.json"
 #: every folder of shipped DEM results, where the DEM stage looks for a run's results
 SHIPPED_RESULTS_DIRS = (REFERENCE_DIR, VALIDATION_DIR, STEP_DIR, UNSEEN_DIR)
 PAPER_SCALE_SUMMARY = PAPER_SCALE_DIR / "summary.json"

@@ -128,6 +128,53 @@ class PhaseLaw:
     def run_chain(self, run: LawRun) -> PhaseTransport:
         return self.chain(run.covariates, run.data.nx, run.data.ny, run.data.interval_s)
 
+    def record(self) -> dict:
+        """The law as JSON-able numbers (:meth:`from_record` reads it back)."""
+        return {
+            "n_phases": self.n_phases,
+            "covariate_names": list(self.covariate_names),
+            "coefficients": {key: value.tolist() for key, value in sorted(self.coefficients.items())},
+            "entry": self.entry.tolist(),
+            "log_likelihood": self.log_likelihood,
+            "n_steps": self.n_steps,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "wall_time_s": self.wall_time_s,
+        }
+
+    @classmethod
+    def from_record(cls, record: dict, source: str = "a law record") -> PhaseLaw:
+        """The law of :meth:`record`; raises ConfigError naming ``source`` and the first bad field."""
+        try:
+            k = int(record["n_phases"])
+            names = tuple(str(n) for n in record["covariate_names"])
+            coefficients = {str(key): np.asarray(v, dtype=float) for key, v in dict(record["coefficients"]).items()}
+            entry = np.asarray(record["entry"], dtype=float)
+            law = cls(
+                k,
+                coefficients,
+                entry,
+                names,
+                float(record["log_likelihood"]),
+                int(record["n_steps"]),
+                int(record["iterations"]),
+                bool(record["converged"]),
+                float(record.get("wall_time_s", 0.0)),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: not a phase law ({type(exc).__name__}: {exc})") from None
+        if k < 1 or entry.shape != (2, k) or not np.all(np.isfinite(entry)) or np.any(entry < 0):
+            raise ConfigError(
+                f"{source}: entry phases of shape {entry.shape}; expected (2, {max(k, 1)}) of finite values >= 0"
+            )
+        for key, beta in coefficients.items():
+            if beta.shape != (len(names),) or not np.all(np.isfinite(beta)):
+                raise ConfigError(
+                    f"{source}: coefficients {key!r} have shape {beta.shape} or non-finite values; "
+                    f"expected {len(names)} finite numbers, one per covariate {list(names)}"
+                )
+        return law
+
     def score(self, runs: LawRun | Sequence[LawRun]) -> float:
         """Log-likelihood [nats] of ``runs`` under the law (a held-out run's, say); the
         particles inside when a run's window opens start in the chain's steady phases."""
@@ -349,10 +396,13 @@ def fit_law(
     covariate_names: Sequence[str] | None = None,
     max_iterations: int = LAW_MAX_ITERATIONS,
     tol: float = LAW_TOL,
+    start: PhaseLaw | None = None,
 ) -> PhaseLaw:
     """The :class:`PhaseLaw` of ``n_phases`` phases fitted to every particle of ``runs``
-    (module docstring). Raises ConfigError for no runs, covariates of different widths, or
-    ``n_phases`` < 1."""
+    (module docstring); from ``start`` when given (a law fitted to a library these runs
+    are most of: leaving one run out then takes a fraction of the iterations), else from
+    the one-phase law split. Raises ConfigError for no runs, covariates of different
+    widths, ``n_phases`` < 1, or a ``start`` of other phases or covariates."""
     wall0 = time.perf_counter()
     runs = _as_runs(runs)
     if isinstance(n_phases, bool) or int(n_phases) != n_phases or n_phases < 1:
@@ -361,10 +411,19 @@ def fit_law(
     names = tuple(covariate_names) if covariate_names is not None else ("1",) + tuple(f"x{i}" for i in range(1, width))
     if len(names) != width:
         raise ConfigError(f"{len(names)} covariate names for {width} covariates: expected one name per column")
-    one, entry1, _ll, _it, _ok = _em(_one_phase_start(runs), np.ones((2, 1)), runs, 1, ONE_PHASE_ITERATIONS, tol)
-    coefficients, entry = _split(one, runs, k), np.full((2, k), 1.0 / k)
-    if k == 1:
-        coefficients, entry = one, entry1
+    if start is not None:
+        missing = sorted(set(_kinds(runs, k)) - set(start.coefficients))
+        if start.n_phases != k or start.covariate_names != names or missing:
+            raise ConfigError(
+                f"a start law of {start.n_phases} phases on {list(start.covariate_names)} (lacking {missing}) "
+                f"cannot start a fit of {k} phases on {list(names)}"
+            )
+        coefficients, entry = {key: start.coefficients[key].copy() for key in _kinds(runs, k)}, start.entry.copy()
+    else:
+        one, entry1, _ll, _it, _ok = _em(_one_phase_start(runs), np.ones((2, 1)), runs, 1, ONE_PHASE_ITERATIONS, tol)
+        coefficients, entry = _split(one, runs, k), np.full((2, k), 1.0 / k)
+        if k == 1:
+            coefficients, entry = one, entry1
     coefficients, entry, log_likelihood, iterations, converged = _em(coefficients, entry, runs, k, max_iterations, tol)
     coefficients, entry = _ordered(coefficients, entry, k)
     return PhaseLaw(

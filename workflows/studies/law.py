@@ -11,118 +11,33 @@ the run (``self``) and without it (``held out``, the law refitted to the other r
 prediction of an operating point the fit never saw). It needs only what the results store
 (the compartment sequences). Writes ``law.json`` and prints a table.
 
-The covariates (``--covariates``, the constant always first):
-
-* ``speed``: log(impeller speed / :data:`REFERENCE_RPM`);
-* ``length``: log(slice length / :data:`REFERENCE_SLICE_M`): a longer blender on the same
-  number of slices has longer slices, crossed more slowly;
-* ``position``: the slice's centre from inlet (-0.5) to weir (+0.5);
-* ``feed``: log(total feed rate / :data:`REFERENCE_FEED_PER_S`), the same in every slice
-  of a run (a proxy of the fill: the bed deepens with the feed);
-* ``speed2``, ``position2``: the squares of ``speed`` and ``position`` (a law curved in
-  speed; the inlet wall and the weir at both ends of the slices).
-
-The default covariates are all six. On the 13 shipped runs (500 EM iterations a fit, about
+The covariates (``--covariates``) are :mod:`workflows.prediction.library`'s; the default
+is all of them. On the 13 shipped runs with the six first (500 EM iterations a fit, about
 4 minutes here), the four first alone leave the 150-rpm run's steady hold-up 16 % high (a
 law log-linear in speed cannot bend between 150 and 350 rpm); with the squares every run
 is within 4.3 %. The EM is not converged at 1e-7 nats per particle-step after 500
-iterations; from 150 to 500 the hold-ups moved by at most 1.4 %.
+iterations; from 150 to 500 the hold-ups moved by at most 1.4 %. ``pbmdem library fit``
+fits the same law for ``pbmdem predict`` and judges every quantity, not only these two.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
-
 from coupling.errors import ConfigError
 from coupling.files import writable_directory
 from coupling.jsonable import write_json
-from coupling.operating import OperatingPoint
 from dem.phases.chain import steady_occupancy
-from dem.phases.data import first_compartments, prepare, steady_window
-from dem.phases.law import LawRun, PhaseLaw, fit_law
-from dem.phases.settings import PHASE_LAG_S, PhaseSettings
+from dem.phases.law import PhaseLaw, fit_law
 from dem.summary import Estimate
-from workflows.pipeline.results import load_results, run_operating_point
-from workflows.shipped import REFERENCE_DIR, VALIDATION_DIR
+from workflows.prediction.library import COVARIATES, DEFAULT_COVARIATES, LibraryRun, library_run
+from workflows.shipped import LIBRARY_DIR, VALIDATION_DIR
 
 HELP = "one phase chain for a DEM library, its rates laws of speed, length, position and feed; each run left out"
 OUT = Path("results/law")
-#: the library's baseline: the validation preset's speed, slice length (0.33 m over 10
-#: slices) and total feed [rpm, m, particles/s]
-REFERENCE_RPM = 250.0
-REFERENCE_SLICE_M = 0.033
-REFERENCE_FEED_PER_S = 73.7
-COVARIATES = ("speed", "length", "position", "feed", "speed2", "position2")
-DEFAULT_COVARIATES = ("speed", "length", "position", "feed", "speed2", "position2")
-#: the axial grid the law is fitted on (the product's phase model is axial)
-AXIAL_SLICES = 10
-LIBRARY_DIR = REFERENCE_DIR / "library"
-
-
-def covariate_columns(point: OperatingPoint, nx: int, names: tuple[str, ...]) -> np.ndarray:
-    """(NX, 1 + len(names)) covariates of the ``nx`` axial slices of a run at ``point``
-    (module docstring), the constant first."""
-    position = (np.arange(nx) + 0.5) / nx - 0.5
-    feed = point.feed_rate_a_per_s + point.feed_rate_b_per_s
-    values = {
-        "speed": np.full(nx, math.log(point.impeller_rpm / REFERENCE_RPM)),
-        "length": np.full(nx, math.log(point.length_m / nx / REFERENCE_SLICE_M)),
-        "position": position,
-        "feed": np.full(nx, math.log(feed / REFERENCE_FEED_PER_S)),
-        "speed2": np.full(nx, math.log(point.impeller_rpm / REFERENCE_RPM) ** 2),
-        "position2": position**2,
-    }
-    return np.column_stack([np.ones(nx)] + [values[name] for name in names])
-
-
-@dataclass(frozen=True)
-class LibraryRun:
-    """One run of the library: its law data, operating point, the DEM's steady hold-up
-    and Little's-law mean residence time with their intervals, and the feed's inlet
-    distribution over the slices (2, NX) [particles/s]."""
-
-    name: str
-    law_run: LawRun
-    point: OperatingPoint
-    holdup: Estimate
-    little_s: Estimate
-    entering: np.ndarray
-
-
-def library_run(path: str | Path, names: tuple[str, ...], lag_s: float = PHASE_LAG_S) -> LibraryRun:
-    """:class:`LibraryRun` of the results file ``path``: its particles that entered in the
-    steady window (and those inside then), on :data:`AXIAL_SLICES` slices. Raises
-    ConfigError naming the file when it has no sequences or no steady state."""
-    results, config = load_results(path)
-    sequences, summary = results.sequences, results.summary
-    if sequences is None:
-        raise ConfigError(f"{path}: the results carry no compartment sequences to fit a law to")
-    if summary.steady_time is None or not summary.steady:
-        raise ConfigError(f"{path}: the DEM run never reached a steady state to fit and judge a law on")
-    if sequences.nx % AXIAL_SLICES:
-        raise ConfigError(f"{path}: {sequences.nx} slices cannot be coarsened to the law's {AXIAL_SLICES}")
-    point = run_operating_point(results.table, config)
-    lag = PhaseSettings(lag_s=lag_s).lag_dumps(sequences.interval_s)
-    data = prepare(sequences, steady_window(sequences, summary.steady_time), (AXIAL_SLICES, 1), lag=lag, residents=True)
-    feed = point.feed_rate_a_per_s + point.feed_rate_b_per_s
-    entering = first_compartments(data)[:2]
-    entering = entering / max(entering.sum(), 1e-300) * feed
-    name = f"{Path(path).name} ({point.impeller_rpm:g} rpm, {feed:g} /s, {point.length_m:g} m)"
-    law_run = LawRun(data, covariate_columns(point, AXIAL_SLICES, names), name)
-    return LibraryRun(
-        name,
-        law_run,
-        point,
-        Estimate.from_record(summary.steady["holdup"]),
-        Estimate.from_record(summary.steady["little_mean_residence_time_s"]),
-        entering,
-    )
 
 
 def steady_holdup(law: PhaseLaw, run: LibraryRun) -> float:

@@ -1,0 +1,76 @@
+"""``pbmdem library fit`` and ``pbmdem predict`` end to end on shipped runs (few EM
+iterations: the files, the refusals and the round trip, not the law's accuracy)."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from coupling.tables import read_table
+from workflows.cli.main import main
+from workflows.prediction.library import load_model, quantity_keys
+from workflows.shipped import VALIDATION_DIR
+
+#: 150, 350 and 250 rpm at the baseline's length and feed
+SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
+VALIDATION = "workflows/presets/validation.toml"
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    out = tmp_path_factory.mktemp("library")
+    args = ["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out)]
+    assert main([*args, "--iterations", "3", "--left-out-iterations", "2"]) == 0
+    return out
+
+
+def test_library_fit_writes_a_model_that_reads_back_with_a_law_left_out_per_run(library):
+    model = load_model(library)
+    assert [r.file for r in model.runs] == [p.name for p in SPEEDS]
+    assert len(model.left_out) == 3 and model.calibration is not None
+    assert set(model.calibration.residuals) == set(quantity_keys())
+    assert (library / "calibration.md").read_text().startswith("# The library's law")
+    assert len(list((library / "fits").glob("law-*.json"))) == 4  # the whole fit and one per run left out
+
+
+def test_predict_writes_every_quantity_a_table_and_a_page(library, tmp_path, capsys):
+    assert main(["predict", "--config", VALIDATION, "--library", str(library), "--out", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "prediction.json").read_text())
+    assert [q["key"] for q in record["quantities"]] == list(quantity_keys())
+    for q in record["quantities"]:
+        assert set(q) == {"key", "value", "low", "high"}
+        assert q["low"] <= q["value"] <= q["high"]
+    assert record["extrapolated"] is False
+    table = read_table(tmp_path / "table.h5")
+    assert table.phases is not None and table.operating_point.impeller_rpm == 250.0
+    page = (tmp_path / "report.html").read_text()
+    assert 'src="prediction.png"' in page and (tmp_path / "prediction.png").stat().st_size > 0
+    assert "holdup_slice_10" in capsys.readouterr().out
+
+
+def test_a_point_outside_the_domain_is_refused_in_one_line_and_labelled_when_extrapolated(library, tmp_path, capsys):
+    config = tmp_path / "fast.toml"
+    config.write_text(Path(VALIDATION).read_text().replace("duration_s = 200.0", "duration_s = 200.0\nimpeller_rpm = 400.0"))
+    out = tmp_path / "out"
+    assert main(["predict", "--config", str(config), "--library", str(library), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "outside the library's domain" in err and "150-350 rpm" in err
+    assert not out.exists()
+    assert main(["predict", "--config", str(config), "--library", str(library), "--out", str(out), "--extrapolate"]) == 0
+    assert "EXTRAPOLATED" in capsys.readouterr().out
+    assert json.loads((out / "prediction.json").read_text())["extrapolated"] is True
+
+
+def test_library_fit_refuses_a_run_given_twice(tmp_path, capsys):
+    args = ["library", "fit", "--results", str(SPEEDS[0]), str(SPEEDS[0]), str(SPEEDS[1]), "--out", str(tmp_path)]
+    assert main(args) == 2
+    assert "is the same run as" in capsys.readouterr().err
+
+
+def test_a_library_file_that_is_not_one_is_refused_naming_it(tmp_path, capsys):
+    bad = tmp_path / "library.json"
+    bad.write_text(json.dumps({"format": "something else"}))
+    assert main(["predict", "--config", VALIDATION, "--library", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "not a library model" in err
+

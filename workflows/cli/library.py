@@ -1,0 +1,60 @@
+"""``pbmdem library fit [--results FILE...] [--out DIR]``: the law of a DEM library, its
+laws with each run left out, the intervals calibrated on them and checked
+(:mod:`workflows.products.predict`)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "a DEM library's law: fit it, calibrate its prediction intervals on each run left out"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from workflows.prediction.library import (
+        COVARIATES,
+        DEFAULT_COVARIATES,
+        FIT_ITERATIONS,
+        LEFT_OUT_ITERATIONS,
+        LIBRARY_PHASES,
+    )
+
+    sub = parser.add_subparsers(dest="library_command", required=True, metavar="LIBRARY_COMMAND")
+    fit = sub.add_parser("fit", help="fit the law of a library of DEM results and calibrate its intervals")
+    fit.add_argument(
+        "--results",
+        nargs="+",
+        default=None,
+        metavar="FILE",
+        help="DEM results files with compartment sequences (default: the shipped campaign and library)",
+    )
+    fit.add_argument("--out", default="results/library", help="output folder (default: %(default)s)")
+    fit.add_argument("--phases", type=int, default=LIBRARY_PHASES, help="phases K (default: %(default)s)")
+    fit.add_argument(
+        "--covariates",
+        default=",".join(DEFAULT_COVARIATES),
+        help=f"comma-separated, from {', '.join(COVARIATES)} (default: all)",
+    )
+    fit.add_argument(
+        "--iterations", type=int, default=FIT_ITERATIONS, help="EM iterations of the whole fit (default: %(default)s)"
+    )
+    fit.add_argument(
+        "--left-out-iterations",
+        type=int,
+        default=LEFT_OUT_ITERATIONS,
+        help="EM iterations of each fit with one run left out, from the whole fit (default: %(default)s)",
+    )
+    fit.set_defaults(func=fit_command)
+
+
+def fit_command(args: argparse.Namespace) -> int:
+    from workflows.prediction import calibration
+    from workflows.prediction.library import FitSettings
+    from workflows.products.predict import default_runs, library_fit
+
+    names = tuple(n.strip() for n in args.covariates.split(",") if n.strip())
+    settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations)
+    output = library_fit(list(args.results or default_runs()), args.out, settings)
+    print(calibration.markdown(output.model, output.check))
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
+    return 0

@@ -1,0 +1,43 @@
+"""``pbmdem predict --config C.toml [--library FILE] [--out DIR] [--extrapolate]``: an
+operating point predicted from a DEM library's law, without a DEM run, every quantity with
+its 95 % prediction interval (:mod:`workflows.products.predict`)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+HELP = "predict an operating point from the DEM library's law, no DEM run, with 95 percent prediction intervals"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, help="the configuration (TOML) of the point to predict")
+    parser.add_argument(
+        "--library",
+        default=None,
+        help="a library model (library.json, or its folder) made by `pbmdem library fit` (default: the shipped one)",
+    )
+    parser.add_argument("--out", default="results/predict", help="output folder (default: %(default)s)")
+    parser.add_argument(
+        "--extrapolate",
+        action="store_true",
+        help="predict a point outside the library's domain: labelled, its intervals widened",
+    )
+    parser.add_argument("--no-figures", action="store_true", help="skip the figure and the HTML page")
+
+
+def run(args: argparse.Namespace) -> int:
+    from workflows.products.predict import run_predict
+
+    output = run_predict(args.config, args.library, args.out, args.extrapolate, figures=not args.no_figures)
+    prediction = output.prediction
+    if prediction.extrapolated:
+        print(f"EXTRAPOLATED: outside the library's domain ({'; '.join(prediction.outside)})")
+    print(f"{'quantity':32s} {'predicted':>11s}  95 % prediction interval")
+    for q in prediction.quantities:
+        interval = "-" if not math.isfinite(q.low) else f"[{q.low:.4g}, {q.high:.4g}]"
+        print(f"{q.key:32s} {q.value:11.4g}  {interval}")
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
+    print(f"({output.wall_time_s:.2f} s)")
+    return 0

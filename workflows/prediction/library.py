@@ -1,0 +1,585 @@
+"""A DEM library and the one transport law fitted to it: what ``pbmdem predict`` runs on.
+
+A library is a set of DEM results files with compartment sequences, at several operating
+points. :func:`fit_library` fits one K-phase chain to every particle of every run
+(:func:`dem.phases.law.fit_law`), each rate exp(x . beta) of covariates x built from the
+run's operating point (:func:`covariate_columns`), and refits it once without each run
+(started from the whole library's law, so a fit left out costs a fraction of the first).
+The laws left out are what the prediction intervals are calibrated on
+(:mod:`workflows.prediction.calibration`): each run predicted by a law that never saw it.
+
+The covariates (the constant always first):
+
+* ``speed``: log(impeller speed / :data:`REFERENCE_RPM`);
+* ``length``: log(slice length / :data:`REFERENCE_SLICE_M`): a longer blender on the same
+  number of slices has longer slices, crossed more slowly;
+* ``position``: the slice's centre from inlet (-0.5) to weir (+0.5);
+* ``feed``: log(total feed rate / :data:`REFERENCE_FEED_PER_S`), the same in every slice
+  of a run (a proxy of the fill: the bed deepens with the feed);
+* ``speed2``, ``position2``: the squares of ``speed`` and ``position`` (a law curved in
+  speed; the inlet wall and the weir at both ends of the slices);
+* ``weir``: 1 in the last slice, 0 elsewhere: its forward move is the discharge over the
+  weir, not a blade's push into the next slice; ``weir_speed``, ``weir_feed``,
+  ``weir_length``: ``weir`` times ``speed``, ``feed``, ``length`` (the discharge answers
+  the bed's depth at the weir otherwise than the blades' transport does).
+
+The axial law carries the residence time and the slices' hold-ups. The transverse moves
+(across y, which carry the outlet's composition) come from each run's table (its phase
+model's transverse rates, the same in every phase) as a least-squares law of the run's
+speed, length and feed per compartment (:class:`TransverseLaw`).
+
+Each fit is cached in ``<out>/fits/`` under a hash of its runs' digests and settings, so an
+interrupted library fit resumes where it stopped and a refit with one run more redoes only
+what that run changes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from coupling.errors import ConfigError
+from coupling.files import regular_file, stored_digest
+from coupling.jsonable import write_json
+from coupling.operating import OperatingPoint
+from dem.phases.data import first_compartments, prepare, steady_window
+from dem.phases.law import LawRun, PhaseLaw, fit_law
+from dem.phases.settings import PHASE_LAG_S, PhaseSettings
+from dem.summary import Estimate
+from workflows.pipeline.log import Log, stderr_log
+from workflows.pipeline.results import load_results, run_operating_point
+
+#: the library's baseline: the validation preset's speed, slice length (0.33 m over 10
+#: slices) and total feed [rpm, m, particles/s]
+REFERENCE_RPM = 250.0
+REFERENCE_SLICE_M = 0.033
+REFERENCE_FEED_PER_S = 73.7
+COVARIATES = (
+    "speed",
+    "length",
+    "position",
+    "feed",
+    "speed2",
+    "position2",
+    "weir",
+    "weir_speed",
+    "weir_feed",
+    "weir_length",
+)
+DEFAULT_COVARIATES = COVARIATES
+#: the transverse law's covariates: those of the run, not of the slice (it is fitted per
+#: compartment)
+TRANSVERSE_COVARIATES = ("speed", "length", "feed", "speed2")
+#: the axial grid the law is fitted on (the product's phase model is axial)
+AXIAL_SLICES = 10
+#: the law's phases: three, as the per-run chains of every size class
+LIBRARY_PHASES = 3
+#: EM iterations of the whole library's fit, and of each fit with one run left out (it
+#: starts from the whole library's law). On the 13 shipped runs, from 150 to 500
+#: iterations of the whole fit the hold-ups moved by at most 1.4 %.
+FIT_ITERATIONS = 500
+LEFT_OUT_ITERATIONS = 150
+FIT_TOL = 1e-7
+#: what a library file says it is
+FORMAT = "pbmdem-library"
+VERSION = 1
+#: the agreement table's quantities a prediction gives (the keys of ``summary.json``),
+#: the slices' hold-ups after them as ``holdup_slice_<i>``
+SCALAR_KEYS = (
+    "mean_residence_time_s",
+    "rtd_variance_s2",
+    "little_mean_residence_time_s",
+    "holdup",
+    "outflow_per_s",
+    "C_A",
+    "rsd_outlet",
+    "lacey_outlet",
+)
+#: the quantities compared on an absolute scale (fractions near their bounds); every
+#: other one is positive and compared by the log of its ratio
+ABSOLUTE_KEYS = ("C_A", "lacey_outlet")
+
+
+def slice_key(i: int) -> str:
+    return f"holdup_slice_{i + 1}"
+
+
+def quantity_keys(nx: int = AXIAL_SLICES) -> tuple[str, ...]:
+    return (*SCALAR_KEYS, *(slice_key(i) for i in range(nx)))
+
+
+def run_covariates(point: OperatingPoint, nx: int = AXIAL_SLICES) -> dict[str, float]:
+    """The covariates of a run that are the same in every slice (module docstring)."""
+    speed = math.log(point.impeller_rpm / REFERENCE_RPM)
+    return {
+        "speed": speed,
+        "length": math.log(point.length_m / nx / REFERENCE_SLICE_M),
+        "feed": math.log(point.feed_rate_total_per_s / REFERENCE_FEED_PER_S),
+        "speed2": speed**2,
+    }
+
+
+def covariate_columns(point: OperatingPoint, nx: int, names: Sequence[str]) -> np.ndarray:
+    """(NX, 1 + len(names)) covariates of the ``nx`` axial slices of a run at ``point``
+    (module docstring), the constant first. Raises ConfigError for an unknown name."""
+    unknown = sorted(set(names) - set(COVARIATES))
+    if unknown:
+        raise ConfigError(f"covariates {unknown} unknown; valid: {', '.join(COVARIATES)}")
+    position = (np.arange(nx) + 0.5) / nx - 0.5
+    per_run = run_covariates(point, nx)
+    values = {name: np.full(nx, value) for name, value in per_run.items()}
+    weir = (np.arange(nx) == nx - 1).astype(float)
+    values.update({"position": position, "position2": position**2, "weir": weir})
+    values.update({f"weir_{name}": weir * per_run[name] for name in ("speed", "feed", "length")})
+    return np.column_stack([np.ones(nx)] + [values[name] for name in names])
+
+
+def dem_quantities(summary) -> dict[str, Estimate]:
+    """The DEM's value and 95 % interval of every quantity of :func:`quantity_keys` that
+    ``summary`` (:class:`dem.summary.DemSummary`) holds."""
+    steady = summary.steady or {}
+    out = {key: Estimate.from_record(steady[key]) for key in SCALAR_KEYS if steady.get(key)}
+    if summary.has_pooled_rtd:
+        pooled = summary.pooled_rtd
+        for key, estimate in (
+            ("mean_residence_time_s", pooled.mean_residence_time_s),
+            ("rtd_variance_s2", pooled.rtd_variance_s2),
+        ):
+            if estimate is not None:
+                out[key] = estimate
+    slices = steady.get("holdup_by_slice")
+    if slices and len(slices["value"]) % AXIAL_SLICES == 0:
+        # a finer grid's slices summed onto the law's
+        per = len(slices["value"]) // AXIAL_SLICES
+        for i in range(AXIAL_SLICES):
+            part = slice(i * per, (i + 1) * per)
+            low = np.asarray(slices["low"][part], dtype=float)
+            high = np.asarray(slices["high"][part], dtype=float)
+            value = float(np.sum(slices["value"][part]))
+            # the summed intervals' half-widths in quadrature (the slices' errors are not
+            # known to be correlated)
+            half = float(np.sqrt(np.sum(((high - low) / 2) ** 2)))
+            out[slice_key(i)] = (
+                Estimate(value, value - half, value + half)
+                if per > 1
+                else Estimate(value, float(low[0]), float(high[0]))
+            )
+    return {key: estimate for key, estimate in out.items() if estimate is not None}
+
+
+@dataclass(frozen=True)
+class LibraryRun:
+    """One run of a library: its law data, operating point, the DEM's quantities with their
+    intervals, the feed's inlet distribution over the axial slices (2, NX) [particles/s],
+    and the transverse rates of its table's phase model (2, NX, NY) [1/s], None when its
+    table has no phase model."""
+
+    name: str
+    path: Path
+    digest: str
+    law_run: LawRun
+    point: OperatingPoint
+    seed: int | None
+    dem: dict[str, Estimate]
+    entering: np.ndarray
+    transverse: np.ndarray | None
+
+    @property
+    def holdup(self) -> Estimate:
+        return self.dem["holdup"]
+
+    @property
+    def little_s(self) -> Estimate:
+        return self.dem["little_mean_residence_time_s"]
+
+
+def _digest(path: Path) -> str:
+    with h5py.File(path, "r") as h5:
+        digest = stored_digest(h5)
+    if digest is None:  # an unsigned file: its bytes
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    return digest
+
+
+def library_run(path: str | Path, names: Sequence[str], lag_s: float = PHASE_LAG_S) -> LibraryRun:
+    """:class:`LibraryRun` of the results file ``path``: its particles that entered in the
+    steady window (and those inside then), on :data:`AXIAL_SLICES` slices. Raises
+    ConfigError naming the file when it has no sequences or no steady state."""
+    path = regular_file(path, "a library run", ConfigError).resolve()
+    results, config = load_results(path)
+    sequences, summary = results.sequences, results.summary
+    if sequences is None:
+        raise ConfigError(f"{path}: the results carry no compartment sequences to fit a law to")
+    if summary.steady_time is None or not summary.steady:
+        raise ConfigError(f"{path}: the DEM run never reached a steady state to fit and judge a law on")
+    if sequences.nx % AXIAL_SLICES:
+        raise ConfigError(f"{path}: {sequences.nx} slices cannot be coarsened to the law's {AXIAL_SLICES}")
+    point = run_operating_point(results.table, config)
+    lag = PhaseSettings(lag_s=lag_s).lag_dumps(sequences.interval_s)
+    data = prepare(sequences, steady_window(sequences, summary.steady_time), (AXIAL_SLICES, 1), lag=lag, residents=True)
+    feed = point.feed_rate_total_per_s
+    entering = first_compartments(data)[:2]
+    entering = entering / max(entering.sum(), 1e-300) * feed
+    name = f"{path.name} ({point.impeller_rpm:g} rpm, {feed:g} /s, {point.length_m:g} m)"
+    table = results.table
+    transverse = None
+    if table.phases is not None and table.nx % AXIAL_SLICES == 0:
+        transverse = table.phases.rates[0, 2:].copy()
+    dem = dem_quantities(summary)
+    missing = [key for key in ("holdup", "little_mean_residence_time_s") if key not in dem]
+    if missing:
+        raise ConfigError(f"{path}: the DEM summary lacks {missing}, which a library run needs")
+    return LibraryRun(
+        name,
+        path,
+        _digest(path),
+        LawRun(data, covariate_columns(point, AXIAL_SLICES, names), name),
+        point,
+        config.dem.numerics.seed,
+        dem,
+        entering,
+        transverse,
+    )
+
+
+# ------------------------------------------------------------------ the transverse law
+@dataclass(frozen=True)
+class TransverseLaw:
+    """The transverse rates (y_pos, y_neg) of every compartment as exp(x . beta) of the
+    run's covariates x (:data:`TRANSVERSE_COVARIATES`, the constant first), fitted by least
+    squares on the logs of the library's rates; ``coefficients`` (2, NX, NY, P), NaN where
+    no run moves (a wall): rate 0 there."""
+
+    coefficients: np.ndarray
+    names: tuple[str, ...] = TRANSVERSE_COVARIATES
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        return int(self.coefficients.shape[1]), int(self.coefficients.shape[2])
+
+    def rates(self, point: OperatingPoint) -> np.ndarray:
+        """(2, NX, NY) transverse rates [1/s] at ``point``."""
+        values = run_covariates(point, self.grid[0])
+        x = np.array([1.0] + [values[name] for name in self.names])
+        log_rates = self.coefficients @ x
+        return np.where(np.isfinite(log_rates), np.exp(np.nan_to_num(log_rates, nan=-np.inf)), 0.0)
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "names": list(self.names),
+            "coefficients": np.where(np.isnan(self.coefficients), None, self.coefficients).tolist(),
+        }
+
+    @classmethod
+    def from_record(cls, record: dict, source: str) -> TransverseLaw:
+        try:
+            names = tuple(str(n) for n in record["names"])
+            beta = np.array(record["coefficients"], dtype=float)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: not a transverse law ({type(exc).__name__}: {exc})") from None
+        if beta.ndim != 4 or beta.shape[0] != 2 or beta.shape[3] != 1 + len(names) or set(names) - set(COVARIATES):
+            raise ConfigError(f"{source}: transverse coefficients of shape {beta.shape} for covariates {list(names)}")
+        return cls(beta, names)
+
+
+def fit_transverse(runs: Sequence[LibraryRun]) -> TransverseLaw:
+    """:class:`TransverseLaw` of the runs with transverse rates; the coefficients of a
+    covariate no two runs tell apart are 0 (least squares of minimum norm)."""
+    usable = [r for r in runs if r.transverse is not None]
+    if not usable:
+        raise ConfigError("no run of the library has a phase model with transverse rates to fit a transverse law to")
+    shapes = {r.transverse.shape for r in usable}
+    if len(shapes) != 1:
+        raise ConfigError(f"the runs' transverse grids differ ({sorted(shapes)}): one library needs one grid")
+    names = TRANSVERSE_COVARIATES
+    x = np.array([[1.0] + [run_covariates(r.point, AXIAL_SLICES)[n] for n in names] for r in usable])
+    rates = np.stack([r.transverse for r in usable])  # (runs, 2, NX, NY)
+    moving = (rates > 0).all(axis=0)
+    logs = np.log(np.where(rates > 0, rates, 1.0)).reshape(len(usable), -1)
+    beta, *_ = np.linalg.lstsq(x, logs, rcond=None)  # (P, 2 * NX * NY)
+    beta = beta.T.reshape(*rates.shape[1:], len(names) + 1)
+    return TransverseLaw(np.where(moving[..., None], beta, np.nan), names)
+
+
+# ------------------------------------------------------------------ the library model
+@dataclass(frozen=True)
+class LibraryEntry:
+    """What the library model keeps of one run: its file, digest, operating point, seed and
+    the DEM's quantities (value and 95 % interval)."""
+
+    file: str
+    digest: str
+    point: OperatingPoint
+    seed: int | None
+    dem: dict[str, Estimate]
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "file": self.file,
+            "digest": self.digest,
+            "point": self.point.record(),
+            "seed": self.seed,
+            "dem": {key: e.record() for key, e in self.dem.items()},
+        }
+
+    @classmethod
+    def from_record(cls, record: dict, source: str) -> LibraryEntry:
+        return cls(
+            str(record["file"]),
+            str(record["digest"]),
+            OperatingPoint.from_record(record["point"], source),
+            None if record.get("seed") is None else int(record["seed"]),
+            {str(k): Estimate.from_record(v) for k, v in dict(record["dem"]).items()},
+        )
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """A quantity's prediction error on its scale over the calibration runs: mean
+    ``bias``, standard deviation ``sd`` and count ``n``."""
+
+    bias: float
+    sd: float
+    n: int
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Each quantity's prediction error, measured on the runs left out: ``residuals``
+    [key] one per run (log ratio DEM / prediction; DEM - prediction for
+    :data:`ABSOLUTE_KEYS`), NaN where the DEM lacks the quantity."""
+
+    residuals: dict[str, list[float]]
+
+    def error(self, key: str, leave: int | None = None) -> ErrorModel:
+        """:class:`ErrorModel` of ``key``, without run ``leave``; NaN from fewer than 2 runs."""
+        values = np.asarray(self.residuals.get(key, []), dtype=float)
+        if leave is not None and values.size:
+            values = np.delete(values, leave)
+        values = values[np.isfinite(values)]
+        if values.size < 2:
+            return ErrorModel(math.nan, math.nan, int(values.size))
+        return ErrorModel(float(values.mean()), float(values.std(ddof=1)), int(values.size))
+
+    def record(self) -> dict[str, Any]:
+        return {"residuals": {k: [v if math.isfinite(v) else None for v in vals] for k, vals in self.residuals.items()}}
+
+    @classmethod
+    def from_record(cls, record: dict) -> Calibration:
+        return cls(
+            {str(k): [math.nan if v is None else float(v) for v in vals] for k, vals in record["residuals"].items()}
+        )
+
+
+@dataclass(frozen=True)
+class LibraryModel:
+    """One law for a library (module docstring): the law fitted to every run, the law
+    fitted without each run (``left_out``, in the order of ``runs``), the transverse laws
+    alike, and the calibration of the intervals on the runs left out (None until made)."""
+
+    law: PhaseLaw
+    transverse: TransverseLaw
+    runs: tuple[LibraryEntry, ...]
+    left_out: tuple[PhaseLaw, ...]
+    transverse_left_out: tuple[TransverseLaw, ...]
+    interval_s: float
+    calibration: Calibration | None = None
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The law's covariates besides the constant."""
+        return self.law.covariate_names[1:]
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        return self.transverse.grid
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "settings": self.settings,
+            "interval_s": self.interval_s,
+            "law": self.law.record(),
+            "transverse": self.transverse.record(),
+            "runs": [r.record() for r in self.runs],
+            "left_out": [law.record() for law in self.left_out],
+            "transverse_left_out": [t.record() for t in self.transverse_left_out],
+            "calibration": None if self.calibration is None else self.calibration.record(),
+        }
+
+    @classmethod
+    def from_record(cls, record: Any, source: str) -> LibraryModel:
+        if not isinstance(record, dict) or record.get("format") != FORMAT:
+            raise ConfigError(
+                f"{source}: not a library model (no format {FORMAT!r}); make one with `pbmdem library fit`"
+            )
+        if record.get("version") != VERSION:
+            raise ConfigError(f"{source}: library model version {record.get('version')!r}; this tool reads {VERSION}")
+        try:
+            runs = tuple(LibraryEntry.from_record(r, source) for r in record["runs"])
+            left = tuple(PhaseLaw.from_record(r, source) for r in record["left_out"])
+            transverse_left = tuple(TransverseLaw.from_record(r, source) for r in record["transverse_left_out"])
+            model = cls(
+                PhaseLaw.from_record(record["law"], source),
+                TransverseLaw.from_record(record["transverse"], source),
+                runs,
+                left,
+                transverse_left,
+                float(record["interval_s"]),
+                None if record.get("calibration") is None else Calibration.from_record(record["calibration"]),
+                dict(record.get("settings") or {}),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(
+                f"{source}: library model field missing or malformed ({type(exc).__name__}: {exc})"
+            ) from None
+        if len(left) != len(runs) or len(transverse_left) != len(runs):
+            raise ConfigError(f"{source}: {len(runs)} runs but {len(left)} laws left out; expected one per run")
+        return model
+
+
+def save_model(model: LibraryModel, path: str | Path) -> Path:
+    return write_json(path, model.record())
+
+
+def load_model(path: str | Path) -> LibraryModel:
+    """The library model of the file ``path`` (or ``path/library.json``); raises
+    ConfigError naming the file when it is missing or is not one."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "library.json"
+    path = regular_file(path, "a library model", ConfigError)
+    try:
+        record = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: not a library model (not JSON: {exc})") from None
+    return LibraryModel.from_record(record, str(path))
+
+
+# ------------------------------------------------------------------ fitting
+@dataclass(frozen=True)
+class FitSettings:
+    """How a library is fitted: the law's phases and covariates, the EM's iterations for the
+    whole library and for each fit left out, and its stopping gain."""
+
+    n_phases: int = LIBRARY_PHASES
+    covariates: tuple[str, ...] = DEFAULT_COVARIATES
+    iterations: int = FIT_ITERATIONS
+    left_out_iterations: int = LEFT_OUT_ITERATIONS
+    tol: float = FIT_TOL
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.covariates) - set(COVARIATES))
+        if unknown:
+            raise ConfigError(f"covariates {unknown} unknown; valid: {', '.join(COVARIATES)}")
+        for name in ("n_phases", "iterations", "left_out_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
+        if not self.tol > 0:
+            raise ConfigError(f"tol must be > 0, got {self.tol!r}")
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "n_phases": self.n_phases,
+            "covariates": list(self.covariates),
+            "iterations": self.iterations,
+            "left_out_iterations": self.left_out_iterations,
+            "tol": self.tol,
+        }
+
+
+def _fit_key(runs: Sequence[LibraryRun], settings: FitSettings, iterations: int, start: PhaseLaw | None) -> str:
+    text = json.dumps(
+        {
+            "runs": sorted(r.digest for r in runs),
+            "settings": settings.record(),
+            "iterations": iterations,
+            "start": None if start is None else start.record()["coefficients"],
+        },
+        sort_keys=True,
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def cached_fit(
+    runs: Sequence[LibraryRun],
+    settings: FitSettings,
+    iterations: int,
+    cache: Path | None,
+    start: PhaseLaw | None = None,
+) -> PhaseLaw:
+    """:func:`dem.phases.law.fit_law` of ``runs``, read from ``cache`` when it was made
+    before (a file that does not read back as a law is refitted and replaced)."""
+    key = _fit_key(runs, settings, iterations, start)
+    path = None if cache is None else cache / f"law-{key}.json"
+    if path is not None and path.is_file():
+        try:
+            return PhaseLaw.from_record(json.loads(path.read_text()), str(path))
+        except (ConfigError, UnicodeDecodeError, json.JSONDecodeError):
+            pass  # rebuilt below
+    law = fit_law(
+        [r.law_run for r in runs],
+        settings.n_phases,
+        ("1", *settings.covariates),
+        iterations,
+        settings.tol,
+        start=start,
+    )
+    if path is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        write_json(path, law.record())
+    return law
+
+
+def load_runs(paths: Sequence[str | Path], settings: FitSettings) -> list[LibraryRun]:
+    """The library's runs; raises ConfigError for fewer than 3 or for one file given twice
+    (by content: a copy would count one run's particles twice)."""
+    runs = [library_run(p, settings.covariates) for p in paths]
+    seen: dict[str, Path] = {}
+    for run in runs:
+        if run.digest in seen:
+            raise ConfigError(f"{run.path} is the same run as {seen[run.digest]}: a library holds each run once")
+        seen[run.digest] = run.path
+    if len(runs) < 3:
+        raise ConfigError(f"a library needs at least 3 runs (one left out, two to fit), got {len(runs)}")
+    return runs
+
+
+def fit_library(
+    runs: Sequence[LibraryRun],
+    settings: FitSettings = FitSettings(),
+    cache: Path | None = None,
+    log: Log = stderr_log,
+) -> LibraryModel:
+    """The law of every run, and of every run but one for each (module docstring); the
+    model without its calibration (:func:`workflows.prediction.calibration.calibrated`)."""
+    log(f"law of {len(runs)} runs, {settings.iterations} EM iterations")
+    law = cached_fit(runs, settings, settings.iterations, cache)
+    left = []
+    for n, run in enumerate(runs):
+        log(f"law without {run.name}")
+        rest = [r for m, r in enumerate(runs) if m != n]
+        left.append(cached_fit(rest, settings, settings.left_out_iterations, cache, start=law))
+    transverse = fit_transverse(runs)
+    transverse_left = tuple(fit_transverse([r for m, r in enumerate(runs) if m != n]) for n in range(len(runs)))
+    return LibraryModel(
+        law,
+        transverse,
+        tuple(LibraryEntry(r.path.name, r.digest, r.point, r.seed, r.dem) for r in runs),
+        tuple(left),
+        transverse_left,
+        float(runs[0].law_run.data.interval_s),
+        None,
+        settings.record(),
+    )

@@ -1,0 +1,101 @@
+"""``pbmdem predict``'s page: the predicted RTD and hold-up profile with their bands, and
+every quantity with its 95 % prediction interval."""
+
+from __future__ import annotations
+
+import html
+import math
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from workflows.prediction.library import AXIAL_SLICES, SCALAR_KEYS, slice_key
+from workflows.prediction.predict import Prediction
+
+LABELS = {
+    "mean_residence_time_s": ("mean residence time (RTD)", "s"),
+    "rtd_variance_s2": ("RTD variance", "s²"),
+    "little_mean_residence_time_s": ("mean residence time (hold-up / outflow)", "s"),
+    "holdup": ("steady hold-up", "particles"),
+    "outflow_per_s": ("steady outflow", "particles/s"),
+    "C_A": ("steady C_A", "-"),
+    "rsd_outlet": ("outlet RSD", "-"),
+    "lacey_outlet": ("outlet Lacey index", "-"),
+}
+
+
+def plot_prediction(prediction: Prediction, path: Path) -> Path:
+    """Two panels: E(t) of the law with the band of the laws left out, and each slice's
+    hold-up with its prediction interval."""
+    fig = Figure(figsize=(10, 4), layout="constrained")
+    left, right = fig.subplots(1, 2)
+    t = prediction.rtd_times_s
+    left.fill_between(t, prediction.rtd[1], prediction.rtd[2], color="#9ecae1", label="laws with one run left out")
+    left.plot(t, prediction.rtd[0], color="#08519c", lw=1.5, label="the library's law")
+    mean = prediction.quantity("mean_residence_time_s")
+    left.axvspan(mean.low, mean.high, color="#fdae6b", alpha=0.4, label="mean: 95 % prediction interval")
+    left.axvline(mean.value, color="#e6550d", lw=1)
+    left.set(xlabel="residence time [s]", ylabel="E(t) [1/s]", title="Residence time distribution")
+    left.legend(fontsize=8)
+    slices = [prediction.quantity(slice_key(i)) for i in range(AXIAL_SLICES)]
+    x = np.arange(1, AXIAL_SLICES + 1)
+    value = np.array([q.value for q in slices])
+    low, high = np.array([q.low for q in slices]), np.array([q.high for q in slices])
+    right.fill_between(x, low, high, color="#a1d99b", step="mid", label="95 % prediction interval")
+    right.step(x, value, where="mid", color="#006d2c", lw=1.5, label="predicted")
+    right.set(xlabel="axial slice (inlet to weir)", ylabel="steady hold-up [particles]", title="Hold-up profile")
+    right.set_ylim(bottom=0)
+    right.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def _number(value: float) -> str:
+    return "-" if not math.isfinite(value) else f"{value:.4g}"
+
+
+def prediction_html(prediction: Prediction, config_name: str, figure: str | None, files: dict[str, str]) -> str:
+    p = prediction.point
+    rows = []
+    for q in prediction.quantities:
+        label, unit = LABELS.get(q.key, (f"hold-up of slice {q.key.rsplit('_', 1)[-1]}", "particles"))
+        rows.append(
+            f"<tr><td>{html.escape(label)}</td><td><code>{q.key}</code></td><td>{_number(q.value)}</td>"
+            f"<td>[{_number(q.low)}, {_number(q.high)}]</td><td>{html.escape(unit)}</td></tr>"
+        )
+    warning = ""
+    if prediction.extrapolated:
+        warning = (
+            '<p class="warn"><b>Extrapolated:</b> this point lies outside the library\'s domain ('
+            + html.escape("; ".join(prediction.outside))
+            + f"); the intervals are widened {prediction.quantities[0].widening:.2f}x and are not checked there.</p>"
+        )
+    links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
+    image = (
+        f'<img src="{figure}" alt="Predicted RTD and hold-up profile with their 95 % bands" width="900">'
+        if figure
+        else ""
+    )
+    headline = ", ".join(
+        f"{LABELS[k][0]} {_number(prediction.quantity(k).value)} {LABELS[k][1]}" for k in SCALAR_KEYS[:4]
+    )
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>Prediction: {html.escape(config_name)}</title>
+<style>body{{font-family:sans-serif;max-width:960px;margin:2em auto}}td,th{{padding:2px 8px;text-align:left}}
+.warn{{background:#fee;padding:6px}}</style></head><body>
+<h1>Prediction without DEM: {html.escape(config_name)}</h1>
+<p>{p.impeller_rpm:g} rpm, total feed {p.feed_rate_total_per_s:g} particles/s, length {p.length_m:g} m.
+From the library's law (no DEM run at this point): {html.escape(headline)}.</p>
+{warning}
+<p>Library domain: {html.escape(prediction.domain.describe())}.</p>
+{image}
+<h2>Every quantity with its 95 % prediction interval</h2>
+<p>The interval is where a DEM run at this point would put its value, 95 % of the time: it holds the law's
+error measured on each library run left out of the fit, the DEM's scatter between seeds, and the spread of
+the laws fitted without one run each at this point.</p>
+<table><tr><th>quantity</th><th>key</th><th>predicted</th><th>95 % interval</th><th>unit</th></tr>
+{"".join(rows)}</table>
+<p>Files: {links}</p>
+</body></html>
+"""
