@@ -50,13 +50,17 @@ def test_predict_writes_every_quantity_a_table_and_a_page(library, tmp_path, cap
 
 def test_a_point_outside_the_domain_is_refused_in_one_line_and_labelled_when_extrapolated(library, tmp_path, capsys):
     config = tmp_path / "fast.toml"
-    config.write_text(Path(VALIDATION).read_text().replace("duration_s = 200.0", "duration_s = 200.0\nimpeller_rpm = 400.0"))
+    config.write_text(
+        Path(VALIDATION).read_text().replace("duration_s = 200.0", "duration_s = 200.0\nimpeller_rpm = 400.0")
+    )
     out = tmp_path / "out"
     assert main(["predict", "--config", str(config), "--library", str(library), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "outside the library's domain" in err and "150-350 rpm" in err
     assert not out.exists()
-    assert main(["predict", "--config", str(config), "--library", str(library), "--out", str(out), "--extrapolate"]) == 0
+    assert (
+        main(["predict", "--config", str(config), "--library", str(library), "--out", str(out), "--extrapolate"]) == 0
+    )
     assert "EXTRAPOLATED" in capsys.readouterr().out
     assert json.loads((out / "prediction.json").read_text())["extrapolated"] is True
 
@@ -73,4 +77,3 @@ def test_a_library_file_that_is_not_one_is_refused_naming_it(tmp_path, capsys):
     assert main(["predict", "--config", VALIDATION, "--library", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "not a library model" in err
-

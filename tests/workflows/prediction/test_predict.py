@@ -11,6 +11,7 @@ from coupling.errors import ConfigError
 from coupling.phases import PhaseTransport
 from dem.operating import operating_point
 from dem.phases.law import PhaseLaw
+from dem.summary import Estimate
 from pbm.config import PbmConfig
 from pbm.simulate import simulate
 from workflows.config import load_preset
@@ -23,7 +24,6 @@ from workflows.prediction.library import (
     quantity_keys,
 )
 from workflows.prediction.predict import corrected, point_table, point_values, predict, rtd_moments
-from dem.summary import Estimate
 
 NAMES = ("1", "speed", "feed")
 

@@ -36,7 +36,11 @@ def test_a_law_of_speed_fitted_to_three_runs_predicts_the_one_left_out(tmp_path)
 def test_an_unknown_covariate_or_a_missing_file_is_one_line(tmp_path, capsys):
     assert main(["study", "law", "--covariates", "speed,colour", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "colour" in err[0] and "valid: speed, length, position, feed, speed2, position2, weir" in err[0]
+    assert (
+        len(err) == 1
+        and "colour" in err[0]
+        and "valid: speed, length, position, feed, speed2, position2, weir" in err[0]
+    )
     missing = tmp_path / "nothing.h5"
     assert main(["study", "law", "--results", str(missing), str(BASELINE), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
