@@ -19,6 +19,7 @@ from workflows.config import Config, same_but_feed, same_but_speed
 from workflows.pipeline.log import Log, stderr_log
 from workflows.pipeline.results import pbm_config_for, rtd_pulse, run_operating_point
 from workflows.pipeline.stages import DemSide
+from workflows.prediction.calibration import Check
 
 # --------------------------------------------------------------------------- predictions
 #: Agreement rows that are diagnostics of the RTD's definition, not predictions to judge.
@@ -298,6 +299,58 @@ def verdicts(preds: list[Prediction], baseline: str = "baseline") -> list[Predic
             continue
         judged = judge(p.rows, own[p.run], calibration)
         out.append(PredictionVerdict(p.run, p.source, verdict_text(judged), judged))
+    return out
+
+
+@dataclass(frozen=True)
+class LawVerdict:
+    """A campaign run predicted by the library's law fitted without it
+    (:mod:`workflows.prediction.calibration`): how many quantities hold the DEM's value in
+    their prediction interval, how many predictions lie in the DEM's interval widened by
+    the seed scatter, of ``n``; the verdict and its text."""
+
+    run: str
+    file: str
+    covered: int
+    inside_widened: int
+    n: int
+    predicts: bool
+    verdict: str
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "run": self.run,
+            "file": self.file,
+            "covered": self.covered,
+            "inside_widened": self.inside_widened,
+            "n": self.n,
+            "predicts": self.predicts,
+            "verdict": self.verdict,
+        }
+
+
+def law_verdicts(sides: dict[str, DemSide], check: Check) -> list[LawVerdict]:
+    """:class:`LawVerdict` of every campaign run that is a run of the library (the same DEM
+    inputs: the same results file name)."""
+    out = []
+    library = set(check.runs())
+    for name, side in sides.items():
+        file = side.cache_file.name
+        if file not in library:
+            continue
+        rows = check.of_run(file)
+        predicts, text = check.verdict(file)
+        out.append(
+            LawVerdict(
+                name,
+                file,
+                sum(r.covered for r in rows),
+                sum(r.inside_widened for r in rows),
+                len(rows),
+                predicts,
+                text,
+            )
+        )
     return out
 
 

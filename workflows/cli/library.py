@@ -1,6 +1,7 @@
 """``pbmdem library fit [--results FILE...] [--out DIR]``: the law of a DEM library, its
 laws with each run left out, the intervals calibrated on them and checked
-(:mod:`workflows.products.predict`)."""
+(:mod:`workflows.products.predict`). ``pbmdem library check --results FILE...``: DEM runs
+the library does not hold, predicted by its law and judged against their DEM."""
 
 from __future__ import annotations
 
@@ -45,6 +46,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     fit.set_defaults(func=fit_command)
 
+    check = sub.add_parser("check", help="predict DEM runs the library does not hold and judge each against its DEM")
+    check.add_argument("--results", nargs="+", required=True, metavar="FILE", help="DEM results files to judge")
+    check.add_argument(
+        "--library", default=None, help="a library model (library.json or its folder; default: the shipped one)"
+    )
+    check.add_argument("--extrapolate", action="store_true", help="judge runs outside the library's domain too")
+    check.add_argument("--out", default=None, help="write check.json and check.md into this folder")
+    check.set_defaults(func=check_command)
+
 
 def fit_command(args: argparse.Namespace) -> int:
     from workflows.prediction import calibration
@@ -55,6 +65,16 @@ def fit_command(args: argparse.Namespace) -> int:
     settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations)
     output = library_fit(list(args.results or default_runs()), args.out, settings)
     print(calibration.markdown(output.model, output.check))
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
+    return 0
+
+
+def check_command(args: argparse.Namespace) -> int:
+    from workflows.products.predict import library_check
+
+    output = library_check(args.results, args.library, args.extrapolate, args.out)
+    print(output.text)
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")
     return 0

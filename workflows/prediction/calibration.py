@@ -16,18 +16,35 @@ whether each prediction lies inside the DEM's interval widened by that scatter.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from coupling.errors import ConfigError
+from coupling.files import regular_file
+from coupling.operating import OperatingPoint
+from workflows.pipeline.results import load_results, run_operating_point
 from workflows.prediction.library import (
     ABSOLUTE_KEYS,
     Calibration,
     LibraryModel,
+    dem_quantities,
+    file_digest,
     quantity_keys,
 )
-from workflows.prediction.predict import PointValues, corrected, jackknife, point_values, residual
+from workflows.prediction.predict import (
+    PointValues,
+    corrected,
+    domain,
+    domain_issues,
+    jackknife,
+    point_values,
+    predict,
+    residual,
+)
 
 #: the headline quantities and the half-widths the issue asks of them, as fractions of the
 #: value (slices: every slice)
@@ -39,6 +56,12 @@ USEFUL_HALF_WIDTH = {
 }
 
 
+#: the quantities a change must have inside the DEM's interval (widened by the seed
+#: scatter) for the law to predict it, and how many others it may miss
+HEADLINE = ("mean_residence_time_s", "rtd_variance_s2", "little_mean_residence_time_s", "holdup")
+MAY_MISS = 2
+
+
 def left_out_values(model: LibraryModel) -> list[PointValues]:
     """Each run's quantities from the law fitted without it, at its operating point."""
     return [
@@ -47,9 +70,18 @@ def left_out_values(model: LibraryModel) -> list[PointValues]:
     ]
 
 
+def _others(model: LibraryModel, n: int) -> tuple[list[str], float]:
+    """Run ``n``'s place against the domain of the other runs: (what lies outside it, the
+    widening :func:`workflows.prediction.predict.predict` would give it)."""
+    others = domain([r.point for m, r in enumerate(model.runs) if m != n])
+    return domain_issues(others, model.runs[n].point)
+
+
 def calibrated(model: LibraryModel) -> LibraryModel:
-    """``model`` with its :class:`Calibration`: each run's errors left out."""
+    """``model`` with its :class:`Calibration`: each run's errors left out, and whether it
+    lay inside the others' domain."""
     predicted = left_out_values(model)
+    inside = [not _others(model, n)[0] for n in range(len(model.runs))]
     residuals = {
         key: [
             residual(key, entry.dem[key].value, values.values[key]) if key in entry.dem else math.nan
@@ -57,7 +89,7 @@ def calibrated(model: LibraryModel) -> LibraryModel:
         ]
         for key in quantity_keys()
     }
-    return replace(model, calibration=Calibration(residuals))
+    return replace(model, calibration=Calibration(residuals, inside))
 
 
 def seed_scatter(model: LibraryModel) -> tuple[dict[str, float], list[tuple[str, str]]]:
@@ -96,6 +128,8 @@ class CheckedQuantity:
     low: float
     high: float
     seed_sd: float
+    #: the run lay inside the other runs' domain: its prediction was an interpolation
+    interpolated: bool = True
 
     @property
     def covered(self) -> bool:
@@ -126,6 +160,7 @@ class CheckedQuantity:
             "high": self.high,
             "covered": self.covered,
             "inside_widened": self.inside_widened,
+            "interpolated": self.interpolated,
         }
 
 
@@ -134,10 +169,17 @@ class Check:
     rows: tuple[CheckedQuantity, ...]
     seed_sd: dict[str, float]
     seed_pairs: tuple[tuple[str, str], ...]
+    #: the operating points of runs that are not the library's (:func:`judge_results`)
+    points: dict[str, OperatingPoint] = field(default_factory=dict)
 
-    @property
-    def coverage(self) -> float:
-        rows = [r for r in self.rows if math.isfinite(r.low)]
+    def _rows(self, interpolated: bool | None) -> list[CheckedQuantity]:
+        return [r for r in self.rows if interpolated is None or r.interpolated == interpolated]
+
+    def coverage(self, interpolated: bool | None = True) -> float:
+        """The share of the DEM's values inside their prediction intervals, over the runs
+        predicted from inside the others' domain (``interpolated`` True), from outside it
+        (False), or all (None)."""
+        rows = [r for r in self._rows(interpolated) if math.isfinite(r.low)]
         return sum(r.covered for r in rows) / len(rows) if rows else math.nan
 
     def runs(self) -> list[str]:
@@ -146,13 +188,31 @@ class Check:
     def of_run(self, run: str) -> list[CheckedQuantity]:
         return [r for r in self.rows if r.run == run]
 
-    def median_half_width(self, key: str) -> float:
-        values = [r.relative_half_width for r in self.rows if r.key == key or r.key.startswith(key + "_")]
+    def verdict(self, run: str) -> tuple[bool, str]:
+        """Whether the law predicts ``run`` left out: every :data:`HEADLINE` quantity and
+        all but :data:`MAY_MISS` of the others inside the DEM's interval widened by the seed
+        scatter; and the verdict's text."""
+        rows = self.of_run(run)
+        missed = [r.key for r in rows if not r.inside_widened]
+        headline = [k for k in HEADLINE if k in missed]
+        ok = bool(rows) and not headline and len(missed) <= MAY_MISS
+        inside = f"{len(rows) - len(missed)}/{len(rows)} inside the DEM's interval widened by the seed scatter"
+        if ok:
+            return True, f"the library's law predicts this ({inside})"
+        return False, f"needs a new DEM run: {inside}; missed {', '.join(missed)}"
+
+    def median_half_width(self, key: str, interpolated: bool | None = True) -> float:
+        """The median half-width of ``key`` (or of every ``key_<i>``) as a fraction of
+        the value, over the runs of ``interpolated`` (:meth:`coverage`)."""
+        values = [
+            r.relative_half_width for r in self._rows(interpolated) if r.key == key or r.key.startswith(key + "_")
+        ]
         return float(np.median(values)) if values else math.nan
 
     def record(self) -> dict[str, Any]:
         return {
-            "coverage": self.coverage,
+            "coverage_interpolated": self.coverage(True),
+            "coverage_extrapolated": self.coverage(False),
             "rows": [r.record() for r in self.rows],
             "seed_sd": self.seed_sd,
             "seed_pairs": [list(p) for p in self.seed_pairs],
@@ -168,6 +228,7 @@ def check(model: LibraryModel) -> Check:
     scatter, pairs = seed_scatter(model)
     rows = []
     for n, (entry, values) in enumerate(zip(model.runs, predicted)):
+        issues, widening = _others(model, n)
         at_point = [
             point_values(law, transverse, entry.point, model.interval_s).values
             for law, transverse in zip(model.left_out, model.transverse_left_out)
@@ -177,7 +238,8 @@ def check(model: LibraryModel) -> Check:
             if dem is None:
                 continue
             spread = math.sqrt(jackknife(at_point, key))
-            centre, low, high = corrected(key, values.values[key], calibration.error(key, leave=n), spread)
+            error = calibration.error(key, leave=n, extrapolated=bool(issues))
+            centre, low, high = corrected(key, values.values[key], error, spread, widening)
             rows.append(
                 CheckedQuantity(
                     entry.file,
@@ -189,47 +251,121 @@ def check(model: LibraryModel) -> Check:
                     low,
                     high,
                     scatter.get(key, 0.0),
+                    not issues,
                 )
             )
     return Check(tuple(rows), scatter, tuple(pairs))
 
 
-def markdown(model: LibraryModel, result: Check) -> str:
+def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate: bool = False) -> Check:
+    """DEM runs the library does not hold, each predicted by the library's law
+    (:func:`workflows.prediction.predict.predict`) and judged like :func:`check` judges the
+    runs left out. A run outside the domain is judged only with ``extrapolate`` (else
+    ConfigError names it); a run the library holds is refused (it was fitted to it)."""
+    scatter, pairs = seed_scatter(model)
+    held = {r.digest: r.file for r in model.runs}
+    rows, points = [], {}
+    for path in paths:
+        path = regular_file(path, "a DEM results file", ConfigError)
+        digest = file_digest(path)
+        if digest in held:
+            raise ConfigError(
+                f"{path} is the library's run {held[digest]}: judge it with `pbmdem library fit`, left out"
+            )
+        results, config = load_results(path)
+        point = run_operating_point(results.table, config)
+        points[path.name] = point
+        prediction = predict(model, point, extrapolate)
+        dem = dem_quantities(results.summary)
+        for q in prediction.quantities:
+            if q.key in dem:
+                d = dem[q.key]
+                rows.append(
+                    CheckedQuantity(
+                        path.name,
+                        q.key,
+                        float(d.value),
+                        float(d.low),
+                        float(d.high),
+                        q.value,
+                        q.low,
+                        q.high,
+                        scatter.get(q.key, 0.0),
+                        not prediction.extrapolated,
+                    )
+                )
+    return Check(tuple(rows), scatter, tuple(pairs), points)
+
+
+#: what :func:`markdown` says a check of runs the library does not hold is
+NOT_HELD = (
+    "Each run predicted by the library's law, which was not fitted to it; inside the library's domain an "
+    "interpolation, else an extrapolation (labelled and widened)."
+)
+
+
+def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> str:
     """The check as tables: per run, the quantities covered and inside the widened DEM
-    interval; per quantity, the coverage and the median relative half-width."""
+    interval; per quantity, the coverage and the median relative half-width. ``intro``:
+    what the runs were predicted by (default: each by the law fitted without it)."""
     keys = quantity_keys()
     n_keys = len(keys)
     point = {r.file: r.point for r in model.runs}
+    point.update(result.points)
+    scores = dict(zip((r.file for r in model.runs), model.left_out_scores))
+    intro = intro or (
+        f"Each run predicted by the law fitted without it ({len(model.runs)} runs, {n_keys} quantities each), its "
+        "interval calibrated without it. A run inside the other runs' domain is an interpolation, calibrated on the "
+        "other such runs; one outside it (an end of a range) an extrapolation, calibrated on every other run and "
+        "widened by its distance."
+    )
     lines = [
-        f"Each run predicted by the law fitted without it ({len(model.runs)} runs, {n_keys} quantities each); "
-        f"interval calibrated without it. Coverage of the 95 % intervals: {result.coverage:.1%}.",
+        f"{intro} Coverage of the 95 % intervals: {_percent(result.coverage(True))} interpolated, "
+        f"{_percent(result.coverage(False))} extrapolated.",
         "",
-        f"| run | rpm | feed [/s] | length [m] | DEM inside the prediction interval (of {n_keys}) | "
-        "prediction inside the DEM interval widened by seed scatter | missed |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        f"| run | rpm | feed [/s] | length [m] | predicted | held-out log-likelihood [nats/step] | "
+        f"DEM inside the prediction interval (of {n_keys}) | prediction inside the DEM interval widened by seed "
+        "scatter | verdict |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for run in result.runs():
         rows = result.of_run(run)
         p = point[run]
-        missed = ", ".join(r.key for r in rows if not r.covered) or "-"
+        _ok, verdict = result.verdict(run)
+        how = "interpolated" if rows[0].interpolated else "extrapolated"
         lines.append(
-            f"| {run} | {p.impeller_rpm:g} | {p.feed_rate_total_per_s:g} | {p.length_m:g} | "
-            f"{sum(r.covered for r in rows)} | {sum(r.inside_widened for r in rows)} | {missed} |"
+            f"| {run} | {p.impeller_rpm:g} | {p.feed_rate_total_per_s:g} | {p.length_m:g} | {how} | "
+            f"{scores.get(run, math.nan):.4f} | {sum(r.covered for r in rows)} | {sum(r.inside_widened for r in rows)} | "
+            f"{verdict} |"
         )
     lines += [
         "",
-        "| quantity | coverage | median half-width [% of value] | seed scatter sd |",
-        "| --- | --- | --- | --- |",
+        "| quantity | coverage, interpolated | median half-width, interpolated [% of value] | coverage, extrapolated "
+        "| median half-width, extrapolated [%] | seed scatter sd |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for key in keys:
-        rows = [r for r in result.rows if r.key == key]
-        if not rows:
-            continue
-        cover = sum(r.covered for r in rows) / len(rows)
-        half = float(np.median([r.relative_half_width for r in rows]))
+        inside = [r for r in result.rows if r.key == key and r.interpolated]
+        outside = [r for r in result.rows if r.key == key and not r.interpolated]
         seed = result.seed_sd.get(key, math.nan)
         scale = "" if key in ABSOLUTE_KEYS else " (log)"
-        lines.append(f"| {key} | {cover:.0%} | {100 * half:.1f} | {seed:.3g}{scale} |")
+        lines.append(
+            f"| {key} | {_share(inside)} | {_half(inside)} | {_share(outside)} | {_half(outside)} | {seed:.3g}{scale} |"
+        )
     if result.seed_pairs:
         lines += ["", "Seed pairs: " + "; ".join(f"{a} and {b}" for a, b in result.seed_pairs)]
     return "\n".join(lines)
+
+
+def _percent(value: float) -> str:
+    return "-" if not math.isfinite(value) else f"{value:.1%}"
+
+
+def _share(rows: list[CheckedQuantity]) -> str:
+    rows = [r for r in rows if math.isfinite(r.low)]
+    return f"{sum(r.covered for r in rows)}/{len(rows)}" if rows else "-"
+
+
+def _half(rows: list[CheckedQuantity]) -> str:
+    values = [r.relative_half_width for r in rows if math.isfinite(r.low)]
+    return f"{100 * float(np.median(values)):.1f}" if values else "-"

@@ -21,7 +21,11 @@ The covariates (the constant always first):
 * ``weir``: 1 in the last slice, 0 elsewhere: its forward move is the discharge over the
   weir, not a blade's push into the next slice; ``weir_speed``, ``weir_feed``,
   ``weir_length``: ``weir`` times ``speed``, ``feed``, ``length`` (the discharge answers
-  the bed's depth at the weir otherwise than the blades' transport does).
+  the bed's depth at the weir otherwise than the blades' transport does);
+* ``blades``: the blade stations in the slice (0, 1 or 2): a blender of another length
+  keeps its station spacing, so its slices hold other numbers of stations, and a slice's
+  transport is its stations' (the law's rates tied to the blade sections, not to the
+  slice's index).
 
 The axial law carries the residence time and the slices' hold-ups. The transverse moves
 (across y, which carry the outlet's composition) come from each run's table (its phase
@@ -73,6 +77,7 @@ COVARIATES = (
     "weir_speed",
     "weir_feed",
     "weir_length",
+    "blades",
 )
 DEFAULT_COVARIATES = COVARIATES
 #: the transverse law's covariates: those of the run, not of the slice (it is fitted per
@@ -137,6 +142,9 @@ def covariate_columns(point: OperatingPoint, nx: int, names: Sequence[str]) -> n
     per_run = run_covariates(point, nx)
     values = {name: np.full(nx, value) for name, value in per_run.items()}
     weir = (np.arange(nx) == nx - 1).astype(float)
+    edges = np.linspace(0.0, point.length_m, nx + 1)
+    edges[-1] += 1e-12  # a station at the weir belongs to the last slice
+    values["blades"] = np.histogram(np.asarray(point.blade_x_m, dtype=float), bins=edges)[0].astype(float)
     values.update({"position": position, "position2": position**2, "weir": weir})
     values.update({f"weir_{name}": weir * per_run[name] for name in ("speed", "feed", "length")})
     return np.column_stack([np.ones(nx)] + [values[name] for name in names])
@@ -201,7 +209,8 @@ class LibraryRun:
         return self.dem["little_mean_residence_time_s"]
 
 
-def _digest(path: Path) -> str:
+def file_digest(path: Path) -> str:
+    """The results file's stored content digest (its bytes' when it has none)."""
     with h5py.File(path, "r") as h5:
         digest = stored_digest(h5)
     if digest is None:  # an unsigned file: its bytes
@@ -240,7 +249,7 @@ def library_run(path: str | Path, names: Sequence[str], lag_s: float = PHASE_LAG
     return LibraryRun(
         name,
         path,
-        _digest(path),
+        file_digest(path),
         LawRun(data, covariate_columns(point, AXIAL_SLICES, names), name),
         point,
         config.dem.numerics.seed,
@@ -355,28 +364,43 @@ class ErrorModel:
 class Calibration:
     """Each quantity's prediction error, measured on the runs left out: ``residuals``
     [key] one per run (log ratio DEM / prediction; DEM - prediction for
-    :data:`ABSOLUTE_KEYS`), NaN where the DEM lacks the quantity."""
+    :data:`ABSOLUTE_KEYS`), NaN where the DEM lacks the quantity; ``inside`` per run:
+    whether it lies inside the domain of the other runs (its prediction was an
+    interpolation, not an extrapolation)."""
 
     residuals: dict[str, list[float]]
+    inside: list[bool]
 
-    def error(self, key: str, leave: int | None = None) -> ErrorModel:
-        """:class:`ErrorModel` of ``key``, without run ``leave``; NaN from fewer than 2 runs."""
+    def error(self, key: str, leave: int | None = None, extrapolated: bool = False) -> ErrorModel:
+        """:class:`ErrorModel` of ``key`` without run ``leave``: over the runs predicted
+        from inside the others' domain, or, for an ``extrapolated`` point, over every run
+        (the extrapolations' larger errors included), and so when fewer than 2 runs were
+        predicted from inside; NaN from fewer than 2 runs."""
         values = np.asarray(self.residuals.get(key, []), dtype=float)
+        use = np.isfinite(values)
         if leave is not None and values.size:
-            values = np.delete(values, leave)
-        values = values[np.isfinite(values)]
+            use[leave] = False
+        inside = use & np.asarray(self.inside, dtype=bool)
+        values = values[use if extrapolated or inside.sum() < 2 else inside]
         if values.size < 2:
             return ErrorModel(math.nan, math.nan, int(values.size))
         return ErrorModel(float(values.mean()), float(values.std(ddof=1)), int(values.size))
 
     def record(self) -> dict[str, Any]:
-        return {"residuals": {k: [v if math.isfinite(v) else None for v in vals] for k, vals in self.residuals.items()}}
+        return {
+            "residuals": {k: [v if math.isfinite(v) else None for v in vals] for k, vals in self.residuals.items()},
+            "inside": list(self.inside),
+        }
 
     @classmethod
     def from_record(cls, record: dict) -> Calibration:
-        return cls(
-            {str(k): [math.nan if v is None else float(v) for v in vals] for k, vals in record["residuals"].items()}
-        )
+        residuals = {
+            str(k): [math.nan if v is None else float(v) for v in vals] for k, vals in record["residuals"].items()
+        }
+        inside = [bool(v) for v in record["inside"]]
+        if any(len(v) != len(inside) for v in residuals.values()):
+            raise ValueError("the calibration's residuals and inside flags differ in length")
+        return cls(residuals, inside)
 
 
 @dataclass(frozen=True)
@@ -393,6 +417,8 @@ class LibraryModel:
     interval_s: float
     calibration: Calibration | None = None
     settings: dict[str, Any] = field(default_factory=dict)
+    #: each run's log-likelihood under the law fitted without it [nats per particle-step]
+    left_out_scores: tuple[float, ...] = ()
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -415,6 +441,7 @@ class LibraryModel:
             "left_out": [law.record() for law in self.left_out],
             "transverse_left_out": [t.record() for t in self.transverse_left_out],
             "calibration": None if self.calibration is None else self.calibration.record(),
+            "left_out_scores": list(self.left_out_scores),
         }
 
     @classmethod
@@ -438,6 +465,7 @@ class LibraryModel:
                 float(record["interval_s"]),
                 None if record.get("calibration") is None else Calibration.from_record(record["calibration"]),
                 dict(record.get("settings") or {}),
+                tuple(float(v) for v in record.get("left_out_scores") or ()),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(
@@ -566,11 +594,12 @@ def fit_library(
     model without its calibration (:func:`workflows.prediction.calibration.calibrated`)."""
     log(f"law of {len(runs)} runs, {settings.iterations} EM iterations")
     law = cached_fit(runs, settings, settings.iterations, cache)
-    left = []
+    left, scores = [], []
     for n, run in enumerate(runs):
         log(f"law without {run.name}")
         rest = [r for m, r in enumerate(runs) if m != n]
         left.append(cached_fit(rest, settings, settings.left_out_iterations, cache, start=law))
+        scores.append(left[-1].score(run.law_run) / max(run.law_run.data.n_steps, 1))
     transverse = fit_transverse(runs)
     transverse_left = tuple(fit_transverse([r for m, r in enumerate(runs) if m != n]) for n in range(len(runs)))
     return LibraryModel(
@@ -582,4 +611,5 @@ def fit_library(
         float(runs[0].law_run.data.interval_s),
         None,
         settings.record(),
+        tuple(scores),
     )

@@ -20,15 +20,19 @@ defined over the DEM's entry window, a little shorter than Little's-law time tha
 chain's own mean equals): the prediction is the law's value less b. Their standard
 deviation s and the jackknife variance v(x) over the laws left out of the prediction at x
 itself, which grows away from the library, make the 95 % interval: the prediction
-+- t(0.975, n - 1) sqrt(s^2 (1 + 1/n) + v(x)), n the count of calibration runs. Outside the library's domain (:func:`domain_issues`) a prediction is
-refused unless extrapolation is asked for; then it is labelled, and its half-width is
-multiplied by 1 + the distance outside the domain in units of the domain's width (one
-more for each fixed property the library does not vary, e.g. a particle size it never ran).
++- t(0.975, n - 1) sqrt(s^2 (1 + 1/n) + v(x)), n the count of calibration runs. Inside the domain (:func:`domain_issues`) the calibration runs are those
+that lay inside the domain of the others (their prediction was an interpolation too).
+Outside it a prediction is refused unless extrapolation is asked for; then it is labelled,
+its calibration is every run's (the extrapolated ones' larger errors included), and its
+half-width is multiplied by 1 + the distance outside the domain in units of the domain's
+width (one more for each fixed property the library does not vary, e.g. a particle size it
+never ran).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -226,11 +230,11 @@ def _fixed(point: OperatingPoint) -> dict[str, Any]:
     return {name: getattr(point, name) for name in FIXED}
 
 
-def domain(model: LibraryModel) -> Domain:
-    values = [run_covariates(r.point) for r in model.runs]
+def domain(points: Sequence[OperatingPoint]) -> Domain:
+    """The :class:`Domain` of a library's operating points."""
+    values = [run_covariates(p) for p in points]
     ranges = {axis: (min(v[axis] for v in values), max(v[axis] for v in values)) for axis in DOMAIN_AXES}
-    fixed = _fixed(model.runs[0].point)
-    return Domain(ranges, fixed)
+    return Domain(ranges, _fixed(points[0]))
 
 
 def domain_issues(dom: Domain, point: OperatingPoint) -> tuple[list[str], float]:
@@ -350,7 +354,7 @@ def predict(model: LibraryModel, point: OperatingPoint, extrapolate: bool = Fals
     unknown = sorted(set(model.names) - set(COVARIATES))
     if unknown:
         raise ConfigError(f"the library's law has covariates {unknown} this tool does not know")
-    dom = domain(model)
+    dom = domain([r.point for r in model.runs])
     issues, widening = domain_issues(dom, point)
     if issues and not extrapolate:
         raise ConfigError(
@@ -365,7 +369,7 @@ def predict(model: LibraryModel, point: OperatingPoint, extrapolate: bool = Fals
     quantities = []
     for key in quantity_keys():
         value = values.values[key]
-        error = model.calibration.error(key)
+        error = model.calibration.error(key, extrapolated=bool(issues))
         spread = math.sqrt(jackknife([v.values for v in left], key))
         centre, low, high = corrected(key, value, error, spread, widening)
         quantities.append(PredictedQuantity(key, centre, low, high, value, error, spread, widening))

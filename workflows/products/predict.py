@@ -72,6 +72,32 @@ def library_fit(
 
 
 @dataclass(frozen=True)
+class LibraryCheckOutput:
+    check: calibration.Check
+    text: str
+    files: dict[str, Path]
+
+
+def library_check(
+    paths: list[str], library: str | Path | None = None, extrapolate: bool = False, out: str | Path | None = None
+) -> LibraryCheckOutput:
+    """DEM runs the library does not hold, predicted and judged
+    (:func:`workflows.prediction.calibration.judge_results`); ``out``: the folder of
+    ``check.json`` and ``check.md``."""
+    library_path = Path(library) if library is not None else LIBRARY_MODEL
+    model = load_model(library_path)
+    check = calibration.judge_results(model, paths, extrapolate)
+    text = calibration.markdown(model, check, calibration.NOT_HELD)
+    files: dict[str, Path] = {}
+    if out is not None:
+        folder = writable_directory(out, "--out")
+        files["check"] = write_json(folder / "check.json", check.record())
+        files["page"] = folder / "check.md"
+        files["page"].write_text(f"# DEM runs the library does not hold, predicted by {library_path}\n\n{text}\n")
+    return LibraryCheckOutput(check, text, files)
+
+
+@dataclass(frozen=True)
 class PredictOutput:
     prediction: Prediction
     files: dict[str, Path]

@@ -24,6 +24,11 @@
    where it is poor, a lenient yardstick would pass anything. A change is predicted ("the
    hybrid predicts this") when every judged quantity of a rate mode is; else "this needs a
    new DEM run", with the failing quantities of the mode that came nearest.
+4. :func:`library_law_verdicts` -- beside those routes, each run that is also a run of the
+   shipped DEM library predicted by the library's law fitted without it (``pbmdem
+   predict``'s model, :mod:`workflows.prediction`): predicted when its mean residence time,
+   RTD variance, Little's-law time and hold-up, and all but two of its other quantities, lie
+   inside the DEM's interval widened by the seed scatter.
 """
 
 from __future__ import annotations
@@ -32,21 +37,30 @@ import time
 from pathlib import Path
 from typing import Any
 
-from coupling.errors import OutputError, os_reason
+from coupling.errors import ConfigError, OutputError, error_line, os_reason
 from coupling.files import writable_directory
 from coupling.jsonable import json_ready, write_json
 from dem.run import can_resume, prepare_run
 from workflows.analysis.budget import budget_study
 from workflows.analysis.step import step_comparison
-from workflows.analysis.validation import campaign_span_s, library_law, predictions, verdicts
+from workflows.analysis.validation import (
+    LawVerdict,
+    campaign_span_s,
+    law_verdicts,
+    library_law,
+    predictions,
+    verdicts,
+)
 from workflows.config import Config, load_preset, override
 from workflows.pipeline.log import Log, stderr_log
 from workflows.pipeline.stages import DemSide, dem_stage
+from workflows.prediction import calibration
+from workflows.prediction.library import load_model
 from workflows.products.campaign import Campaign, load_campaign
 from workflows.report.budget import plot_budget
 from workflows.report.step import plot_step, step_html
 from workflows.report.validation import plot_parity, plot_profiles, render_report
-from workflows.shipped import STEP_DIR, VALIDATION_DIR
+from workflows.shipped import LIBRARY_MODEL, STEP_DIR, VALIDATION_DIR
 
 
 def campaign_configs(base: Config | None = None, campaign: Campaign | None = None) -> dict[str, Config]:
@@ -110,6 +124,7 @@ def validation_report(
     )
     preds = predictions(sides, configs, log=log)
     judged = verdicts(preds)
+    law = library_law_verdicts(sides, log)
     campaign = _campaign_rows(sides, changes.labels())
     span_s = campaign_span_s(sides)
     base = sides["baseline"].results
@@ -146,6 +161,7 @@ def validation_report(
                     "campaign": campaign,
                     "campaign_elapsed_s": span_s,
                     "verdicts": [v.record() for v in judged],
+                    "library_law": [v.record() for v in law],
                     "dem_budget": None if budget is None else budget.record(),
                     "step_response": None if step is None else step.record(),
                     "predictions": [
@@ -164,11 +180,25 @@ def validation_report(
                 budget,
                 span_s,
                 None if step is None else step_html(step, figures.get("step")),
+                law,
             )
         )
     except OSError as exc:
         raise OutputError(f"cannot write the validation report in {out_dir}: {os_reason(exc)}") from exc
     return page
+
+
+def library_law_verdicts(sides: dict[str, DemSide], log: Log = stderr_log) -> list[LawVerdict]:
+    """Each campaign run predicted by the shipped library's law fitted without it
+    (:func:`workflows.analysis.validation.law_verdicts`); none, with a line in the log, when
+    the library model is missing or unreadable."""
+    try:
+        model = load_model(LIBRARY_MODEL)
+    except ConfigError as exc:
+        log(f"no prediction from the library's law: {error_line(exc)}")
+        return []
+    log("the library's law: each campaign run predicted without it")
+    return law_verdicts(sides, calibration.check(model))
 
 
 STEP_OVERRIDES = ("dem.operation.step_time_s=80", "dem.operation.step_factor_a=2", "dem.operation.duration_s=170")

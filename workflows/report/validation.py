@@ -12,7 +12,7 @@ from matplotlib.figure import Figure
 
 from workflows.analysis.agreement import MODES
 from workflows.analysis.budget import BudgetStudy
-from workflows.analysis.validation import Prediction, PredictionVerdict
+from workflows.analysis.validation import LawVerdict, Prediction, PredictionVerdict
 from workflows.report.comparison import MODE_STYLES, fmt
 
 SOURCE_COLOURS = {
@@ -135,6 +135,7 @@ def render_report(
     budget: BudgetStudy | None = None,
     span_s: float | None = None,
     step_section: str | None = None,
+    law: list[LawVerdict] | None = None,
 ) -> str:
     """The validation page: the campaign, a verdict per change, the numbers behind each."""
     total = sum(r["dem_wall_time_s"] or 0 for r in campaign)
@@ -188,6 +189,8 @@ def render_report(
             f"<td>{html.escape(v.verdict)}</td></tr>"
         )
     parts.append("</table>")
+    if law:
+        parts.extend(_law_section(law))
     for name in ("parity", "profiles"):
         if name in figures:
             parts.append(f"<p><img src='{figures[name]}' style='max-width:100%'></p>")
@@ -198,6 +201,28 @@ def render_report(
     parts.extend(_numbers_section(judged))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _law_section(law: list[LawVerdict]) -> list[str]:
+    """Each change predicted by the library's law fitted without that run."""
+    parts = [
+        "<h2>Predicted by the library's law, the run left out (<code>pbmdem predict</code>)</h2>",
+        "<p>One transport law fitted to the DEM library (the campaign and "
+        "<code>workflows/reference/library/</code>) less the run judged, at that run's operating point. "
+        "Predicted when the mean residence time, RTD variance, Little's-law time and hold-up, and all but "
+        "two other quantities, lie inside the DEM's 95 % interval widened by the DEM's scatter between seeds "
+        "(<code>pbmdem library fit</code>, <code>workflows/reference/library/law/calibration.md</code>).</p>",
+        "<table><tr><th>run</th><th>DEM inside the 95 % prediction interval</th>"
+        "<th>prediction inside the widened DEM interval</th><th>verdict</th></tr>",
+    ]
+    for v in law:
+        parts.append(
+            f"<tr><td>{html.escape(v.run)}</td><td>{v.covered}/{v.n}</td>"
+            f"<td class='{'yes' if v.predicts else 'no'}'>{v.inside_widened}/{v.n}</td>"
+            f"<td>{html.escape(v.verdict)}</td></tr>"
+        )
+    parts.append("</table>")
+    return parts
 
 
 def _budget_section(budget: BudgetStudy, figures: dict[str, str]) -> list[str]:

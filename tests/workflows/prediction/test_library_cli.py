@@ -9,7 +9,7 @@ import pytest
 from coupling.tables import read_table
 from workflows.cli.main import main
 from workflows.prediction.library import load_model, quantity_keys
-from workflows.shipped import VALIDATION_DIR
+from workflows.shipped import LIBRARY_DIR, VALIDATION_DIR
 
 #: 150, 350 and 250 rpm at the baseline's length and feed
 SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
@@ -77,3 +77,16 @@ def test_a_library_file_that_is_not_one_is_refused_naming_it(tmp_path, capsys):
     assert main(["predict", "--config", VALIDATION, "--library", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "not a library model" in err
+
+
+def test_library_check_judges_a_run_the_library_does_not_hold_and_refuses_one_it_does(library, tmp_path, capsys):
+    seed2 = LIBRARY_DIR / "dem-4b9d0082c53c03af.h5"  # the baseline with another seed
+    argv = ["library", "check", "--library", str(library), "--results", str(seed2), "--out", str(tmp_path)]
+    assert main(argv) == 0
+    record = json.loads((tmp_path / "check.json").read_text())
+    rows = [r for r in record["rows"] if r["run"] == seed2.name]
+    assert len(rows) == len(quantity_keys()) and all(r["interpolated"] for r in rows)
+    assert seed2.name in (tmp_path / "check.md").read_text()
+    capsys.readouterr()
+    assert main(["library", "check", "--library", str(library), "--results", str(SPEEDS[0])]) == 2
+    assert "is the library's run" in capsys.readouterr().err

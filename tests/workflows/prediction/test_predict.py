@@ -84,7 +84,9 @@ def _model(spread_laws: bool = True) -> LibraryModel:
     runs = tuple(LibraryEntry(f"run{n}.h5", str(n), p, 15485863, dem) for n, p in enumerate(points))
     left = tuple(_law(0.6 * (1 + 0.02 * (n - 1) * spread_laws)) for n in range(3))
     residuals = {key: [0.01, -0.02, 0.04] for key in quantity_keys()}
-    return LibraryModel(_law(), _transverse(), runs, left, (_transverse(),) * 3, 0.1, Calibration(residuals))
+    return LibraryModel(
+        _law(), _transverse(), runs, left, (_transverse(),) * 3, 0.1, Calibration(residuals, [False, True, False])
+    )
 
 
 def test_a_point_inside_the_domain_is_predicted_with_every_quantity_and_its_interval():
