@@ -65,7 +65,7 @@ MAY_MISS = 2
 def left_out_values(model: LibraryModel) -> list[PointValues]:
     """Each run's quantities from the law fitted without it, at its operating point."""
     return [
-        point_values(law, transverse, entry.point, model.interval_s)
+        point_values(law, transverse, entry.point, model.blade_pattern, model.interval_s)
         for law, transverse, entry in zip(model.left_out, model.transverse_left_out, model.runs)
     ]
 
@@ -73,8 +73,8 @@ def left_out_values(model: LibraryModel) -> list[PointValues]:
 def _others(model: LibraryModel, n: int) -> tuple[list[str], float]:
     """Run ``n``'s place against the domain of the other runs: (what lies outside it, the
     widening :func:`workflows.prediction.predict.predict` would give it)."""
-    others = domain([r.point for m, r in enumerate(model.runs) if m != n])
-    return domain_issues(others, model.runs[n].point)
+    others = domain([r.point for m, r in enumerate(model.runs) if m != n], model.blade_pattern)
+    return domain_issues(others, model.runs[n].point, model.blade_pattern)
 
 
 def calibrated(model: LibraryModel) -> LibraryModel:
@@ -82,6 +82,11 @@ def calibrated(model: LibraryModel) -> LibraryModel:
     lay inside the others' domain."""
     predicted = left_out_values(model)
     inside = [not _others(model, n)[0] for n in range(len(model.runs))]
+    at_runs = [_left_out_at(model, entry.point) for entry in model.runs]
+    reference = {}
+    for key in quantity_keys():
+        variances = [jackknife(at, key) for at, ok in zip(at_runs, inside) if ok]
+        reference[key] = float(np.mean(variances)) if variances else 0.0
     residuals = {
         key: [
             residual(key, entry.dem[key].value, values.values[key]) if key in entry.dem else math.nan
@@ -89,7 +94,15 @@ def calibrated(model: LibraryModel) -> LibraryModel:
         ]
         for key in quantity_keys()
     }
-    return replace(model, calibration=Calibration(residuals, inside))
+    return replace(model, calibration=Calibration(residuals, inside, reference))
+
+
+def _left_out_at(model: LibraryModel, point: OperatingPoint) -> list[dict[str, float]]:
+    """Every law left out's quantities at ``point``."""
+    return [
+        point_values(law, transverse, point, model.blade_pattern, model.interval_s).values
+        for law, transverse in zip(model.left_out, model.transverse_left_out)
+    ]
 
 
 def seed_scatter(model: LibraryModel) -> tuple[dict[str, float], list[tuple[str, str]]]:
@@ -229,15 +242,12 @@ def check(model: LibraryModel) -> Check:
     rows = []
     for n, (entry, values) in enumerate(zip(model.runs, predicted)):
         issues, widening = _others(model, n)
-        at_point = [
-            point_values(law, transverse, entry.point, model.interval_s).values
-            for law, transverse in zip(model.left_out, model.transverse_left_out)
-        ]
+        at_point = _left_out_at(model, entry.point)
         for key in quantity_keys():
             dem = entry.dem.get(key)
             if dem is None:
                 continue
-            spread = math.sqrt(jackknife(at_point, key))
+            spread = math.sqrt(calibration.excess(key, jackknife(at_point, key)))
             error = calibration.error(key, leave=n, extrapolated=bool(issues))
             centre, low, high = corrected(key, values.values[key], error, spread, widening)
             rows.append(
@@ -275,7 +285,7 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
         results, config = load_results(path)
         point = run_operating_point(results.table, config)
         points[path.name] = point
-        prediction = predict(model, point, extrapolate)
+        prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
         dem = dem_quantities(results.summary)
         for q in prediction.quantities:
             if q.key in dem:

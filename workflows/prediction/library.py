@@ -25,7 +25,10 @@ The covariates (the constant always first):
 * ``blades``: the blade stations in the slice (0, 1 or 2): a blender of another length
   keeps its station spacing, so its slices hold other numbers of stations, and a slice's
   transport is its stations' (the law's rates tied to the blade sections, not to the
-  slice's index).
+  slice's index);
+* ``push``: the slice's forward stations less its backward ones (-1, 0 or 1): the paddles
+  alternate, so a blender of another length ends on another orientation at the weir, and
+  one with an odd number of stations pushes forward once more than back.
 
 The axial law carries the residence time and the slices' hold-ups. The transverse moves
 (across y, which carry the outlet's composition) come from each run's table (its phase
@@ -78,6 +81,7 @@ COVARIATES = (
     "weir_feed",
     "weir_length",
     "blades",
+    "push",
 )
 DEFAULT_COVARIATES = COVARIATES
 #: the transverse law's covariates: those of the run, not of the slice (it is fitted per
@@ -132,9 +136,13 @@ def run_covariates(point: OperatingPoint, nx: int = AXIAL_SLICES) -> dict[str, f
     }
 
 
-def covariate_columns(point: OperatingPoint, nx: int, names: Sequence[str]) -> np.ndarray:
+def covariate_columns(point: OperatingPoint, nx: int, names: Sequence[str], pattern: str) -> np.ndarray:
     """(NX, 1 + len(names)) covariates of the ``nx`` axial slices of a run at ``point``
-    (module docstring), the constant first. Raises ConfigError for an unknown name."""
+    whose blade stations are oriented by ``pattern`` (the geometry's ``blade_pattern``,
+    cycled from the inlet: "F" pushes towards the weir, "B" back) (module docstring), the
+    constant first. Raises ConfigError for an unknown name or pattern."""
+    if not pattern or set(pattern) - {"F", "B"}:
+        raise ConfigError(f"blade pattern {pattern!r}: letters F (forward) and B (backward) only")
     unknown = sorted(set(names) - set(COVARIATES))
     if unknown:
         raise ConfigError(f"covariates {unknown} unknown; valid: {', '.join(COVARIATES)}")
@@ -144,7 +152,10 @@ def covariate_columns(point: OperatingPoint, nx: int, names: Sequence[str]) -> n
     weir = (np.arange(nx) == nx - 1).astype(float)
     edges = np.linspace(0.0, point.length_m, nx + 1)
     edges[-1] += 1e-12  # a station at the weir belongs to the last slice
-    values["blades"] = np.histogram(np.asarray(point.blade_x_m, dtype=float), bins=edges)[0].astype(float)
+    stations = np.asarray(point.blade_x_m, dtype=float)
+    values["blades"] = np.histogram(stations, bins=edges)[0].astype(float)
+    forward = np.array([1.0 if pattern[s % len(pattern)] == "F" else -1.0 for s in range(stations.size)])
+    values["push"] = np.histogram(stations, bins=edges, weights=forward)[0]
     values.update({"position": position, "position2": position**2, "weir": weir})
     values.update({f"weir_{name}": weir * per_run[name] for name in ("speed", "feed", "length")})
     return np.column_stack([np.ones(nx)] + [values[name] for name in names])
@@ -195,6 +206,7 @@ class LibraryRun:
     digest: str
     law_run: LawRun
     point: OperatingPoint
+    blade_pattern: str
     seed: int | None
     dem: dict[str, Estimate]
     entering: np.ndarray
@@ -238,6 +250,7 @@ def library_run(path: str | Path, names: Sequence[str], lag_s: float = PHASE_LAG
     entering = first_compartments(data)[:2]
     entering = entering / max(entering.sum(), 1e-300) * feed
     name = f"{path.name} ({point.impeller_rpm:g} rpm, {feed:g} /s, {point.length_m:g} m)"
+    pattern = config.dem.geometry.blade_pattern
     table = results.table
     transverse = None
     if table.phases is not None and table.nx % AXIAL_SLICES == 0:
@@ -250,8 +263,9 @@ def library_run(path: str | Path, names: Sequence[str], lag_s: float = PHASE_LAG
         name,
         path,
         file_digest(path),
-        LawRun(data, covariate_columns(point, AXIAL_SLICES, names), name),
+        LawRun(data, covariate_columns(point, AXIAL_SLICES, names, pattern), name),
         point,
+        pattern,
         config.dem.numerics.seed,
         dem,
         entering,
@@ -327,6 +341,7 @@ class LibraryEntry:
     file: str
     digest: str
     point: OperatingPoint
+    blade_pattern: str
     seed: int | None
     dem: dict[str, Estimate]
 
@@ -335,6 +350,7 @@ class LibraryEntry:
             "file": self.file,
             "digest": self.digest,
             "point": self.point.record(),
+            "blade_pattern": self.blade_pattern,
             "seed": self.seed,
             "dem": {key: e.record() for key, e in self.dem.items()},
         }
@@ -345,6 +361,7 @@ class LibraryEntry:
             str(record["file"]),
             str(record["digest"]),
             OperatingPoint.from_record(record["point"], source),
+            str(record["blade_pattern"]),
             None if record.get("seed") is None else int(record["seed"]),
             {str(k): Estimate.from_record(v) for k, v in dict(record["dem"]).items()},
         )
@@ -370,6 +387,13 @@ class Calibration:
 
     residuals: dict[str, list[float]]
     inside: list[bool]
+    #: per quantity, the mean jackknife variance of the laws left out at the points of the
+    #: runs predicted from inside: what the residuals already hold of it
+    jackknife: dict[str, float] = field(default_factory=dict)
+
+    def excess(self, key: str, variance: float) -> float:
+        """The jackknife variance at a point beyond its mean at the calibration's points."""
+        return max(variance - self.jackknife.get(key, 0.0), 0.0)
 
     def error(self, key: str, leave: int | None = None, extrapolated: bool = False) -> ErrorModel:
         """:class:`ErrorModel` of ``key`` without run ``leave``: over the runs predicted
@@ -390,6 +414,7 @@ class Calibration:
         return {
             "residuals": {k: [v if math.isfinite(v) else None for v in vals] for k, vals in self.residuals.items()},
             "inside": list(self.inside),
+            "jackknife": self.jackknife,
         }
 
     @classmethod
@@ -400,7 +425,8 @@ class Calibration:
         inside = [bool(v) for v in record["inside"]]
         if any(len(v) != len(inside) for v in residuals.values()):
             raise ValueError("the calibration's residuals and inside flags differ in length")
-        return cls(residuals, inside)
+        jackknife = {str(k): float(v) for k, v in dict(record.get("jackknife") or {}).items()}
+        return cls(residuals, inside, jackknife)
 
 
 @dataclass(frozen=True)
@@ -428,6 +454,11 @@ class LibraryModel:
     @property
     def grid(self) -> tuple[int, int]:
         return self.transverse.grid
+
+    @property
+    def blade_pattern(self) -> str:
+        """The orientation of the library's blade stations (every run's)."""
+        return self.runs[0].blade_pattern
 
     def record(self) -> dict[str, Any]:
         return {
@@ -574,6 +605,9 @@ def load_runs(paths: Sequence[str | Path], settings: FitSettings) -> list[Librar
     """The library's runs; raises ConfigError for fewer than 3 or for one file given twice
     (by content: a copy would count one run's particles twice)."""
     runs = [library_run(p, settings.covariates) for p in paths]
+    patterns = sorted({run.blade_pattern for run in runs})
+    if len(patterns) > 1:
+        raise ConfigError(f"the runs' blade patterns differ ({patterns}): one library needs one pattern")
     seen: dict[str, Path] = {}
     for run in runs:
         if run.digest in seen:
@@ -605,7 +639,7 @@ def fit_library(
     return LibraryModel(
         law,
         transverse,
-        tuple(LibraryEntry(r.path.name, r.digest, r.point, r.seed, r.dem) for r in runs),
+        tuple(LibraryEntry(r.path.name, r.digest, r.point, r.blade_pattern, r.seed, r.dem) for r in runs),
         tuple(left),
         transverse_left,
         float(runs[0].law_run.data.interval_s),

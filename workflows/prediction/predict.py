@@ -18,9 +18,10 @@ law's misfit, the seed's scatter of the DEM value and the fit's own uncertainty 
 points). Their mean b is the law's bias on that quantity (the RTD's mean, for one, is
 defined over the DEM's entry window, a little shorter than Little's-law time that the
 chain's own mean equals): the prediction is the law's value less b. Their standard
-deviation s and the jackknife variance v(x) over the laws left out of the prediction at x
+deviation s, and the jackknife variance v(x) over the laws left out of the prediction at x
 itself, which grows away from the library, make the 95 % interval: the prediction
-+- t(0.975, n - 1) sqrt(s^2 (1 + 1/n) + v(x)), n the count of calibration runs. Inside the domain (:func:`domain_issues`) the calibration runs are those
++- t(0.975, n - 1) sqrt(s^2 (1 + 1/n) + max(v(x) - v_c, 0)), n the count of calibration
+runs and v_c the mean of v at their points (s already holds that much of it). Inside the domain (:func:`domain_issues`) the calibration runs are those
 that lay inside the domain of the others (their prediction was an interpolation too).
 Outside it a prediction is refused unless extrapolation is asked for; then it is labelled,
 its calibration is every run's (the extrapolated ones' larger errors included), and its
@@ -46,7 +47,7 @@ from coupling.metrics import sampled_lacey, sampled_rsd
 from coupling.operating import OperatingPoint
 from coupling.phases import PhaseTransport
 from coupling.tables import VelocityTable, make_table
-from dem.phases.assembly import with_transverse
+from dem.phases.assembly import axial_part, with_transverse
 from dem.phases.chain import steady_occupancy
 from dem.phases.law import PhaseLaw
 from pbm.feed import feed_at
@@ -78,10 +79,13 @@ RTD_POINTS = 240
 
 
 # ------------------------------------------------------------------ the chain of a point
-def point_chain(law: PhaseLaw, transverse: TransverseLaw, point: OperatingPoint, interval_s: float) -> PhaseTransport:
-    """The law's phase model of ``point`` on the library's grid (module docstring)."""
+def point_chain(
+    law: PhaseLaw, transverse: TransverseLaw, point: OperatingPoint, pattern: str, interval_s: float
+) -> PhaseTransport:
+    """The law's phase model of ``point`` (its stations oriented by ``pattern``) on the
+    library's grid (module docstring)."""
     names = law.covariate_names[1:]
-    axial = law.chain(covariate_columns(point, AXIAL_SLICES, names), AXIAL_SLICES, 1, interval_s)
+    axial = law.chain(covariate_columns(point, AXIAL_SLICES, names, pattern), AXIAL_SLICES, 1, interval_s)
     nx, ny = transverse.grid
     if nx != AXIAL_SLICES:
         raise ConfigError(f"the transverse law's grid has {nx} slices; the law's is {AXIAL_SLICES}")
@@ -107,12 +111,22 @@ def rtd_moments(model: PhaseTransport, feed: np.ndarray) -> tuple[float, float]:
     """(mean [s], variance [s^2]) of the time to discharge of particles entering as
     ``feed`` (2, S) says, in the model's entry phases: the phase-type moments
     a (-T)^-1 1 and 2 a (-T)^-2 1 of the chain's transient part T."""
+    model, feed = _axial(model, feed)
     alpha = _initial(model, feed)
     t = model.generator()[:-1, :-1]
     first = np.linalg.solve(-t.T, alpha)  # a (-T)^-1 as a column
     mean = float(first.sum())
     second = 2.0 * float(np.linalg.solve(-t.T, first).sum())
     return mean, max(second - mean**2, 0.0)
+
+
+def _axial(model: PhaseTransport, feed: np.ndarray) -> tuple[PhaseTransport, np.ndarray]:
+    """The chain lumped onto its slices and the feed summed over y: the time to discharge
+    is the same (the axial moves and switching do not depend on y), from a far smaller
+    chain."""
+    if model.ny == 1:
+        return model, feed
+    return axial_part(model), feed.reshape(2, model.nx, model.ny).sum(axis=2)
 
 
 def _initial(model: PhaseTransport, feed: np.ndarray) -> np.ndarray:
@@ -124,6 +138,7 @@ def _initial(model: PhaseTransport, feed: np.ndarray) -> np.ndarray:
 def rtd_curve(model: PhaseTransport, feed: np.ndarray, times: np.ndarray) -> np.ndarray:
     """E(t) [1/s] of the chain at ``times`` (evenly spaced from 0): the density of the time
     to discharge, a exp(T t) (-T 1)."""
+    model, feed = _axial(model, feed)
     alpha = _initial(model, feed)
     q = model.generator()
     t, exit_rate = q[:-1, :-1], q[:-1, -1]
@@ -146,8 +161,10 @@ class PointValues:
     counts: np.ndarray  # (2, NX, NY) steady particles of A and B
 
 
-def point_values(law: PhaseLaw, transverse: TransverseLaw, point: OperatingPoint, interval_s: float) -> PointValues:
-    model = point_chain(law, transverse, point, interval_s)
+def point_values(
+    law: PhaseLaw, transverse: TransverseLaw, point: OperatingPoint, pattern: str, interval_s: float
+) -> PointValues:
+    model = point_chain(law, transverse, point, pattern, interval_s)
     nx, ny = model.nx, model.ny
     feed = entering(point, nx, ny)
     # each feeder's particles alone: the chain is linear and A and B move alike
@@ -226,18 +243,18 @@ class Domain:
         )
 
 
-def _fixed(point: OperatingPoint) -> dict[str, Any]:
-    return {name: getattr(point, name) for name in FIXED}
+def _fixed(point: OperatingPoint, pattern: str) -> dict[str, Any]:
+    return {**{name: getattr(point, name) for name in FIXED}, "blade_pattern": pattern}
 
 
-def domain(points: Sequence[OperatingPoint]) -> Domain:
-    """The :class:`Domain` of a library's operating points."""
+def domain(points: Sequence[OperatingPoint], pattern: str) -> Domain:
+    """The :class:`Domain` of a library's operating points, its stations oriented by ``pattern``."""
     values = [run_covariates(p) for p in points]
     ranges = {axis: (min(v[axis] for v in values), max(v[axis] for v in values)) for axis in DOMAIN_AXES}
-    return Domain(ranges, _fixed(points[0]))
+    return Domain(ranges, _fixed(points[0], pattern))
 
 
-def domain_issues(dom: Domain, point: OperatingPoint) -> tuple[list[str], float]:
+def domain_issues(dom: Domain, point: OperatingPoint, pattern: str) -> tuple[list[str], float]:
     """(what lies outside ``dom``, the widening factor of :func:`predict`'s interval)."""
     issues, distance = [], 0.0
     values = run_covariates(point)
@@ -247,7 +264,7 @@ def domain_issues(dom: Domain, point: OperatingPoint) -> tuple[list[str], float]
         if excess > 1e-9:
             issues.append(f"{axis} outside the library's range")
             distance += excess / max(high - low, 1e-9)
-    for name, value in _fixed(point).items():
+    for name, value in _fixed(point, pattern).items():
         library = dom.fixed[name]
         if not (value == library or (isinstance(value, float) and math.isclose(value, library, rel_tol=1e-9))):
             issues.append(f"{name} = {value} (the library's is {library})")
@@ -275,7 +292,7 @@ def bounds(key: str, value: float, half: float) -> tuple[float, float]:
 class PredictedQuantity:
     """One quantity: ``value`` the law's prediction less its calibration bias, with its 95 %
     prediction interval; ``law_value`` the law's own; ``error`` the calibration's error
-    model and ``spread`` the jackknife's standard deviation at the point (both on the
+    model and ``spread`` the jackknife's standard deviation at the point beyond the calibration's (both on the
     quantity's scale); ``widening`` the factor outside the domain."""
 
     key: str
@@ -296,7 +313,7 @@ class PredictedQuantity:
             "bias": self.error.bias,
             "sd": self.error.sd,
             "calibration_runs": self.error.n,
-            "jackknife_sd": self.spread,
+            "jackknife_excess_sd": self.spread,
             "widening": self.widening,
         }
 
@@ -345,32 +362,32 @@ def jackknife(values: list[dict[str, float]], key: str) -> float:
     return float((n - 1) / n * np.sum((scaled - scaled.mean()) ** 2)) if n > 1 else 0.0
 
 
-def predict(model: LibraryModel, point: OperatingPoint, extrapolate: bool = False) -> Prediction:
-    """The prediction of ``point`` from ``model`` (module docstring). Raises ConfigError
-    when the model has no calibration, or the point lies outside the library's domain and
-    ``extrapolate`` is False."""
+def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolate: bool = False) -> Prediction:
+    """The prediction of ``point``, its blade stations oriented by ``pattern``, from
+    ``model`` (module docstring). Raises ConfigError when the model has no calibration, or
+    the point lies outside the library's domain and ``extrapolate`` is False."""
     if model.calibration is None:
         raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
     unknown = sorted(set(model.names) - set(COVARIATES))
     if unknown:
         raise ConfigError(f"the library's law has covariates {unknown} this tool does not know")
-    dom = domain([r.point for r in model.runs])
-    issues, widening = domain_issues(dom, point)
+    dom = domain([r.point for r in model.runs], model.blade_pattern)
+    issues, widening = domain_issues(dom, point, pattern)
     if issues and not extrapolate:
         raise ConfigError(
             f"the point lies outside the library's domain ({'; '.join(issues)}); the domain is {dom.describe()}. "
             "Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
-    values = point_values(model.law, model.transverse, point, model.interval_s)
+    values = point_values(model.law, model.transverse, point, model.blade_pattern, model.interval_s)
     left = [
-        point_values(law, transverse, point, model.interval_s)
+        point_values(law, transverse, point, model.blade_pattern, model.interval_s)
         for law, transverse in zip(model.left_out, model.transverse_left_out)
     ]
     quantities = []
     for key in quantity_keys():
         value = values.values[key]
         error = model.calibration.error(key, extrapolated=bool(issues))
-        spread = math.sqrt(jackknife([v.values for v in left], key))
+        spread = math.sqrt(model.calibration.excess(key, jackknife([v.values for v in left], key)))
         centre, low, high = corrected(key, value, error, spread, widening)
         quantities.append(PredictedQuantity(key, centre, low, high, value, error, spread, widening))
     mean = values.values["mean_residence_time_s"]

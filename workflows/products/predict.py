@@ -113,6 +113,8 @@ def prediction_record(prediction: Prediction, config_name: str, library: Path) -
         "outside_domain": list(prediction.outside),
         "domain": prediction.domain.describe(),
         "level": 0.95,
+        # the library's grid: the slices of holdup_slice_<i>, whatever grid the configuration's DEM would bin on
+        "grid": [prediction.values.model.nx, prediction.values.model.ny],
         "quantities": [q.record() for q in prediction.quantities],
         "interval_parts": {q.key: q.details() for q in prediction.quantities},
     }
@@ -132,7 +134,7 @@ def run_predict(
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
     point = operating_point(config.dem)
-    prediction = predict(model, point, extrapolate)
+    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
     folder = writable_directory(out, "--out")
     duration = config.dem.operation.duration_s
     if not duration > 0:

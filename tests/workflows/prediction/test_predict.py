@@ -81,7 +81,7 @@ BASE = operating_point(load_preset("validation").dem)
 def _model(spread_laws: bool = True) -> LibraryModel:
     points = [BASE.replace(impeller_rpm=rpm) for rpm in (150.0, 250.0, 350.0)]
     dem = {"holdup": Estimate(1.0, 0.9, 1.1)}
-    runs = tuple(LibraryEntry(f"run{n}.h5", str(n), p, 15485863, dem) for n, p in enumerate(points))
+    runs = tuple(LibraryEntry(f"run{n}.h5", str(n), p, "FB", 15485863, dem) for n, p in enumerate(points))
     left = tuple(_law(0.6 * (1 + 0.02 * (n - 1) * spread_laws)) for n in range(3))
     residuals = {key: [0.01, -0.02, 0.04] for key in quantity_keys()}
     return LibraryModel(
@@ -92,9 +92,9 @@ def _model(spread_laws: bool = True) -> LibraryModel:
 def test_a_point_inside_the_domain_is_predicted_with_every_quantity_and_its_interval():
     model = _model()
     point = BASE.replace(impeller_rpm=200.0)
-    prediction = predict(model, point)
+    prediction = predict(model, point, "FB")
     assert [q.key for q in prediction.quantities] == list(quantity_keys())
-    law = point_values(_law(), _transverse(), point, 0.1).values
+    law = point_values(_law(), _transverse(), point, "FB", 0.1).values
     error = model.calibration.error("holdup")
     assert error.n == 3 and error.bias == pytest.approx(0.01)
     holdup = prediction.quantity("holdup")
@@ -112,21 +112,23 @@ def test_a_point_outside_the_domain_is_refused_naming_it_unless_extrapolated():
     model = _model()
     point = BASE.replace(impeller_rpm=450.0)
     with pytest.raises(ConfigError, match=r"outside the library's domain \(speed.*150-350 rpm"):
-        predict(model, point)
-    inside = predict(model, BASE.replace(impeller_rpm=350.0)).quantity("holdup")
-    outside = predict(model, point, extrapolate=True)
+        predict(model, point, "FB")
+    inside = predict(model, BASE.replace(impeller_rpm=350.0), "FB").quantity("holdup")
+    outside = predict(model, point, "FB", extrapolate=True)
     assert outside.extrapolated and outside.outside == ("speed outside the library's range",)
     q = outside.quantity("holdup")
     assert q.widening == pytest.approx(1 + math.log(450 / 350) / math.log(350 / 150))
     assert math.log(q.high / q.value) > math.log(inside.high / inside.value)
     other_size = BASE.replace(particle_diameter_sd_m=0.0)
     with pytest.raises(ConfigError, match="particle_diameter_sd_m = 0.0"):
-        predict(model, other_size)
+        predict(model, other_size, "FB")
+    with pytest.raises(ConfigError, match="blade_pattern = FFB .the library's is FB"):
+        predict(model, BASE, "FFB")
 
 
 def test_the_pbm_on_the_written_table_settles_where_the_prediction_says():
     point = BASE.replace(impeller_rpm=200.0)
-    values = point_values(_law(), _transverse(), point, 0.1)
+    values = point_values(_law(), _transverse(), point, "FB", 0.1)
     table = point_table(values, point, 400.0)
     result = simulate(table, PbmConfig(rates="phases", duration_s=400.0, output_interval_s=5.0))
     late = result.times > 300.0

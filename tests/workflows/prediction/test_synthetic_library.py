@@ -68,7 +68,7 @@ def _empirical(sequences, feed: float) -> dict[str, Estimate]:
 
 def _run(rpm: float, feed: float, rng, name: str) -> LibraryRun:
     point = _point(rpm, feed)
-    x = np.column_stack([covariate_columns(point, NX, NAMES)])
+    x = np.column_stack([covariate_columns(point, NX, NAMES, "FB")])
     chain = law_chain(TRUE, ENTRY, x, NX, 1, K, INTERVAL_S)
     entering = np.zeros((2, NX))
     entering[:, 0] = feed / 2
@@ -81,6 +81,7 @@ def _run(rpm: float, feed: float, rng, name: str) -> LibraryRun:
         name,
         LawRun(prepare(sequences), x, name),
         point,
+        "FB",
         None,
         _empirical(sequences, feed),
         entering,
@@ -101,7 +102,7 @@ def test_intervals_from_runs_left_out_hold_at_points_the_library_never_ran(model
     checked, covered, widths = 0, 0, []
     for rpm, feed in UNSEEN:
         truth = _run(rpm, feed, rng, "new").dem
-        prediction = predict(model, _point(rpm, feed))
+        prediction = predict(model, _point(rpm, feed), "FB")
         for q in prediction.quantities:
             if q.key in truth and math.isfinite(q.low):
                 checked += 1
