@@ -62,6 +62,12 @@ HEADLINE = ("mean_residence_time_s", "rtd_variance_s2", "little_mean_residence_t
 MAY_MISS = 2
 
 
+def _slice_of(key: str, family: str) -> bool:
+    """``key`` is one slice's of ``family`` (``holdup_slice_3`` of ``holdup_slice``)."""
+    head, _, tail = key.rpartition("_")
+    return head == family and tail.isdigit()
+
+
 def left_out_values(model: LibraryModel) -> list[PointValues]:
     """Each run's quantities from the law fitted without it, at its operating point."""
     return [
@@ -215,11 +221,9 @@ class Check:
         return False, f"needs a new DEM run: {inside}; missed {', '.join(missed)}"
 
     def median_half_width(self, key: str, interpolated: bool | None = True) -> float:
-        """The median half-width of ``key`` (or of every ``key_<i>``) as a fraction of
+        """The median half-width of ``key`` (or of every slice's ``key_<i>``) as a fraction of
         the value, over the runs of ``interpolated`` (:meth:`coverage`)."""
-        values = [
-            r.relative_half_width for r in self._rows(interpolated) if r.key == key or r.key.startswith(key + "_")
-        ]
+        values = [r.relative_half_width for r in self._rows(interpolated) if r.key == key or _slice_of(r.key, key)]
         return float(np.median(values)) if values else math.nan
 
     def record(self) -> dict[str, Any]:

@@ -83,7 +83,10 @@ COVARIATES = (
     "blades",
     "push",
 )
-DEFAULT_COVARIATES = COVARIATES
+#: the law's form, chosen by the held-out log-likelihood of the runs predicted from inside
+#: the others' domain (``pbmdem library fit --covariates ...`` on the 13 shipped runs; the
+#: alternatives and their scores: README, "Predicting a point the DEM never ran")
+DEFAULT_COVARIATES = ("speed", "length", "position", "feed", "speed2", "position2", "weir", "push")
 #: the transverse law's covariates: those of the run, not of the slice (it is fitted per
 #: compartment)
 TRANSVERSE_COVARIATES = ("speed", "length", "feed", "speed2")
