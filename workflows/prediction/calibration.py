@@ -327,6 +327,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     point = {r.file: r.point for r in model.runs}
     point.update(result.points)
     scores = dict(zip((r.file for r in model.runs), model.left_out_scores))
+    mean_scores = "" if intro else _mean_scores(model, result)
     intro = intro or (
         f"Each run predicted by the law fitted without it ({len(model.runs)} runs, {n_keys} quantities each), its "
         "interval calibrated without it. A run inside the other runs' domain is an interpolation, calibrated on the "
@@ -335,7 +336,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     )
     lines = [
         f"{intro} Coverage of the 95 % intervals: {_percent(result.coverage(True))} interpolated, "
-        f"{_percent(result.coverage(False))} extrapolated.",
+        f"{_percent(result.coverage(False))} extrapolated.{mean_scores}",
         "",
         f"| run | rpm | feed [/s] | length [m] | predicted | held-out log-likelihood [nats/step] | "
         f"DEM inside the prediction interval (of {n_keys}) | prediction inside the DEM interval widened by seed "
@@ -369,6 +370,21 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     if result.seed_pairs:
         lines += ["", "Seed pairs: " + "; ".join(f"{a} and {b}" for a, b in result.seed_pairs)]
     return "\n".join(lines)
+
+
+def _mean_scores(model: LibraryModel, result: Check) -> str:
+    """The mean held-out log-likelihood of the library's runs, interpolated and
+    extrapolated: what the law's form is chosen by."""
+    if not model.left_out_scores or model.calibration is None:
+        return ""
+    scores = np.asarray(model.left_out_scores, dtype=float)
+    inside = np.asarray(model.calibration.inside, dtype=bool)
+    parts = [
+        f"{scores[mask].mean():.5f} {label}"
+        for mask, label in ((inside, "interpolated"), (~inside, "extrapolated"))
+        if mask.any()
+    ]
+    return f" Mean held-out log-likelihood [nats/particle-step]: {', '.join(parts)}."
 
 
 def _percent(value: float) -> str:

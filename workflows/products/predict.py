@@ -93,7 +93,8 @@ def library_check(
         folder = writable_directory(out, "--out")
         files["check"] = write_json(folder / "check.json", check.record())
         files["page"] = folder / "check.md"
-        files["page"].write_text(f"# DEM runs the library does not hold, predicted by {library_path}\n\n{text}\n")
+        shown = library if library is not None else "the shipped library (workflows/reference/library/law)"
+        files["page"].write_text(f"# DEM runs the library does not hold, predicted by {shown}\n\n{text}\n")
     return LibraryCheckOutput(check, text, files)
 
 
