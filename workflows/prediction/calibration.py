@@ -327,6 +327,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     point = {r.file: r.point for r in model.runs}
     point.update(result.points)
     scores = dict(zip((r.file for r in model.runs), model.left_out_scores))
+    ck = dict(zip((r.file for r in model.runs), model.ck))
     mean_scores = "" if intro else _mean_scores(model, result)
     intro = intro or (
         f"Each run predicted by the law fitted without it ({len(model.runs)} runs, {n_keys} quantities each), its "
@@ -338,10 +339,10 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
         f"{intro} Coverage of the 95 % intervals: {_percent(result.coverage(True))} interpolated, "
         f"{_percent(result.coverage(False))} extrapolated.{mean_scores}",
         "",
-        f"| run | rpm | feed [/s] | length [m] | predicted | held-out log-likelihood [nats/step] | "
-        f"DEM inside the prediction interval (of {n_keys}) | prediction inside the DEM interval widened by seed "
-        "scatter | verdict |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        f"| run | rpm | feed [/s] | length [m] | predicted | held-out log-likelihood [nats/step] | CK test of the "
+        f"law: largest error, z | DEM inside the prediction interval (of {n_keys}) | prediction inside the DEM "
+        "interval widened by seed scatter | verdict |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for run in result.runs():
         rows = result.of_run(run)
@@ -350,7 +351,8 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
         how = "interpolated" if rows[0].interpolated else "extrapolated"
         lines.append(
             f"| {run} | {p.impeller_rpm:g} | {p.feed_rate_total_per_s:g} | {p.length_m:g} | {how} | "
-            f"{scores.get(run, math.nan):.4f} | {sum(r.covered for r in rows)} | {sum(r.inside_widened for r in rows)} | "
+            f"{scores.get(run, math.nan):.4f} | {_ck(ck.get(run))} | {sum(r.covered for r in rows)} | "
+            f"{sum(r.inside_widened for r in rows)} | "
             f"{verdict} |"
         )
     lines += [
@@ -385,6 +387,10 @@ def _mean_scores(model: LibraryModel, result: Check) -> str:
         if mask.any()
     ]
     return f" Mean held-out log-likelihood [nats/particle-step]: {', '.join(parts)}."
+
+
+def _ck(test: tuple[float, float] | None) -> str:
+    return "-" if test is None else f"{test[0]:.3f}, {test[1]:.1f}"
 
 
 def _percent(value: float) -> str:

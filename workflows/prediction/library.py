@@ -58,6 +58,7 @@ from coupling.files import regular_file, stored_digest
 from coupling.jsonable import write_json
 from coupling.operating import OperatingPoint
 from dem.phases.data import first_compartments, prepare, steady_window
+from dem.phases.diagnostics import chapman_kolmogorov
 from dem.phases.law import LawRun, PhaseLaw, fit_law
 from dem.phases.settings import PHASE_LAG_S, PhaseSettings
 from dem.summary import Estimate
@@ -100,6 +101,8 @@ LIBRARY_PHASES = 3
 FIT_ITERATIONS = 500
 LEFT_OUT_ITERATIONS = 150
 FIT_TOL = 1e-7
+#: the lags of each run's Chapman-Kolmogorov test of the law [s]
+CK_LAGS_S = (1.0, 2.0, 5.0, 10.0)
 #: what a library file says it is
 FORMAT = "pbmdem-library"
 VERSION = 1
@@ -448,6 +451,10 @@ class LibraryModel:
     settings: dict[str, Any] = field(default_factory=dict)
     #: each run's log-likelihood under the law fitted without it [nats per particle-step]
     left_out_scores: tuple[float, ...] = ()
+    #: each run's Chapman-Kolmogorov test of the whole library's law on its particles
+    #: (:func:`dem.phases.diagnostics.chapman_kolmogorov` at :data:`CK_LAGS_S`): (largest
+    #: |predicted - observed| slice probability, largest z)
+    ck: tuple[tuple[float, float], ...] = ()
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -476,6 +483,7 @@ class LibraryModel:
             "transverse_left_out": [t.record() for t in self.transverse_left_out],
             "calibration": None if self.calibration is None else self.calibration.record(),
             "left_out_scores": list(self.left_out_scores),
+            "ck": [list(c) for c in self.ck],
         }
 
     @classmethod
@@ -500,6 +508,7 @@ class LibraryModel:
                 None if record.get("calibration") is None else Calibration.from_record(record["calibration"]),
                 dict(record.get("settings") or {}),
                 tuple(float(v) for v in record.get("left_out_scores") or ()),
+                tuple((float(a), float(b)) for a, b in record.get("ck") or ()),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(
@@ -637,6 +646,13 @@ def fit_library(
         rest = [r for m, r in enumerate(runs) if m != n]
         left.append(cached_fit(rest, settings, settings.left_out_iterations, cache, start=law))
         scores.append(left[-1].score(run.law_run) / max(run.law_run.data.n_steps, 1))
+    ck = []
+    for run in runs:
+        data = run.law_run.data
+        test = chapman_kolmogorov(
+            law.run_chain(run.law_run), data, tuple(round(v / data.interval_s) for v in CK_LAGS_S)
+        )
+        ck.append((test.max_abs_error(), test.max_z()))
     transverse = fit_transverse(runs)
     transverse_left = tuple(fit_transverse([r for m, r in enumerate(runs) if m != n]) for n in range(len(runs)))
     return LibraryModel(
@@ -649,4 +665,5 @@ def fit_library(
         None,
         settings.record(),
         tuple(scores),
+        tuple(ck),
     )

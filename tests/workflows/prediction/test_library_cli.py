@@ -90,3 +90,16 @@ def test_library_check_judges_a_run_the_library_does_not_hold_and_refuses_one_it
     capsys.readouterr()
     assert main(["library", "check", "--library", str(library), "--results", str(SPEEDS[0])]) == 2
     assert "is the library's run" in capsys.readouterr().err
+
+
+def test_a_corrupt_cached_fit_is_refitted_and_replaced_not_trusted(library, tmp_path):
+    import shutil
+
+    out = tmp_path / "library"
+    shutil.copytree(library, out)
+    victim = sorted((out / "fits").glob("law-*.json"))[0]
+    victim.write_text('{"n_phases": 3, "coefficients": {"x_pos/0": [1, 2]}')  # cut short
+    args = ["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out)]
+    assert main([*args, "--iterations", "3", "--left-out-iterations", "2"]) == 0
+    assert json.loads(victim.read_text())["n_phases"] == 3
+    assert load_model(out).law.n_phases == 3
