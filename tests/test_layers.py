@@ -4,8 +4,8 @@ so a lazy import inside a function counts too).
 Between the top packages: workflows -> {dem, pbm} -> coupling. DEM and PBM meet only in
 coupling/, which imports neither; nothing below workflows/ imports it.
 
-Inside workflows/, by floor: cli -> products -> report -> analysis -> pipeline -> shipped
--> config. A room imports its own floor or lower ones. The studies and benchmarks import
+Inside workflows/, by floor: cli -> products -> report -> analysis, prediction -> pipeline
+-> shipped -> config. A room imports its own floor or lower ones. The studies and benchmarks import
 the product; only the command line imports them, so nothing the product runs depends on a
 study or a benchmark.
 """
@@ -29,6 +29,7 @@ FLOORS = {
     "shipped": 1,
     "pipeline": 2,
     "analysis": 3,
+    "prediction": 3,
     "report": 4,
     "products": 5,
     "studies": 6,
