@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def fit_command(args: argparse.Namespace) -> int:
     from workflows.prediction import calibration
     from workflows.prediction.library import FitSettings
-    from workflows.products.predict import default_runs, library_fit
+    from workflows.products.library import default_runs, library_fit
 
     names = tuple(n.strip() for n in args.covariates.split(",") if n.strip())
     settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations)
@@ -71,7 +71,7 @@ def fit_command(args: argparse.Namespace) -> int:
 
 
 def check_command(args: argparse.Namespace) -> int:
-    from workflows.products.predict import library_check
+    from workflows.products.library import library_check
 
     output = library_check(args.results, args.library, args.extrapolate, args.out)
     print(output.text)

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
 from scipy.linalg import expm
+from scipy.special import stdtrit
 
 from coupling.compartments import grid_edges
 from coupling.errors import ConfigError
@@ -326,7 +326,7 @@ def corrected(
     if not math.isfinite(error.sd):
         return value, math.nan, math.nan
     centre = value + error.bias if key in ABSOLUTE_KEYS else value * math.exp(error.bias)
-    t = float(stats.t.ppf(0.5 + LEVEL / 2, error.n - 1))
+    t = float(stdtrit(error.n - 1, 0.5 + LEVEL / 2))  # Student's t quantile
     half = t * math.sqrt(error.sd**2 * (1 + 1 / error.n) + spread**2) * widening
     low, high = bounds(key, centre, half)
     return centre, low, high
