@@ -50,6 +50,12 @@ PAPER_SCALE_SUMMARY = PAPER_SCALE_DIR / "summary.json"
 PAPER_SCALE_THERMO = PAPER_SCALE_DIR / "thermo.csv"
 
 
+def library_runs() -> list[str]:
+    """The results files of the shipped DEM library: the validation campaign's and the
+    library's beside it."""
+    return [str(p) for folder in (VALIDATION_DIR, LIBRARY_DIR) for p in sorted(folder.glob("dem-*.h5"))]
+
+
 def _same_vessel(reference: DemConfig, other: DemConfig) -> bool:
     """Whether ``other`` is ``reference``'s vessel: neither the blade clearance nor the
     empty box upstream of the inlet changes it."""

@@ -59,11 +59,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def fit_command(args: argparse.Namespace) -> int:
     from workflows.prediction import calibration
     from workflows.prediction.library import FitSettings
-    from workflows.products.library import default_runs, library_fit
+    from workflows.products.library import library_fit
+    from workflows.shipped import library_runs
 
     names = tuple(n.strip() for n in args.covariates.split(",") if n.strip())
     settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations)
-    output = library_fit(list(args.results or default_runs()), args.out, settings)
+    output = library_fit(list(args.results or library_runs()), args.out, settings)
     print(calibration.markdown(output.model, output.check))
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")

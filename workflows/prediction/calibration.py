@@ -36,7 +36,6 @@ from workflows.prediction.library import (
     quantity_keys,
 )
 from workflows.prediction.predict import (
-    PointValues,
     corrected,
     domain,
     domain_issues,
@@ -68,14 +67,6 @@ def _slice_of(key: str, family: str) -> bool:
     return head == family and tail.isdigit()
 
 
-def left_out_values(model: LibraryModel) -> list[PointValues]:
-    """Each run's quantities from the law fitted without it, at its operating point."""
-    return [
-        point_values(law, transverse, entry.point, model.blade_pattern, model.interval_s)
-        for law, transverse, entry in zip(model.left_out, model.transverse_left_out, model.runs)
-    ]
-
-
 def _others(model: LibraryModel, n: int) -> tuple[list[str], float]:
     """Run ``n``'s place against the domain of the other runs: (what lies outside it, the
     widening :func:`workflows.prediction.predict.predict` would give it)."""
@@ -86,16 +77,16 @@ def _others(model: LibraryModel, n: int) -> tuple[list[str], float]:
 def calibrated(model: LibraryModel) -> LibraryModel:
     """``model`` with its :class:`Calibration`: each run's errors left out, and whether it
     lay inside the others' domain."""
-    predicted = left_out_values(model)
     inside = [not _others(model, n)[0] for n in range(len(model.runs))]
     at_runs = [_left_out_at(model, entry.point) for entry in model.runs]
+    predicted = [at[n] for n, at in enumerate(at_runs)]  # each run by the law fitted without it
     reference = {}
     for key in quantity_keys():
         variances = [jackknife(at, key) for at, ok in zip(at_runs, inside) if ok]
         reference[key] = float(np.mean(variances)) if variances else 0.0
     residuals = {
         key: [
-            residual(key, entry.dem[key].value, values.values[key]) if key in entry.dem else math.nan
+            residual(key, entry.dem[key].value, values[key]) if key in entry.dem else math.nan
             for entry, values in zip(model.runs, predicted)
         ]
         for key in quantity_keys()
@@ -234,26 +225,27 @@ class Check:
             "seed_sd": self.seed_sd,
             "seed_pairs": [list(p) for p in self.seed_pairs],
             "median_relative_half_width": {key: self.median_half_width(key) for key in USEFUL_HALF_WIDTH},
+            "target_half_width": USEFUL_HALF_WIDTH,
         }
 
 
 def check(model: LibraryModel) -> Check:
     """Every run predicted without it, its interval calibrated without it (module
-    docstring). ``model`` must carry its calibration."""
+    docstring); ``model`` calibrated first when it is not."""
     calibration = model.calibration if model.calibration is not None else calibrated(model).calibration
-    predicted = left_out_values(model)
     scatter, pairs = seed_scatter(model)
     rows = []
-    for n, (entry, values) in enumerate(zip(model.runs, predicted)):
+    for n, entry in enumerate(model.runs):
         issues, widening = _others(model, n)
         at_point = _left_out_at(model, entry.point)
+        values = at_point[n]  # the law fitted without run n
         for key in quantity_keys():
             dem = entry.dem.get(key)
             if dem is None:
                 continue
             spread = math.sqrt(calibration.excess(key, jackknife(at_point, key)))
             error = calibration.error(key, leave=n, extrapolated=bool(issues))
-            centre, low, high = corrected(key, values.values[key], error, spread, widening)
+            centre, low, high = corrected(key, values[key], error, spread, widening)
             rows.append(
                 CheckedQuantity(
                     entry.file,

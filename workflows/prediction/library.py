@@ -208,7 +208,7 @@ class LibraryRun:
     """One run of a library: its law data, operating point, the DEM's quantities with their
     intervals, the feed's inlet distribution over the axial slices (2, NX) [particles/s],
     and the transverse rates of its table's phase model (2, NX, NY) [1/s], None when its
-    table has no phase model."""
+    table has no phase model or another number of slices than the law's."""
 
     name: str
     path: Path
@@ -262,7 +262,7 @@ def library_run(path: str | Path, names: Sequence[str], lag_s: float = PHASE_LAG
     pattern = config.dem.geometry.blade_pattern
     table = results.table
     transverse = None
-    if table.phases is not None and table.nx % AXIAL_SLICES == 0:
+    if table.phases is not None and table.nx == AXIAL_SLICES:
         transverse = table.phases.rates[0, 2:].copy()
     dem = dem_quantities(summary)
     missing = [key for key in ("holdup", "little_mean_residence_time_s") if key not in dem]

@@ -54,7 +54,9 @@ from pbm.feed import feed_at
 from workflows.prediction.library import (
     ABSOLUTE_KEYS,
     AXIAL_SLICES,
-    COVARIATES,
+    REFERENCE_FEED_PER_S,
+    REFERENCE_RPM,
+    REFERENCE_SLICE_M,
     ErrorModel,
     LibraryModel,
     TransverseLaw,
@@ -130,9 +132,9 @@ def _axial(model: PhaseTransport, feed: np.ndarray) -> tuple[PhaseTransport, np.
 
 
 def _initial(model: PhaseTransport, feed: np.ndarray) -> np.ndarray:
-    total = feed.sum(axis=0)
+    """The entering particles' distribution over the (compartment, phase) states."""
     entry = (feed[0][:, None] * model.entry[0][None, :] + feed[1][:, None] * model.entry[1][None, :]).ravel()
-    return entry / max(total.sum(), 1e-300)
+    return entry / max(feed.sum(), 1e-300)
 
 
 def rtd_curve(model: PhaseTransport, feed: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -158,7 +160,13 @@ class PointValues:
     values: dict[str, float]
     model: PhaseTransport
     feed: np.ndarray
-    counts: np.ndarray  # (2, NX, NY) steady particles of A and B
+    #: (2, S, K) steady particles of feed A and of feed B in each (compartment, phase)
+    occupancy: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(2, NX, NY) steady particles of A and B."""
+        return self.occupancy.sum(axis=2).reshape(2, self.model.nx, self.model.ny)
 
 
 def point_values(
@@ -168,8 +176,8 @@ def point_values(
     nx, ny = model.nx, model.ny
     feed = entering(point, nx, ny)
     # each feeder's particles alone: the chain is linear and A and B move alike
-    counts = np.stack([steady_occupancy(model, feed * (np.arange(2) == f)[:, None]).sum(axis=1) for f in (0, 1)])
-    counts = counts.reshape(2, nx, ny)
+    occupancy = np.stack([steady_occupancy(model, feed * (np.arange(2) == f)[:, None]) for f in (0, 1)])
+    counts = occupancy.sum(axis=2).reshape(2, nx, ny)
     slices = counts.sum(axis=(0, 2))
     holdup = float(slices.sum())
     outflow = float(feed.sum())
@@ -193,7 +201,7 @@ def point_values(
         "lacey_outlet": float(np.nanmean(sampled_lacey(fraction, every, draws=1))),
         **{slice_key(i): float(v) for i, v in enumerate(slices)},
     }
-    return PointValues(values, model, feed, counts)
+    return PointValues(values, model, feed, occupancy)
 
 
 def point_table(values: PointValues, point: OperatingPoint, duration_s: float) -> VelocityTable:
@@ -202,8 +210,7 @@ def point_table(values: PointValues, point: OperatingPoint, duration_s: float) -
     compartments' widths (what the ``velocity`` mode would use)."""
     model = values.model
     x_edges, y_edges = grid_edges(point.length_m, point.diameter_m, model.nx, model.ny)
-    k = model.n_phases
-    occupancy = steady_occupancy(model, values.feed).reshape(model.nx, model.ny, k)
+    occupancy = values.occupancy.sum(axis=0).reshape(model.nx, model.ny, model.n_phases)
     weights = occupancy / np.maximum(occupancy.sum(axis=2, keepdims=True), 1e-300)
     mean_rates = np.einsum("hdij,ijh->dij", model.rates, weights)
     dx, dy = np.diff(x_edges)[:, None], np.diff(y_edges)[None, :]
@@ -233,9 +240,9 @@ class Domain:
     fixed: dict[str, Any]
 
     def describe(self) -> str:
-        rpm = [250.0 * math.exp(v) for v in self.ranges["speed"]]
-        slice_m = [0.033 * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
-        feed = [73.7 * math.exp(v) for v in self.ranges["feed"]]
+        rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
+        slice_m = [REFERENCE_SLICE_M * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
+        feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in self.ranges["feed"]]
         return (
             f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m, "
             f"total feed {feed[0]:.4g}-{feed[1]:.4g} particles/s, "
@@ -368,9 +375,6 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
     the point lies outside the library's domain and ``extrapolate`` is False."""
     if model.calibration is None:
         raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
-    unknown = sorted(set(model.names) - set(COVARIATES))
-    if unknown:
-        raise ConfigError(f"the library's law has covariates {unknown} this tool does not know")
     dom = domain([r.point for r in model.runs], model.blade_pattern)
     issues, widening = domain_issues(dom, point, pattern)
     if issues and not extrapolate:
@@ -378,9 +382,9 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
             f"the point lies outside the library's domain ({'; '.join(issues)}); the domain is {dom.describe()}. "
             "Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
-    values = point_values(model.law, model.transverse, point, model.blade_pattern, model.interval_s)
+    values = point_values(model.law, model.transverse, point, pattern, model.interval_s)
     left = [
-        point_values(law, transverse, point, model.blade_pattern, model.interval_s)
+        point_values(law, transverse, point, pattern, model.interval_s)
         for law, transverse in zip(model.left_out, model.transverse_left_out)
     ]
     quantities = []

@@ -18,14 +18,7 @@ from coupling.jsonable import write_json
 from workflows.pipeline.log import Log, stderr_log
 from workflows.prediction import calibration
 from workflows.prediction.library import FitSettings, LibraryModel, fit_library, load_model, load_runs, save_model
-from workflows.shipped import LIBRARY_DIR, LIBRARY_MODEL, VALIDATION_DIR
-
-#: the shipped library's runs: the validation campaign and the library beside it
-DEFAULT_RUNS = (VALIDATION_DIR, LIBRARY_DIR)
-
-
-def default_runs() -> list[str]:
-    return [str(p) for folder in DEFAULT_RUNS for p in sorted(folder.glob("dem-*.h5"))]
+from workflows.shipped import LIBRARY_MODEL
 
 
 @dataclass(frozen=True)

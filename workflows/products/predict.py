@@ -14,14 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from coupling.errors import ConfigError
 from coupling.files import writable_directory
 from coupling.jsonable import write_json
 from coupling.tables import write_table
 from dem.operating import operating_point
 from workflows.config import load_config
 from workflows.prediction.library import load_model
-from workflows.prediction.predict import Prediction, point_table, predict
+from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
 from workflows.shipped import LIBRARY_MODEL
 
 
@@ -40,7 +39,7 @@ def prediction_record(prediction: Prediction, config_name: str, library: Path) -
         "extrapolated": prediction.extrapolated,
         "outside_domain": list(prediction.outside),
         "domain": prediction.domain.describe(),
-        "level": 0.95,
+        "level": LEVEL,
         # the library's grid: the slices of holdup_slice_<i>, whatever grid the configuration's DEM would bin on
         "grid": [prediction.values.model.nx, prediction.values.model.ny],
         "quantities": [q.record() for q in prediction.quantities],
@@ -65,8 +64,6 @@ def run_predict(
     prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
     folder = writable_directory(out, "--out")
     duration = config.dem.operation.duration_s
-    if not duration > 0:
-        raise ConfigError(f"dem.operation.duration_s = {duration!r}: the PBM's table needs a run length > 0")
     files = {
         "prediction": write_json(
             folder / "prediction.json", prediction_record(prediction, config.name or str(config_path), library_path)

@@ -34,7 +34,7 @@ from dem.phases.chain import steady_occupancy
 from dem.phases.law import PhaseLaw, fit_law
 from dem.summary import Estimate
 from workflows.prediction.library import COVARIATES, DEFAULT_COVARIATES, LibraryRun, library_run
-from workflows.shipped import LIBRARY_DIR, VALIDATION_DIR
+from workflows.shipped import library_runs
 
 HELP = "one phase chain for a DEM library, its rates laws of speed, length, position and feed; each run left out"
 OUT = Path("results/law")
@@ -164,10 +164,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--results",
         nargs="+",
-        default=[
-            *sorted(str(p) for p in VALIDATION_DIR.glob("dem-*.h5")),
-            *sorted(str(p) for p in LIBRARY_DIR.glob("dem-*.h5")),
-        ],
+        default=library_runs(),
         metavar="FILE",
         help="DEM results files with compartment sequences (default: the validation campaign and the library)",
     )

@@ -137,3 +137,33 @@ def test_the_pbm_on_the_written_table_settles_where_the_prediction_says():
     assert np.allclose(counts.sum(axis=(0, 2)), [values.values[f"holdup_slice_{i + 1}"] for i in range(10)], rtol=5e-3)
     outflow = (result.outflow_A + result.outflow_B)[late].mean()
     assert outflow == pytest.approx(values.values["outflow_per_s"], rel=2e-3)
+
+
+def test_an_extrapolated_blade_pattern_is_predicted_with_its_own_stations():
+    model = _model()
+    push = PhaseLaw(
+        1,
+        {
+            "x_pos/0": np.array([math.log(0.6), 0.5, 0.3, 0.4]),
+            "x_neg/0": np.array([math.log(0.1), 0.5, 0.0, 0.0]),
+        },
+        np.ones((2, 1)),
+        (*NAMES, "push"),
+        0.0,
+        1,
+        1,
+        True,
+    )
+    model = LibraryModel(
+        push,
+        *[getattr(model, f) for f in ("transverse", "runs")],
+        (push,) * 3,
+        model.transverse_left_out,
+        0.1,
+        model.calibration,
+    )
+    other = predict(model, BASE, "FFB", extrapolate=True)
+    assert other.outside == ("blade_pattern = FFB (the library's is FB)",)
+    own = point_values(push, _transverse(), BASE, "FFB", 0.1).values["holdup"]
+    assert other.quantity("holdup").law_value == pytest.approx(own)
+    assert own != pytest.approx(point_values(push, _transverse(), BASE, "FB", 0.1).values["holdup"])
