@@ -12,7 +12,9 @@ HELP = "a DEM library's law: fit it, calibrate its prediction intervals on each 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from workflows.prediction.library import (
+        CORRECTION_TERMS,
         COVARIATES,
+        DEFAULT_CORRECTION,
         DEFAULT_COVARIATES,
         FIT_ITERATIONS,
         LEFT_OUT_ITERATIONS,
@@ -44,6 +46,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=LEFT_OUT_ITERATIONS,
         help="EM iterations of each fit with one run left out, from the whole fit (default: %(default)s)",
     )
+    fit.add_argument(
+        "--correction",
+        default=",".join(DEFAULT_CORRECTION),
+        help=f"the correction line's covariates, comma-separated, from {', '.join(CORRECTION_TERMS)}; "
+        "'none' for the law's mean error alone (default: %(default)s)",
+    )
     fit.set_defaults(func=fit_command)
 
     check = sub.add_parser("check", help="predict DEM runs the library does not hold and judge each against its DEM")
@@ -63,7 +71,8 @@ def fit_command(args: argparse.Namespace) -> int:
     from workflows.shipped import library_runs
 
     names = tuple(n.strip() for n in args.covariates.split(",") if n.strip())
-    settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations)
+    correction = tuple(n.strip() for n in args.correction.split(",") if n.strip() and n.strip() != "none")
+    settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations, correction=correction)
     output = library_fit(list(args.results or library_runs()), args.out, settings)
     print(calibration.markdown(output.model, output.check))
     for what, path in output.files.items():

@@ -1,16 +1,18 @@
 """The prediction intervals' calibration, and the check that they hold on runs left out.
 
-Each run of a library is predicted by the law fitted without it
-(:attr:`~workflows.prediction.library.LibraryModel.left_out`): its errors, one per run and
-quantity, are the :class:`~workflows.prediction.library.Calibration` that
-:func:`workflows.prediction.predict.predict` builds its intervals from (:func:`calibrated`).
+The calibration (:func:`calibrated`) is the library's laws evaluated at the library's own
+runs: the whole library's law at each, and each law fitted without one run at every run.
+From it :func:`workflows.prediction.predict.corrections` fits the line of what a law
+misses at the runs it knows, which corrects every prediction and gives its interval.
 
-Whether those intervals hold is then measured without using the run judged
-(:func:`check`): run i's prediction by the law without it, its bias and spread from the
-errors of the other runs only, its jackknife spread at its own point; the DEM's value
-inside that interval or not. Beside it, the DEM's scatter between seeds, from the
-library's replicate pairs (two runs at one operating point, :func:`seed_scatter`), and
-whether each prediction lies inside the DEM's interval widened by that scatter.
+Whether those intervals hold is measured without the run judged (:func:`check`): run i
+predicted by the law fitted without it, moved by the line of that law's misses on the
+other runs, with that line's interval (an end run's at least the extrapolation floor of
+the other end runs); the DEM's value inside that interval or not. Beside it, the DEM's
+scatter between seeds, from the library's replicate pairs (two runs at one operating
+point, :func:`seed_scatter`), and whether each prediction lies inside the DEM's interval
+widened by that scatter. :func:`alternatives` repeats the check for other forms of the
+line, which is how its form is chosen.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from coupling.operating import OperatingPoint
 from workflows.pipeline.results import load_results, run_operating_point
 from workflows.prediction.library import (
     ABSOLUTE_KEYS,
+    DEFAULT_CORRECTION,
     Calibration,
     LibraryModel,
     dem_quantities,
@@ -37,9 +40,10 @@ from workflows.prediction.library import (
 )
 from workflows.prediction.predict import (
     corrected,
+    corrections,
     domain,
     domain_issues,
-    jackknife,
+    extrapolation_floor,
     point_values,
     predict,
     residual,
@@ -74,32 +78,37 @@ def _others(model: LibraryModel, n: int) -> tuple[list[str], float]:
     return domain_issues(others, model.runs[n].point, model.blade_pattern)
 
 
-def calibrated(model: LibraryModel) -> LibraryModel:
-    """``model`` with its :class:`Calibration`: each run's errors left out, and whether it
-    lay inside the others' domain."""
+def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> LibraryModel:
+    """``model`` with its :class:`Calibration`: the whole library's law and each law left
+    out at every run, whether each run lay inside the others' domain, and the correction's
+    ``covariates`` (default: the model's settings', else
+    :data:`~workflows.prediction.library.DEFAULT_CORRECTION`)."""
+    names = tuple(covariates if covariates is not None else model.settings.get("correction", DEFAULT_CORRECTION))
     inside = [not _others(model, n)[0] for n in range(len(model.runs))]
-    at_runs = [_left_out_at(model, entry.point) for entry in model.runs]
-    predicted = [at[n] for n, at in enumerate(at_runs)]  # each run by the law fitted without it
-    reference = {}
-    for key in quantity_keys():
-        variances = [jackknife(at, key) for at, ok in zip(at_runs, inside) if ok]
-        reference[key] = float(np.mean(variances)) if variances else 0.0
-    residuals = {
-        key: [
-            residual(key, entry.dem[key].value, values[key]) if key in entry.dem else math.nan
-            for entry, values in zip(model.runs, predicted)
-        ]
-        for key in quantity_keys()
-    }
-    return replace(model, calibration=Calibration(residuals, inside, reference))
-
-
-def _left_out_at(model: LibraryModel, point: OperatingPoint) -> list[dict[str, float]]:
-    """Every law left out's quantities at ``point``."""
-    return [
-        point_values(law, transverse, point, model.blade_pattern, model.interval_s).values
+    whole = [_values(model.law, model.transverse, model, entry.point) for entry in model.runs]
+    left = [
+        [_values(law, transverse, model, entry.point) for entry in model.runs]
         for law, transverse in zip(model.left_out, model.transverse_left_out)
     ]
+    keys = quantity_keys()
+    calibration = Calibration(
+        {key: [v[key] for v in whole] for key in keys},
+        {key: [[v[key] for v in row] for row in left] for key in keys},
+        inside,
+        names,
+    )
+    return replace(model, calibration=calibration)
+
+
+def recalibrated(model: LibraryModel, covariates: Sequence[str]) -> LibraryModel:
+    """``model`` (calibrated) with another correction form; no law is evaluated again."""
+    if model.calibration is None:
+        return calibrated(model, covariates)
+    return replace(model, calibration=replace(model.calibration, covariates=tuple(covariates)))
+
+
+def _values(law, transverse, model: LibraryModel, point: OperatingPoint) -> dict[str, float]:
+    return point_values(law, transverse, point, model.blade_pattern, model.interval_s).values
 
 
 def seed_scatter(model: LibraryModel) -> tuple[dict[str, float], list[tuple[str, str]]]:
@@ -230,22 +239,24 @@ class Check:
 
 
 def check(model: LibraryModel) -> Check:
-    """Every run predicted without it, its interval calibrated without it (module
-    docstring); ``model`` calibrated first when it is not."""
-    calibration = model.calibration if model.calibration is not None else calibrated(model).calibration
+    """Every run predicted by the law fitted without it, corrected by the line of that
+    law's misses on the other runs (module docstring); ``model`` calibrated first when it
+    is not."""
+    if model.calibration is None:
+        model = calibrated(model)
+    calibration = model.calibration
     scatter, pairs = seed_scatter(model)
     rows = []
     for n, entry in enumerate(model.runs):
         issues, widening = _others(model, n)
-        at_point = _left_out_at(model, entry.point)
-        values = at_point[n]  # the law fitted without run n
-        for key in quantity_keys():
+        lines = corrections(model, leave=n)
+        floor = extrapolation_floor(model, leave=n) if issues else {}
+        for key, line in lines.items():
             dem = entry.dem.get(key)
             if dem is None:
                 continue
-            spread = math.sqrt(calibration.excess(key, jackknife(at_point, key)))
-            error = calibration.error(key, leave=n, extrapolated=bool(issues))
-            centre, low, high = corrected(key, values[key], error, spread, widening)
+            value = calibration.left_out[key][n][n]
+            q = corrected(key, value, line, entry.point, widening, floor.get(key, 0.0))
             rows.append(
                 CheckedQuantity(
                     entry.file,
@@ -253,9 +264,9 @@ def check(model: LibraryModel) -> Check:
                     float(dem.value),
                     float(dem.low),
                     float(dem.high),
-                    centre,
-                    low,
-                    high,
+                    q.value,
+                    q.low,
+                    q.high,
                     scatter.get(key, 0.0),
                     not issues,
                 )
@@ -329,7 +340,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     )
     lines = [
         f"{intro} Coverage of the 95 % intervals: {_percent(result.coverage(True))} interpolated, "
-        f"{_percent(result.coverage(False))} extrapolated.{mean_scores}",
+        f"{_percent(result.coverage(False))} extrapolated, {_percent(result.coverage(None))} in all.{mean_scores}",
         "",
         f"| run | rpm | feed [/s] | length [m] | predicted | held-out log-likelihood [nats/step] | CK test of the "
         f"law: largest error, z | DEM inside the prediction interval (of {n_keys}) | prediction inside the DEM "
@@ -364,6 +375,47 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     if result.seed_pairs:
         lines += ["", "Seed pairs: " + "; ".join(f"{a} and {b}" for a, b in result.seed_pairs)]
     return "\n".join(lines)
+
+
+#: the correction forms :func:`alternatives` compares (the constant alone is the law's mean
+#: error)
+CORRECTION_ALTERNATIVES = (
+    (),
+    ("speed",),
+    ("speed", "length", "feed"),
+    ("speed", "speed2", "length", "feed"),
+    ("speed", "length", "gap", "feed"),
+    ("speed", "speed2", "length", "gap", "feed"),
+    ("speed", "speed2", "length", "gap", "feed", "feed2"),
+    ("speed", "speed2", "length", "length2", "gap", "feed"),
+)
+
+
+def alternatives(model: LibraryModel, forms: Sequence[Sequence[str]] = CORRECTION_ALTERNATIVES) -> str:
+    """A markdown table of :func:`check` with each correction form of ``forms``: what the
+    model's form was chosen from (the laws are not refitted: only the line changes)."""
+    chosen = tuple(model.calibration.covariates) if model.calibration is not None else ()
+    head = ["| correction covariates | coverage, interpolated | extrapolated | all |"]
+    head[0] += "".join(f" median half-width {key}, interpolated [%] |" for key in USEFUL_HALF_WIDTH)
+    head[0] += " runs the law predicts |"
+    head.append("|" + " --- |" * (5 + len(USEFUL_HALF_WIDTH)))
+    for form in dict.fromkeys([tuple(f) for f in forms] + [chosen]):
+        result = check(recalibrated(model, form))
+        name = ", ".join(form) or "none (the mean error)"
+        mark = " (chosen)" if form == chosen else ""
+        widths = "".join(f" {100 * result.median_half_width(key):.1f} |" for key in USEFUL_HALF_WIDTH)
+        good = sum(result.verdict(run)[0] for run in result.runs())
+        head.append(
+            f"| {name}{mark} | {_percent(result.coverage(True))} | {_percent(result.coverage(False))} | "
+            f"{_percent(result.coverage(None))} |{widths} {good}/{len(result.runs())} |"
+        )
+    return (
+        "## The correction's form\n\nEach form checked like the tables above (every run left out); "
+        "the targets are half-widths of "
+        + ", ".join(f"{100 * v:g} % ({k})" for k, v in USEFUL_HALF_WIDTH.items())
+        + " and a coverage of at least 90 %.\n\n"
+        + "\n".join(head)
+    )
 
 
 def _mean_scores(model: LibraryModel, result: Check) -> str:

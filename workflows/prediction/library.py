@@ -28,7 +28,11 @@ The covariates (the constant always first):
   slice's index);
 * ``push``: the slice's forward stations less its backward ones (-1, 0 or 1): the paddles
   alternate, so a blender of another length ends on another orientation at the weir, and
-  one with an odd number of stations pushes forward once more than back.
+  one with an odd number of stations pushes forward once more than back;
+* ``gap``: log(gap from the last blade station to the weir / :data:`REFERENCE_GAP_M`),
+  the same in every slice: the stations keep their spacing, so the bladeless stretch before
+  the weir, where the bed piles up unpushed, comes and goes with the length (0.76-1.37 of
+  the baseline's over the shipped lengths) and moves the hold-up by several per cent.
 
 The axial law carries the residence time and the slices' hold-ups. The transverse moves
 (across y, which carry the outlet's composition) come from each run's table (its phase
@@ -70,6 +74,8 @@ from workflows.pipeline.results import load_results, run_operating_point
 REFERENCE_RPM = 250.0
 REFERENCE_SLICE_M = 0.033
 REFERENCE_FEED_PER_S = 73.7
+#: the baseline's gap from its last blade station to the weir [m]
+REFERENCE_GAP_M = 0.03
 COVARIATES = (
     "speed",
     "length",
@@ -83,6 +89,7 @@ COVARIATES = (
     "weir_length",
     "blades",
     "push",
+    "gap",
 )
 #: the law's form, chosen by the held-out log-likelihood of the runs predicted from inside
 #: the others' domain (``pbmdem library fit --covariates ...`` on the 13 shipped runs; the
@@ -108,7 +115,7 @@ FIT_TOL = 1e-7
 CK_LAGS_S = (1.0, 2.0, 5.0, 10.0)
 #: what a library file says it is
 FORMAT = "pbmdem-library"
-VERSION = 1
+VERSION = 2
 #: the agreement table's quantities a prediction gives (the keys of ``summary.json``),
 #: the slices' hold-ups after them as ``holdup_slice_<i>``
 SCALAR_KEYS = (
@@ -124,6 +131,15 @@ SCALAR_KEYS = (
 #: the quantities compared on an absolute scale (fractions near their bounds); every
 #: other one is positive and compared by the log of its ratio
 ABSOLUTE_KEYS = ("C_A", "lacey_outlet")
+#: what the correction of the law's predictions may be a linear function of
+#: (:func:`correction_row`): the run covariates of :func:`run_covariates` and the squares
+#: of length and feed
+CORRECTION_TERMS = ("speed", "speed2", "length", "length2", "feed", "feed2", "gap")
+#: the correction's form, chosen by the coverage and half-widths of the runs left out
+#: (``pbmdem library fit --correction ...``; the alternatives: ``law/calibration.md``)
+DEFAULT_CORRECTION = ("speed", "speed2", "length", "gap", "feed")
+#: the degrees of freedom a correction covariate must leave (:func:`workflows.prediction.predict.fit_correction`)
+CORRECTION_DOF = 2
 
 
 def slice_key(i: int) -> str:
@@ -137,12 +153,23 @@ def quantity_keys(nx: int = AXIAL_SLICES) -> tuple[str, ...]:
 def run_covariates(point: OperatingPoint, nx: int = AXIAL_SLICES) -> dict[str, float]:
     """The covariates of a run that are the same in every slice (module docstring)."""
     speed = math.log(point.impeller_rpm / REFERENCE_RPM)
+    last = max(point.blade_x_m, default=0.0)
     return {
         "speed": speed,
         "length": math.log(point.length_m / nx / REFERENCE_SLICE_M),
         "feed": math.log(point.feed_rate_total_per_s / REFERENCE_FEED_PER_S),
         "speed2": speed**2,
+        "gap": math.log(max(point.length_m - last, 1e-6) / REFERENCE_GAP_M),
     }
+
+
+def correction_row(point: OperatingPoint, names: Sequence[str]) -> np.ndarray:
+    """The constant and the correction covariates ``names`` (:data:`CORRECTION_TERMS`) of a
+    run at ``point``."""
+    values = run_covariates(point)
+    values["length2"] = values["length"] ** 2
+    values["feed2"] = values["feed"] ** 2
+    return np.array([1.0] + [values[name] for name in names])
 
 
 def covariate_columns(point: OperatingPoint, nx: int, names: Sequence[str], pattern: str) -> np.ndarray:
@@ -377,65 +404,51 @@ class LibraryEntry:
 
 
 @dataclass(frozen=True)
-class ErrorModel:
-    """A quantity's prediction error on its scale over the calibration runs: mean
-    ``bias``, standard deviation ``sd`` and count ``n``."""
-
-    bias: float
-    sd: float
-    n: int
-
-
-@dataclass(frozen=True)
 class Calibration:
-    """Each quantity's prediction error, measured on the runs left out: ``residuals``
-    [key] one per run (log ratio DEM / prediction; DEM - prediction for
-    :data:`ABSOLUTE_KEYS`), NaN where the DEM lacks the quantity; ``inside`` per run:
-    whether it lies inside the domain of the other runs (its prediction was an
-    interpolation, not an extrapolation)."""
+    """The library's laws at the library's own runs, what the correction of every
+    prediction (:func:`workflows.prediction.predict.correction`) is fitted to and checked
+    on: ``whole`` [key] the whole library's law at each run, ``left_out`` [key] [m] [j] the
+    law fitted without run m at run j; ``inside`` per run: whether it lies inside the
+    domain of the other runs (its prediction without it is an interpolation);
+    ``covariates`` the correction's (:data:`CORRECTION_TERMS`)."""
 
-    residuals: dict[str, list[float]]
+    whole: dict[str, list[float]]
+    left_out: dict[str, list[list[float]]]
     inside: list[bool]
-    #: per quantity, the mean jackknife variance of the laws left out at the points of the
-    #: runs predicted from inside: what the residuals already hold of it
-    jackknife: dict[str, float] = field(default_factory=dict)
+    covariates: tuple[str, ...] = ()
 
-    def excess(self, key: str, variance: float) -> float:
-        """The jackknife variance at a point beyond its mean at the calibration's points."""
-        return max(variance - self.jackknife.get(key, 0.0), 0.0)
-
-    def error(self, key: str, leave: int | None = None, extrapolated: bool = False) -> ErrorModel:
-        """:class:`ErrorModel` of ``key`` without run ``leave``: over the runs predicted
-        from inside the others' domain, or, for an ``extrapolated`` point, over every run
-        (the extrapolations' larger errors included), and so when fewer than 2 runs were
-        predicted from inside; NaN from fewer than 2 runs."""
-        values = np.asarray(self.residuals.get(key, []), dtype=float)
-        use = np.isfinite(values)
-        if leave is not None and values.size:
-            use[leave] = False
-        inside = use & np.asarray(self.inside, dtype=bool)
-        values = values[use if extrapolated or inside.sum() < 2 else inside]
-        if values.size < 2:
-            return ErrorModel(math.nan, math.nan, int(values.size))
-        return ErrorModel(float(values.mean()), float(values.std(ddof=1)), int(values.size))
+    def __post_init__(self) -> None:
+        n = len(self.inside)
+        for key, values in self.whole.items():
+            rows = self.left_out.get(key)
+            if len(values) != n or rows is None or len(rows) != n or any(len(r) != n for r in rows):
+                raise ValueError(f"the calibration's values of {key} are not one per run ({n} runs)")
+        unknown = sorted(set(self.covariates) - set(CORRECTION_TERMS))
+        if unknown:
+            raise ValueError(f"correction covariates {unknown} unknown; valid: {', '.join(CORRECTION_TERMS)}")
 
     def record(self) -> dict[str, Any]:
+        def clean(values: list[float]) -> list[float | None]:
+            return [v if math.isfinite(v) else None for v in values]
+
         return {
-            "residuals": {k: [v if math.isfinite(v) else None for v in vals] for k, vals in self.residuals.items()},
+            "whole": {k: clean(v) for k, v in self.whole.items()},
+            "left_out": {k: [clean(row) for row in rows] for k, rows in self.left_out.items()},
             "inside": list(self.inside),
-            "jackknife": self.jackknife,
+            "covariates": list(self.covariates),
         }
 
     @classmethod
     def from_record(cls, record: dict) -> Calibration:
-        residuals = {
-            str(k): [math.nan if v is None else float(v) for v in vals] for k, vals in record["residuals"].items()
-        }
-        inside = [bool(v) for v in record["inside"]]
-        if any(len(v) != len(inside) for v in residuals.values()):
-            raise ValueError("the calibration's residuals and inside flags differ in length")
-        jackknife = {str(k): float(v) for k, v in dict(record.get("jackknife") or {}).items()}
-        return cls(residuals, inside, jackknife)
+        def read(values: list) -> list[float]:
+            return [math.nan if v is None else float(v) for v in values]
+
+        return cls(
+            {str(k): read(v) for k, v in record["whole"].items()},
+            {str(k): [read(row) for row in rows] for k, rows in record["left_out"].items()},
+            [bool(v) for v in record["inside"]],
+            tuple(str(v) for v in record.get("covariates") or ()),
+        )
 
 
 @dataclass(frozen=True)
@@ -544,18 +557,23 @@ def load_model(path: str | Path) -> LibraryModel:
 @dataclass(frozen=True)
 class FitSettings:
     """How a library is fitted: the law's phases and covariates, the EM's iterations for the
-    whole library and for each fit left out, and its stopping gain."""
+    whole library and for each fit left out, its stopping gain, and the covariates of the
+    correction of its predictions (not the law's: a fit is cached without them)."""
 
     n_phases: int = LIBRARY_PHASES
     covariates: tuple[str, ...] = DEFAULT_COVARIATES
     iterations: int = FIT_ITERATIONS
     left_out_iterations: int = LEFT_OUT_ITERATIONS
     tol: float = FIT_TOL
+    correction: tuple[str, ...] = DEFAULT_CORRECTION
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.covariates) - set(COVARIATES))
         if unknown:
             raise ConfigError(f"covariates {unknown} unknown; valid: {', '.join(COVARIATES)}")
+        unknown = sorted(set(self.correction) - set(CORRECTION_TERMS))
+        if unknown:
+            raise ConfigError(f"correction covariates {unknown} unknown; valid: {', '.join(CORRECTION_TERMS)}")
         for name in ("n_phases", "iterations", "left_out_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value or value < 1:
@@ -570,6 +588,7 @@ class FitSettings:
             "iterations": self.iterations,
             "left_out_iterations": self.left_out_iterations,
             "tol": self.tol,
+            "correction": list(self.correction),
         }
 
 
@@ -577,7 +596,7 @@ def _fit_key(runs: Sequence[LibraryRun], settings: FitSettings, iterations: int,
     text = json.dumps(
         {
             "runs": sorted(r.digest for r in runs),
-            "settings": settings.record(),
+            "settings": {k: v for k, v in settings.record().items() if k != "correction"},
             "iterations": iterations,
             "start": None if start is None else start.record()["coefficients"],
         },

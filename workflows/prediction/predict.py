@@ -11,30 +11,38 @@ index sampled binomially at the predicted outlet counts, and the RTD's mean and 
 as the moments of the chain's time to discharge (the DEM's pooled RTD recovers 99-100 %
 of its tracers, so its truncation is not modelled).
 
-The interval of a quantity (:func:`predict`): on its scale (the log of the value, or the
-value itself for :data:`~workflows.prediction.library.ABSOLUTE_KEYS`), each library run
-predicted by the law fitted without it gives one error (the calibration: it holds the
-law's misfit, the seed's scatter of the DEM value and the fit's own uncertainty at library
-points). Their mean b is the law's bias on that quantity (the RTD's mean, for one, is
-defined over the DEM's entry window, a little shorter than Little's-law time that the
-chain's own mean equals): the prediction is the law's value less b. Their standard
-deviation s, and the jackknife variance v(x) over the laws left out of the prediction at x
-itself, which grows away from the library, make the 95 % interval: the prediction
-+- t(0.975, n - 1) sqrt(s^2 (1 + 1/n) + max(v(x) - v_c, 0)), n the count of calibration
-runs and v_c the mean of v at their points (s already holds that much of it). Inside the domain (:func:`domain_issues`) the calibration runs are those
-that lay inside the domain of the others (their prediction was an interpolation too).
-Outside it a prediction is refused unless extrapolation is asked for; then it is labelled,
-its calibration is every run's (the extrapolated ones' larger errors included), and its
-half-width is multiplied by 1 + the distance outside the domain in units of the domain's
-width (one more for each fixed property the library does not vary, e.g. a particle size it
-never ran).
+The law is fitted to the particles' moves, not to the quantities: at the library's own runs
+it misses the DEM's hold-up by 1-5 %, smoothly over the operating point (too little at
+one end of a range, too much at the other), while the DEM's own scatter between seeds is
+0.4-1 %. What it misses there is carried to the point (:func:`predict`): on each
+quantity's scale (the log of the value, or the value itself for
+:data:`~workflows.prediction.library.ABSOLUTE_KEYS`) the residuals DEM less law at the
+library's runs are fitted by least squares as a line in the correction covariates x
+(:data:`~workflows.prediction.library.DEFAULT_CORRECTION`: log speed, its square, log
+slice length, the log gap from the last blade to the weir, log feed; :func:`fit_correction`
+keeps those the runs identify). The prediction is the law's value moved by the line at
+the point, and its 95 % interval the line's prediction interval,
++- t(0.975, n - p) s sqrt(1 + x'(A'A)^-1 x), n the runs, p the line's coefficients, s the
+residuals' standard deviation about it (the DEM's scatter between seeds and what the line
+cannot follow) and A the runs' covariates: it widens away from the runs, where the line's
+own coefficients are uncertain. The chain written for the PBM has each slice's time scale
+set so that it holds the predicted slice hold-ups, scaled to the predicted total
+(:func:`rescaled`): ``pbm run`` on the table settles where the prediction says.
+
+Outside the domain (:func:`domain_issues`) a prediction is refused unless extrapolation is
+asked for; then it is labelled, its half-width is at least the extrapolation floor (t
+times the root mean square error of the library's end runs, each predicted without it:
+the line knows nothing of how the law bends beyond its runs, these errors do;
+:func:`extrapolation_floor`), and it is multiplied by 1 + the distance outside the domain
+in units of the domain's width (one more for each fixed property the library does not
+vary, e.g. a particle size it never ran).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -54,12 +62,14 @@ from pbm.feed import feed_at
 from workflows.prediction.library import (
     ABSOLUTE_KEYS,
     AXIAL_SLICES,
+    CORRECTION_DOF,
     REFERENCE_FEED_PER_S,
+    REFERENCE_GAP_M,
     REFERENCE_RPM,
     REFERENCE_SLICE_M,
-    ErrorModel,
     LibraryModel,
     TransverseLaw,
+    correction_row,
     covariate_columns,
     quantity_keys,
     run_covariates,
@@ -72,7 +82,7 @@ SAMPLING_DRAWS = 2000
 #: the interval's coverage
 LEVEL = 0.95
 #: the operating-point covariates whose range spans the library's domain
-DOMAIN_AXES = ("speed", "length", "feed")
+DOMAIN_AXES = ("speed", "length", "feed", "gap")
 #: properties of a point the law does not vary: a point must share them with the library
 FIXED = ("diameter_m", "particle_diameter_m", "particle_diameter_sd_m", "size_classes")
 #: the times of the predicted RTD curve, as multiples of the mean residence time
@@ -172,7 +182,13 @@ class PointValues:
 def point_values(
     law: PhaseLaw, transverse: TransverseLaw, point: OperatingPoint, pattern: str, interval_s: float
 ) -> PointValues:
-    model = point_chain(law, transverse, point, pattern, interval_s)
+    """The quantities of the law's chain at ``point`` (:func:`point_chain`, :func:`chain_values`)."""
+    return chain_values(point_chain(law, transverse, point, pattern, interval_s), point)
+
+
+def chain_values(model: PhaseTransport, point: OperatingPoint) -> PointValues:
+    """The agreement table's quantities of ``model`` fed as ``point`` says, at steady state
+    (module docstring)."""
     nx, ny = model.nx, model.ny
     feed = entering(point, nx, ny)
     # each feeder's particles alone: the chain is linear and A and B move alike
@@ -243,10 +259,11 @@ class Domain:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
         slice_m = [REFERENCE_SLICE_M * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
         feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in self.ranges["feed"]]
+        gap = [1000 * REFERENCE_GAP_M * math.exp(v) for v in self.ranges["gap"]]
         return (
             f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m, "
             f"total feed {feed[0]:.4g}-{feed[1]:.4g} particles/s, "
-            + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
+            f"last blade to weir {gap[0]:.3g}-{gap[1]:.3g} mm, " + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
         )
 
 
@@ -289,26 +306,130 @@ def residual(key: str, dem: float, predicted: float) -> float:
     return math.nan
 
 
+def shifted(key: str, value: float, shift: float) -> float:
+    """``value`` moved by ``shift`` on ``key``'s scale."""
+    return value + shift if key in ABSOLUTE_KEYS else value * math.exp(shift)
+
+
 def bounds(key: str, value: float, half: float) -> tuple[float, float]:
-    if key in ABSOLUTE_KEYS:
-        return value - half, value + half
-    return value * math.exp(-half), value * math.exp(half)
+    return shifted(key, value, -half), shifted(key, value, half)
+
+
+@dataclass(frozen=True)
+class Correction:
+    """What the law misses of one quantity where the library ran, as a least-squares line
+    in the correction covariates (module docstring): ``names`` the covariates the runs
+    identify, ``coefficients`` the constant's first, ``variance`` the residuals' about the
+    line, ``inverse`` (A'A)^-1 of the runs' covariates A, ``dof`` the runs less the
+    coefficients."""
+
+    names: tuple[str, ...]
+    coefficients: np.ndarray
+    variance: float
+    inverse: np.ndarray
+    dof: int
+
+    def at(self, point: OperatingPoint) -> tuple[float, float, float]:
+        """(shift, half-width of the 95 % prediction interval, leverage x'(A'A)^-1 x) at
+        ``point`` on the quantity's scale; the half-width NaN without a degree of freedom."""
+        x = correction_row(point, self.names)
+        shift = float(x @ self.coefficients)
+        leverage = float(x @ self.inverse @ x)
+        if self.dof < 1 or not math.isfinite(self.variance):
+            return shift, math.nan, leverage
+        t = float(stdtrit(self.dof, 0.5 + LEVEL / 2))  # Student's t quantile
+        return shift, t * math.sqrt(self.variance * (1.0 + leverage)), leverage
+
+
+def fit_correction(points: Sequence[OperatingPoint], residuals: Sequence[float], names: Sequence[str]) -> Correction:
+    """The :class:`Correction` of ``residuals`` (one per point, NaN skipped) in the
+    covariates ``names``, taken in their order, each kept when the points identify it (it
+    raises the rank of the runs' covariates) and leave :data:`CORRECTION_DOF` degrees of
+    freedom: a library too small or too narrow for the whole form gets the part it
+    supports, down to the constant (the law's mean error)."""
+    use = [(p, float(r)) for p, r in zip(points, residuals) if math.isfinite(r)]
+    if not use:
+        return Correction((), np.zeros(1), math.nan, np.full((1, 1), math.inf), 0)
+    kept: list[str] = []
+    for name in names:
+        trial = [*kept, name]
+        rows = np.array([correction_row(p, trial) for p, _ in use])
+        if len(use) - rows.shape[1] >= CORRECTION_DOF and np.linalg.matrix_rank(rows) == rows.shape[1]:
+            kept = trial
+    a = np.array([correction_row(p, kept) for p, _ in use])
+    y = np.array([r for _, r in use])
+    coefficients = np.linalg.lstsq(a, y, rcond=None)[0]
+    dof = len(use) - a.shape[1]
+    misfit = y - a @ coefficients
+    variance = float(misfit @ misfit / dof) if dof > 0 else math.nan
+    return Correction(tuple(kept), coefficients, variance, np.linalg.pinv(a.T @ a), dof)
+
+
+def corrections(model: LibraryModel, leave: int | None = None) -> dict[str, Correction]:
+    """Per quantity, the :class:`Correction` of the whole library's law on every run, or,
+    with ``leave``, of the law fitted without that run on the other runs. Raises
+    ConfigError when ``model`` has no calibration."""
+    calibration = model.calibration
+    if calibration is None:
+        raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
+    out = {}
+    for key in quantity_keys():
+        law = (
+            calibration.whole.get(key) if leave is None else calibration.left_out.get(key, [None] * (leave + 1))[leave]
+        )
+        if law is None:
+            continue
+        points, residuals = [], []
+        for j, entry in enumerate(model.runs):
+            if j != leave and key in entry.dem:
+                points.append(entry.point)
+                residuals.append(residual(key, entry.dem[key].value, law[j]))
+        out[key] = fit_correction(points, residuals, calibration.covariates)
+    return out
+
+
+def left_out_errors(model: LibraryModel, runs: Sequence[int]) -> dict[str, list[float]]:
+    """Per quantity, the error of each run of ``runs`` predicted without it: the law fitted
+    without it, corrected by the line of that law's misses on the other runs."""
+    out: dict[str, list[float]] = {key: [] for key in quantity_keys()}
+    for n in runs:
+        entry = model.runs[n]
+        for key, line in corrections(model, leave=n).items():
+            if key in entry.dem:
+                value = shifted(key, model.calibration.left_out[key][n][n], line.at(entry.point)[0])
+                out[key].append(residual(key, entry.dem[key].value, value))
+    return out
+
+
+def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
+    """Per quantity, the least half-width of an extrapolation: t(0.975, m) times the root
+    mean square error of the m runs at an end of the library's ranges, each predicted
+    without it (:func:`left_out_errors`; ``leave`` not among them). The line's own interval
+    knows nothing of how the law bends beyond its runs; these errors do. Zero without such
+    a run."""
+    ends = [n for n, inside in enumerate(model.calibration.inside) if not inside and n != leave]
+    out = {}
+    for key, errors in left_out_errors(model, ends).items():
+        errors = [e for e in errors if math.isfinite(e)]
+        if errors:
+            out[key] = float(stdtrit(len(errors), 0.5 + LEVEL / 2)) * math.sqrt(float(np.mean(np.square(errors))))
+    return out
 
 
 @dataclass(frozen=True)
 class PredictedQuantity:
-    """One quantity: ``value`` the law's prediction less its calibration bias, with its 95 %
-    prediction interval; ``law_value`` the law's own; ``error`` the calibration's error
-    model and ``spread`` the jackknife's standard deviation at the point beyond the calibration's (both on the
-    quantity's scale); ``widening`` the factor outside the domain."""
+    """One quantity: ``value`` the law's ``law_value`` moved by the correction's ``shift``,
+    with its 95 % prediction interval ``low``-``high``; ``correction`` the line it came
+    from and ``leverage`` the point's; ``widening`` the factor outside the domain."""
 
     key: str
     value: float
     low: float
     high: float
     law_value: float
-    error: ErrorModel
-    spread: float
+    shift: float
+    correction: Correction
+    leverage: float
     widening: float = 1.0
 
     def record(self) -> dict[str, Any]:
@@ -317,26 +438,30 @@ class PredictedQuantity:
     def details(self) -> dict[str, Any]:
         return {
             "law_value": self.law_value,
-            "bias": self.error.bias,
-            "sd": self.error.sd,
-            "calibration_runs": self.error.n,
-            "jackknife_excess_sd": self.spread,
+            "correction": self.shift,
+            "correction_covariates": list(self.correction.names),
+            "residual_sd": math.sqrt(self.correction.variance) if math.isfinite(self.correction.variance) else None,
+            "degrees_of_freedom": self.correction.dof,
+            "leverage": self.leverage,
             "widening": self.widening,
         }
 
 
 def corrected(
-    key: str, value: float, error: ErrorModel, spread: float, widening: float = 1.0
-) -> tuple[float, float, float]:
-    """(centre, low, high): ``value`` less the calibration's bias, and the 95 % prediction
-    interval about it (module docstring); NaN without a calibration of ``key``."""
-    if not math.isfinite(error.sd):
-        return value, math.nan, math.nan
-    centre = value + error.bias if key in ABSOLUTE_KEYS else value * math.exp(error.bias)
-    t = float(stdtrit(error.n - 1, 0.5 + LEVEL / 2))  # Student's t quantile
-    half = t * math.sqrt(error.sd**2 * (1 + 1 / error.n) + spread**2) * widening
-    low, high = bounds(key, centre, half)
-    return centre, low, high
+    key: str,
+    value: float,
+    correction: Correction,
+    point: OperatingPoint,
+    widening: float = 1.0,
+    floor: float = 0.0,
+) -> PredictedQuantity:
+    """The law's ``value`` of ``key`` at ``point`` corrected, with its interval (module
+    docstring): the line's half-width, at least ``floor`` (an extrapolation's), times
+    ``widening``; NaN bounds where the correction has no degree of freedom."""
+    shift, half, leverage = correction.at(point)
+    centre = shifted(key, value, shift)
+    low, high = bounds(key, centre, max(half, floor) * widening)
+    return PredictedQuantity(key, centre, low, high, value, shift, correction, leverage, widening)
 
 
 @dataclass(frozen=True)
@@ -345,9 +470,10 @@ class Prediction:
     quantities: tuple[PredictedQuantity, ...]
     outside: tuple[str, ...]
     domain: Domain
+    #: the law's chain with each slice's time scale set to the predicted slice hold-ups
     values: PointValues
     rtd_times_s: np.ndarray
-    rtd: np.ndarray  # (3, T): the law's E(t), and the least and greatest over the laws left out
+    rtd: np.ndarray  # (3, T): E(t) at the predicted mean residence time, and at its interval's ends
 
     @property
     def extrapolated(self) -> bool:
@@ -357,24 +483,24 @@ class Prediction:
         return next(q for q in self.quantities if q.key == key)
 
 
-def jackknife(values: list[dict[str, float]], key: str) -> float:
-    """Jackknife variance of ``key`` on its scale over the laws left out."""
-    scaled = []
-    for v in values:
-        x = v.get(key, math.nan)
-        scaled.append(x if key in ABSOLUTE_KEYS else (math.log(x) if x > 0 else math.nan))
-    scaled = np.asarray(scaled, dtype=float)
-    scaled = scaled[np.isfinite(scaled)]
-    n = scaled.size
-    return float((n - 1) / n * np.sum((scaled - scaled.mean()) ** 2)) if n > 1 else 0.0
+def rescaled(model: PhaseTransport, factors: np.ndarray) -> PhaseTransport:
+    """``model`` with every rate out of slice i (moves, switching, discharge) multiplied by
+    ``factors[i]``: the jump chain is the same, so are the steady flows, and slice i holds
+    1/factors[i] as many particles (module docstring)."""
+    scale = np.asarray(factors, dtype=float)[None, None, :, None]
+    return replace(model, rates=model.rates * scale, switching=model.switching * scale)
+
+
+def stretched(curve: np.ndarray, times: np.ndarray, factor: float) -> np.ndarray:
+    """The density ``curve`` on ``times`` of a time to discharge multiplied by ``factor``."""
+    return np.interp(times / factor, times, curve, right=0.0) / factor
 
 
 def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolate: bool = False) -> Prediction:
     """The prediction of ``point``, its blade stations oriented by ``pattern``, from
     ``model`` (module docstring). Raises ConfigError when the model has no calibration, or
     the point lies outside the library's domain and ``extrapolate`` is False."""
-    if model.calibration is None:
-        raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
+    lines = corrections(model)
     dom = domain([r.point for r in model.runs], model.blade_pattern)
     issues, widening = domain_issues(dom, point, pattern)
     if issues and not extrapolate:
@@ -382,20 +508,26 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
             f"the point lies outside the library's domain ({'; '.join(issues)}); the domain is {dom.describe()}. "
             "Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
-    values = point_values(model.law, model.transverse, point, pattern, model.interval_s)
-    left = [
-        point_values(law, transverse, point, pattern, model.interval_s)
-        for law, transverse in zip(model.left_out, model.transverse_left_out)
-    ]
-    quantities = []
-    for key in quantity_keys():
-        value = values.values[key]
-        error = model.calibration.error(key, extrapolated=bool(issues))
-        spread = math.sqrt(model.calibration.excess(key, jackknife([v.values for v in left], key)))
-        centre, low, high = corrected(key, value, error, spread, widening)
-        quantities.append(PredictedQuantity(key, centre, low, high, value, error, spread, widening))
+    law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
+    floor = extrapolation_floor(model) if issues else {}
+    quantities = tuple(
+        corrected(key, law.values[key], lines[key], point, widening, floor.get(key, 0.0))
+        for key in quantity_keys()
+        if key in lines
+    )
+    by_key = {q.key: q for q in quantities}
+    held = law.counts.sum(axis=(0, 2))
+    slices = np.array([by_key[slice_key(i)].value if slice_key(i) in by_key else held[i] for i in range(held.size)])
+    if "holdup" in by_key:
+        slices *= by_key["holdup"].value / slices.sum()
+    values = chain_values(rescaled(law.model, held / slices), point)
     mean = values.values["mean_residence_time_s"]
     times = np.linspace(0.0, RTD_SPAN * mean, RTD_POINTS)
-    curves = np.array([rtd_curve(v.model, v.feed, times) for v in (values, *left)])
-    rtd = np.vstack([curves[0], curves[1:].min(axis=0), curves[1:].max(axis=0)])
-    return Prediction(point, tuple(quantities), tuple(issues), dom, values, times, rtd)
+    curve = rtd_curve(values.model, values.feed, times)
+    ends = [mean]
+    if "mean_residence_time_s" in by_key:
+        q = by_key["mean_residence_time_s"]
+        ends = [q.value, q.low, q.high]
+    curves = np.array([stretched(curve, times, end / mean) if math.isfinite(end) else curve for end in ends])
+    rtd = np.vstack([curves[0], curves.min(axis=0), curves.max(axis=0)])
+    return Prediction(point, quantities, tuple(issues), dom, values, times, rtd)

@@ -47,6 +47,8 @@ def library_fit(
         "# The library's law, each run predicted without it\n\n"
         f"Made by `pbmdem library fit --out {out}` from {len(runs)} DEM runs.\n\n"
         + calibration.markdown(model, check)
+        + "\n\n"
+        + calibration.alternatives(model)
         + "\n"
     )
     return LibraryFitOutput(model, check, files)

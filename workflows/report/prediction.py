@@ -26,13 +26,15 @@ LABELS = {
 
 
 def plot_prediction(prediction: Prediction, path: Path) -> Path:
-    """Two panels: E(t) of the law with the band of the laws left out, and each slice's
-    hold-up with its prediction interval."""
+    """Two panels: E(t) of the corrected chain with the band of its mean's interval, and
+    each slice's hold-up with its prediction interval."""
     fig = Figure(figsize=(10, 4), layout="constrained")
     left, right = fig.subplots(1, 2)
     t = prediction.rtd_times_s
-    left.fill_between(t, prediction.rtd[1], prediction.rtd[2], color="#9ecae1", label="laws with one run left out")
-    left.plot(t, prediction.rtd[0], color="#08519c", lw=1.5, label="the library's law")
+    left.fill_between(
+        t, prediction.rtd[1], prediction.rtd[2], color="#9ecae1", label="at the ends of the mean's interval"
+    )
+    left.plot(t, prediction.rtd[0], color="#08519c", lw=1.5, label="the library's law, corrected")
     mean = prediction.quantity("mean_residence_time_s")
     left.axvspan(mean.low, mean.high, color="#fdae6b", alpha=0.4, label="mean: 95 % prediction interval")
     left.axvline(mean.value, color="#e6550d", lw=1)
@@ -69,7 +71,8 @@ def prediction_html(prediction: Prediction, config_name: str, figure: str | None
         warning = (
             '<p class="warn"><b>Extrapolated:</b> this point lies outside the library\'s domain ('
             + html.escape("; ".join(prediction.outside))
-            + f"); the intervals are widened {prediction.quantities[0].widening:.2f}x and are not checked there.</p>"
+            + f"); the intervals are widened {prediction.quantities[0].widening:.2f}x, at least to the errors of the "
+            "library's end runs predicted without them.</p>"
         )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
     image = (
@@ -91,9 +94,11 @@ From the library's law (no DEM run at this point): {html.escape(headline)}.</p>
 <p>Library domain: {html.escape(prediction.domain.describe())}.</p>
 {image}
 <h2>Every quantity with its 95 % prediction interval</h2>
-<p>The interval is where a DEM run at this point would put its value, 95 % of the time: it holds the law's
-error measured on each library run left out of the fit, the DEM's scatter between seeds, and the spread of
-the laws fitted without one run each at this point.</p>
+<p>Each value is the library's law corrected by what it misses at the library's runs (a least-squares line
+over the operating point). The interval is where a DEM run at this point would put its value, 95 % of the
+time: the scatter of the DEM about that line (seeds included) and the line's own uncertainty at this point,
+which grows away from the runs; checked on every library run left out (<code>calibration.md</code> beside
+the library).</p>
 <table><tr><th>quantity</th><th>key</th><th>predicted</th><th>95 % interval</th><th>unit</th></tr>
 {"".join(rows)}</table>
 <p>Files: {links}</p>

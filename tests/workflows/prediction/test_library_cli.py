@@ -28,8 +28,10 @@ def test_library_fit_writes_a_model_that_reads_back_with_a_law_left_out_per_run(
     model = load_model(library)
     assert [r.file for r in model.runs] == [p.name for p in SPEEDS]
     assert len(model.left_out) == 3 and model.calibration is not None
-    assert set(model.calibration.residuals) == set(quantity_keys())
-    assert (library / "calibration.md").read_text().startswith("# The library's law")
+    assert set(model.calibration.whole) == set(quantity_keys())
+    assert all(len(row) == 3 for row in model.calibration.left_out["holdup"])
+    page = (library / "calibration.md").read_text()
+    assert page.startswith("# The library's law") and "## The correction's form" in page
     assert len(list((library / "fits").glob("law-*.json"))) == 4  # the whole fit and one per run left out
 
 

@@ -15,15 +15,25 @@ from dem.summary import Estimate
 from pbm.config import PbmConfig
 from pbm.simulate import simulate
 from workflows.config import load_preset
+from workflows.prediction.calibration import calibrated, check
 from workflows.prediction.library import (
-    Calibration,
-    ErrorModel,
     LibraryEntry,
     LibraryModel,
     TransverseLaw,
+    correction_row,
     quantity_keys,
+    run_covariates,
 )
-from workflows.prediction.predict import corrected, point_table, point_values, predict, rtd_moments
+from workflows.prediction.predict import (
+    chain_values,
+    corrected,
+    fit_correction,
+    point_table,
+    point_values,
+    predict,
+    rescaled,
+    rtd_moments,
+)
 
 NAMES = ("1", "speed", "feed")
 
@@ -45,16 +55,46 @@ def test_rtd_moments_of_slices_in_series_are_the_sums_of_exponentials(rates):
     assert variance == pytest.approx(sum(1 / k**2 for k in rates))
 
 
-def test_the_interval_holds_95_percent_of_new_errors_drawn_like_the_calibration():
+def test_the_interval_holds_95_percent_of_new_errors_drawn_from_the_line_it_fitted():
+    """Misses linear in speed and feed with Gaussian noise: the line's prediction interval
+    at a new point holds a new miss 95 % of the time (the textbook OLS interval)."""
     rng = np.random.default_rng(3)
-    bias, sd, n, covered, trials = 0.03, 0.05, 13, 0, 4000
+    points = [
+        BASE.replace(impeller_rpm=rpm, feed_rate_a_per_s=f / 2, feed_rate_b_per_s=f / 2)
+        for rpm in (150, 200, 250, 300, 350)
+        for f in (40, 70, 140)
+    ]
+    new = BASE.replace(impeller_rpm=330.0, feed_rate_a_per_s=27.5, feed_rate_b_per_s=27.5)
+
+    def miss(p):
+        c = run_covariates(p)
+        return 0.03 - 0.2 * c["speed"] + 0.1 * c["feed"]
+
+    sd, covered, trials = 0.05, 0, 3000
     for _ in range(trials):
-        residuals = rng.normal(bias, sd, n)
-        error = ErrorModel(float(residuals.mean()), float(residuals.std(ddof=1)), n)
-        _centre, low, high = corrected("holdup", 1000.0, error, 0.0)
-        dem = 1000.0 * math.exp(rng.normal(bias, sd))
-        covered += low <= dem <= high
+        residuals = [miss(p) + rng.normal(0, sd) for p in points]
+        line = fit_correction(points, residuals, ("speed", "feed"))
+        q = corrected("holdup", 1000.0, line, new)
+        dem = 1000.0 * math.exp(miss(new) + rng.normal(0, sd))
+        covered += q.low <= dem <= q.high
     assert covered / trials == pytest.approx(0.95, abs=0.012)
+
+
+def test_the_line_keeps_the_covariates_the_runs_identify_and_the_constant_alone_is_bias_and_spread():
+    points = [BASE.replace(impeller_rpm=rpm) for rpm in (150.0, 250.0, 350.0, 250.0)]
+    residuals = [0.01, -0.02, 0.04, 0.03]
+    # feed never changes, and speed2 would leave one degree of freedom: both dropped
+    line = fit_correction(points, residuals, ("feed", "speed", "speed2"))
+    assert line.names == ("speed",) and line.dof == 2
+    constant = fit_correction(points, residuals, ())
+    q = corrected("holdup", 100.0, constant, BASE)
+    r = np.array(residuals)
+    half = 3.182446305284263 * r.std(ddof=1) * math.sqrt(1 + 1 / 4)  # t(0.975, 3)
+    assert q.value == pytest.approx(100.0 * math.exp(r.mean()))
+    assert math.log(q.high / q.value) == pytest.approx(half)
+    assert correction_row(BASE, ("feed2", "length2")).tolist() == pytest.approx([1.0, 0.0, 0.0])
+    nothing = fit_correction(points, [math.nan] * 4, ("speed",))
+    assert math.isnan(corrected("holdup", 100.0, nothing, BASE).low)
 
 
 # ---------------------------------------------------------------- a hand-made library
@@ -78,34 +118,45 @@ def _transverse() -> TransverseLaw:
 BASE = operating_point(load_preset("validation").dem)
 
 
+def _miss(point) -> float:
+    """The hand-made library's DEM misses its law by this log ratio, linear in speed."""
+    return 0.05 + 0.2 * run_covariates(point)["speed"]
+
+
 def _model(spread_laws: bool = True) -> LibraryModel:
-    points = [BASE.replace(impeller_rpm=rpm) for rpm in (150.0, 250.0, 350.0)]
-    dem = {"holdup": Estimate(1.0, 0.9, 1.1)}
-    runs = tuple(LibraryEntry(f"run{n}.h5", str(n), p, "FB", 15485863, dem) for n, p in enumerate(points))
-    left = tuple(_law(0.6 * (1 + 0.02 * (n - 1) * spread_laws)) for n in range(3))
-    residuals = {key: [0.01, -0.02, 0.04] for key in quantity_keys()}
-    return LibraryModel(
-        _law(), _transverse(), runs, left, (_transverse(),) * 3, 0.1, Calibration(residuals, [False, True, False])
+    points = [BASE.replace(impeller_rpm=rpm) for rpm in (150.0, 200.0, 250.0, 300.0, 350.0)]
+    held = [point_values(_law(), _transverse(), p, "FB", 0.1).values["holdup"] for p in points]
+    runs = tuple(
+        LibraryEntry(f"run{n}.h5", str(n), p, "FB", 15485863, {"holdup": Estimate(h * math.exp(_miss(p)), 0.0, 1e9)})
+        for n, (p, h) in enumerate(zip(points, held))
     )
+    left = tuple(_law(0.6 * (1 + 0.02 * (n - 2) * spread_laws)) for n in range(5))
+    model = LibraryModel(_law(), _transverse(), runs, left, (_transverse(),) * 5, 0.1)
+    return calibrated(model, ("speed",))
 
 
 def test_a_point_inside_the_domain_is_predicted_with_every_quantity_and_its_interval():
     model = _model()
-    point = BASE.replace(impeller_rpm=200.0)
+    point = BASE.replace(impeller_rpm=275.0)
     prediction = predict(model, point, "FB")
     assert [q.key for q in prediction.quantities] == list(quantity_keys())
     law = point_values(_law(), _transverse(), point, "FB", 0.1).values
-    error = model.calibration.error("holdup")
-    assert error.n == 3 and error.bias == pytest.approx(0.01)
     holdup = prediction.quantity("holdup")
     assert holdup.law_value == pytest.approx(law["holdup"])
-    assert holdup.value == pytest.approx(law["holdup"] * math.exp(0.01))
-    assert holdup.low < holdup.value < holdup.high
-    assert holdup.spread > 0  # the laws left out differ at this point
-    # mass balance: the outflow is the feed, C_A its share of A
-    assert prediction.quantity("outflow_per_s").law_value == pytest.approx(BASE.feed_rate_total_per_s)
-    assert prediction.quantity("C_A").law_value == pytest.approx(0.5)
+    # the line of the misses is exact here: the prediction is the DEM's law, the interval closes on it
+    assert holdup.value == pytest.approx(law["holdup"] * math.exp(_miss(point)), rel=1e-9)
+    assert holdup.low == pytest.approx(holdup.value, rel=1e-6) and holdup.high == pytest.approx(holdup.value, rel=1e-6)
+    # the quantities the DEM runs lack have the law's value and no interval
+    assert prediction.quantity("outflow_per_s").value == pytest.approx(BASE.feed_rate_total_per_s)
+    assert math.isnan(prediction.quantity("outflow_per_s").low)
+    # the written chain holds the predicted hold-up
+    assert prediction.values.values["holdup"] == pytest.approx(holdup.value, rel=1e-9)
     assert not prediction.extrapolated
+    # left out, each run is the left-out law corrected by the line of its misses elsewhere
+    result = check(model)
+    rows = {r.run: r for r in result.rows if r.key == "holdup"}
+    assert rows["run2.h5"].interpolated and not rows["run0.h5"].interpolated
+    assert rows["run2.h5"].covered
 
 
 def test_a_point_outside_the_domain_is_refused_naming_it_unless_extrapolated():
@@ -126,9 +177,20 @@ def test_a_point_outside_the_domain_is_refused_naming_it_unless_extrapolated():
         predict(model, BASE, "FFB")
 
 
+def test_a_slice_whose_rates_are_scaled_holds_inversely_as_many_and_the_flows_stay():
+    point = BASE.replace(impeller_rpm=200.0)
+    law = point_values(_law(), _transverse(), point, "FB", 0.1)
+    factors = np.linspace(0.5, 2.0, 10)
+    scaled = chain_values(rescaled(law.model, factors), point)
+    assert np.allclose(scaled.counts.sum(axis=(0, 2)), law.counts.sum(axis=(0, 2)) / factors, rtol=1e-9)
+    assert scaled.values["outflow_per_s"] == pytest.approx(law.values["outflow_per_s"])
+
+
 def test_the_pbm_on_the_written_table_settles_where_the_prediction_says():
     point = BASE.replace(impeller_rpm=200.0)
-    values = point_values(_law(), _transverse(), point, "FB", 0.1)
+    prediction = predict(_model(), point, "FB")
+    values = prediction.values
+    assert values.values["holdup"] == pytest.approx(prediction.quantity("holdup").value, rel=1e-9)
     table = point_table(values, point, 400.0)
     result = simulate(table, PbmConfig(rates="phases", duration_s=400.0, output_interval_s=5.0))
     late = result.times > 300.0
@@ -154,13 +216,8 @@ def test_an_extrapolated_blade_pattern_is_predicted_with_its_own_stations():
         1,
         True,
     )
-    model = LibraryModel(
-        push,
-        *[getattr(model, f) for f in ("transverse", "runs")],
-        (push,) * 3,
-        model.transverse_left_out,
-        0.1,
-        model.calibration,
+    model = calibrated(
+        LibraryModel(push, model.transverse, model.runs, (push,) * 5, model.transverse_left_out, 0.1), ("speed",)
     )
     other = predict(model, BASE, "FFB", extrapolate=True)
     assert other.outside == ("blade_pattern = FFB (the library's is FB)",)
