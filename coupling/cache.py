@@ -99,6 +99,9 @@ class CacheEntry:
     frames: dict[str, pd.DataFrame] = field(default_factory=dict)
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: the file it was read from (not stored): what the side that parses the parts names
+    #: when one of them is wrong
+    source: str = field(default="", compare=False)
 
     @property
     def key(self) -> str:
@@ -161,7 +164,7 @@ def load_entry(path: str | os.PathLike, key: str | None = None) -> CacheEntry:
             columns = json.loads(sub.attrs["columns"])
             frames[name] = pd.DataFrame({c: read_dataset(sub[c], values) for c in columns}, columns=columns)
         arrays = {name: read_dataset(data, values) for name, data in group["arrays"].items()}
-    return CacheEntry(head.table, head.summary, frames, arrays, head.provenance)
+    return CacheEntry(head.table, head.summary, frames, arrays, head.provenance, source=str(path))
 
 
 def load_head(path: str | os.PathLike, key: str | None = None) -> CacheHead:

@@ -79,6 +79,13 @@ class CacheError(PbmDemError):
     """A cache file is corrupt, foreign or could not be written."""
 
 
+class ResultsError(CacheError):
+    """A DEM results file's stored arrays contradict each other or the file's table (a state
+    outside the grid, a run longer than the record, counts on another grid): the message
+    names the file, the array and what would be valid. Not a ValueError, so that no
+    ``except ValueError`` meant for a fit that lacks data turns it into a note."""
+
+
 class ResourceLimitError(PbmDemError, ValueError):
     """An input would need more memory or time than the machine can give (the message
     carries the estimate, what is available and how to make the problem smaller)."""

@@ -63,7 +63,7 @@ import pandas as pd
 
 from coupling.cache import CacheEntry
 from coupling.compartments import grid_edges
-from coupling.errors import ConfigError, DumpFormatError
+from coupling.errors import ConfigError, DumpFormatError, ResultsError
 from coupling.files import input_directory
 from coupling.metrics import SteadyStateRule, outflow_fraction_a, random_mixture_rsd, rsd
 from coupling.tables import VELOCITY_NAMES, VelocityTable
@@ -154,9 +154,12 @@ class DemResults:
         computed (:func:`dem.steady.intervals_are_current`) are computed again from the
         stored counts (:func:`recompute_steady`), so no stale interval is judged against;
         without counts to do it they stay, with a warning saying so."""
+        source = entry.source or "the DEM results"
         arrays = {name: np.asarray(values) for name, values in entry.arrays.items()}
-        sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX)
+        sequences = CompartmentSequences.from_arrays(arrays, SEQUENCE_PREFIX, source)
         plain = {name: values for name, values in arrays.items() if not name.startswith(SEQUENCE_PREFIX)}
+        if "snapshot_counts" in plain:
+            check_snapshot_counts(plain["snapshot_counts"], entry.table, len(entry.frames.get("holdup", ())), source)
         results = cls(
             table=entry.table,
             summary=DemSummary.from_record(entry.summary),
@@ -194,6 +197,25 @@ class DemResults:
         if seq is None or (seq.nx, seq.ny) != (self.table.nx, self.table.ny) or seq.snapshot_t.size != len(self.holdup):
             return None
         return np.stack([seq.counts((c,)) for c in phases.FEEDERS], axis=1)
+
+
+def check_snapshot_counts(counts: np.ndarray, table: VelocityTable, n_dumps: int, source: str) -> None:
+    """Refuse (ResultsError naming ``source``) stored per-dump counts that are not
+    (dumps, 2, NX, NY) non-negative integers on ``table``'s grid, one row per dump of the
+    hold-up: the steady quantities recomputed from counts on another grid or of other dumps
+    would be wrong without any error."""
+    counts = np.asarray(counts)
+    expected = (n_dumps, 2, table.nx, table.ny)
+    if counts.shape != expected:
+        raise ResultsError(
+            f"{source}: stored array 'snapshot_counts' has shape {counts.shape}; (dumps, A and B, NX, NY) = "
+            f"{expected} (the hold-up's dumps on the table's {table.nx} x {table.ny} grid) is valid"
+        )
+    if counts.size and (not np.issubdtype(counts.dtype, np.integer) or counts.min() < 0):
+        raise ResultsError(
+            f"{source}: stored array 'snapshot_counts' holds {counts.dtype} values down to {counts.min()}; "
+            "particle counts (integers >= 0) are valid"
+        )
 
 
 def _compact_counts(counts: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from coupling.compartments import bin_particles
-from coupling.errors import DumpFormatError
+from coupling.errors import DumpFormatError, ResultsError
 from coupling.tables import VELOCITY_NAMES
 from dem.config import DemConfig
 from dem.dumps import iter_snapshots
@@ -570,18 +570,131 @@ class CompartmentSequences:
         return out
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str = "sequences_") -> CompartmentSequences | None:
+    def from_arrays(
+        cls, arrays: dict[str, np.ndarray], prefix: str = "sequences_", source: str = "the results"
+    ) -> CompartmentSequences | None:
         """The inverse of :meth:`to_arrays`; None when ``arrays`` holds no sequences (results
-        made before they were recorded)."""
+        made before they were recorded). Every array is checked against the others first
+        (:func:`checked_sequence_arrays`): ResultsError names ``source`` and the array."""
         if prefix + "ids" not in arrays:
             return None
-        nx, ny = (int(v) for v in np.asarray(arrays[prefix + "grid"]))
-        return cls(
-            **{name: np.asarray(arrays[prefix + name]) for name in cls.ARRAYS},
-            interval_s=float(np.asarray(arrays[prefix + "interval_s"])),
-            nx=nx,
-            ny=ny,
+        values, interval_s, (nx, ny) = checked_sequence_arrays(arrays, prefix, source)
+        return cls(**values, interval_s=interval_s, nx=nx, ny=ny)
+
+
+#: Largest grid the sequences can hold: states are stored as int16, with S (past the weir)
+#: the largest of them.
+MAX_SEQUENCE_CELLS = int(np.iinfo(np.int16).max) - 1
+
+
+def checked_sequence_arrays(
+    arrays: dict[str, np.ndarray], prefix: str, source: str
+) -> tuple[dict[str, np.ndarray], float, tuple[int, int]]:
+    """The stored compartment sequences' arrays (keyed by :attr:`CompartmentSequences.ARRAYS`),
+    dump interval [s] and grid, each checked against the others; ResultsError names
+    ``source``, the first bad array and what would be valid.
+
+    Every later step indexes one array by another (runs by offsets, dumps by starts, counts
+    by states) and sizes arrays by run lengths, so a value out of range is an IndexError,
+    a terabyte allocation or a silently wrong fit there: refused here instead."""
+
+    def refuse(name: str, problem: str) -> ResultsError:
+        return ResultsError(f"{source}: stored array '{prefix}{name}' {problem}")
+
+    missing = [
+        prefix + name for name in (*CompartmentSequences.ARRAYS, "grid", "interval_s") if prefix + name not in arrays
+    ]
+    if missing:
+        raise ResultsError(f"{source}: the compartment sequences lack {', '.join(missing)}; regenerate the results")
+    values = {name: np.asarray(arrays[prefix + name]) for name in CompartmentSequences.ARRAYS}
+    for name in ("ids", "component", "start", "run_offsets", "run_state", "run_length"):
+        if values[name].ndim != 1 or not (np.issubdtype(values[name].dtype, np.integer) or values[name].size == 0):
+            raise refuse(name, f"is {values[name].dtype} of shape {values[name].shape}; a 1-D integer array is valid")
+        values[name] = values[name].astype(np.int64) if values[name].size == 0 else values[name]
+
+    grid = np.asarray(arrays[prefix + "grid"])
+    if grid.shape != (2,) or not np.issubdtype(grid.dtype, np.integer) or (grid < 1).any():
+        raise refuse("grid", f"is {grid.tolist()}; two integers NX, NY >= 1 are valid")
+    nx, ny = int(grid[0]), int(grid[1])
+    if nx * ny > MAX_SEQUENCE_CELLS:
+        raise refuse("grid", f"is {nx} x {ny}; at most {MAX_SEQUENCE_CELLS} compartments fit the stored states")
+    interval = np.asarray(arrays[prefix + "interval_s"])
+    interval_s = float(interval) if interval.shape == () and np.issubdtype(interval.dtype, np.number) else math.nan
+    if not (math.isfinite(interval_s) and interval_s > 0):
+        raise refuse("interval_s", f"is {interval.tolist()!r}; a dump interval > 0 s is valid")
+
+    t = values["snapshot_t"]
+    if t.ndim != 1 or not np.issubdtype(t.dtype, np.number) or not np.isfinite(t).all():
+        raise refuse("snapshot_t", f"of shape {t.shape} is not all finite numbers; dump times in s are valid")
+    if t.size > 1 and (np.diff(t) <= 0).any():
+        k = int(np.argmax(np.diff(t) <= 0))
+        raise refuse(
+            "snapshot_t",
+            f"goes from {t[k]:.6g} s to {t[k + 1]:.6g} s at dump {k + 1}; strictly increasing times are valid",
         )
+
+    ids, n_dumps = values["ids"], t.size
+    p = ids.size
+    for name in ("component", "start"):
+        if values[name].size != p:
+            raise refuse(name, f"has {values[name].size} entries for {p} particles; one per particle is valid")
+    if p and np.unique(ids).size != p:
+        dup = np.sort(ids)[np.flatnonzero(np.diff(np.sort(ids)) == 0)[0]]
+        raise refuse("ids", f"lists particle {int(dup)} twice; each particle once is valid")
+    bad = ~np.isin(values["component"], (1, 2, 3))
+    if bad.any():
+        raise refuse(
+            "component", f"holds {int(values['component'][bad][0])}; 1 (A), 2 (B) or 3 (another type) are valid"
+        )
+    start = values["start"]
+    bad = (start < 0) | (start >= n_dumps)
+    if bad.any():
+        raise refuse("start", f"holds dump {int(start[bad][0])}; dumps 0 to {n_dumps - 1} are recorded")
+
+    offsets, state, length = values["run_offsets"], values["run_state"], values["run_length"]
+    n_runs = state.size
+    if offsets.size != p + 1:
+        raise refuse("run_offsets", f"has {offsets.size} entries for {p} particles; {p + 1} (one more) are valid")
+    if offsets[0] != 0 or offsets[-1] != n_runs or (np.diff(offsets) < 1).any():
+        raise refuse(
+            "run_offsets",
+            f"runs {offsets[0]} ... {offsets[-1]}; valid offsets go from 0 to the {n_runs} runs, strictly increasing "
+            "(every particle has a run)",
+        )
+    if length.size != n_runs:
+        raise refuse("run_length", f"has {length.size} entries for {n_runs} runs; one per run is valid")
+    n_cells = nx * ny
+    bad = (state < 0) | (state > n_cells)
+    if bad.any():
+        raise refuse(
+            "run_state",
+            f"holds {int(state[bad][0])}; on the {nx} x {ny} grid states 0 to {n_cells - 1} (compartments) and "
+            f"{n_cells} (past the weir) are valid",
+        )
+    bad = (length < 1) | (length > n_dumps)
+    if bad.any():
+        raise refuse("run_length", f"holds {int(length[bad][0])}; a run lasts 1 to {n_dumps} dumps (those recorded)")
+    if p:
+        end = start.astype(np.int64) + np.add.reduceat(length.astype(np.int64), offsets[:-1])
+        bad = end > n_dumps
+        if bad.any():
+            q = int(np.argmax(bad))
+            raise refuse(
+                "run_length",
+                f"gives particle {int(ids[q])} (first seen at dump {int(start[q])}) {int(end[q] - start[q])} dumps; "
+                f"only {n_dumps} are recorded",
+            )
+        # past the weir is absorbing: a particle's last run at most, for one dump
+        last = np.zeros(n_runs, bool)
+        last[offsets[1:] - 1] = True
+        bad = (state == n_cells) & (~last | (length != 1))
+        if bad.any():
+            raise refuse(
+                "run_state",
+                f"holds the absorbing state {n_cells} (past the weir) in run {int(np.argmax(bad))} other than as a "
+                "particle's last run of one dump",
+            )
+    return values, interval_s, (nx, ny)
 
 
 def compartment_sequences(acc: Accumulation, exits: Exits, nx: int, ny: int) -> CompartmentSequences:
