@@ -92,12 +92,25 @@ def validate(model: PhaseTransport) -> None:
         raise TableError(f"phase switching has shape {switching.shape}; expected (K, K, NX, NY) = {(k, k, nx, ny)}")
     if entry.shape != (2, k):
         raise TableError(f"entry-phase distribution has shape {entry.shape}; expected (2, K) = (2, {k})")
-    for name, values in (("phase rates", rates), ("phase switching", switching), ("entry-phase distribution", entry)):
-        bad = ~np.isfinite(values) | (values < 0)
+    # The measured rates' bound (the tables module imports this one, hence here): a phase
+    # moves or switches no faster than any transition a DEM can observe.
+    from coupling.tables import MAX_RATE_PER_S
+
+    for name, values, bound, unit in (
+        ("phase rates", rates, MAX_RATE_PER_S, " /s"),
+        ("phase switching", switching, MAX_RATE_PER_S, " /s"),
+        ("entry-phase distribution", entry, np.inf, ""),  # its rows must sum to 1: checked below
+    ):
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(values) | (values < 0) | (values > bound)
         if bad.any():
             raise TableError(
                 f"{name} hold {float(values[bad][0])!r} at index {tuple(int(v) for v in np.argwhere(bad)[0])}; "
-                "expected finite values >= 0"
+                + (
+                    f"finite values in [0, {bound:g}]{unit} are valid"
+                    if np.isfinite(bound)
+                    else "finite values >= 0 are valid"
+                )
             )
     sums = entry.sum(axis=1)
     if np.any(np.abs(sums - 1.0) > 1e-6):

@@ -1,7 +1,8 @@
 """What a PBM run and a feed-noise ensemble cost in memory, estimated before they start.
 
 The exact solver (:mod:`pbm.solver`) keeps a dense m x m generator and step operators per
-velocity window (m = S + 3: S = NX x NY compartments and the accumulators), and the
+velocity window (m = S K + 3: S = NX x NY compartments, K hidden phases in the "phases" rate
+mode, else 1, and the accumulators), and the
 ensemble keeps per member its feed factors and its output series. Both grow without bound
 with the grid or the member count; :func:`check_pbm_memory` and
 :func:`check_ensemble_memory` refuse, with the estimate, what the machine cannot hold
@@ -15,7 +16,7 @@ import math
 from coupling.errors import ConfigError
 from coupling.resources import format_bytes, require_memory
 
-__all__ = ["check_ensemble_memory", "check_pbm_memory", "ensemble_bytes", "pbm_bytes", "table_bytes"]
+__all__ = ["check_ensemble_memory", "check_pbm_memory", "ensemble_bytes", "pbm_bytes", "phase_bytes", "table_bytes"]
 
 
 def table_bytes(nx: int, ny: int, n_windows: int, with_rates: bool = True) -> float:
@@ -23,23 +24,37 @@ def table_bytes(nx: int, ny: int, n_windows: int, with_rates: bool = True) -> fl
     return 8.0 * (11 if with_rates else 7) * int(n_windows) * int(nx) * int(ny)
 
 
-def pbm_bytes(nx: int, ny: int, n_windows: int) -> float:
-    """Peak memory of the exact PBM solver: per window a dense generator and about three
-    cached step operators of m x m (m = S + 3), plus the table (filled copy included) and
-    the matrix-exponential temporaries (~8 m x m)."""
-    m = int(nx) * int(ny) + 3
+def phase_bytes(nx: int, ny: int, n_phases: int) -> float:
+    """A phase model's arrays: rates (K, 4, NX, NY) and switching (K, K, NX, NY) float64."""
+    return 8.0 * int(n_phases) * (4 + int(n_phases)) * int(nx) * int(ny)
+
+
+def pbm_bytes(nx: int, ny: int, n_windows: int, n_phases: int = 1) -> float:
+    """Peak memory of the exact PBM solver: per generator a dense one and about three
+    cached step operators of m x m (m = S K + 3 with K = ``n_phases``), plus the table
+    (filled copy included) and the matrix-exponential temporaries (~8 m x m). The phase
+    model is one generator for every window (:func:`pbm.solver.table_schedule`), so
+    ``n_phases`` > 1 counts one window of operators, and the model's own arrays."""
+    m = int(nx) * int(ny) * int(n_phases) + 3
     dense = 8.0 * m * m
-    return int(n_windows) * 4 * dense + 8 * dense + 2 * table_bytes(nx, ny, n_windows)
+    generators = 1 if int(n_phases) > 1 else int(n_windows)
+    extra = phase_bytes(nx, ny, n_phases) if int(n_phases) > 1 else 0.0
+    return generators * 4 * dense + 8 * dense + 2 * table_bytes(nx, ny, n_windows) + extra
 
 
-def check_pbm_memory(nx: int, ny: int, n_windows: int, available_bytes: float | None = None) -> float:
-    """Refuse (ResourceLimitError) a PBM on a grid the machine cannot hold; the estimate."""
-    estimate = pbm_bytes(nx, ny, n_windows)
+def check_pbm_memory(
+    nx: int, ny: int, n_windows: int, available_bytes: float | None = None, n_phases: int = 1
+) -> float:
+    """Refuse (ResourceLimitError) a PBM on a grid, or with a number of hidden phases
+    ``n_phases``, the machine cannot hold; the estimate."""
+    estimate = pbm_bytes(nx, ny, n_windows, n_phases)
+    m = int(nx) * int(ny) * int(n_phases) + 3
+    phases = f" with {n_phases} phases each ({m - 3} populations)" if int(n_phases) > 1 else ""
     require_memory(
         estimate,
-        f"the PBM on {nx} x {ny} compartments over {n_windows} velocity windows",
-        f"one dense {nx * ny + 3} x {nx * ny + 3} operator is {format_bytes(8.0 * (nx * ny + 3) ** 2)}; "
-        "use a coarser grid",
+        f"the PBM on {nx} x {ny} compartments{phases} over {n_windows} velocity windows",
+        f"one dense {m} x {m} operator is {format_bytes(8.0 * m**2)}; "
+        + ("use a phase model with fewer phases or a coarser grid" if phases else "use a coarser grid"),
         available=available_bytes,
     )
     return estimate

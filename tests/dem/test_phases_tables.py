@@ -65,6 +65,67 @@ def test_schema_3_round_trip_and_schema_2_unchanged(tmp_path):
         table_with(model, ny=2)
 
 
+@pytest.mark.parametrize(
+    ("field", "index", "value", "message"),
+    [
+        (
+            "rates",
+            (1, 0, 3, 0),
+            2e9,
+            r"phase rates hold 2000000000.0 at index \(1, 0, 3, 0\); finite values in \[0, 100000\] /s",
+        ),
+        ("rates", (0, 1, 2, 0), 1.0001e5, r"phase rates hold 100010.0 at index \(0, 1, 2, 0\)"),
+        ("rates", (0, 0, 0, 0), np.inf, r"phase rates hold inf"),
+        ("rates", (0, 0, 0, 0), np.nan, r"phase rates hold nan"),
+        (
+            "switching",
+            (0, 1, 4, 0),
+            2e9,
+            r"phase switching hold 2000000000.0 at index \(0, 1, 4, 0\); finite values in \[0, 100000\]",
+        ),
+        ("switching", (1, 0, 4, 0), -0.5, r"phase switching hold -0.5"),
+        ("entry", (0, 0), np.nan, r"entry-phase distribution hold nan at index \(0, 0\); finite values >= 0 are valid"),
+    ],
+)
+def test_phase_rates_beyond_the_measured_rates_bound_are_refused(field, index, value, message):
+    """The velocity table's bound on rates (coupling.tables.MAX_RATE_PER_S, 1e5 /s: no DEM
+    observes a faster transition) holds for the phase model's rates and switching too."""
+    model = two_phase_model()
+    parts = {"rates": model.rates.copy(), "switching": model.switching.copy(), "entry": model.entry.copy()}
+    parts[field][index] = value
+    with pytest.raises(TableError, match=message):
+        PhaseTransport(**parts)
+    parts[field][index] = 1e5 if field != "entry" else model.entry[index]  # the bound itself is valid
+    PhaseTransport(**parts)
+
+
+def test_a_stored_phase_table_with_unbounded_rates_is_refused_by_pbm_run(tmp_path, capsys):
+    """The issue's reproducer: a schema-3 table whose phase rates reach 2e9 /s (edited after
+    writing, then signed, so only the bound can refuse it) -> one line, exit 2, nothing written."""
+    import hashlib
+
+    import h5py
+
+    from coupling.files import sign_h5
+    from workflows.cli.main import main
+
+    path = write_table(tmp_path / "fast.h5", table_with(two_phase_model()))
+    with h5py.File(path, "a") as h5:
+        rates = h5["velocity_table/phases/phase_rates"]
+        values = rates[()]
+        values[1, 0, 5, 0] = 2e9
+        rates[...] = values
+    sign_h5(path)
+    before = hashlib.sha256(path.read_bytes()).hexdigest()
+    with pytest.raises(TableError, match=rf"phase rates hold 2000000000.0 .* in {path}$"):
+        read_table(path)
+    out = tmp_path / "out"
+    assert main(["pbm", "run", "--tables", str(path), "--preset", "smoke", "--rates", "phases", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pbmdem: error: phase rates hold 2000000000.0") and err.count("\n") == 1
+    assert not out.exists() and hashlib.sha256(path.read_bytes()).hexdigest() == before
+
+
 def test_pbm_phases_mode_needs_the_model():
     with pytest.raises(ConfigError, match="rates = 'phases' needs"):
         simulate(table_with(None), PbmConfig(rates="phases"))

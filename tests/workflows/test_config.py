@@ -243,6 +243,48 @@ def test_memory_estimates_refuse_what_the_machine_cannot_hold():
         check_pbm_memory(1, 1, 1, available_bytes=100)
 
 
+def test_memory_estimate_counts_the_hidden_phases():
+    """A phase model multiplies the states by K (the issue's K = 480 table on 10 x 10 took 19
+    of 23 GB unrefused): the estimate counts NX*NY*K populations, one generator."""
+    from coupling.errors import ResourceLimitError
+    from pbm.resources import check_pbm_memory, pbm_bytes
+
+    assert pbm_bytes(10, 10, 64, n_phases=3) < 50e6  # the shipped K = 3 model: tens of MB
+    assert pbm_bytes(10, 10, 64, n_phases=480) > 100 * 2**30  # 48003 states: a dense operator is 17 GiB
+    with pytest.raises(
+        ResourceLimitError,
+        match=r"the PBM on 10 x 10 compartments with 480 phases each \(48000 populations\) over 64 velocity windows "
+        r"needs about 206\.2 GiB of memory; this machine has 1\.9 GiB available .* one dense 48003 x 48003 operator "
+        r"is 17\.2 GiB; use a phase model with fewer phases or a coarser grid",
+    ):
+        check_pbm_memory(10, 10, 64, available_bytes=2e9, n_phases=480)
+    check_pbm_memory(10, 10, 64, available_bytes=2e9, n_phases=3)
+
+
+def test_pbm_run_refuses_a_phase_table_too_large_before_writing(tmp_path, monkeypatch, capsys):
+    import numpy as np
+
+    from coupling.phases import PhaseTransport
+    from coupling.tables import make_table, write_table
+    from workflows.cli.main import main
+
+    k, nx = 200, 10
+    rates = np.zeros((k, 4, nx, 1))
+    rates[:, 0], rates[:, 1] = 2.0, 0.5
+    model = PhaseTransport(rates, np.zeros((k, k, nx, 1)), np.full((2, k), 1.0 / k), 0.1)
+    table = make_table(np.arange(0.0, 50.0, 5.0), np.linspace(0, 0.33, nx + 1), [-0.05, 0.05], 0.01, 0.01, 0.0, 0.0)
+    path = write_table(tmp_path / "k200.h5", table.replace(phases=model))
+    monkeypatch.setenv("PBMDEM_MEMORY_BYTES", "100000000")
+    out = tmp_path / "out"
+    argv = ["pbm", "run", "--tables", str(path), "--preset", "smoke", "--out", str(out)]
+    assert main([*argv, "--rates", "phases"]) == 2
+    err = capsys.readouterr().err
+    assert "with 200 phases each (2000 populations)" in err and "one dense 2003 x 2003 operator" in err
+    assert err.count("\n") == 1 and not out.exists()
+    assert main([*argv, "--rates", "all"]) == 2  # every mode checked before any is run
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(
     ("recovered", "m1", "m2"),
     [

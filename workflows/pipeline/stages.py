@@ -30,7 +30,7 @@ from dem.massflow import massflow_files
 from dem.post import DemResults, Postprocessor, postprocess
 from dem.resources import check_postprocess_resources
 from dem.run import STOPPED, RunInputs, RunRecord, completed_run, prepare_run, read_status, run_dem, solver_counters
-from pbm.model import require_rates, supported_modes
+from pbm.model import n_phases, require_rates, supported_modes
 from pbm.outputs import write_outputs
 from pbm.resources import check_pbm_memory
 from pbm.simulate import PbmResult, simulate
@@ -315,9 +315,9 @@ def run_pbm(
     refuse_output_over_inputs(out, [tables], "output directory", ConfigError)
     table = table_with_operating_point(read_table(tables))
     modes = supported_modes(table) if rates == "all" else (rates or config.pbm.rates,)
-    check_pbm_memory(table.nx, table.ny, table.n_windows)
     for mode in modes:  # refused before anything is written
         require_rates(table, mode)
+        check_pbm_memory(table.nx, table.ny, table.n_windows, n_phases=n_phases(table, mode))
     writable_directory(out, "output directory")
     runs = {}
     for mode in modes:
