@@ -14,6 +14,9 @@
   :mod:`coupling.cache`, which checks the same digest, or that of the file's head alone
   (:func:`h5_head_digest`) for a reader of nothing else.
 * :func:`writable_directory` -- an output directory, created and tried before any work.
+* :func:`distinct_inputs` -- the input files of a command over several runs: no file given
+  twice, whether by the same path, a symlink or hard link to it, or a copy with the same
+  content digest (:func:`content_digest`).
 
 Every check raises one of :mod:`coupling.errors`' types (the caller chooses which, so a
 table reader raises TableError and the cache CacheError) with one line naming the path and
@@ -39,6 +42,8 @@ from coupling.errors import ConfigError, OutputError, PbmDemError, os_reason
 __all__ = [
     "DIGEST_ATTR",
     "DIGEST_ATTRS",
+    "content_digest",
+    "distinct_inputs",
     "FORMAT_ATTR",
     "HEAD_DIGEST_ATTR",
     "h5_digest",
@@ -160,6 +165,55 @@ def _same_file(a: Path, b: Path) -> bool:
         return os.path.samefile(a, b)
     except OSError:
         return False
+
+
+def content_digest(path: str | os.PathLike) -> str:
+    """What a file holds, as a SHA-256 (hex): the ``sha256`` digest an HDF5 file of this
+    project stores (:func:`h5_digest`, over its content as h5py reads it: a copy, even one
+    HDF5 laid out differently, has the same), else the SHA-256 of its bytes."""
+    import h5py
+
+    path = Path(path)
+    if h5py.is_hdf5(path):
+        try:
+            with h5py.File(path, "r") as h5:
+                digest = stored_digest(h5)
+        except OSError:  # damaged: its bytes tell copies apart; its reader names the damage
+            digest = None
+        if digest is not None:
+            return digest
+    sha = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            sha.update(block)
+    return sha.hexdigest()
+
+
+def distinct_inputs(paths: Iterable[str | os.PathLike], what: str, error: type[Exception] = ConfigError) -> list[Path]:
+    """``paths`` (each an existing regular file, :func:`regular_file`) when no two of them
+    are one run: the same file by path, symlink or hard link, or a copy with the same
+    :func:`content_digest`. A run given twice would be counted twice, and a statistic
+    pooled over the runs would claim an interval narrower than the data give; raises
+    ``error`` naming both files."""
+    checked = [regular_file(path, what, error) for path in paths]
+    seen_files: dict[tuple[int, int], Path] = {}
+    seen_digests: dict[str, Path] = {}
+    for path in checked:
+        info = os.stat(path)
+        same = seen_files.get((info.st_dev, info.st_ino))
+        if same is not None:
+            raise error(
+                f"{what} {path} is the same file as {same} (by path, symlink or hard link): each run counts once; "
+                "give every run once"
+            )
+        digest = content_digest(path)
+        if digest in seen_digests:
+            raise error(
+                f"{what} {path} is a copy of {seen_digests[digest]} (the same content digest): each run counts "
+                "once; give every run once"
+            )
+        seen_files[(info.st_dev, info.st_ino)] = seen_digests[digest] = path
+    return checked
 
 
 def writable_directory(path: str | os.PathLike, what: str) -> Path:

@@ -2,7 +2,11 @@
 They import the product; the product never imports them."""
 
 import argparse
+from collections.abc import Iterable
+from pathlib import Path
 
+from coupling.errors import ConfigError
+from coupling.files import distinct_inputs
 from workflows.shipped import REDUCED_RUN, VALIDATION_DIR
 
 
@@ -18,3 +22,10 @@ def add_runs_arguments(parser: argparse.ArgumentParser, needs: str, out: str) ->
         help=f"DEM results files with {needs} (default: the shipped reduced run and the validation campaign)",
     )
     parser.add_argument("--out", default=out, help="output folder (default: %(default)s)")
+
+
+def distinct_runs(paths: Iterable[str | Path], what: str = "--results") -> list[Path]:
+    """The results files of a study over runs, refused (ConfigError naming both) when one
+    run is given twice, as a path, a link or a copy: it would be counted twice and pooled
+    intervals would come out narrower than the runs give (:func:`coupling.files.distinct_inputs`)."""
+    return distinct_inputs(paths, what, ConfigError)

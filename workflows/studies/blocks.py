@@ -49,6 +49,7 @@ from dem.post import DemResults
 from dem.steady import steady_quantities
 from workflows.pipeline.results import load_results
 from workflows.shipped import REDUCED_RUN
+from workflows.studies import distinct_runs
 
 HELP = "how long the DEM's quantities stay correlated (batch means by block length), and the intervals' coverage"
 OUT = Path("results/blocks")
@@ -261,7 +262,7 @@ def _cells(values) -> str:
 def run(args: argparse.Namespace) -> int:
     if args.coverage < 0:
         raise ConfigError(f"--coverage must be a number of series >= 0, got {args.coverage}")
-    rows = [block_row(path) for path in args.results]
+    rows = [block_row(path) for path in distinct_runs(args.results)]
     head = " | ".join(f"{b:g} s" for b in BLOCKS_S)
     for title, pick in (
         ("steady hold-up", lambda r: (r.holdup_interval_error, r.holdup_error)),

@@ -38,7 +38,7 @@ from coupling.jsonable import write_json
 from pbm.rtd import pooled_rtd
 from workflows.analysis.vrr import COMPONENT_CODES
 from workflows.pipeline.results import load_results, pbm_config_for
-from workflows.studies import add_runs_arguments
+from workflows.studies import add_runs_arguments, distinct_runs
 
 HELP = "each feeder's pooled RTD in the DEM (A - B with its interval) and in the phase model, run by run"
 OUT = Path("results/feeders")
@@ -278,7 +278,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    rows = [feeder_rtds(path) for path in args.results]
+    rows = [feeder_rtds(path) for path in distinct_runs(args.results)]
     out = writable_directory(args.out, "--out")  # after the inputs are read: a bad one leaves nothing
     pooled = pooled_difference(rows)
     print(markdown(rows, pooled))

@@ -40,6 +40,7 @@ from workflows.pipeline.log import stderr_log
 from workflows.pipeline.results import load_results
 from workflows.products.validate import campaign_configs, run_campaign
 from workflows.report.fill import plot_fill
+from workflows.studies import distinct_runs
 
 HELP = "the feed library: each feed rate predicted by the linear PBM and the fill law, leave one out"
 OUT = Path("results/bench/fill.json")
@@ -82,6 +83,7 @@ def predict(table, config, dem, mode: str, exponents=None, rate_law: str = "tabl
 
 
 def run(args: argparse.Namespace) -> int:
+    unseen = distinct_runs(args.unseen, "--unseen")  # before the library's runs are read
     sides, configs = library_runs(args.runs_root)
     if "baseline" not in sides or len(sides) < 3:
         stderr_log(f"the feed library needs the baseline and two other feed rates; found {sorted(sides)}")
@@ -90,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     # targets: every library run (predicted from the others), then the unseen runs (from all)
     targets = [(name, sides[name].results, configs[name]) for name in sorted(sides, key=feed.get)]
     same = same_but_feed(configs["baseline"])
-    for path in args.unseen:
+    for path in unseen:
         results, config = load_results(path)
         if same_but_feed(config) != same:
             raise ConfigError(f"{path}: not a run of the feed library's blender and speed (it differs beyond the feed)")

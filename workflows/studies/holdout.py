@@ -26,7 +26,7 @@ from coupling.jsonable import write_json
 from dem.phases import phases_per_kind
 from workflows.analysis.memory import OutOfSample, out_of_sample
 from workflows.pipeline.results import load_results, pbm_config_for
-from workflows.studies import add_runs_arguments
+from workflows.studies import add_runs_arguments, distinct_runs
 
 HELP = "the phase model refitted on each run's first half against the DEM's second half, over many runs"
 OUT = Path("results/holdout")
@@ -145,7 +145,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     rows = []
-    for path in args.results:
+    for path in distinct_runs(args.results):
         rows.append(holdout(path))
         print(f"{Path(path).name}: {rows[-1].wall_time_s:.0f} s", flush=True)
     print(markdown(rows))

@@ -35,6 +35,7 @@ from dem.phases.law import PhaseLaw, fit_law
 from dem.summary import Estimate
 from workflows.prediction.library import COVARIATES, DEFAULT_COVARIATES, LibraryRun, library_run
 from workflows.shipped import library_runs
+from workflows.studies import distinct_runs
 
 HELP = "one phase chain for a DEM library, its rates laws of speed, length, position and feed; each run left out"
 OUT = Path("results/law")
@@ -118,7 +119,7 @@ def law_study(
     unknown = sorted(set(names) - set(COVARIATES))
     if unknown:
         raise ConfigError(f"covariates {unknown} unknown; valid: {', '.join(COVARIATES)}")
-    resolved = [Path(p).resolve() for p in paths]
+    resolved = [p.resolve() for p in distinct_runs(paths)]
     left = resolved if held_out is None else [Path(p).resolve() for p in held_out]
     strangers = [str(p) for p in left if p not in resolved]
     if strangers:

@@ -47,7 +47,7 @@ from pbm.frequency import stationary_system
 from pbm.simulate import simulate
 from workflows.analysis.agreement import pbm_steady
 from workflows.pipeline.results import load_results, pbm_config_for
-from workflows.studies import add_runs_arguments
+from workflows.studies import add_runs_arguments, distinct_runs
 
 HELP = "the phase model's hold-up from empty against its own steady state and the DEM's, run by run"
 OUT = Path("results/startup")
@@ -277,7 +277,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    rows = [startup(path) for path in args.results]
+    rows = [startup(path) for path in distinct_runs(args.results)]
     out = writable_directory(args.out, "--out")  # after the inputs are read: a bad one leaves nothing
     print(markdown(rows))
     written = write_json(out / "startup.json", {"within": WITHIN, "runs": [r.record() for r in rows]})
