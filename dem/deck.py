@@ -89,6 +89,12 @@ from coupling.errors import DeckError, OutputError, os_reason
 from dem.config import MAX_STABLE_RAYLEIGH_FRACTION, DemConfig
 from dem.geometry import Box, build_geometry, simulation_box, stl_text
 
+#: Largest step count LIGGGHTS takes: ``run N upto`` runs N minus the current step, and
+#: every ``every`` of dump, thermo, restart and insertion, as a C int (LAMMPS' MAXSMALLINT,
+#: "Invalid run command N value"); a deck beyond it is refused when written, not by the
+#: solver on a cluster node.
+MAX_STEPS = 2**31 - 1
+
 MAIN_DECK = "in.blender"
 RESUME_DECK = "in.resume"
 DECK_INFO = "deck.json"
@@ -234,6 +240,16 @@ def _steps(interval_s: float, dt: float, what: str) -> int:
     n = round(interval_s / dt)
     if n < 1:
         raise DeckError(f"{what} = {interval_s} s is shorter than the timestep {dt:.4g} s")
+    return _within_steps(n, interval_s, dt, what)
+
+
+def _within_steps(n: int, interval_s: float, dt: float, what: str) -> int:
+    """``n`` steps (of ``interval_s`` at timestep ``dt``) if LIGGGHTS can take them."""
+    if n > MAX_STEPS:
+        raise DeckError(
+            f"{what} = {interval_s:.6g} s is {n:.4g} steps of {dt:.4g} s; LIGGGHTS takes at most {MAX_STEPS} "
+            f"steps ({MAX_STEPS * dt:.6g} s at this timestep)"
+        )
     return n
 
 
@@ -259,7 +275,9 @@ def deck_parameters(config: DemConfig) -> dict:
             f"({c.friction_particle_blade}): the deck uses one steel atom type (3) for walls and blades, so they "
             "must be equal (Table 1: both 0.4)"
         )
-    end_step = round(config.operation.duration_s / dt)
+    end_step = _within_steps(
+        round(config.operation.duration_s / dt), config.operation.duration_s, dt, "operation.duration_s"
+    )
     insert_every = max(1, round(FEED_BATCH_S / dt))
     step = {}
     if config.operation.step_time_s is not None:

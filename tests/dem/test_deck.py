@@ -218,6 +218,51 @@ def test_cli_writes_deck_and_refuses_bad_input(tmp_path, capsys):
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
+@pytest.mark.parametrize(
+    "section, key, value, fragment",
+    [
+        ("operation", "duration_s", 1e300, "operation.duration_s = 1e+300 s is 1.696e+304 steps of 5.895e-05 s"),
+        ("operation", "duration_s", 2e5, "operation.duration_s = 200000 s is 3.393e+09 steps"),
+        ("numerics", "restart_interval_s", 1e9, "numerics.restart_interval_s = 1e+09 s is"),
+    ],
+)
+@pytest.mark.parametrize("command", ["deck", "slurm", "run"])
+def test_every_command_that_writes_a_deck_refuses_steps_liggghts_rejects(
+    tmp_path, capsys, command, section, key, value, fragment
+):
+    """One validation (dem.deck.deck_parameters, under build_deck) for every command that
+    writes a deck: ``dem deck`` wrote ``run 1696...(300 digits) upto`` with exit 0 where
+    ``dem run`` and ``dem slurm`` refused (issue 46); now each refuses in the same line,
+    before any directory exists."""
+    from workflows.config import dump_toml
+
+    smoke = load_preset("smoke")
+    section_model = getattr(smoke.dem, section).model_copy(update={key: value})
+    config = tmp_path / "long.toml"
+    config.write_text(
+        dump_toml(smoke.model_copy(update={"dem": smoke.dem.model_copy(update={section: section_model})}))
+    )
+    out = tmp_path / "out"
+    where = ["--runs-dir", str(out)] if command == "run" else ["--out", str(out)]
+    assert main(["dem", command, "--config", str(config), *where]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"pbmdem: error: {fragment}") and err.count("\n") == 1
+    assert f"LIGGGHTS takes at most {2**31 - 1} steps" in err
+    assert not out.exists()
+
+
+def test_the_longest_run_liggghts_takes_is_written():
+    config = load_preset("smoke").dem
+    dt = config.timestep_s
+    longest = config.model_copy(
+        update={"operation": config.operation.model_copy(update={"duration_s": (2**31 - 1) * dt})}
+    )
+    assert deck_parameters(longest)["end_step"] == 2**31 - 1
+    longer = config.model_copy(update={"operation": config.operation.model_copy(update={"duration_s": 2**31 * dt})})
+    with pytest.raises(DeckError, match="is 2.147e\\+09 steps"):
+        deck_parameters(longer)
+
+
 def _run_liggghts(run_dir: Path, deck: str, np_: int = 1, timeout: float = 240, log: str = "log.liggghts") -> str:
     """The solver's output; a missing solver raises SolverNotFoundError: these tests are never skipped."""
     command = [*solver_command(load_preset("smoke").dem.run, np_, deck), "-log", log]

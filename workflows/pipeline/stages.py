@@ -167,9 +167,9 @@ def dem_stage(
     and hands over the dumps it has read;
     a stopped run's results are cached under a key of their own, never served as the
     complete run's."""
+    inputs = prepare_run(config.dem)  # a deck LIGGGHTS would refuse: refused before any directory exists
     runs_root = writable_directory(runs_root, "runs directory").resolve()  # absolute: recorded in the cache
     cache_root = writable_directory(cache_root if cache_root is not None else runs_root / "cache", "cache directory")
-    inputs = prepare_run(config.dem)
     post = post_hash(config)
     if not fresh:
         found = _find_cached(inputs, post, _roots(cache_root, reference_dir), log)
