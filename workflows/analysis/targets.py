@@ -23,9 +23,75 @@ made before the compartment sequences were recorded) fails the phases targets.
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
+from typing import Any
 
+from coupling.errors import ConfigError
 from dem.summary import DemSummary
+
+#: the sections :func:`check` reads, each a JSON object when present
+SECTIONS = ("dem_summary", "vrr", "nx_sensitivity", "memory", "provenance")
+
+
+def read_summary(path: str | Path) -> dict[str, Any]:
+    """The comparison summary in ``path`` as :func:`check` reads it: a JSON object whose
+    ``agreement`` is a list of objects, each with a text ``key`` (and ``quantity``), numbers
+    (or null: NaN) where the targets read numbers and true/false (or null: a mode that did
+    not run) where they read verdicts, and whose other
+    sections are objects. Raises ConfigError naming the file and the first field that is
+    not so (a hand-edited or truncated file, another program's JSON)."""
+    try:
+        summary = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ConfigError(f"{path}: not a readable summary ({exc})") from None
+
+    def refuse(where: str, value: Any, valid: str) -> ConfigError:
+        return ConfigError(
+            f"{path}: {where} is {json.dumps(value)[:60]}; {valid} is valid (a summary.json of pbmdem compare)"
+        )
+
+    if not isinstance(summary, dict):
+        raise refuse("the summary", summary, "a JSON object")
+    for name in SECTIONS:
+        if summary.get(name) is not None and not isinstance(summary[name], dict):
+            raise refuse(f"'{name}'", summary[name], "an object")
+    rows = summary.get("agreement")
+    if rows is None:
+        return summary
+    if not isinstance(rows, list):
+        raise refuse("'agreement'", rows, "a list of rows (objects)")
+    for n, row in enumerate(rows):
+        where = f"agreement[{n}]"
+        if not isinstance(row, dict):
+            raise refuse(where, row, "an object")
+        for field, value in row.items():
+            if field in ("key", "quantity"):
+                ok, valid = isinstance(value, str), "a text"
+            elif field.startswith("inside_"):  # null: the mode did not run
+                ok, valid = value is None or isinstance(value, bool), "true, false or null"
+            elif field == "dem" or field.startswith(("pbm_", "dem_ci_", "noise_")):  # null: NaN, as JSON writes it
+                ok = value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
+                valid = "a number or null"
+            else:
+                continue
+            if not ok:
+                raise refuse(f"{where}.{field}", value, valid)
+        if "key" not in row:
+            raise refuse(f"{where}.key", None, "a text")
+    return summary
+
+
+def checked(summary: dict[str, Any], source: str | Path) -> list[tuple[str, str, bool | None]]:
+    """:func:`check` of a summary from :func:`read_summary`; a part nested deeper than it
+    looks at that is not what a comparison writes (a VRR record without its interval, a
+    hold-up of 0) raises ConfigError naming ``source`` and the part, not a traceback."""
+    try:
+        return check(summary)
+    except (KeyError, TypeError, AttributeError, ValueError, IndexError, ZeroDivisionError) as exc:
+        what = f"missing {exc}" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+        raise ConfigError(f"{source}: not a summary of pbmdem compare ({what})") from None
 
 
 def _rows(summary: dict) -> dict[str, dict]:

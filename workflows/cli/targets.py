@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import json
 from pathlib import Path
 
 from coupling.errors import ConfigError
@@ -21,19 +20,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workflows.analysis.targets import check
+    from workflows.analysis.targets import checked, read_summary
 
     paths = [Path(p) for pattern in args.summaries for p in sorted(glob.glob(pattern))]
     if not paths:
         raise ConfigError(f"no summary.json at {' '.join(args.summaries)}: run `make full-comparison` first")
     failed = False
     for path in paths:
-        try:
-            summary = json.loads(path.read_text())
-        except ValueError as exc:
-            raise ConfigError(f"{path}: not a readable summary ({exc})") from None
+        lines = checked(read_summary(path), path)
         print(path)
-        for target, numbers, passed in check(summary):
+        for target, numbers, passed in lines:
             flag = "info" if passed is None else ("PASS" if passed else "FAIL")
             failed |= passed is False
             print(f"  {flag:4}  {target}: {numbers}")

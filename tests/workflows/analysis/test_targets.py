@@ -1,6 +1,10 @@
 """The transport targets read off a comparison's summary: the phases mode is the target,
 the other modes are information, a missing phases column fails."""
 
+import json
+
+import pytest
+
 from workflows.analysis.targets import check
 
 
@@ -98,3 +102,65 @@ def test_the_out_of_sample_target_needs_both_moments_inside_and_fails_without_th
     s["memory"] = {"out_of_sample": {**held, "pbm_mean_s": 21.3, "mean_inside": False}}
     assert verdicts(s)[OUT_OF_SAMPLE] is False
     assert verdicts(summary(258.0, with_phases=False)).get(OUT_OF_SAMPLE) is None  # no phases mode, no line
+
+
+@pytest.mark.parametrize(
+    ("text", "what"),
+    [
+        # the issue's reproducers
+        ("[1,2]", "the summary is [1, 2]; a JSON object is valid"),
+        ("NaN", "the summary is NaN; a JSON object is valid"),
+        ('{"agreement": 5}', "'agreement' is 5; a list of rows (objects) is valid"),
+        ('{"agreement": [1, "x"]}', "agreement[0] is 1; an object is valid"),
+        ('{"agreement": [{"quantity": null}]}', "agreement[0].quantity is null; a text is valid"),
+        # variants
+        ("", "not a readable summary (Expecting value"),
+        ('{"agreement": [{"quantity": "holdup"}]}', "agreement[0].key is null; a text is valid"),
+        ('{"agreement": [{"key": 3}]}', "agreement[0].key is 3; a text is valid"),
+        ('{"agreement": [{"key": "holdup", "dem": "1590"}]}', 'agreement[0].dem is "1590"; a number or null is valid'),
+        (
+            '{"agreement": [{"key": "holdup", "pbm_phases": true}]}',
+            "agreement[0].pbm_phases is true; a number or null is valid",
+        ),
+        (
+            '{"agreement": [{"key": "holdup", "inside_phases": 1}]}',
+            "agreement[0].inside_phases is 1; true, false or null",
+        ),
+        ('{"dem_summary": [1]}', "'dem_summary' is [1]; an object is valid"),
+        ('{"provenance": "x"}', "'provenance' is \"x\"; an object is valid"),
+        ("null", "the summary is null; a JSON object is valid"),
+        (
+            '{"agreement": [{"key": "holdup", "pbm_phases": 1}]}',
+            "not a summary of pbmdem compare (missing 'quantity')",
+        ),
+        (
+            '{"agreement": [{"key": "x", "pbm_phases": 1}], "vrr": {"pbm": {"phases": {"feeders": {"A": '
+            '{"noise": [{"tau_s": 0}]}}}}}}',
+            "not a summary of pbmdem compare (missing 'vrr')",
+        ),
+        (
+            '{"agreement": [{"key": "holdup_slice_0", "quantity": "q", "dem": 0, "pbm_phases": 1}]}',
+            "not a summary of pbmdem compare (ZeroDivisionError: division by zero)",
+        ),
+    ],
+)
+def test_a_malformed_summary_is_one_line_naming_the_file(tmp_path, capsys, text, what):
+    from workflows.cli.main import main
+
+    path = tmp_path / "summary.json"
+    path.write_text(text)
+    assert main(["targets", str(path)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"pbmdem: error: {path}: ") and captured.err.count("\n") == 1
+    assert what in captured.err
+    assert captured.out == ""  # nothing printed for a file that cannot be judged
+    assert path.read_text() == text
+
+
+def test_a_well_formed_summary_still_reads(tmp_path, capsys):
+    from workflows.cli.main import main
+
+    path = tmp_path / "summary.json"
+    path.write_text(json.dumps(summary(258.0)))
+    assert main(["targets", str(path)]) in (0, 1)
+    assert "phases: rtd_variance_s2 inside the DEM interval" in capsys.readouterr().out
