@@ -24,6 +24,18 @@ def error_line(exc: BaseException) -> str:
     return str(exc)
 
 
+class Interrupted(KeyboardInterrupt):
+    """A signal asked the command to stop (SIGINT, SIGTERM, SIGHUP; :mod:`coupling.interrupts`).
+    A KeyboardInterrupt, so that every ``except KeyboardInterrupt`` that cleans up after
+    Ctrl-C (a solver's ranks stopped, a run marked interrupted) does the same for the others;
+    ``exit_code`` is the shell's for a process the signal ended, 128 + its number."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        self.exit_code = 128 + signum
+        super().__init__(f"signal {signum}")
+
+
 class PbmDemError(Exception):
     """Base class of every error this project raises on purpose."""
 

@@ -148,6 +148,11 @@ def _portable(outcome: tuple[str, Any], what: str) -> tuple[str, Any]:
 def _serve(module_name: str, conn, parent_end) -> None:
     """The child: import, wait for one call, answer it. A failed import is the call's error."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # first: Ctrl-C is the parent's
+    # the parent's handlers (coupling.interrupts) would print a traceback here: a group's
+    # SIGTERM ends the child quietly, and the parent reports the interrupt
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_DFL)
     # the parent's end, inherited by the fork: closed, so that the parent's exit reads as
     # the end of the pipe here
     parent_end.close()

@@ -4,7 +4,9 @@ Every command is a module of this package with ``HELP``, ``add_arguments(parser)
 ``run(args) -> int`` (or, for a command with subcommands, a ``func`` per subcommand). A
 command parses its arguments and calls the library; library code raises, and only
 :func:`main` turns a project error into one line on stderr and exit code 2
-(``--traceback`` shows the whole trace instead).
+(``--traceback`` shows the whole trace instead). Every command shares one signal policy
+(:mod:`coupling.interrupts`): SIGINT, SIGTERM and SIGHUP end it in ``pbmdem: interrupted``
+and exit 128 + the signal's number (130, 143, 129), after the cleanups on the way out.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from coupling import interrupts
 from coupling.errors import PbmDemError, error_line
 
 #: (command, module): the order ``pbmdem --help`` lists them in.
@@ -55,14 +58,20 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser(argv).parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (PbmDemError, OSError) as exc:  # OSError: the file system said no (a path, the disk, a permission)
-        if args.traceback:
-            raise
-        print(f"pbmdem: error: {error_line(exc)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("pbmdem: interrupted", file=sys.stderr)
-        return 130
+    args = None
+    with interrupts.handled():
+        try:
+            args = build_parser(argv).parse_args(argv)
+            return int(args.func(args) or 0)
+        except BaseException as exc:
+            # a compiled kernel (numba) reports an interrupt inside it as a SystemError raised
+            # from it, and a cleanup that fails while an interrupt unwinds raises from it too
+            interrupt = interrupts.interrupt_in(exc)
+            if interrupt is not None:
+                print("pbmdem: interrupted", file=sys.stderr)
+                return getattr(interrupt, "exit_code", 130)
+            # OSError: the file system said no (a path, the disk, a permission)
+            if not isinstance(exc, (PbmDemError, OSError)) or args is None or args.traceback:
+                raise
+            print(f"pbmdem: error: {error_line(exc)}", file=sys.stderr)
+            return 2
