@@ -18,11 +18,12 @@ nothing of what they mean. File layout (one file per key, ``<root>/dem-<key>.h5`
     /                      attrs: head_sha256, then sha256 (written after everything else,
                                   see below)
 
-Writes are atomic (temporary file renamed into place). A file that is unreadable, foreign
-(another format or version), for another key, incomplete, without a digest or whose digest
-does not match raises :class:`~coupling.errors.CacheError` from :func:`load_entry`, and so
-does any other failure while reading it, whatever its type; :func:`try_load_entry` turns
-that into "absent" so the caller rebuilds it.
+Writes are atomic and locked (:func:`coupling.files.replace_file`: the file built in memory,
+written to a temporary beside it and renamed into place under the file's lock). A file that
+is unreadable, foreign (another format or version), for another key, incomplete, without a
+digest or whose digest does not match raises :class:`~coupling.errors.CacheError` from
+:func:`load_entry`, and so does any other failure while reading it, whatever its type;
+:func:`try_load_entry` turns that into "absent" so the caller rebuilds it.
 
 Integrity: the root attribute ``sha256`` is the SHA-256 of a canonical serialisation of the
 whole file as h5py reads it -- every group, every dataset's dtype, shape and bytes, and
@@ -121,7 +122,7 @@ def save_entry(path: str | os.PathLike, entry: CacheEntry) -> Path:
     if not entry.key:
         raise CacheError("provenance must carry the input hash under 'key'")
     try:
-        with atomic_h5(path) as h5:
+        with atomic_h5(path, "results file") as h5:
             table_to_group(h5.create_group(TABLE_GROUP), entry.table)
             group = h5.create_group(RESULTS_GROUP)
             group.attrs["summary"] = dumps_exact(entry.summary)

@@ -17,6 +17,13 @@
 * :func:`distinct_inputs` -- the input files of a command over several runs: no file given
   twice, whether by the same path, a symlink or hard link to it, or a copy with the same
   content digest (:func:`content_digest`).
+* :func:`replace_file` -- the one way a file is written or rewritten in place (results,
+  tables, reports, JSON records): under the file's lock (:func:`locked`, which a
+  read-modify-write holds from its read to the rename), the free space and the file-size
+  limit checked against the bytes to write, a temporary beside the file renamed onto it,
+  and the temporary removed on every failure (a full disk, an exception, a signal); the
+  file is untouched until the rename. HDF5 files are built in memory first
+  (:class:`coupling.tables.atomic_h5`) and written through it.
 
 Every check raises one of :mod:`coupling.errors`' types (the caller chooses which, so a
 table reader raises TableError and the cache CacheError) with one line naming the path and
@@ -26,10 +33,14 @@ what would have been valid.
 from __future__ import annotations
 
 import errno
+import fcntl
 import hashlib
 import os
+import resource
+import shutil
 import stat
 import tempfile
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -37,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from coupling import interrupts
 from coupling.errors import ConfigError, OutputError, PbmDemError, os_reason
 
 __all__ = [
@@ -50,10 +62,12 @@ __all__ = [
     "h5_head_digest",
     "read_dataset",
     "input_directory",
+    "locked",
     "open_verified_h5",
     "output_directory_path",
     "refuse_output_over_inputs",
     "regular_file",
+    "replace_file",
     "resolved",
     "writable_directory",
 ]
@@ -251,6 +265,164 @@ def refuse_output_over_inputs(
                 "input: give another output path"
             )
     return out_path
+
+
+# ----------------------------------------------------------------------------- writing
+#: How long a writer waits for another process's lock on the same file before it is
+#: refused [s]: far longer than a results file takes to write, about what a refit of the
+#: shipped results holds its file for. ``PBMDEM_LOCK_WAIT_S`` overrides it.
+LOCK_WAIT_S = 60.0
+#: The locks this process holds: lock file -> [descriptor, depth].
+_held: dict[Path, list[int]] = {}
+
+
+def _lock_wait_s() -> float:
+    text = os.environ.get("PBMDEM_LOCK_WAIT_S")
+    try:
+        return max(0.0, float(text)) if text else LOCK_WAIT_S
+    except ValueError:
+        return LOCK_WAIT_S
+
+
+def _size(n: float) -> str:
+    return f"{n:.0f} bytes" if n < 1e6 else f"{n / 1e6:.1f} MB"
+
+
+@contextmanager
+def locked(path: str | os.PathLike, what: str = "file", error: type[Exception] = OutputError) -> Iterator[Path]:
+    """``path`` (symlinks followed) while this process holds its exclusive lock: an
+    ``fcntl.flock`` on ``<name>.lock`` beside it, a file removed again on release. Another
+    process asking for the same lock waits up to :data:`LOCK_WAIT_S`, then is refused
+    (``error``, one line naming the file and the process holding it). Re-entrant within a
+    process, so that a read-modify-write holds it from its read to the rename that
+    :func:`replace_file` does under it. Only this project's writers take it."""
+    target = resolved(path, what, error)
+    lock = target.with_name(target.name + ".lock")
+    held = _held.get(lock)
+    if held is not None:
+        held[1] += 1
+        try:
+            yield target
+        finally:
+            held[1] -= 1
+        return
+    fd = _acquire(lock, target, what, error)
+    _held[lock] = [fd, 1]
+    try:
+        yield target
+    finally:
+        del _held[lock]
+        # removed while still held: a process waiting on it then holds a removed file's lock,
+        # sees that (_acquire) and takes the next one
+        try:
+            os.unlink(lock)
+        except OSError:
+            pass
+        os.close(fd)
+
+
+def _acquire(lock: Path, target: Path, what: str, error: type[Exception]) -> int:
+    wait_s = _lock_wait_s()
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise error(f"{what} {target}: cannot create its lock file {lock}: {os_reason(exc)}") from None
+        try:
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if time.monotonic() >= deadline:
+                        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+                        raise error(
+                            f"{what} {target} is being written by another process"
+                            f"{f' (pid {holder})' if holder.isdigit() else ''}; waited {wait_s:g} s for it: run "
+                            "this again when that has finished (PBMDEM_LOCK_WAIT_S sets the wait)"
+                        ) from None
+                    time.sleep(0.1)
+            if _same_inode(fd, lock):
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                return fd
+        except BaseException:
+            os.close(fd)
+            raise
+        os.close(fd)
+
+
+def _same_inode(fd: int, path: Path) -> bool:
+    try:
+        on_disk = os.stat(path)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(fd)
+    return (mine.st_dev, mine.st_ino) == (on_disk.st_dev, on_disk.st_ino)
+
+
+def _check_room(target: Path, size: int, what: str, error: type[Exception]) -> None:
+    """Refuse, before anything is written, a file that the file system or the process's
+    file-size limit cannot hold: a write that fails half-way has cost the work before it.
+    The messages start as the file system's own refusals would (ENOSPC, EFBIG)."""
+    try:
+        free = shutil.disk_usage(target.parent).free
+    except OSError:
+        free = None
+    if free is not None and size > free:
+        raise error(
+            f"{os.strerror(errno.ENOSPC)} for {what} {target}: {_size(size)} to write, {_size(free)} free; "
+            "free space or write it elsewhere"
+        )
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and size > limit:
+        raise error(
+            f"{os.strerror(errno.EFBIG)} for {what} {target}: {_size(size)} to write, over this process's "
+            f"file-size limit of {_size(limit)} (ulimit -f); raise the limit or write it elsewhere"
+        )
+
+
+def replace_file(
+    path: str | os.PathLike, data: bytes | str, what: str = "file", error: type[Exception] = OutputError
+) -> Path:
+    """Write ``data`` (text is UTF-8) to ``path`` as a whole or not at all, and return the
+    path written (symlinks followed: a link keeps pointing at the rewritten file). Under
+    the file's lock (:func:`locked`): room checked (:func:`_check_room`), a temporary beside
+    the file written, synced and renamed onto it. The temporary is removed on every failure
+    (ENOSPC, EFBIG, any exception, an interrupt): until the rename the file is untouched. A
+    signal that arrives meanwhile is raised once the temporary is renamed or removed
+    (:func:`coupling.interrupts.deferred`). Raises ``error`` for a refusal, OSError for a
+    write the file system refused."""
+    data = data.encode() if isinstance(data, str) else bytes(data)
+    target = resolved(path, what, error)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with locked(target, what, error), interrupts.deferred():
+        _check_room(target, len(data), what, error)
+        fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent)
+        try:
+            # mkstemp makes the file private (0600); results and reports are for sharing
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(fd, 0o666 & ~umask)
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+            os.fsync(fd)
+            os.close(fd)
+            fd = -1
+            os.replace(tmp, target)
+        except BaseException as exc:
+            if fd >= 0:
+                os.close(fd)
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            if isinstance(exc, OSError) and not exc.filename:  # os.write names no file
+                raise OSError(exc.errno, exc.strerror, str(target)) from None
+            raise
+    return target
 
 
 # ----------------------------------------------------------------------------- HDF5

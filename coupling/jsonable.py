@@ -52,8 +52,10 @@ def dumps_exact(value: Any) -> str:
 
 def write_json(path: str | Path, value: Any) -> Path:
     """The one JSON writer for files people read (``summary.json``, study and benchmark
-    records): :func:`json_ready` values, sorted keys, the folder created; returns the path."""
+    records): :func:`json_ready` values, sorted keys, the folder created, written whole or
+    not at all (:func:`coupling.files.replace_file`); returns the path."""
+    from coupling.files import replace_file
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(json_ready(value), indent=2, sort_keys=True, allow_nan=False) + "\n")
+    replace_file(path, json.dumps(json_ready(value), indent=2, sort_keys=True, allow_nan=False) + "\n", "JSON file")
     return path

@@ -62,7 +62,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -72,7 +71,7 @@ import numpy as np
 
 from coupling import phases as phase_model
 from coupling.errors import TableError, os_reason
-from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5, read_dataset
+from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5, read_dataset, replace_file
 from coupling.operating import ATTR as OPERATING_ATTR
 from coupling.operating import OperatingPoint
 from coupling.phases import PhaseTransport
@@ -488,7 +487,7 @@ def write_table(path: str | os.PathLike, table: VelocityTable) -> Path:
     """Write ``table`` to a new HDF5 file atomically (temporary file, then rename)."""
     path = Path(path)
     try:
-        with atomic_h5(path) as h5:
+        with atomic_h5(path, "velocity table") as h5:
             table_to_group(h5.create_group(GROUP), table)
             h5.attrs[FORMAT_ATTR] = TABLE_FORMAT
             h5.attrs[DIGEST_ATTR] = h5_digest(h5)  # last: over everything written above
@@ -518,30 +517,32 @@ def read_table(path: str | os.PathLike) -> VelocityTable:
 
 
 class atomic_h5:
-    """Context manager: an h5py.File open for writing on a temporary name beside ``path``,
-    renamed onto ``path`` only when the block finishes without an exception."""
+    """Context manager: a new HDF5 file for ``path``, an h5py.File the block fills, built in
+    memory (HDF5's core driver) and written by :func:`coupling.files.replace_file` only when
+    the block finishes without an exception. HDF5 never writes to the disk itself: a write
+    of its that failed (a full disk, ``ulimit -f``) left handles it could not close and the
+    process died closing them (exit 139), and the image's size is the exact size the free
+    space is checked against. The in-memory file is closed before any error propagates.
+    ``what`` names the file in a refusal ("velocity table", "results file")."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, what: str = "HDF5 file"):
         self.path = Path(path)
+        self.what = what
 
     def __enter__(self) -> h5py.File:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp", dir=self.path.parent)
-        os.close(fd)
-        # mkstemp makes the file private (0600); a cache or table file is for sharing.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        self.tmp = Path(tmp)
-        self.h5 = h5py.File(self.tmp, "w")
+        # the name only identifies the in-memory file within HDF5 (backing_store=False)
+        self.h5 = h5py.File(f"{self.path}.{os.getpid()}.{id(self)}.mem", "w", driver="core", backing_store=False)
         return self.h5
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        self.h5.close()
+        try:
+            if exc_type is None:
+                self.h5.flush()
+                image = self.h5.id.get_file_image()
+        finally:
+            self.h5.close()
         if exc_type is None:
-            os.replace(self.tmp, self.path)
-        else:
-            self.tmp.unlink(missing_ok=True)
+            replace_file(self.path, image, self.what)
 
 
 def _attr_value(value: Any) -> Any:

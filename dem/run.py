@@ -55,8 +55,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from coupling.errors import OutputError, SolverNotFoundError, SolverRunError
-from coupling.files import output_directory_path
+from coupling.errors import Interrupted, OutputError, SolverNotFoundError, SolverRunError
+from coupling.files import output_directory_path, replace_file
 from dem import deck
 from dem.config import DemConfig
 from dem.liggghts import SolverResult, liggghts_version, run_solver, solver_command, text_tail
@@ -384,7 +384,7 @@ def _terminate_as_interrupt():
         return
 
     def interrupt(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
+        raise Interrupted(signum)
 
     previous = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
@@ -415,9 +415,7 @@ def _now() -> str:
 
 
 def _write_status(run_dir: Path, data: dict[str, Any]) -> None:
-    tmp = run_dir / (STATUS_FILE + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
-    os.replace(tmp, run_dir / STATUS_FILE)
+    replace_file(run_dir / STATUS_FILE, json.dumps(data, indent=2, sort_keys=True, default=str) + "\n", "run status")
 
 
 def _step_of(path: Path) -> int:

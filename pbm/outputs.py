@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from coupling.errors import OutputError, os_reason
+from coupling.files import replace_file
 from coupling.jsonable import write_json
 from pbm.plots import save_figures
 from pbm.simulate import PbmResult
@@ -22,8 +23,8 @@ def write_outputs(result: PbmResult, out_dir: str | Path, figures: bool = True) 
     paths = {"timeseries": out / "timeseries.csv", "rtd": out / "rtd.csv", "summary": out / "summary.json"}
     try:
         out.mkdir(parents=True, exist_ok=True)
-        result.timeseries().to_csv(paths["timeseries"], index=False, float_format="%.10g", na_rep="nan")
-        result.rtd().to_csv(paths["rtd"], index=False, float_format="%.10g", na_rep="nan")
+        for name, frame in (("timeseries", result.timeseries()), ("rtd", result.rtd())):
+            replace_file(paths[name], frame.to_csv(index=False, float_format="%.10g", na_rep="nan"), "PBM table")
         overrides = {"feed_overrides": [o.message for o in result.feed_overrides]} if result.feed_overrides else {}
         write_json(paths["summary"], {**result.summary.record(), **overrides})
         if figures:

@@ -509,3 +509,26 @@ def test_results_with_an_earlier_versions_intervals_are_brought_up_to_date_on_re
     again = DemResults.from_cache_entry(unexpanded.to_cache_entry({"key": "test"}))
     _assert_same(again.summary.pooled_rtd, res.summary.pooled_rtd)
     assert again.summary.pooled_rtd.n_blocks == res.summary.pooled_rtd.n_blocks >= 2
+
+
+def test_a_refit_of_sequences_that_jump_far_says_it_will_be_slow():
+    """Every particle's second run five slices on (the issue's pathological refit, 6 times a
+    clean one): a note before the fit; the shipped run's own moves give none."""
+    from pathlib import Path
+
+    from coupling.cache import load_entry
+    from dem.post import DemResults, far_move_share, slow_refit_note
+
+    shipped = Path(__file__).resolve().parents[2] / "workflows/reference/validation/dem-dccc770e3c39f48c.h5"
+    results = DemResults.from_cache_entry(load_entry(shipped))
+    seq = results.sequences
+    assert slow_refit_note(results) is None and far_move_share(seq) < 1e-3
+    second = seq.run_offsets[:-1] + 1
+    second = second[second < seq.run_offsets[1:]]
+    second = second[seq.run_state[second] < seq.n_cells]
+    state = seq.run_state.copy()
+    i, j = np.divmod(state[second].astype(np.int64), seq.ny)
+    state[second] = (np.minimum(i + 5, seq.nx - 1) * seq.ny + j).astype(state.dtype)
+    jumping = dataclasses.replace(results, sequences=dataclasses.replace(seq, run_state=state))
+    note = slow_refit_note(jumping)
+    assert note is not None and "\n" not in note and far_move_share(jumping.sequences) > 1e-2

@@ -26,8 +26,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from coupling.errors import ConfigError
-from coupling.files import refuse_output_over_inputs
+from coupling.errors import CacheError, ConfigError
+from coupling.files import locked, refuse_output_over_inputs, regular_file
 from workflows.pipeline.log import stderr_log
 
 if TYPE_CHECKING:
@@ -224,19 +224,29 @@ def post_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _rewrite(paths, derive, describe) -> None:
+def _rewrite(paths, derive, describe, note=None) -> None:
     """Each results file read whole (a corrupt or foreign one refused before anything is
-    written), ``derive``d again and rewritten atomically, so a failure leaves it as it was."""
+    written), ``derive``d again and rewritten atomically, so a failure leaves it as it was.
+    The file's lock is held from the read to the rename: a second command rewriting the
+    same file waits and then reads this one's result, rather than overwriting it with a
+    result derived from the file as it was. ``note(results)``, if given, may return a line
+    printed before the derivation (why it will be slow)."""
     from coupling.cache import load_entry, save_entry
     from dem.post import DemResults
 
     for path in paths:
-        entry = load_entry(path)
-        try:
-            results = derive(DemResults.from_cache_entry(entry))
-        except ValueError as exc:
-            raise ConfigError(f"{path}: {exc}") from None
-        save_entry(path, results.to_cache_entry(entry.provenance))
+        # a missing file is named as such, not as a lock file that cannot be made beside it
+        with locked(regular_file(path, "results file", CacheError), "results file"):
+            entry = load_entry(path)
+            try:
+                results = DemResults.from_cache_entry(entry)
+                line = note(results) if note is not None else None
+                if line:
+                    print(f"pbmdem: note: {path}: {line}", file=sys.stderr)
+                results = derive(results)
+            except ValueError as exc:
+                raise ConfigError(f"{path}: {exc}") from None
+            save_entry(path, results.to_cache_entry(entry.provenance))
         print(f"{path}: {describe(results.summary)}")
 
 
@@ -261,9 +271,9 @@ def _steady_line(summary: DemSummary) -> str:
 
 
 def refit_command(args: argparse.Namespace) -> int:
-    from dem.post import refit_phases
+    from dem.post import refit_phases, slow_refit_note
 
-    _rewrite(args.results, refit_phases, _phase_fit_line)
+    _rewrite(args.results, refit_phases, _phase_fit_line, slow_refit_note)
     return 0
 
 

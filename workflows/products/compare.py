@@ -33,7 +33,7 @@ import numpy as np
 
 from coupling.blas import single_threaded_blas
 from coupling.errors import OutputError, ResourceLimitError, os_reason
-from coupling.files import writable_directory
+from coupling.files import replace_file, writable_directory
 from coupling.jsonable import write_json
 from pbm.config import PbmConfig
 from pbm.simulate import PbmResult
@@ -274,7 +274,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         + vrr_section
         + memory_section,
     )
-    (out_dir / "report.html").write_text(page)
+    replace_file(out_dir / "report.html", page, "report")
     summary = {
         "metrics": c.metrics,
         "agreement": [r.record() for r in c.rows],
@@ -289,8 +289,8 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         "notes": notes,
     }
     write_json(out_dir / "summary.json", summary)
-    c.dem_view.timeseries.to_csv(out_dir / "dem_timeseries.csv", index=False)
-    c.pbm_view.timeseries.to_csv(out_dir / "pbm_timeseries.csv", index=False)
+    replace_file(out_dir / "dem_timeseries.csv", c.dem_view.timeseries.to_csv(index=False), "DEM time series")
+    replace_file(out_dir / "pbm_timeseries.csv", c.pbm_view.timeseries.to_csv(index=False), "PBM time series")
     if paraview:
         write_paraview(c.config, c.dem, out_dir / "paraview", log)
 

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from coupling.errors import ConfigError, OutputError, error_line, os_reason
-from coupling.files import writable_directory
+from coupling.files import replace_file, writable_directory
 from coupling.jsonable import json_ready, write_json
 from dem.run import can_resume, prepare_run
 from workflows.analysis.budget import budget_study
@@ -172,7 +172,8 @@ def validation_report(
             ),
         )
         page = out_dir / "report.html"
-        page.write_text(
+        replace_file(
+            page,
             render_report(
                 campaign,
                 judged,
@@ -181,7 +182,8 @@ def validation_report(
                 span_s,
                 None if step is None else step_html(step, figures.get("step")),
                 law,
-            )
+            ),
+            "report",
         )
     except OSError as exc:
         raise OutputError(f"cannot write the validation report in {out_dir}: {os_reason(exc)}") from exc
