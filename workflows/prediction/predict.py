@@ -64,7 +64,6 @@ from workflows.prediction.library import (
     AXIAL_SLICES,
     CORRECTION_DOF,
     REFERENCE_FEED_PER_S,
-    REFERENCE_GAP_M,
     REFERENCE_RPM,
     REFERENCE_SLICE_M,
     LibraryModel,
@@ -81,8 +80,10 @@ from workflows.prediction.library import (
 SAMPLING_DRAWS = 2000
 #: the interval's coverage
 LEVEL = 0.95
-#: the operating-point covariates whose range spans the library's domain
-DOMAIN_AXES = ("speed", "length", "feed", "gap")
+#: the operating-point covariates whose range spans the library's domain. Not the gap to the
+#: weir: at the baseline's station spacing every length has its own (25-54 mm), and a gap
+#: beyond the library's widens the correction's interval through its leverage instead
+DOMAIN_AXES = ("speed", "length", "feed")
 #: properties of a point the law does not vary: a point must share them with the library
 FIXED = ("diameter_m", "particle_diameter_m", "particle_diameter_sd_m", "size_classes")
 #: the times of the predicted RTD curve, as multiples of the mean residence time
@@ -259,11 +260,10 @@ class Domain:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
         slice_m = [REFERENCE_SLICE_M * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
         feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in self.ranges["feed"]]
-        gap = [1000 * REFERENCE_GAP_M * math.exp(v) for v in self.ranges["gap"]]
         return (
             f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m, "
             f"total feed {feed[0]:.4g}-{feed[1]:.4g} particles/s, "
-            f"last blade to weir {gap[0]:.3g}-{gap[1]:.3g} mm, " + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
+            + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
         )
 
 
@@ -374,11 +374,9 @@ def corrections(model: LibraryModel, leave: int | None = None) -> dict[str, Corr
         raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
     out = {}
     for key in quantity_keys():
-        law = (
-            calibration.whole.get(key) if leave is None else calibration.left_out.get(key, [None] * (leave + 1))[leave]
-        )
-        if law is None:
+        if key not in calibration.whole:
             continue
+        law = calibration.whole[key] if leave is None else calibration.left_out[key][leave]
         points, residuals = [], []
         for j, entry in enumerate(model.runs):
             if j != leave and key in entry.dem:
