@@ -34,6 +34,11 @@ import numpy as np
 
 from coupling.errors import TableError
 
+#: The bound of every measured rate, a phase's move or switch and a velocity table's rate
+#: alike [1/s]: above 1 / the DEM timestep (2e4 /s at 5e-5 s), so no simulation can observe
+#: a faster transition (:mod:`coupling.tables` bounds its rates by it).
+MAX_RATE_PER_S = 1e5
+
 #: directions of the phase-keeping moves, in the order of ``PhaseTransport.rates[:, d]``
 DIRECTIONS = ("x_pos", "x_neg", "y_pos", "y_neg")
 
@@ -92,10 +97,6 @@ def validate(model: PhaseTransport) -> None:
         raise TableError(f"phase switching has shape {switching.shape}; expected (K, K, NX, NY) = {(k, k, nx, ny)}")
     if entry.shape != (2, k):
         raise TableError(f"entry-phase distribution has shape {entry.shape}; expected (2, K) = (2, {k})")
-    # The measured rates' bound (the tables module imports this one, hence here): a phase
-    # moves or switches no faster than any transition a DEM can observe.
-    from coupling.tables import MAX_RATE_PER_S
-
     for name, values, bound, unit in (
         ("phase rates", rates, MAX_RATE_PER_S, " /s"),
         ("phase switching", switching, MAX_RATE_PER_S, " /s"),

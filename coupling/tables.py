@@ -74,7 +74,7 @@ from coupling.errors import TableError, os_reason
 from coupling.files import DIGEST_ATTR, FORMAT_ATTR, h5_digest, open_verified_h5, read_dataset, replace_file
 from coupling.operating import ATTR as OPERATING_ATTR
 from coupling.operating import OperatingPoint
-from coupling.phases import PhaseTransport
+from coupling.phases import MAX_RATE_PER_S, PhaseTransport
 
 SCHEMA_VERSION = 2
 #: the version of a table that carries the hidden-phase model (its ``phases`` subgroup)
@@ -89,11 +89,9 @@ TABLE_FORMAT = "pbmdem-table"
 #: not a blender. Speeds: 100 m/s is 45x the fastest particle of these runs (2.2 m/s, smoke
 #: preset) and 75x the blade-tip speed of the paper's 250 rpm in a 100 mm barrel (1.3 m/s);
 #: a bladed powder blender with particles at 100 m/s is not a granular flow any DEM here
-#: resolves. Rates: 1e5 /s is above 1 / the DEM timestep (2e4 /s at 5e-5 s): no simulation
-#: can observe a faster transition. Sizes: compartment edges within 1 km, window times within
+#: resolves. Rates: :data:`coupling.phases.MAX_RATE_PER_S`. Sizes: compartment edges within 1 km, window times within
 #: 1e9 s (32 years), counts and samples below 2**53 (exact in float64).
 MAX_SPEED_M_S = 100.0
-MAX_RATE_PER_S = 1e5
 MAX_EDGE_M = 1e3
 MAX_TIME_S = 1e9
 MAX_COUNT = float(2**53)
