@@ -36,7 +36,7 @@ models differ, never because it was computed another way. The written definition
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from statistics import NormalDist
 
@@ -184,15 +184,31 @@ def outflow_fraction_a(discharged_a, discharged_b) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SteadyStateRule:
-    """When a hold-up curve is steady (see the module docstring).
+    """When a hold-up curve is steady: from the first time the mean hold-up over the trailing
+    window differs from the mean over the window before by at most ``rel_tol`` of itself.
 
     ``window_s`` [s]: length of the two successive windows whose mean hold-ups are
     compared; ``rel_tol``: largest relative difference of the two means that counts as
     steady. A run needs at least two windows of output after filling to be seen steady.
     """
 
-    window_s: float = 10.0
-    rel_tol: float = 0.02
+    # metadata: pydantic reads "description" when the rule is a section of the pipeline's
+    # configuration; "bounds" states for the config reference what __post_init__ enforces
+    # (a test holds the two together), without pydantic enforcing it a second time
+    window_s: float = field(
+        default=10.0,
+        metadata={
+            "description": "length of each of the two successive windows whose mean hold-ups are compared",
+            "bounds": {"gt": 0},
+        },
+    )
+    rel_tol: float = field(
+        default=0.02,
+        metadata={
+            "description": "largest relative difference of the two window means that counts as steady",
+            "bounds": {"gt": 0, "lt": 1},
+        },
+    )
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.window_s) and self.window_s > 0):

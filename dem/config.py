@@ -50,39 +50,76 @@ class GeometryConfig(_Section):
     See :mod:`dem.geometry` for how each surface is built and checked.
     """
 
-    length_m: float = Field(0.330, gt=0)
-    diameter_m: float = Field(0.100, gt=0)
-    shaft_radius_m: float = Field(0.010, gt=0)
-    blade_stations: int = Field(10, ge=1)
-    first_blade_x_m: float = Field(0.045, gt=0)
-    last_blade_x_m: float = Field(0.300, gt=0)
-    blades_per_station: int = Field(2, ge=1, le=8)
-    blade_chord_m: float = Field(0.025, gt=0)
-    blade_tip_clearance_m: float = Field(0.005, gt=0)
-    blade_pitch_deg: float = Field(45.0, gt=0, lt=90)
-    blade_azimuth_step_deg: float = Field(90.0, ge=0, lt=360)
-    blade_pattern: str = Field("FB", pattern=r"^[FB]+$")
-    weir_height_m: float = Field(0.020, gt=0, description="crest height above the barrel bottom [m]")
-    outlet_length_m: float = Field(0.020, gt=0, description="simulation box extent past the weir plane [m]")
-    discharge_offset_m: float = Field(
-        0.002, gt=0, description="counting face (massflow/mesh, deletes particles) this far past the weir [m]"
+    length_m: float = Field(
+        0.330, gt=0, description="barrel length L from the inlet end wall (x = 0) to the weir plane (x = L)"
     )
-    feed_x_min_m: float = Field(0.006, ge=0)
-    feed_x_max_m: float = Field(0.030, gt=0)
-    feed_y_inner_m: float = Field(0.005, ge=0)
-    feed_y_outer_m: float = Field(0.030, gt=0)
-    feed_height_m: float = Field(0.025, description="z of the feed zones' centre [m]")
-    feed_depth_m: float = Field(0.012, gt=0, description="vertical extent of each feed zone [m]")
+    diameter_m: float = Field(
+        0.100, gt=0, description="barrel inner diameter D; the impeller axis is the barrel's axis"
+    )
+    shaft_radius_m: float = Field(
+        0.010, gt=0, description="impeller shaft radius; the paddles' roots sit inside it, at half this radius"
+    )
+    blade_stations: int = Field(
+        10, ge=1, description="number of axial paddle stations, evenly spaced from first_blade_x_m to last_blade_x_m"
+    )
+    first_blade_x_m: float = Field(0.045, gt=0, description="axial position of the first paddle station's centre")
+    last_blade_x_m: float = Field(
+        0.300, gt=0, description="axial position of the last paddle station's centre; below length_m"
+    )
+    blades_per_station: int = Field(2, ge=1, le=8, description="flat paddles per station, evenly spaced in azimuth")
+    blade_chord_m: float = Field(0.025, gt=0, description="paddle width along its pitched chord")
+    blade_tip_clearance_m: float = Field(
+        0.005,
+        gt=0,
+        description="gap between the paddles' outermost corners and the barrel wall; must exceed the largest "
+        "particle (mean + 3 SD)",
+    )
+    blade_pitch_deg: float = Field(45.0, gt=0, lt=90, description="angle of the paddle faces from the axial direction")
+    blade_azimuth_step_deg: float = Field(
+        90.0, ge=0, lt=360, description="azimuthal turn of each station's paddles relative to the previous station"
+    )
+    blade_pattern: str = Field(
+        "FB",
+        pattern=r"^[FB]+$",
+        description="paddle orientation per station, repeated cyclically from the inlet: F conveys towards the "
+        "outlet, B back towards the inlet",
+    )
+    weir_height_m: float = Field(
+        0.020, gt=0, description="weir crest height above the barrel bottom; powder leaves over it"
+    )
+    outlet_length_m: float = Field(0.020, gt=0, description="simulation box extent past the weir plane")
+    discharge_offset_m: float = Field(
+        0.002,
+        gt=0,
+        description="the discharge face (fix massflow/mesh: counts and deletes particles) this far past the "
+        "weir plane; below outlet_length_m",
+    )
+    feed_x_min_m: float = Field(0.006, ge=0, description="upstream end of both feed zones along x")
+    feed_x_max_m: float = Field(
+        0.030, gt=0, description="downstream end of both feed zones along x; clear of the first paddles"
+    )
+    feed_y_inner_m: float = Field(
+        0.005, ge=0, description="|y| of the feed zones' inner edge (A on +y, B mirrored on -y)"
+    )
+    feed_y_outer_m: float = Field(0.030, gt=0, description="|y| of the feed zones' outer edge; below the barrel radius")
+    feed_height_m: float = Field(
+        0.025, description="height z of the feed zones' centre above the impeller axis (z = 0)"
+    )
+    feed_depth_m: float = Field(0.012, gt=0, description="vertical extent of each feed zone")
     mesh_resolution_m: float = Field(
         0.04,
         gt=0,
-        description="target triangle edge of curved/long surfaces [m] (coarse: moving triangles cost per step)",
+        description="target triangle edge of curved and long surfaces (coarse: moving triangles cost time every step)",
     )
-    box_margin_m: float = Field(0.005, gt=0, description="simulation box clearance around the barrel [m]")
+    box_margin_m: float = Field(
+        0.005,
+        gt=0,
+        description="simulation box clearance around the barrel radius (and upstream, unless inlet_margin_m)",
+    )
     inlet_margin_m: float | None = Field(
         None,
         gt=0,
-        description="simulation box extent upstream of the inlet wall [m]; None = box_margin_m. "
+        description="simulation box extent upstream of the inlet wall; None = box_margin_m. "
         "Under MPI the deck cuts the box along x into equal slabs: a longer margin moves the cut between 2 ranks "
         "toward the feed end, which holds most of the particles",
     )
@@ -129,14 +166,20 @@ class ParticleConfig(_Section):
     """Particles of both components (Table 1). The size distribution is normal in diameter,
     truncated at +-3 SD and discretised into ``size_classes`` LIGGGHTS templates."""
 
-    diameter_m: float = Field(0.002, gt=0)
+    diameter_m: float = Field(0.002, gt=0, description="mean particle diameter, both components (Table 1: 2 mm)")
     # The paper's text says SD = 5 % of the mean radius, i.e. 0.05 mm on the
     # radius and 0.1 mm on the diameter; Table 1's "0.2" has no unit and is not used.
-    diameter_sd_m: float = Field(0.0001, ge=0)
-    size_classes: int = Field(5, ge=1, le=15)
-    shear_modulus_pa: float = Field(2.0e6, gt=0)
-    poisson_ratio: float = Field(0.33, gt=-1, lt=0.5)
-    density_kg_m3: float = Field(1500.0, gt=0)
+    diameter_sd_m: float = Field(
+        0.0001, ge=0, description="standard deviation of the normal diameter distribution, truncated at +-3 SD"
+    )
+    size_classes: int = Field(
+        5, ge=1, le=15, description="diameters the distribution is discretised into (one LIGGGHTS template each)"
+    )
+    shear_modulus_pa: float = Field(
+        2.0e6, gt=0, description="particle shear modulus G; the deck uses E = 2 G (1 + nu) (Table 1)"
+    )
+    poisson_ratio: float = Field(0.33, gt=-1, lt=0.5, description="particle Poisson's ratio nu (Table 1)")
+    density_kg_m3: float = Field(1500.0, gt=0, description="particle material density (Table 1)")
 
     @model_validator(mode="after")
     def _check(self) -> ParticleConfig:
@@ -163,9 +206,16 @@ class ParticleConfig(_Section):
 class SteelConfig(_Section):
     """Walls and blades (Table 1)."""
 
-    shear_modulus_pa: float = Field(7.93e10, gt=0)
-    poisson_ratio: float = Field(0.33, gt=-1, lt=0.5)
-    density_kg_m3: float = Field(8000.0, gt=0)
+    shear_modulus_pa: float = Field(
+        7.93e10, gt=0, description="shear modulus G of walls and blades; the deck uses E = 2 G (1 + nu) (Table 1)"
+    )
+    poisson_ratio: float = Field(0.33, gt=-1, lt=0.5, description="steel Poisson's ratio nu (Table 1)")
+    density_kg_m3: float = Field(
+        8000.0,
+        gt=0,
+        description="steel density (Table 1); not written to the deck: walls and blades move as prescribed, "
+        "never by contact",
+    )
 
     @property
     def youngs_modulus_pa(self) -> float:
@@ -175,24 +225,43 @@ class SteelConfig(_Section):
 class ContactConfig(_Section):
     """Hertz contact coefficients (Table 1)."""
 
-    restitution: float = Field(0.1, gt=0, le=1)
-    friction_particle_particle: float = Field(0.5, ge=0)
-    friction_particle_wall: float = Field(0.4, ge=0)
-    friction_particle_blade: float = Field(0.4, ge=0)
-    rolling_friction: float = Field(0.01, ge=0)
+    restitution: float = Field(
+        0.1, gt=0, le=1, description="coefficient of restitution, every pair of particle, wall and blade (Table 1)"
+    )
+    friction_particle_particle: float = Field(
+        0.5, ge=0, description="coefficient of static (sliding) friction between particles (Table 1)"
+    )
+    friction_particle_wall: float = Field(
+        0.4, ge=0, description="coefficient of static friction particle-steel (walls, weir, and blades) (Table 1)"
+    )
+    friction_particle_blade: float = Field(
+        0.4,
+        ge=0,
+        description="coefficient of static friction particle-blade (Table 1); the deck has one steel type for walls "
+        "and blades, so it must equal friction_particle_wall",
+    )
+    rolling_friction: float = Field(
+        0.01,
+        ge=0,
+        description="coefficient of rolling friction (constant directional torque model, cdt), every pair (Table 1)",
+    )
 
 
 class OperationConfig(_Section):
     """Operating point (paper section 3.1)."""
 
-    feed_rate_total_per_s: float = Field(1990.0, gt=0)
+    feed_rate_total_per_s: float = Field(1990.0, gt=0, description="particles fed per second by both feeders together")
     feed_fraction_a: float = Field(0.5, gt=0, lt=1, description="share of the feed that is component A")
-    impeller_rpm: float = Field(250.0, gt=0)
-    duration_s: float = Field(260.0, gt=0)
+    impeller_rpm: float = Field(250.0, gt=0, description="impeller speed, revolutions per minute")
+    duration_s: float = Field(260.0, gt=0, description="simulated time of the DEM run, from an empty blender")
     step_time_s: float | None = Field(
         None, gt=0, description="feeder A's rate is multiplied by step_factor_a from this time on (None: steady feed)"
     )
-    step_factor_a: float = Field(1.0, gt=0)
+    step_factor_a: float = Field(
+        1.0,
+        gt=0,
+        description="feeder A's rate factor from step_time_s on (a second feeder of A); > 1 with a step, else 1",
+    )
 
     @model_validator(mode="after")
     def _step(self) -> OperationConfig:
@@ -227,11 +296,26 @@ MAX_STABLE_RAYLEIGH_FRACTION = 0.27
 
 
 class NumericsConfig(_Section):
-    timestep_rayleigh_fraction: float = Field(0.2, gt=0)
-    dump_interval_s: float = Field(0.1, gt=0, description="particle dump every this much simulated time")
-    thermo_interval_s: float = Field(0.5, gt=0)
-    restart_interval_s: float = Field(10.0, gt=0)
-    seed: int = Field(15485863, gt=10000, description="a prime > 10000 (LIGGGHTS requirement)")
+    """Timestep, output intervals and random seed of the DEM run."""
+
+    timestep_rayleigh_fraction: float = Field(
+        0.2, gt=0, description="DEM timestep as a fraction of the smallest particle's Rayleigh time; at most 0.27"
+    )
+    dump_interval_s: float = Field(
+        0.1, gt=0, description="simulated time between particle dumps (the post-processing's samples)"
+    )
+    thermo_interval_s: float = Field(
+        0.5, gt=0, description="simulated time between thermo lines (counters) and timestep checks in the log"
+    )
+    restart_interval_s: float = Field(
+        10.0, gt=0, description="simulated time between restart files (what an interrupted run resumes from)"
+    )
+    seed: int = Field(
+        15485863,
+        gt=10000,
+        description="random seed of the DEM run, a prime > 10000 (LIGGGHTS requirement); the particle templates, "
+        "size distributions and insertions take the primes from it on",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> NumericsConfig:
@@ -250,9 +334,13 @@ class RunConfig(_Section):
     """How the solver is launched. ``launcher`` is a command prefix such as
     ``"mpirun -np {np}"`` or ``"srun"``; empty runs ``liggghts`` directly when np == 1."""
 
-    np: int = Field(1, ge=1)
-    launcher: str = "mpirun --allow-run-as-root -np {np}"
-    liggghts: str = "liggghts"
+    np: int = Field(1, ge=1, description="MPI ranks of the LIGGGHTS run (the command line's --np overrides it)")
+    launcher: str = Field(
+        "mpirun --allow-run-as-root -np {np}",
+        description="command prefix that starts LIGGGHTS; its only field is {np} (the ranks); an {np} template is "
+        'skipped at np = 1, "" runs LIGGGHTS directly',
+    )
+    liggghts: str = Field("liggghts", description="LIGGGHTS command (name on PATH or path, with options)")
 
     @field_validator("launcher")
     @classmethod
@@ -307,15 +395,30 @@ def check_launcher(launcher: str) -> str:
 class TablesConfig(_Section):
     """Binning of the dumps into velocity tables and CQA sampling (``coupling/DEFINITIONS.md``)."""
 
-    nx: int = Field(10, ge=1)
-    ny: int = Field(10, ge=1)
-    window_s: float = Field(5.0, gt=0)
-    sample_interval_s: float = Field(1.0, gt=0, description="outflow / C_A / RSD sampling interval")
-    min_samples: int = Field(5, ge=1, description="fewer particle-snapshots than this marks a compartment-window")
-    rtd_tag_window_s: float = Field(1.0, gt=0)
+    nx: int = Field(10, ge=1, description="axial compartments (slices of L/NX) of the velocity tables and the PBM")
+    ny: int = Field(10, ge=1, description="compartments along y per slice (strips of D/NY, full height)")
+    window_s: float = Field(
+        5.0, gt=0, description="length of each velocity-table window (the paper updates velocities every 5 s)"
+    )
+    sample_interval_s: float = Field(
+        1.0, gt=0, description="interval of the DEM's CQA time series (outflow, C_A, RSD, hold-up)"
+    )
+    min_samples: int = Field(
+        5,
+        ge=1,
+        description="fewer particle-snapshots (or observed moves) than this leave a compartment-window without "
+        "a velocity (or rate): marked missing, not read as zero",
+    )
+    rtd_tag_window_s: float = Field(
+        1.0,
+        gt=0,
+        description="the particles fed during this window from the steady state on are tagged for the DEM's RTD",
+    )
 
 
 class DemConfig(_Section):
+    """The DEM stage: blender, materials, operating point, numerics, launch and binning."""
+
     geometry: GeometryConfig = GeometryConfig()
     particles: ParticleConfig = ParticleConfig()
     steel: SteelConfig = SteelConfig()

@@ -16,6 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 
 class PbmConfig(BaseModel):
+    """The PBM run: feed, noise, transfer rates, RTD pulse and solver."""
+
     # for every float field, including those added later without their own allow_inf_nan
     # strict=True: a boolean or a string where a number belongs is refused naming the key
     # (not read as 1 or as the number it spells); an integer is still a valid float
@@ -25,28 +27,37 @@ class PbmConfig(BaseModel):
         None,
         ge=0,
         allow_inf_nan=False,
-        description="feeder A's rate [particles/s]; None = the velocity table's operating point (pbm.feed), "
+        description="feeder A's rate (particles per second); None = the velocity table's operating point (pbm.feed), "
         "the paper's 995 /s on a table that records none. A rate that differs from the table's is named",
     )
     feed_rate_b_per_s: float | None = Field(
-        None, ge=0, allow_inf_nan=False, description="feeder B's rate [particles/s]; None as feed_rate_a_per_s"
+        None, ge=0, allow_inf_nan=False, description="feeder B's rate (particles per second); None as feed_rate_a_per_s"
     )
     feed_weights_a: list[float] | None = Field(
         None,
         description="NY relative weights of feed A over the first slice's compartments "
         "(j = 0 at y = -D/2), or NX * NY over every compartment (i * NY + j) for a feed zone "
         "that spans slices; None = feeder A's zone of the table's operating point (pbm.feed), uniformly over "
-        "the first slice's y > 0 half on a table that records none",
+        "the first slice's y > 0 half on a table that records none. Each weight >= 0, at least one > 0",
     )
     feed_weights_b: list[float] | None = Field(
         None, description="NY relative weights of feed B; None as feed_weights_a, on the y < 0 side"
     )
     duration_s: float | None = Field(
-        None, gt=0, allow_inf_nan=False, description="simulated time; None = the velocity table's end"
+        None, gt=0, allow_inf_nan=False, description="simulated time of the PBM run; None = the velocity table's end"
     )
-    output_interval_s: float = Field(1.0, gt=0, allow_inf_nan=False)
-    noise_sigma: float = Field(0.0, ge=0, allow_inf_nan=False, description="relative SD of the feed-rate noise factor")
-    noise_interval_s: float = Field(1.0, gt=0, allow_inf_nan=False)
+    output_interval_s: float = Field(
+        1.0, gt=0, allow_inf_nan=False, description="interval of the PBM's CQA time series (output k at k times this)"
+    )
+    noise_sigma: float = Field(
+        0.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="relative SD of the feed-rate noise factor N(1, sigma), clipped at 0; 0 = no noise",
+    )
+    noise_interval_s: float = Field(
+        1.0, gt=0, allow_inf_nan=False, description="the feed-rate noise factors are redrawn every this much time"
+    )
     feed_step_s: float | None = Field(
         None,
         ge=0,
@@ -54,12 +65,16 @@ class PbmConfig(BaseModel):
         description="feeder A's rate is multiplied by feed_step_factor_a from this time on; a multiple of "
         "noise_interval_s (the feed is piecewise constant over those intervals). None = no step",
     )
-    feed_step_factor_a: float = Field(1.0, ge=0, allow_inf_nan=False)
-    seed: int = Field(12345, ge=0)
-    rtd_pulse_s: float | None = Field(
-        None, ge=0, allow_inf_nan=False, description="tracer pulse time; None = at detected steady state"
+    feed_step_factor_a: float = Field(
+        1.0, ge=0, allow_inf_nan=False, description="factor on feeder A's rate from feed_step_s on; 1 without a step"
     )
-    rtd_bin_s: float = Field(1.0, gt=0, allow_inf_nan=False, description="width of the E(t) histogram bins")
+    seed: int = Field(
+        12345, ge=0, description="seed of the feed-noise generator (members of an ensemble drawn one after another)"
+    )
+    rtd_pulse_s: float | None = Field(
+        None, ge=0, allow_inf_nan=False, description="time of the RTD tracer pulse; None = at the detected steady state"
+    )
+    rtd_bin_s: float = Field(1.0, gt=0, allow_inf_nan=False, description="width of the bins of the PBM's RTD E(t)")
     rates: Literal["velocity", "measured", "phases"] = Field(
         "velocity",
         description="transfer rates: 'velocity' = v/dx from the table's velocities (the paper's eq. 4); "
@@ -76,7 +91,7 @@ class PbmConfig(BaseModel):
     fill_exponents: list[list[float]] | None = Field(
         None,
         description="the fill law's exponents, one [forward, backward] pair per axial slice (pbm.fill.fit_fill_law "
-        "on a run library); None = fitted to the table's windows",
+        "on a run library), each finite and >= 0; None = fitted to the table's windows",
     )
     method: Literal["expm", "bdf"] = Field("expm", description="exact propagation or the solve_ivp BDF cross-check")
     kernel: Literal["auto", "dense", "action"] = Field(
@@ -85,7 +100,7 @@ class PbmConfig(BaseModel):
         "'action' = uniformization over the generator's diagonals (pbm.action), 'auto' = the cheaper by "
         "pbm.solver.kernel_costs; the numbers agree to ~1e-12",
     )
-    bdf_rtol: float = Field(1e-6, gt=0, lt=1)
+    bdf_rtol: float = Field(1e-6, gt=0, lt=1, description="relative tolerance of the BDF cross-check (method = 'bdf')")
 
     @field_validator("feed_weights_a", "feed_weights_b")
     @classmethod

@@ -26,6 +26,7 @@ FORBIDDEN = {
 #: workflows' rooms by floor; a room may import rooms on its floor or below.
 FLOORS = {
     "config": 0,
+    "config_reference": 0,
     "shipped": 1,
     "pipeline": 2,
     "analysis": 3,

@@ -34,7 +34,12 @@ class Config(BaseModel):
     # parent's config), so its inf/nan is refused by key like every other section's
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    name: str = Field("custom", pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(
+        "custom",
+        pattern=r"^[A-Za-z0-9_.-]+$",
+        description="name of the configuration (a preset's is its own); names the results directory "
+        "NAME-HASH, the Slurm job and the report's preset",
+    )
     dem: DemConfig = DemConfig()
     pbm: PbmConfig = PbmConfig()
     steady_state: SteadyStateRule = SteadyStateRule()
