@@ -7,7 +7,6 @@ tests/workflows/cli/test_chaos.py."""
 from __future__ import annotations
 
 import errno
-import hashlib
 import os
 import signal
 import subprocess
@@ -24,25 +23,12 @@ from coupling.cache import load_entry, save_entry
 from coupling.errors import CacheError, Interrupted, OutputError
 from coupling.files import locked, replace_file
 from coupling.tables import atomic_h5
-
-REPO = Path(__file__).resolve().parents[2]
-SHIPPED = REPO / "workflows/reference/validation/dem-dccc770e3c39f48c.h5"
-
-
-def sha(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def leftovers(folder: Path) -> list[str]:
-    """Temporaries, lock files and HDF5 in-memory names that reached the disk."""
-    return sorted(p.name for p in folder.iterdir() if p.suffix in (".tmp", ".lock", ".mem"))
+from tests.rewrites import REPO, leftovers, sha, shipped_copy
 
 
 @pytest.fixture
 def original(tmp_path) -> Path:
-    path = tmp_path / "results.h5"
-    path.write_bytes(SHIPPED.read_bytes())
-    return path
+    return shipped_copy(tmp_path)
 
 
 @pytest.mark.parametrize(

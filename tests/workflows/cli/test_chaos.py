@@ -5,7 +5,6 @@ the shell expects, with the file as it was (or whole and new) and no temporary l
 
 from __future__ import annotations
 
-import hashlib
 import os
 import resource
 import signal
@@ -18,25 +17,13 @@ import pytest
 
 from coupling.cache import load_entry
 from coupling.errors import Interrupted
+from tests.rewrites import REPO, leftovers, sha, shipped_copy
 from workflows.cli.main import main
-
-REPO = Path(__file__).resolve().parents[3]
-SHIPPED = REPO / "workflows/reference/validation/dem-dccc770e3c39f48c.h5"
-
-
-def sha(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def leftovers(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir() if p.suffix in (".tmp", ".lock", ".mem"))
 
 
 @pytest.fixture
 def results(tmp_path) -> Path:
-    path = tmp_path / "results.h5"
-    path.write_bytes(SHIPPED.read_bytes())
-    return path
+    return shipped_copy(tmp_path)
 
 
 def _limited(max_bytes: int):
