@@ -245,7 +245,7 @@ def _claim_run_dir(
     if status and status.get("state") == "running":
         state, why = _liveness(status)
         hint = (
-            "; if it is no longer running there, continue it with --resume (resume=True)"
+            "; if it is no longer running there, continue it with --resume"
             if state == "unknown"
             else "; wait for it, or stop it first"
         )
@@ -396,18 +396,33 @@ def _terminate_as_interrupt():
 
 def _refuse_to_discard(run_dir: Path, key: str, status: dict[str, Any] | None) -> None:
     """A run directory holding a stopped run's dumps or restart files is never cleared
-    implicitly: the caller says resume or start again."""
+    implicitly: the caller says resume or start again. The message counts the restart files
+    ``--resume`` can continue from (complete ones, :func:`_restart_files`) and offers
+    ``--resume`` only when there is one; it speaks the command line's flags (``run_dem``'s
+    ``resume`` and ``fresh`` are the same choices)."""
     dumps = list(run_dir.glob(deck.DUMP_GLOB))
-    restarts = list(run_dir.glob(deck.RESTART_GLOB))
-    if dumps or restarts:
-        state = (status or {}).get("state", "unknown")
-        if (status or {}).get("error"):
-            state += f": {status['error']}"
-        raise SolverRunError(
-            f"run {key} stopped ({state}) with {len(dumps)} dumps and {len(restarts)} restart files in {run_dir}; "
-            "continue it with --resume (resume=True) or discard it and start again with --fresh (fresh=True)",
-            run_dir=run_dir,
-        )
+    written = [p for p in run_dir.glob(deck.RESTART_GLOB) if p.is_file()]
+    if not (dumps or written):
+        return
+    complete = _restart_files(run_dir)
+    state = (status or {}).get("state", "unknown")
+    if (status or {}).get("error"):
+        state += f": {status['error']}"
+    kept = _count(len(dumps), "dump") + " and " + _count(len(complete), "complete restart file")
+    if len(written) > len(complete):
+        kept += f" (and {len(written) - len(complete)} cut short)"
+    choice = (
+        f"continue it with --resume (from {complete[-1].relative_to(run_dir)}), or discard it and start again with --fresh"
+        if complete
+        else "nothing to resume from: discard it and start again with --fresh"
+    )
+    # the error's second line names the run directory
+    raise SolverRunError(f"run {key} stopped ({state}) with {kept}; {choice}", run_dir=run_dir)
+
+
+def _count(n: int, noun: str) -> str:
+    """``"1 dump"``, ``"3 dumps"``, ``"0 dumps"``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _now() -> str:

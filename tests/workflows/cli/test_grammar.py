@@ -1,0 +1,118 @@
+"""One command-line grammar: ``--version``, the help when run bare, the nearest command named
+for a misspelt one at every level, the studies and benchmarks listed apart from the
+product's commands, and a refused rerun told in the command line's flags."""
+
+import json
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from dem import deck
+from dem.run import STATUS_FILE, prepare_run
+from tests.known_dumps import variant
+from workflows.cli.main import COMMANDS, STUDIES_AND_BENCHMARKS, main
+from workflows.config import dump_toml, load_preset
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def test_version_prints_the_package_version(capsys):
+    assert main(["--version"]) == 0
+    out = capsys.readouterr().out
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert out == f"{project['name']} {project['version']}\n"
+
+
+def test_bare_pbmdem_prints_the_help_and_succeeds(capsys):
+    assert main([]) == 0
+    captured = capsys.readouterr()
+    assert captured.out.startswith("usage: pbmdem") and "commands:" in captured.out
+    assert captured.err == ""
+
+
+@pytest.mark.parametrize(
+    "argv, typed, meant",
+    [
+        (["predcit"], "predcit", "predict"),
+        (["libary", "fit"], "libary", "library"),
+        (["dem", "rnu"], "dem rnu", "dem run"),
+        (["library", "fti", "--results", "x.h5"], "library fti", "library fit"),
+        (["study", "phsaes"], "study phsaes", "study phases"),
+    ],
+)
+def test_a_misspelt_command_gets_the_nearest_in_one_line(capsys, argv, typed, meant):
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert captured.err == f"pbmdem: error: unknown command {typed!r}; did you mean {meant!r}?\n"
+    assert captured.out == ""
+
+
+def test_a_command_near_none_keeps_argparse_listing_the_choices(capsys):
+    assert main(["xyzzy"]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean" not in err and "invalid choice: 'xyzzy'" in err and "'predict'" in err
+
+
+def test_the_help_lists_the_product_first_and_studies_and_benchmarks_apart(capsys):
+    assert main(["--help"]) == 0
+    help_text = capsys.readouterr().out
+    product, _, apart = help_text.partition("studies and benchmarks")
+    assert apart, help_text
+    for name, _ in COMMANDS:
+        listed = re.compile(rf"^    {re.escape(name)}\s", re.MULTILINE)
+        assert bool(listed.search(apart)) == (name in STUDIES_AND_BENCHMARKS), name
+        assert bool(listed.search(product)) == (name not in STUDIES_AND_BENCHMARKS), name
+    # the subcommands are not named in the top-level usage or list: only the two headings hold them
+    assert "{" not in help_text.splitlines()[0]
+
+
+@pytest.fixture
+def stopped_run(tmp_path):
+    """A config whose LIGGGHTS is a stand-in that only prints a banner, and its run directory
+    left interrupted with two dumps and restart files, as a Ctrl-C leaves it."""
+    fake = tmp_path / "liggghts"
+    fake.write_text('#!/bin/sh\necho "LIGGGHTS (Version LIGGGHTS-PUBLIC 3.8.0, a stand-in)"\n')
+    fake.chmod(0o755)
+    config = variant(load_preset("smoke"), run={"np": 1, "launcher": "", "liggghts": str(fake)})
+    config_file = tmp_path / "config.toml"
+    config_file.write_text(dump_toml(config))
+    run_dir = tmp_path / "runs" / prepare_run(config.dem).key
+    for name in ("dumps/dump.0.txt", "dumps/dump.1000.txt"):
+        (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
+        (run_dir / name).write_text("ITEM: TIMESTEP\n")
+    (run_dir / "restart").mkdir()
+    (run_dir / STATUS_FILE).write_text(json.dumps({"state": "interrupted"}))
+    return config_file, run_dir
+
+
+def _rerun(config_file, run_dir, capsys):
+    argv = ["dem", "run", "--config", str(config_file), "--runs-dir", str(run_dir.parent), "--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pbmdem: error: run ") and err.endswith(f"\n  run directory: {run_dir}\n"), err
+    assert "=True" not in err and "resume=" not in err and "fresh=" not in err
+    return err.splitlines()[0]
+
+
+def test_a_refused_rerun_names_the_restart_file_and_the_flags(stopped_run, capsys):
+    config_file, run_dir = stopped_run
+    (run_dir / "restart" / "restart.1000.bin").write_bytes(b"\0" * 64)
+    # a thermo row at step 1000 in LIGGGHTS' log: the restart of step 1000 is complete
+    (run_dir / deck.LOG_FILE).write_text("Step Atoms\n1000 5\n")
+    line = _rerun(config_file, run_dir, capsys)
+    assert "with 2 dumps and 1 complete restart file;" in line, line
+    assert line.endswith(
+        "continue it with --resume (from restart/restart.1000.bin), or discard it and start again with --fresh"
+    ), line
+
+
+def test_a_refused_rerun_without_a_complete_restart_offers_only_fresh(stopped_run, capsys):
+    config_file, run_dir = stopped_run
+    # written, but no log shows its step reached: cut short, --resume cannot use it
+    (run_dir / "restart" / "restart.1000.bin").write_bytes(b"\0" * 64)
+    line = _rerun(config_file, run_dir, capsys)
+    assert "with 2 dumps and 0 complete restart files (and 1 cut short);" in line, line
+    assert line.endswith("nothing to resume from: discard it and start again with --fresh"), line
+    assert "--resume" not in line
