@@ -21,8 +21,10 @@ setup-system:
 			liggghts openmpi-bin slurm-wlm munge; \
 	fi
 
+# render (pyvista, VTK) too, so that the tests cover the ParaView files and the VTK picture;
+# the tests also check that everything works without it (pyvista hidden from the import)
 setup-python:
-	$(PYTHON) -m pip install -q -e '.[test]'
+	$(PYTHON) -m pip install -q -e '.[test,render]'
 
 test: setup
 	$(PYTHON) -m pytest

@@ -40,6 +40,16 @@ class PbmDemError(Exception):
     """Base class of every error this project raises on purpose."""
 
 
+class MissingExtraError(PbmDemError, ImportError):
+    """An optional dependency is not installed: the message says what needs it and the
+    ``pip install`` that brings it (e.g. pyvista, in the ``render`` extra)."""
+
+    def __init__(self, module: str, extra: str, purpose: str):
+        super().__init__(
+            f"{purpose} needs {module}, which is not installed: pip install 'pbmdem[{extra}]'", name=module
+        )
+
+
 class ConfigError(PbmDemError, ValueError):
     """A configuration value, file, preset or key is invalid."""
 

@@ -7,11 +7,13 @@ blank, ``pyvista.start_xvfb()`` is tried when an ``Xvfb`` binary exists, and las
 Agg backend draws the triangles with ``mpl_toolkits.mplot3d``. The first backend that
 produces a non-blank image wins; :func:`render_geometry` returns which one it was. The
 pyvista attempt (with its Xvfb retry) runs in a child process, because a VTK that cannot
-create any context may abort instead of raising.
+create any context may abort instead of raising. pyvista is optional (``pip install
+'pbmdem[render]'``): without it ``"auto"`` goes straight to matplotlib.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import shutil
 import subprocess
 import sys
@@ -20,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coupling.errors import MissingExtraError
 from dem.config import DemConfig
 from dem.geometry import Geometry, TriMesh, build_geometry
 
@@ -52,6 +55,11 @@ def _all_meshes(geo: Geometry) -> dict[str, TriMesh]:
     for comp, box in geo.feed_zones.items():
         out[f"feed_{comp}"] = _feed_box_mesh(f"feed_{comp}", box)
     return out
+
+
+def pyvista_installed() -> bool:
+    """Whether pyvista can be imported, found without importing it (the child process does)."""
+    return importlib.util.find_spec("pyvista") is not None
 
 
 def _render_pyvista(meshes: dict[str, TriMesh], path: Path, size: tuple[int, int]) -> None:
@@ -129,12 +137,15 @@ def render_geometry(
     """Render the blender (impeller, weir, discharge face, barrel, feed zones) to a PNG.
 
     ``backend`` is ``"auto"``, ``"pyvista"`` or ``"matplotlib"``; returns the one used.
-    pyvista runs in a child process (see :func:`_render_pyvista_isolated`).
+    pyvista runs in a child process (see :func:`_render_pyvista_isolated`); ``"auto"``
+    skips it when it is not installed, ``"pyvista"`` then raises :class:`MissingExtraError`.
     """
+    if backend == "pyvista" and not pyvista_installed():
+        raise MissingExtraError("pyvista", "render", "the pyvista renderer")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meshes = _all_meshes(build_geometry(config))
-    if backend in ("auto", "pyvista"):
+    if backend in ("auto", "pyvista") and pyvista_installed():
         try:
             _render_pyvista_isolated(meshes, path, size)
             return "pyvista"

@@ -1,18 +1,36 @@
 """ParaView-ready output: particle snapshots, impeller at the snapshot's angle, compartment
 fields over time. Each series is a set of VTK XML files plus a ``.pvd`` collection that
 ParaView opens as one time-dependent dataset.
+
+Written through pyvista, an optional dependency (``pip install 'pbmdem[render]'``): it is
+imported when a file is made, and its absence is a one-line :class:`MissingExtraError`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
-import pyvista as pv
 
+from coupling.errors import MissingExtraError
 from coupling.tables import VelocityTable
+
+if TYPE_CHECKING:
+    import pyvista as pv
+
+
+def _pyvista():
+    """The pyvista module, or MissingExtraError naming the extra that installs it."""
+    try:
+        import pyvista
+    except ModuleNotFoundError as exc:
+        if exc.name != "pyvista":  # pyvista is there, something it needs is not: say that
+            raise
+        raise MissingExtraError("pyvista", "render", "the ParaView output") from None
+    return pyvista
 
 
 def write_pvd(path: Path, entries: Iterable[tuple[float, str]]) -> Path:
@@ -31,6 +49,7 @@ def compartment_grid(table: VelocityTable, k: int, height_m: float) -> pv.Rectil
     """Window ``k`` of ``table`` as a one-cell-high rectilinear grid with cell data.
 
     Compartments span the full height of the vessel, hence one cell in z."""
+    pv = _pyvista()
     half = height_m / 2
     grid = pv.RectilinearGrid(table.x_edges, table.y_edges, np.array([-half, half]))
 
@@ -58,6 +77,7 @@ def compartment_grid(table: VelocityTable, k: int, height_m: float) -> pv.Rectil
 
 def write_compartment_series(table: VelocityTable, out_dir: Path, height_m: float) -> Path:
     """One ``.vtr`` per velocity window plus ``compartments.pvd``; returns the collection."""
+    _pyvista()  # before the directory: without pyvista, say so and write nothing
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     entries = []
@@ -70,7 +90,7 @@ def write_compartment_series(table: VelocityTable, out_dir: Path, height_m: floa
 
 def particle_cloud(ids, types, positions, velocities, radii) -> pv.PolyData:
     """Particles as points with id, type, velocity (vector), speed and radius."""
-    cloud = pv.PolyData(np.asarray(positions, dtype=float).reshape(-1, 3))
+    cloud = _pyvista().PolyData(np.asarray(positions, dtype=float).reshape(-1, 3))
     cloud.point_data["id"] = np.asarray(ids, dtype=np.int64)
     cloud.point_data["type"] = np.asarray(types, dtype=np.int32)
     velocities = np.asarray(velocities, dtype=float).reshape(-1, 3)
@@ -90,7 +110,7 @@ def impeller_at(impeller: pv.PolyData, rpm: float, time_s: float) -> pv.PolyData
 def _polydata(mesh) -> pv.PolyData:
     """A ``dem.geometry.TriMesh`` as pyvista surface."""
     faces = np.hstack([np.full((len(mesh.triangles), 1), 3), mesh.triangles]).ravel()
-    return pv.PolyData(np.asarray(mesh.points, dtype=float), faces)
+    return _pyvista().PolyData(np.asarray(mesh.points, dtype=float), faces)
 
 
 def write_particle_series(dem_config, run_dir: Path, out_dir: Path, max_snapshots: int = 60) -> list[Path]:
@@ -98,6 +118,7 @@ def write_particle_series(dem_config, run_dir: Path, out_dir: Path, max_snapshot
     the impeller at each snapshot's angle and the weir; one ``.pvd`` collection per series.
 
     Returns the collection files. Reads the dumps of ``run_dir`` through ``dem.dumps``."""
+    _pyvista()  # before any file: without pyvista, say so and write nothing
     from dem import deck
     from dem.dumps import dump_paths, iter_snapshots
     from dem.geometry import build_geometry

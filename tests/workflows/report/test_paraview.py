@@ -2,10 +2,12 @@
 
 import numpy as np
 import pytest
-import pyvista as pv
 
 from coupling.tables import make_table
 from workflows.report.paraview import impeller_at, particle_cloud, write_compartment_series
+
+# the `render` extra, which `make setup` installs; without it see tests/test_extras.py
+pv = pytest.importorskip("pyvista", reason="pyvista is optional: pip install 'pbmdem[render]'")
 
 
 def test_compartment_cells_match_their_ij(tmp_path):
