@@ -331,7 +331,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     point.update(result.points)
     scores = dict(zip((r.file for r in model.runs), model.left_out_scores))
     ck = dict(zip((r.file for r in model.runs), model.ck))
-    mean_scores = "" if intro else _mean_scores(model, result)
+    mean_scores = "" if intro else _mean_scores(model, result) + _law_misses(model)
     intro = intro or (
         f"Each run predicted by the law fitted without it ({len(model.runs)} runs, {n_keys} quantities each), its "
         "interval calibrated without it. A run inside the other runs' domain is an interpolation, calibrated on the "
@@ -415,6 +415,23 @@ def alternatives(model: LibraryModel, forms: Sequence[Sequence[str]] = CORRECTIO
         + ", ".join(f"{100 * v:g} % ({k})" for k, v in USEFUL_HALF_WIDTH.items())
         + " and a coverage of at least 90 %.\n\n"
         + "\n".join(head)
+    )
+
+
+def _law_misses(model: LibraryModel, key: str = "holdup") -> str:
+    """How far the law alone is from the DEM's ``key`` at the library's runs, fitted with
+    them and left out: what the correction has to make up."""
+    calibration = model.calibration
+    if calibration is None or key not in calibration.whole:
+        return ""
+    held = [(n, r.dem[key].value) for n, r in enumerate(model.runs) if key in r.dem]
+    ranges = []
+    for law in (lambda n: calibration.whole[key][n], lambda n: calibration.left_out[key][n][n]):
+        misses = [dem / law(n) - 1 for n, dem in held if law(n) > 0]
+        ranges.append(f"{min(misses):+.1%} to {max(misses):+.1%}" if misses else "-")
+    return (
+        f" Before the correction the law misses the runs' {key} (DEM / law - 1) by {ranges[0]} fitted with them, "
+        f"{ranges[1]} each left out."
     )
 
 

@@ -12,7 +12,7 @@ as the moments of the chain's time to discharge (the DEM's pooled RTD recovers 9
 of its tracers, so its truncation is not modelled).
 
 The law is fitted to the particles' moves, not to the quantities: at the library's own runs
-it misses the DEM's hold-up by 1-5 %, smoothly over the operating point (too little at
+it misses the DEM's hold-up by up to 6 %, smoothly over the operating point (too little at
 one end of a range, too much at the other), while the DEM's own scatter between seeds is
 0.4-1 %. What it misses there is carried to the point (:func:`predict`): on each
 quantity's scale (the log of the value, or the value itself for
@@ -75,8 +75,9 @@ from workflows.prediction.library import (
     slice_key,
 )
 
-#: binomial draws of the predicted outlet RSD and Lacey index (fixed seed: the jackknife
-#: compares laws, not draws)
+#: binomial draws of the predicted outlet RSD and Lacey index (fixed seed: the law at the
+#: library's runs and at the point is sampled alike, so the correction compares laws, not
+#: draws)
 SAMPLING_DRAWS = 2000
 #: the interval's coverage
 LEVEL = 0.95

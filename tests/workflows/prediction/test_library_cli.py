@@ -2,6 +2,7 @@
 iterations: the files, the refusals and the round trip, not the law's accuracy)."""
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -106,3 +107,15 @@ def test_a_corrupt_cached_fit_is_refitted_and_replaced_not_trusted(library, tmp_
     phases = load_model(library).law.n_phases
     assert json.loads(victim.read_text())["n_phases"] == phases  # rewritten, whole
     assert load_model(out).law.n_phases == phases
+
+
+def test_another_correction_refits_no_law_and_is_recorded(library, tmp_path):
+    out = tmp_path / "again"
+    shutil.copytree(library / "fits", out / "fits")
+    before = sorted(p.name for p in (out / "fits").iterdir())
+    args = ["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out), "--correction", "none"]
+    assert main([*args, "--iterations", "3", "--left-out-iterations", "2"]) == 0
+    assert sorted(p.name for p in (out / "fits").iterdir()) == before  # every law read from the cache
+    model = load_model(out)
+    assert model.calibration.covariates == () and model.settings["correction"] == []
+    assert main([*args[:-1], "speed,volume"]) == 2  # refused in one line, before any fit
