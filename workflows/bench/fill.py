@@ -7,8 +7,9 @@ two. Cases: the validation baseline (10 x 10, steady feed) and the reduced refer
 binned at 20 x 10 with 5 % feeder noise redrawn every second (the bulk restarts at every
 feed change), in the measured and phase modes (``--cases`` and ``--modes`` choose among
 them). The phase model's fill law under noise is the one that takes minutes: the shipped
-20-slice twin carries 18 phases since it was refitted, 3600 bulk populations where the
-README's 4.1 s was measured on 3 phases (600); 470 s on this 2-core machine at load 5-8.
+20-slice twin carries 18 phases, 3600 bulk populations, where the 4.1 s of
+workflows/reference/validation/VALIDATION.md is for 3 phases (600); 470 s on this 2-core
+machine at load 5-8.
 Medians of ``--repeats``; prints a table and writes ``results/bench/fill-cost.json``.
 """
 

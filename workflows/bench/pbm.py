@@ -280,7 +280,7 @@ def run_kernels(repeats: int = 7, loaded: bool = True) -> dict:
     return out
 
 
-#: what the measurements are held to (seconds, bytes, ratios): the README's performance claims
+#: what the measurements are held to (seconds, bytes, ratios): the targets of workflows/bench/PERFORMANCE.md
 TARGETS = {
     "expm_median_s": 0.02,
     "speedup_vs_bdf": 100.0,
