@@ -114,7 +114,7 @@ def pbm_config_for(config: Config, table: VelocityTable, rtd_pulse_s: float | No
 
 
 #: The rate mode the validation campaign judges best (the hidden phases: inside the DEM's
-#: intervals on the reduced run, ``README.md``), used by :func:`pbm_inputs`.
+#: intervals on the reduced run, ``workflows/reference/FINDINGS.md``), used by :func:`pbm_inputs`.
 VALIDATED_RATES = "phases"
 
 

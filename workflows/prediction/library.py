@@ -93,7 +93,7 @@ COVARIATES = (
 )
 #: the law's form, chosen by the held-out log-likelihood of the runs predicted from inside
 #: the others' domain (``pbmdem library fit --covariates ...`` on the 13 shipped runs; the
-#: alternatives and their scores: README, "Predicting a point the DEM never ran")
+#: alternatives and their scores: workflows/reference/library/PREDICTION.md)
 DEFAULT_COVARIATES = ("speed", "length", "position", "feed", "speed2", "position2", "weir", "push")
 #: the transverse law's covariates: those of the run, not of the slice (it is fitted per
 #: compartment)
@@ -103,7 +103,7 @@ AXIAL_SLICES = 10
 #: the law's phases. On the 13 shipped runs (the shipped covariates) four beat three on the
 #: held-out log-likelihood of the interpolated runs (-1.03326 against -1.03671 nats per
 #: particle-step) and of the extrapolated ones, and narrow every interval (`pbmdem library
-#: fit --phases 3|4`; README)
+#: fit --phases 3|4`; workflows/reference/library/PREDICTION.md)
 LIBRARY_PHASES = 4
 #: EM iterations of the whole library's fit, and of each fit with one run left out (it
 #: starts from the whole library's law). On the 13 shipped runs, from 150 to 500
