@@ -250,6 +250,27 @@ def test_library_build_three_runs_as_one_array(slurm_cluster, tmp_path, monkeypa
         feeds_read.append(config.dem.operation.feed_rate_total_per_s)
     assert sorted(feeds_read) == sorted(feeds.values())
 
+    # the local scheduler on the same runs: the cache serves them, no run starts
+    local = tmp_path / "local-lib"
+    assert (
+        main(
+            [
+                "library",
+                "build",
+                *map(str, files),
+                "--library",
+                str(local),
+                "--runs-dir",
+                str(runs),
+                "--scheduler",
+                "local",
+            ]
+        )
+        == 0
+    )
+    assert "3 completed" in capsys.readouterr().out
+    assert sorted(p.name for p in local.glob("dem-*.h5")) == [p.name for p in added]
+
 
 @pytest.mark.liggghts
 @pytest.mark.slow
@@ -283,3 +304,26 @@ def test_the_campaign_follower_uses_the_array_path(slurm_cluster, tmp_path):
     assert dem_stage(configs["slow"], runs, solver=False, reference_dir=()).source == "cache"
     again = run_campaign_on_slurm(configs, runs, 1, lines.append, env=slurm_cluster, poll_s=0.5, reference_dir=())
     assert again["slow"].state == "completed" and again["slow"].task.job is None
+
+
+def test_build_refuses_before_anything_runs(tmp_path, capsys):
+    """Two files making one DEM run, two files of one name, a folder without a build: one
+    line each, exit 2, nothing written."""
+    from workflows.cli.main import main
+
+    smoke = load_preset("smoke")
+    (tmp_path / "a").mkdir()
+    one, same = tmp_path / "one.toml", tmp_path / "same.toml"
+    one.write_text(dump_toml(smoke))
+    same.write_text(dump_toml(smoke.model_copy(update={"name": "renamed"})))
+    lib = tmp_path / "lib"
+    args = ["--library", str(lib), "--scheduler", "local", "--runs-dir", str(tmp_path / "runs")]
+    assert main(["library", "build", str(one), str(same), *args]) == 2
+    assert "one and same make the same DEM run" in capsys.readouterr().err
+    twin = tmp_path / "a" / "one.toml"
+    twin.write_text(dump_toml(smoke.model_copy(update={"name": "twin"})))
+    assert main(["library", "build", str(one), str(twin), *args]) == 2
+    assert "two configuration files are named one.toml" in capsys.readouterr().err
+    assert not lib.exists()
+    assert main(["library", "status", "--library", str(lib)]) == 2
+    assert "holds no build (manifest.json not found)" in capsys.readouterr().err

@@ -129,7 +129,7 @@ def run_campaign_on_slurm(
         for s in retry:
             log(f"slurm: {s.task.name} failed ({s.reason}); submitting it again")
         if retry:
-            resubmit(folder, [s.task.index for s in retry], env, log)
+            resubmit(folder, [s.task for s in retry], env, log)
         elif not any(s.state in ("pending", "running") for s in states):
             return {s.task.name: s for s in states}
         time.sleep(poll_s)

@@ -28,8 +28,10 @@ does not hold, are read from ``squeue``.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 from dataclasses import asdict, dataclass, replace
@@ -239,9 +241,11 @@ def task_config(folder: str | Path, task: ArrayTask) -> Config:
     return load_config(Path(folder) / task.config_file)
 
 
-def prepare_tasks(configs: dict[str, Config], folder: str | Path) -> tuple[Path, tuple[ArrayTask, ...]]:
+def prepare_tasks(
+    configs: dict[str, Config], folder: str | Path, srun: bool = True
+) -> tuple[Path, tuple[ArrayTask, ...]]:
     """The build's folder made and each configuration written into ``configs/<name>.toml``,
-    LIGGGHTS started by ``srun`` when it runs in a job (the launcher is not part of the
+    with ``srun``, LIGGGHTS started by ``srun`` for a job (the launcher is not part of the
     run's key: a local request finds the run). Refused before anything is written: a name
     that is not a file name, two configurations that make the same DEM run (their tasks
     would claim one run directory)."""
@@ -262,8 +266,8 @@ def prepare_tasks(configs: dict[str, Config], folder: str | Path) -> tuple[Path,
     tasks = []
     for index, (name, config, key) in enumerate(keyed):
         relative = f"{CONFIGS_DIR}/{name}.toml"
-        job_config = config.model_copy(update={"dem": under_srun(config.dem)})
-        replace_file(folder / relative, dump_toml(job_config), "configuration")
+        written = config.model_copy(update={"dem": under_srun(config.dem)}) if srun else config
+        replace_file(folder / relative, dump_toml(written), "configuration")
         tasks.append(ArrayTask(index, name, relative, key, None, 0))
     return folder, tuple(tasks)
 
@@ -355,6 +359,8 @@ def submit_array(
     commands (e.g. SLURM_CONF)."""
     if not configs:
         raise ConfigError("nothing to build: give at least one configuration")
+    if shutil.which("sbatch", path=(env or os.environ).get("PATH")) is None:
+        raise ConfigError("sbatch not found on PATH: a Slurm build needs Slurm's commands (or --scheduler local)")
     if np is not None and (isinstance(np, bool) or np < 1):
         raise ConfigError(f"--np must be an integer >= 1, got {np!r}")
     if (Path(folder) / MANIFEST).is_file():
@@ -377,16 +383,18 @@ def submit_array(
         return _submit(folder, manifest, missing, env, log) if missing else manifest
 
 
-def resubmit(folder: str | Path, indices: list[int], env: dict[str, str] | None = None, log: Log = quiet) -> Manifest:
-    """Tasks ``indices`` of the build in ``folder`` submitted again as one array; a task
-    whose run left restart files resumes from them."""
+def resubmit(
+    folder: str | Path, tasks: list[ArrayTask], env: dict[str, str] | None = None, log: Log = quiet
+) -> Manifest:
+    """``tasks`` of the build in ``folder`` (as a status saw them) submitted again as one
+    array; a task whose run left restart files resumes from them. A task submitted again
+    since it was seen (another ``status --resubmit-failed``) is left alone."""
     folder = Path(folder).resolve()
     with locked(folder / MANIFEST, "build manifest"):
         manifest = read_manifest(folder)
-        bad = [i for i in indices if not 0 <= i < len(manifest.tasks)]
-        if bad:
-            raise ConfigError(f"no task {bad[0]} in {folder} (tasks 0-{len(manifest.tasks) - 1})")
-        return _submit(folder, manifest, sorted(set(indices)), env, log) if indices else manifest
+        current = {t.index: t for t in manifest.tasks}
+        indices = sorted({t.index for t in tasks if t.index in current and current[t.index].job == t.job})
+        return _submit(folder, manifest, indices, env, log) if indices else manifest
 
 
 # ----------------------------------------------------------------------------- status

@@ -68,7 +68,7 @@ def build_library(
     if scheduler == "slurm":
         submit_array(configs, library_dir, runs_root, np, partition, env, log, reference_dir=())
         return library_status(library_dir, env)
-    folder, tasks = prepare_tasks(configs, library_dir)
+    folder, tasks = prepare_tasks(configs, library_dir, srun=False)
     write_manifest(folder, Manifest(str(Path(runs_root).resolve()), np, None, (), tasks))
     for task in tasks:
         config = task_config(folder, task)
@@ -86,7 +86,7 @@ def library_status(
     ``resubmit_failed``, the failed tasks submitted again as one array (resuming from their
     restart files) and their new states."""
     states = add_to_library(library_dir, array_status(library_dir, env))
-    failed = [s.task.index for s in states if s.state == "failed" and s.task.job is not None]
+    failed = [s.task for s in states if s.state == "failed" and s.task.job is not None]
     if resubmit_failed and failed:
         resubmit(library_dir, failed, env, log)
         states = add_to_library(library_dir, array_status(library_dir, env))
