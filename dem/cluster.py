@@ -1,4 +1,5 @@
-"""The cluster path: cost estimate from measured throughput, MPI command and Slurm script.
+"""The cluster path: cost estimate from measured throughput, MPI command, Slurm batch and
+job-array scripts.
 
 The ``paper`` preset is a day on 2 cores; on a cluster the user wants the command, a batch
 script and an honest estimate of the core-hours before submitting.

@@ -37,6 +37,7 @@ import sys
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+from coupling.cache import cache_path
 from coupling.errors import ConfigError, SolverRunError
 from coupling.files import locked, replace_file, writable_directory
 from dem.cluster import array_script, under_srun
@@ -413,7 +414,11 @@ class TaskStatus:
 
 
 def _results_file(folder: Path, manifest: Manifest, task: ArrayTask) -> Path | None:
-    """The task's results file in the cache or a shipped folder, None when there is none."""
+    """The task's results file in the cache or a shipped folder, None when there is none.
+    A keyed task's cache file is taken as it is (its job wrote it after checking it):
+    a status of a large library does not read every results file again."""
+    if task.key is not None and cache_path(Path(manifest.runs_dir) / "cache", task.key).is_file():
+        return cache_path(Path(manifest.runs_dir) / "cache", task.key)
     config = task_config(folder, task)
     refs = tuple(Path(d) for d in manifest.reference_dirs)
     try:
