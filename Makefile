@@ -12,13 +12,15 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 setup: setup-system setup-python
 
 # apt only when something is missing, so reruns cost nothing. Slurm and munge let the test
-# suite run the cluster path on a one-node cluster of this machine.
+# suite run the cluster path on a one-node cluster of this machine; libpmix-dev holds the
+# libpmix.so that Slurm's PMIx plugin loads, for `srun --mpi=pmix` to start LIGGGHTS' ranks.
 setup-system:
 	@if ! command -v liggghts >/dev/null || ! command -v mpirun >/dev/null \
-			|| ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null; then \
+			|| ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null \
+			|| ! dpkg -s libpmix-dev >/dev/null 2>&1; then \
 		$(SUDO) apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends \
-			liggghts openmpi-bin slurm-wlm munge; \
+			liggghts openmpi-bin slurm-wlm munge libpmix-dev; \
 	fi
 
 # render (pyvista, VTK) too, so that the tests cover the ParaView files and the VTK picture;

@@ -1,4 +1,5 @@
-"""The cluster path: cost estimate from measured throughput, MPI command and Slurm script.
+"""The cluster path: cost estimate from measured throughput, MPI command, Slurm batch and
+job-array scripts.
 
 The ``paper`` preset is a day on 2 cores; on a cluster the user wants the command, a batch
 script and an honest estimate of the core-hours before submitting.
@@ -90,6 +91,24 @@ def mpi_command(config: DemConfig, np: int, deck: str = MAIN_DECK) -> list[str]:
     return launch_command(config.run, np, deck)
 
 
+#: How LIGGGHTS is started inside a Slurm job: ``srun`` starts the ranks on the job's
+#: allocation (its task count: no ``{np}``) and hands them their MPI wiring through PMIx, the
+#: interface Open MPI >= 2 reads; Debian's Open MPI has no Slurm PMI-1/2 support, so plain
+#: ``srun`` fails ("OMPI was not built with SLURM's PMI support"), and Slurm's PMIx plugin
+#: loads ``libpmix.so``, which only Debian's ``libpmix-dev`` installs (measured on a one-node
+#: Slurm 22.05 cluster, Open MPI 4.1.4: `srun --mpi=pmix` starts 1 and 2 ranks).
+SRUN_LAUNCHER = "srun --mpi=pmix"
+
+
+def under_srun(config: DemConfig) -> DemConfig:
+    """``config`` with LIGGGHTS started by :data:`SRUN_LAUNCHER`, unless its launcher is
+    already an ``srun`` (a site's own options kept). The launcher is not part of a run's key
+    (:func:`dem.run.run_key`), so a run made in a job is found by a local request too."""
+    if config.run.launcher.split()[:1] == ["srun"]:
+        return config
+    return config.model_copy(update={"run": config.run.model_copy(update={"launcher": SRUN_LAUNCHER})})
+
+
 def slurm_script(
     config: DemConfig,
     run_dir: str,
@@ -98,17 +117,11 @@ def slurm_script(
     job_name: str = "pbmdem",
     partition: str | None = None,
 ) -> str:
-    """A Slurm batch script that runs the deck in ``run_dir`` on ``np`` tasks.
-
-    The ranks are started by the configured launcher (:func:`mpi_command`; Open MPI's
-    ``mpirun`` takes its hosts from the Slurm allocation), not by ``srun``: ``srun`` can
-    start MPI ranks only when the MPI library was built with Slurm's PMI, and Debian's
-    Open MPI is not (measured on a one-node Slurm 22.05 cluster: "OMPI was not built with
-    SLURM's PMI support"; ``srun --mpi=pmix`` could not load a PMIx library either).
-    """
+    """A Slurm batch script that runs the deck in ``run_dir`` on ``np`` tasks, the ranks
+    started by ``srun`` (:func:`under_srun`)."""
     check_tasks(np)
     return batch_script(
-        mpi_command(config, np, MAIN_DECK),
+        launch_command(under_srun(config).run, np, MAIN_DECK),
         run_dir,
         np,
         wall_hours,
@@ -137,21 +150,69 @@ def batch_script(
     ``np`` tasks, its output in ``output`` (default ``<job_name>-<job id>.out`` where it is
     submitted). The wall-time request carries a 30 % margin and is at least 10 minutes,
     so that start-up on a busy node does not kill a short job."""
-    check_tasks(np)
-    check_positive_finite(wall_hours, "the wall time", "hours")
-    minutes = max(10, math.ceil(wall_hours * 1.3 * 60))
-    lines = [
-        "#!/bin/bash",
-        f"#SBATCH --job-name={job_name}",
-        f"#SBATCH --ntasks={np}",
-        "#SBATCH --cpus-per-task=1",
-        f"#SBATCH --time={minutes // 60:02d}:{minutes % 60:02d}:00",
-        f"#SBATCH --output={output or f'{job_name}-%j.out'}",
-    ]
-    if partition:
-        lines.append(f"#SBATCH --partition={partition}")
+    lines = _directives(job_name, np, wall_hours, output or f"{job_name}-%j.out", partition)
     lines += ["set -euo pipefail", f"cd {shlex.quote(work_dir)}"]
     if comment:
         lines.append(comment)
     lines += [shlex.join(command), ""]
     return "\n".join(lines)
+
+
+def array_script(
+    commands: dict[int, list[str]],
+    work_dir: str,
+    np: int,
+    wall_hours: float | None,
+    record_dir: str,
+    job_name: str = "pbmdem",
+    partition: str | None = None,
+) -> str:
+    """A Slurm job array: task ``i`` runs ``commands[i]`` in ``work_dir`` on ``np`` tasks,
+    its output in ``<record_dir>/<array job id>_<i>.out``. Each task first writes its own
+    job id to ``<record_dir>/<array job id>_<i>.jobid``: without slurmdbd, ``sacct
+    --completion`` lists an array's tasks by that id alone. ``wall_hours`` as
+    :func:`batch_script`; None asks for no time (the partition's default limit)."""
+    if not commands:
+        raise ConfigError("a job array needs at least one task")
+    record = shlex.quote(record_dir.rstrip("/"))
+    lines = _directives(job_name, np, wall_hours, f"{record_dir.rstrip('/')}/%A_%a.out", partition)
+    lines.insert(2, f"#SBATCH --array={array_spec(commands)}")
+    lines += [
+        "set -euo pipefail",
+        f"cd {shlex.quote(work_dir)}",
+        f'echo "$SLURM_JOB_ID" > {record}/"${{SLURM_ARRAY_JOB_ID}}_${{SLURM_ARRAY_TASK_ID}}.jobid"',
+        'case "$SLURM_ARRAY_TASK_ID" in',
+        *(f"    {i}) {shlex.join(commands[i])} ;;" for i in sorted(commands)),
+        '    *) echo "pbmdem: no task $SLURM_ARRAY_TASK_ID in this array" >&2; exit 2 ;;',
+        "esac",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def array_spec(indices) -> str:
+    """Slurm's ``--array`` value for these task indices: runs of consecutive ones as
+    ranges (``0-2,5,7-8``)."""
+    ordered = sorted(set(indices))
+    if not ordered or ordered[0] < 0 or any(isinstance(i, bool) or int(i) != i for i in ordered):
+        raise ConfigError(f"array task indices must be integers >= 0, got {sorted(indices)!r}")
+    runs: list[list[int]] = []
+    for i in ordered:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def _directives(job_name: str, np: int, wall_hours: float | None, output: str, partition: str | None) -> list[str]:
+    check_tasks(np)
+    lines = ["#!/bin/bash", f"#SBATCH --job-name={job_name}", f"#SBATCH --ntasks={np}", "#SBATCH --cpus-per-task=1"]
+    if wall_hours is not None:
+        check_positive_finite(wall_hours, "the wall time", "hours")
+        minutes = max(10, math.ceil(wall_hours * 1.3 * 60))
+        lines.append(f"#SBATCH --time={minutes // 60:02d}:{minutes % 60:02d}:00")
+    lines.append(f"#SBATCH --output={output}")
+    if partition:
+        lines.append(f"#SBATCH --partition={partition}")
+    return lines

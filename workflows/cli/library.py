@@ -63,6 +63,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     check.add_argument("--out", default=None, help="write check.json and check.md into this folder")
     check.set_defaults(func=check_command)
 
+    build = sub.add_parser("build", help="run the DEM of configuration files into a library folder (a Slurm job array)")
+    build.add_argument("configs", nargs="+", metavar="CONFIG", help="configuration files (TOML), one run each")
+    build.add_argument(
+        "--scheduler",
+        choices=("slurm", "local"),
+        default="slurm",
+        help="slurm: one job array (sbatch), returns at once, follow it with `library status`; "
+        "local: each run here in turn (default: %(default)s)",
+    )
+    build.add_argument("--library", default="library", help="the library folder (default: %(default)s)")
+    build.add_argument("--runs-dir", default="runs", help="the runs and their cache (default: %(default)s)")
+    build.add_argument("--np", type=int, default=None, help="MPI ranks per run (default: the configs' dem.run.np)")
+    build.add_argument("--partition", default=None, help="Slurm partition")
+    build.set_defaults(func=build_command)
+
+    status = sub.add_parser("status", help="the state of each run of a library build (sacct); add finished results")
+    status.add_argument("--library", default="library", help="the library folder (default: %(default)s)")
+    status.add_argument(
+        "--resubmit-failed",
+        action="store_true",
+        help="submit the failed runs again as one job array; each resumes from its restart files",
+    )
+    status.set_defaults(func=status_command)
+
 
 def fit_command(args: argparse.Namespace) -> int:
     from workflows.prediction import calibration
@@ -87,4 +111,24 @@ def check_command(args: argparse.Namespace) -> int:
     print(output.text)
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")
+    return 0
+
+
+def build_command(args: argparse.Namespace) -> int:
+    from workflows.pipeline.log import stderr_log
+    from workflows.products.library_build import build_library, status_table
+
+    states = build_library(
+        args.configs, args.library, args.scheduler, args.runs_dir, args.np, args.partition, log=stderr_log
+    )
+    print(status_table(states))
+    print(f"follow it with: pbmdem library status --library {args.library}")
+    return 0
+
+
+def status_command(args: argparse.Namespace) -> int:
+    from workflows.pipeline.log import stderr_log
+    from workflows.products.library_build import library_status, status_table
+
+    print(status_table(library_status(args.library, resubmit_failed=args.resubmit_failed, log=stderr_log)))
     return 0

@@ -19,9 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--scheduler",
         choices=("local", "slurm"),
         default="local",
-        help="local: missing runs one after the other on this machine; slurm: each missing run a Slurm job of "
-        "--np tasks (sbatch), followed until done, an incomplete one resumed from its restart files, then the "
-        "report",
+        help="local: missing runs one after the other on this machine; slurm: the missing runs one Slurm job "
+        "array of --np tasks each (as `library build`, manifest in RUNS_DIR/slurm), followed through sacct until "
+        "done, a failed run resubmitted to resume from its restart files, then the report",
     )
     parser.add_argument("--partition", default=None, help="Slurm partition (--scheduler slurm)")
     parser.add_argument(
@@ -40,12 +40,12 @@ def run(args: argparse.Namespace) -> int:
         from workflows.pipeline.cluster import run_campaign_on_slurm
         from workflows.products.validate import campaign_configs, step_config
 
-        jobs = run_campaign_on_slurm(
+        states = run_campaign_on_slurm(
             {**campaign_configs(), "step": step_config()}, args.runs_dir, args.np, stderr_log, partition=args.partition
         )
-        failed = [j for j in jobs.values() if j.state == "failed"]
-        for job in failed:
-            stderr_log(f"{job.name}: {job.reason}")
+        for name, state in states.items():
+            if state.state == "failed":
+                stderr_log(f"{name}: {state.reason}")
     page = validation_report(
         args.out,
         args.runs_dir,
