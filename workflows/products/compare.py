@@ -135,7 +135,7 @@ class Comparison:
 
 def full_comparison(
     config: Config,
-    results_root: Path = Path("results"),
+    out_dir: Path | None = None,
     runs_root: Path = Path("runs"),
     np_ranks: int | None = None,
     fresh: bool = False,
@@ -146,10 +146,13 @@ def full_comparison(
     log: Log = lambda message: None,
 ) -> Path:
     """Run the whole comparison for ``config`` and return the report's path
-    (``<results_root>/<name>-<input hash>/report.html``)."""
-    writable_directory(results_root, "results directory")  # before the DEM, which may take an hour
+    (``<out_dir>/report.html``; by default ``results/<name>-<input hash>/report.html``)."""
+    # checked before the DEM, which may take an hour
+    writable_directory(Path("results") if out_dir is None else out_dir, "--out")
     dem = dem_stage(config, runs_root, np=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
-    out_dir = writable_directory(Path(results_root) / f"{config.name}-{dem.key}", "results directory")
+    if out_dir is None:
+        out_dir = writable_directory(Path("results") / f"{config.name}-{dem.key}", "--out")
+    out_dir = Path(out_dir)
     comparison = compare(config, dem, runs_root, log)
     try:  # every file of the report: a full disk or a vanished directory is one line naming it
         write_report(comparison, out_dir, noise_members, paraview, log)

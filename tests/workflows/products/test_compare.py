@@ -75,7 +75,7 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
             "smoke",
             "--runs-dir",
             str(smoke_runs_root),
-            "--results-dir",
+            "--out",
             str(results_dir),
             "--noise-members",
             "20",
@@ -83,7 +83,7 @@ def test_smoke_end_to_end(smoke_runs_root, tmp_path, capsys):
         ]
     )
     assert code == 0, capsys.readouterr().err
-    report = next(results_dir.glob("smoke-*/report.html"))
+    report = results_dir / "report.html"
     out = report.parent
     summary = json.loads((out / "summary.json").read_text())
     dem, metrics = summary["dem_summary"], summary["metrics"]
