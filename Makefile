@@ -23,8 +23,9 @@ setup-system:
 			liggghts openmpi-bin slurm-wlm munge libpmix-dev; \
 	fi
 
-# render (pyvista, VTK) too, so that the tests cover the ParaView files and the VTK picture;
-# the tests also check that everything works without it (pyvista hidden from the import)
+# render (pyvista, VTK) too, so that the tests cover the VTK picture and read the ParaView
+# files back with VTK; the tests also check that everything works without it (pyvista hidden
+# from the import: the picture drawn by matplotlib, the ParaView files still written)
 setup-python:
 	$(PYTHON) -m pip install -q -e '.[test,render]'
 

@@ -1,6 +1,7 @@
 """pyvista is an optional extra (``pip install 'pbmdem[render]'``): without it every module
-imports, the geometry picture is drawn by matplotlib, the ParaView writers refuse in one line
-naming the extra, and ``compare`` leaves the ParaView files out with a line in its log.
+imports and no VTK is loaded, the geometry picture is drawn by matplotlib, asking for the
+pyvista picture is one line naming the extra, and the ParaView files are written all the
+same (through meshio, a required dependency).
 
 Absence is simulated with ``sys.modules["pyvista"] = None``, which makes ``import pyvista``
 raise ImportError (CI installs the extra, so the pyvista paths are tested elsewhere)."""
@@ -63,36 +64,58 @@ def test_asking_for_the_pyvista_picture_names_the_extra(no_pyvista, tmp_path):
 
 
 def _table():
-    edges = np.linspace(0, 0.3, 3), np.linspace(-0.05, 0.05, 2)
-    return make_table([0.0], *edges, np.zeros((1, 2, 1)), 0, 0, 0, count_A=1, count_B=1)
+    edges = np.linspace(0, 0.3, 4), np.linspace(-0.05, 0.05, 3)
+    return make_table([0.0, 5.0], *edges, np.zeros((2, 3, 2)), 0, 0, 0, count_A=1, count_B=1)
 
 
-def test_the_paraview_writers_name_the_extra(no_pyvista, tmp_path):
-    from workflows.report.paraview import particle_cloud, write_compartment_series
+def _run_with_two_dumps(run_dir: Path, config) -> None:
+    """A run directory holding two dumps of three particles, as LIGGGHTS writes them."""
+    from dem import deck
+    from dem.dumps import format_snapshot
 
-    with pytest.raises(MissingExtraError) as caught:
-        write_compartment_series(_table(), tmp_path / "paraview", height_m=0.1)
-    assert (
-        str(caught.value) == "the ParaView output needs pyvista, which is not installed: pip install 'pbmdem[render]'"
+    (run_dir / "dumps").mkdir(parents=True)
+    rows = np.array(
+        [
+            [1, 1, 0.01, 0.01, 0, 0.1, 0, 0, 0.003],
+            [2, 2, 0.2, -0.01, 0, 0.1, 0, 0, 0.003],
+            [3, 1, 0.1, 0, 0.01, 0, 0, 0, 0.003],
+        ]
     )
-    assert not (tmp_path / "paraview").exists()
-    with pytest.raises(MissingExtraError, match="pbmdem\\[render\\]"):
-        particle_cloud([1], [1], [[0, 0, 0]], [[0, 0, 0]], [1e-3])
+    for step in (1000, 2000):
+        (run_dir / "dumps" / f"dump.{step}.txt").write_bytes(format_snapshot(step, deck.DUMP_COLUMNS, rows))
 
 
-def test_compare_leaves_the_paraview_files_out_and_says_why(no_pyvista, tmp_path):
+def test_compare_writes_the_paraview_files_without_pyvista(no_pyvista, tmp_path):
     from types import SimpleNamespace
 
-    from workflows.products.compare import write_paraview
+    import meshio
 
+    from dem.geometry import build_geometry
+    from workflows.products.compare import write_paraview
+    from workflows.report.paraview import COMPARTMENT_FIELDS
+
+    config = load_preset("smoke")
+    run_dir = tmp_path / "run"
+    _run_with_two_dumps(run_dir, config)
     lines = []
-    dem = SimpleNamespace(table=_table(), provenance={})
-    write_paraview(load_preset("smoke"), dem, tmp_path / "paraview", lines.append)
-    assert lines == [
-        "ParaView files not written: the ParaView output needs pyvista, which is not installed: "
-        "pip install 'pbmdem[render]'"
-    ]
-    assert not (tmp_path / "paraview").exists()
+    dem = SimpleNamespace(table=_table(), provenance={"run_dir": str(run_dir)})
+    write_paraview(config, dem, tmp_path / "paraview", lines.append)
+    assert lines == []
+    out = tmp_path / "paraview"
+    assert {p.name for p in out.glob("*.pvd")} == {"compartments.pvd", "particles.pvd", "impeller.pvd"}
+    for k in (0, 1):
+        grid = meshio.read(out / f"compartments_{k:04d}.vtu")
+        assert len(grid.points) == 4 * 3 * 2 and grid.cells[0].type == "hexahedron" and len(grid.cells[0].data) == 6
+        assert sorted(grid.cell_data) == sorted(COMPARTMENT_FIELDS)
+        cloud = meshio.read(out / f"particles_{k:04d}.vtu")
+        assert len(cloud.points) == 3 and len(cloud.cells[0].data) == 3
+        assert sorted(cloud.point_data) == ["id", "radius", "speed", "type", "velocity"]
+    meshes = build_geometry(config.dem).meshes
+    impeller, weir = meshio.read(out / "impeller_0001.vtu"), meshio.read(out / "weir.vtu")
+    assert len(impeller.points) == len(meshes["impeller"].points) and impeller.cells[0].type == "triangle"
+    assert len(impeller.cells[0].data) == len(meshes["impeller"].triangles)
+    assert len(weir.cells[0].data) == len(meshes["weir"].triangles)
+    assert "pyvista" not in sys.modules or sys.modules["pyvista"] is None
 
 
 def test_dem_deck_png_without_pyvista(no_pyvista, tmp_path, capsys):

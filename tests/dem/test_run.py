@@ -151,7 +151,7 @@ def test_cli_run_writes_cache_then_reuses_it(smoke, tmp_path, capsys):
 def test_cli_post_from_dumps(smoke, tmp_path, capsys):
     _, _, record, results = smoke
     out = tmp_path / "tables.h5"
-    assert main(["dem", "post", "--preset", "smoke", "--dumps", record.dump_glob, "--out", str(out)]) == 0
+    assert main(["dem", "post", "--preset", "smoke", "--dumps", record.dump_glob, "--out-file", str(out)]) == 0
     table = read_table(out)
     np.testing.assert_allclose(table.vx_pos, results.table.vx_pos)
     assert load_entry(out).summary["discharge_crosscheck_diff"] == 0  # discharge files found beside dumps/

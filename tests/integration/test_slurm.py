@@ -135,7 +135,7 @@ def test_the_batch_script_runs_under_slurm(slurm_cluster, tmp_path, capsys):
                 str(config_file),
                 "--dumps",
                 str(run / "dumps" / "dump.*.txt"),
-                "--out",
+                "--out-file",
                 str(tmp_path / "r.h5"),
             ]
         )

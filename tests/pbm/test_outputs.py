@@ -123,7 +123,7 @@ def test_write_outputs_files_and_columns(small_table, tmp_path):
 
 def test_cli_synth_then_run(tmp_path, capsys):
     table_path = tmp_path / "t.h5"
-    assert main(["pbm", "synth", "--out", str(table_path), "--nx", "4", "--ny", "4", "--windows", "4"]) == 0
+    assert main(["pbm", "synth", "--out-file", str(table_path), "--nx", "4", "--ny", "4", "--windows", "4"]) == 0
     out = tmp_path / "run"
     assert (
         main(
@@ -220,7 +220,7 @@ def test_bench_main_writes_json(tmp_path, capsys):
 
     out = tmp_path / "pbm.json"
     args = ["--repeats", "1", "--bdf-repeats", "1", "--members", "4", "--kernel-repeats", "1", "--no-loaded"]
-    assert main(["bench", "pbm", *args, "--out", str(out)]) == 0
+    assert main(["bench", "pbm", *args, "--out-file", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["scenario"]["windows"] == 52 and report["ensemble"]["members"] == 4
     assert max(report["max_rel_diff_expm_vs_bdf"].values()) < 1e-5

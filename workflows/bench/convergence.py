@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--runs-dir", default="runs", help="where runs live (default runs)")
     parser.add_argument("--every", type=float, default=CHECK_EVERY_S, help="simulated seconds between checks")
-    parser.add_argument("--out", default="results/bench/convergence.json")
+    parser.add_argument("--out-file", default="results/bench/convergence.json")
 
 
 def _dem_wall_to(t_s: float, holdup: pd.DataFrame, wall_s: float) -> float:
@@ -215,6 +215,6 @@ def run(args: argparse.Namespace) -> int:
             f"{record['last_check_from_scratch_s']:.0f} s, not {stop[3]:.0f} s. The results finished from "
             "the checks' reading " + (f"DIFFER from one pass in {differing}" if differing else "equal one pass's")
         )
-    out = write_json(args.out, json_ready(record))
+    out = write_json(args.out_file, json_ready(record))
     print(f"wrote {out}")
     return 0

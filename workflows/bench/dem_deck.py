@@ -408,7 +408,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=",".join(VARIANTS),
         help=f"per-fix variants to measure, comma-separated (default all: {','.join(VARIANTS)})",
     )
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
     parser.add_argument("--work", default=None, help="keep the run directories here (default: a temporary directory)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="per LIGGGHTS run [s]")
 
@@ -614,7 +614,7 @@ def run(args: argparse.Namespace) -> int:
     }
     record["wall_s"] = time.monotonic() - t_start
 
-    out = write_json(args.out, record)
+    out = write_json(args.out_file, record)
     print_table(record, nps)
     print(f"wrote {out}")
     return 0

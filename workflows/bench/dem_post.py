@@ -206,7 +206,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--dumps", default=None, help="real dumps instead of synthetic ones (glob, quoted)")
     parser.add_argument("--preset", default="smoke", help="config of the real dumps (default smoke)")
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
     parser.add_argument(
         "--restart-scatter",
         action="store_true",
@@ -221,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
     if args.restart_scatter:
         with tempfile.TemporaryDirectory(prefix="bench_restart_") as tmp:
             record = restart_scatter(args.preset, args.duration, Path(args.runs_dir or tmp), args.np)
-        out = Path(args.out if args.out != str(OUT) else OUT.with_name("dem_restart_scatter.json"))
+        out = Path(args.out_file if args.out_file != str(OUT) else OUT.with_name("dem_restart_scatter.json"))
         write_json(out, record)
         print(json.dumps(record, indent=2, default=str))
         return 0
@@ -279,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
         },
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-    out = Path(args.out)
+    out = Path(args.out_file)
     write_json(out, record)
     print(f"{source}: {nbytes / 1e6:.1f} MB in {len(paths)} files")
     print(

@@ -45,7 +45,7 @@ SERIAL = "  the same in one process (its responses counted)"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="fresh interpreters per measurement")
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
 
 
 def _fresh(code_or_args: list[str], repeats: int) -> list[float]:
@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         "floor_s": floor_s,
         "target_s": TARGET_S,
     }
-    write_json(Path(args.out), record)
+    write_json(Path(args.out_file), record)
     rows = [
         ("the README's `pbmdem design` example, fresh interpreter", statistics.median(command), f"<= {TARGET_S:g} s"),
         ("  its imports (workflows.products.design)", statistics.median(own), ""),
@@ -196,5 +196,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'measurement':64s} {'median':>9s}  target")
     for name, seconds, target in rows:
         print(f"{name:64s} {seconds:8.2f}s  {target}")
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out_file}")
     return 0

@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--modes", default=",".join(MODES), help=f"rate modes, comma-separated, of {', '.join(MODES)} (default all)"
     )
-    parser.add_argument("--out", default="results/bench/fill-cost.json")
+    parser.add_argument("--out-file", default="results/bench/fill-cost.json")
 
 
 def _chosen(option: str, text: str, known) -> list[str]:
@@ -96,6 +96,6 @@ def run(args: argparse.Namespace) -> int:
                 f"  BDF {row['fill_BDF_s']:6.2f} s  (hold-ups within {row['max_holdup_difference']:.2g})",
                 flush=True,
             )
-    out = write_json(args.out, json_ready({"repeats": args.repeats, "rows": rows}))
+    out = write_json(args.out_file, json_ready({"repeats": args.repeats, "rows": rows}))
     print(f"wrote {out}")
     return 0

@@ -206,7 +206,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--t-start", type=float, default=100.0, help="average the windows from this time on [s]")
     parser.add_argument("--timing-points", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=2013)
-    parser.add_argument("--out", default="results/bench/frequency.json")
+    parser.add_argument("--out-file", default="results/bench/frequency.json")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -219,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
         )
     )
-    out = write_json(args.out, report)
+    out = write_json(args.out_file, report)
     print(format_report(report))
     print(f"wrote {out}")
     return 0

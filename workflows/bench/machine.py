@@ -118,7 +118,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=list(LAUNCHERS),
         help="MPI launchers for the 2-rank runs, each with {np} (default: %(default)s)",
     )
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -152,5 +152,5 @@ def run(args: argparse.Namespace) -> int:
             f"  {bed['particles']} particles: two single-rank runs at once x{bed['bound_two_ranks']:.2f}; one run on "
             "2 ranks " + ", ".join(f"x{r['speedup']:.2f} ({_label(k)})" for k, r in bed["two_ranks"].items())
         )
-    print(f"wrote {write_json(args.out, record)}")
+    print(f"wrote {write_json(args.out_file, record)}")
     return 0

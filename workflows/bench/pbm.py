@@ -477,7 +477,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--members", type=int, default=10000)
     parser.add_argument("--kernel-repeats", type=int, default=7, help="timed runs per kernel and shipped table")
     parser.add_argument("--no-loaded", action="store_true", help="skip the run with a CPU-bound process on every core")
-    parser.add_argument("--out", default="results/bench/pbm.json")
+    parser.add_argument("--out-file", default="results/bench/pbm.json")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -488,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
         kernel_repeats=args.kernel_repeats,
         loaded=not args.no_loaded,
     )
-    out = write_json(args.out, report)
+    out = write_json(args.out_file, report)
     print(format_report(report))
     print(f"wrote {out}")
     return 0

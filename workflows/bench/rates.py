@@ -231,7 +231,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--windows", type=int, default=5, help="windows per timing run")
     parser.add_argument("--observations", type=int, default=100_000, help="transitions per timing window")
     parser.add_argument("--seed", type=int, default=2013)
-    parser.add_argument("--out", default="results/bench/rates.json")
+    parser.add_argument("--out-file", default="results/bench/rates.json")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -243,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
         observations=args.observations,
         seed=args.seed,
     )
-    out = write_json(args.out, report)
+    out = write_json(args.out_file, report)
     print(format_report(report))
     print(f"wrote {out}")
     return 0

@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=[str(REFERENCE_DIR)],
         help="folders of DEM results files (default: the shipped reference)",
     )
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,5 +60,5 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{r['preset']:>8} {r['np']!s:>5} {r['dem_wall_time_s'] or 0:9.0f} {r['postprocess_time_s'] or 0:9.1f} {frac:>9}  {r['file']}"
         )
-    print(f"wrote {write_json(args.out, rows)}")
+    print(f"wrote {write_json(args.out_file, rows)}")
     return 0

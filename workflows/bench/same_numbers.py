@@ -14,7 +14,7 @@ The commands (:func:`capture_steps`), and where they write:
 
 * ``config --preset P`` for every preset of :data:`PRESETS`: stdout -> ``config-P.toml``;
 * ``dem deck --preset P --out OUT/decks/P``;
-* ``compare --preset reduced`` -> ``runs/`` and ``results/``;
+* ``compare --preset reduced`` -> ``runs/`` and ``results/reduced/``;
 * ``validate`` -> ``validation/`` and ``runs-validation/``;
 * the README's design example (``design --ca-within 0.04 ...``) -> ``design/``;
 * each command's stdout -> ``stdout/<step>.txt``, its stderr -> ``_logs/<step>.stderr``;
@@ -60,7 +60,7 @@ Skipped (:data:`SKIPPED_FILES`, listed by ``--list-skipped``):
 
 Ignored values (:data:`IGNORED_JSON_KEYS`, :data:`IGNORED_TEXT`), each genuinely
 different between two runs of the same code or by design between two commits; all found
-in the compare step's ``results/<preset>-<hash>/`` (``validate``, ``design``, ``config``
+in the compare step's ``results/reduced/`` (``validate``, ``design``, ``config``
 and the decks have none) except the last:
 
 * ``provenance.report_made`` (summary.json) and the ``report_made`` row (report.html):
@@ -548,8 +548,8 @@ def capture_steps(out: Path) -> tuple[Step, ...]:
                 "reduced",
                 "--runs-dir",
                 str(out / "runs"),
-                "--results-dir",
-                str(out / "results"),
+                "--out",
+                str(out / "results" / "reduced"),
                 "--no-progress",
             ),
             "stdout/compare.txt",

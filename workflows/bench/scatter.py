@@ -113,7 +113,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seeds", type=int, default=3, help="seed runs for the scatter (>= 2)")
     parser.add_argument("--runs-dir", default=str(RUNS))
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -159,6 +159,6 @@ def run(args: argparse.Namespace) -> int:
     for m in metrics:
         verdict = "undefined" if within[m] is None else "within" if within[m] else "OUTSIDE"
         print(f"{m:<16} {scatter[m]:>13.3g} {effect[m]:>10.3g}  {verdict}")
-    out = write_json(args.out, record)
+    out = write_json(args.out_file, record)
     print(f"wrote {out}")
     return 0

@@ -20,7 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--fresh", action="store_true", help="ignore cached and shipped DEM results: run LIGGGHTS again"
     )
     parser.add_argument("--resume", action="store_true", help="resume an interrupted DEM run from its restart file")
-    parser.add_argument("--results-dir", default="results", help="where <preset>-<hash>/report.html goes")
+    parser.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="where report.html and its files go (default: results/<preset>-<input hash>)",
+    )
     parser.add_argument("--runs-dir", default="runs", help="root of the DEM run directories and cache")
     parser.add_argument("--noise-members", type=int, default=200, help="realisations per noise level")
     parser.add_argument("--no-paraview", action="store_true", help="skip the ParaView (VTK) files")
@@ -43,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     )
     report = full_comparison(
         config,
-        results_root=Path(args.results_dir),
+        out_dir=None if args.out is None else Path(args.out),
         runs_root=Path(args.runs_dir),
         np_ranks=args.np,
         fresh=args.fresh,

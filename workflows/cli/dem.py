@@ -4,10 +4,10 @@
     pbmdem dem run   --preset NAME|--config FILE.toml [--np N] [--resume] [--fresh]
                      [--runs-dir DIR] [--cache-dir DIR] [--no-progress]
                      [--stop-when-converged [--check-every S]]
-    pbmdem dem post  --preset NAME|--config FILE.toml --dumps 'GLOB' --out RESULTS.h5 [--massflow-dir DIR]
+    pbmdem dem post  --preset NAME|--config FILE.toml --dumps 'GLOB' --out-file RESULTS.h5 [--massflow-dir DIR]
     pbmdem dem refit-phases RESULTS.h5 [...]
     pbmdem dem recompute-steady RESULTS.h5 [...]
-    pbmdem dem slurm --preset NAME|--config FILE.toml --out DIR [--np 32] [--partition P]
+    pbmdem dem slurm --preset NAME|--config FILE.toml --out DIR [--np N] [--partition P]
                      [--holdup N] [--throughput R]
 
 ``run`` reuses a valid cache file or a completed run of the same inputs; ``post`` needs only
@@ -107,7 +107,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     post = dem_sub.add_parser("post", help="post-process existing dumps into a velocity table + DEM results file")
     add_config_arguments(post)
     post.add_argument("--dumps", required=True, help="glob of the dump files, quoted: 'run/dumps/dump.*.txt'")
-    post.add_argument("--out", required=True, help="output HDF5 file (velocity table + DEM results)")
+    post.add_argument(
+        "--out-file", required=True, metavar="RESULTS.h5", help="the HDF5 file to write (velocity table + DEM results)"
+    )
     post.add_argument(
         "--massflow-dir", default=None, help="directory of the discharge files (default: beside the dumps)"
     )
@@ -135,7 +137,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_config_arguments(slurm)
     slurm.add_argument("--out", required=True, help="run directory to create (deck + job.slurm)")
-    slurm.add_argument("--np", type=int, default=32, help="MPI tasks (default 32)")
+    slurm.add_argument("--np", type=int, default=None, help="MPI tasks (default: the config's dem.run.np)")
     slurm.add_argument("--partition", default=None, help="Slurm partition")
     slurm.add_argument(
         "--holdup",
@@ -217,10 +219,10 @@ def post_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.stages import postprocess_dumps
 
     results = postprocess_dumps(
-        resolve_config(args.preset, args.config), args.dumps, args.out, args.massflow_dir, inputs=(args.config,)
+        resolve_config(args.preset, args.config), args.dumps, args.out_file, args.massflow_dir, inputs=(args.config,)
     )
     print_summary(results.summary)
-    print(f"velocity table and DEM results: {args.out} ({results.summary.n_snapshots} snapshots)")
+    print(f"velocity table and DEM results: {args.out_file} ({results.summary.n_snapshots} snapshots)")
     return 0
 
 
@@ -289,10 +291,12 @@ def slurm_command(args: argparse.Namespace) -> int:
     from workflows.pipeline.cluster import plan_cluster_run
 
     refuse_config_overwrite(args.out, args.config, (*RUN_DIRECTORY_FILES, "job.slurm"))
+    config = resolve_config(args.preset, args.config)
+    np_ranks = config.dem.run.np if args.np is None else args.np
     plan = plan_cluster_run(
-        resolve_config(args.preset, args.config),
+        config,
         args.out,
-        args.np,
+        np_ranks,
         args.partition,
         holdup=args.holdup,
         throughput=args.throughput,
@@ -307,7 +311,7 @@ def slurm_command(args: argparse.Namespace) -> int:
         f"particle-steps/s/core ({plan.throughput_source}); {est.steps} steps"
     )
     print(
-        f"estimate on {args.np} cores at {est.parallel_efficiency:.0%} parallel efficiency: {est.wall_hours:.1f} h wall, "
+        f"estimate on {np_ranks} cores at {est.parallel_efficiency:.0%} parallel efficiency: {est.wall_hours:.1f} h wall, "
         f"{est.core_hours:.0f} core-hours (the paper: 6.5 days on 8 workers = about 1250 core-hours)"
     )
     return 0

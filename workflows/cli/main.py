@@ -61,7 +61,15 @@ class CommandParser(argparse.ArgumentParser):
     (``pbmdem: error: unknown command 'dem rnu'; did you mean 'dem run'?``) and exit 2
     instead of the usage and the whole list. Subparsers are made of their parent's class,
     so this holds at every level (``pbmdem library ...``, ``pbmdem study ...``). A name
-    near none keeps argparse's own message, which lists the choices."""
+    near none keeps argparse's own message, which lists the choices.
+
+    Flags are spelled whole (no abbreviations): ``--out`` always names a directory, and
+    argparse would otherwise take it for ``--out-file`` where that is the only flag it
+    begins."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def _check_value(self, action: argparse.Action, value) -> None:
         # argparse checks a subcommand's name here, before the subparsers action runs; no

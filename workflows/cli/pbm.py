@@ -2,7 +2,7 @@
 
 pbmdem pbm run --tables TABLES.h5 [--config FILE.toml | --preset NAME]
                [--rtd-pulse SECONDS] [--method expm|bdf] [--rates velocity|measured|phases|all] --out DIR
-pbmdem pbm synth --out TABLES.h5 [--nx 10 --ny 10 --windows 52 --window-s 5 --seed 2013]
+pbmdem pbm synth --out-file TABLES.h5 [--nx 10 --ny 10 --windows 52 --window-s 5 --seed 2013]
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.set_defaults(func=run_command)
 
     synth = pbm_sub.add_parser("synth", help="write a seeded synthetic velocity table of DEM-like magnitudes")
-    synth.add_argument("--out", required=True, help="HDF5 file to write")
+    synth.add_argument("--out-file", required=True, metavar="TABLES.h5", help="the HDF5 file to write")
     synth.add_argument("--nx", type=int, default=10)
     synth.add_argument("--ny", type=int, default=10)
     synth.add_argument("--windows", type=int, default=52)
@@ -94,6 +94,6 @@ def synth_command(args: argparse.Namespace) -> int:
     from pbm.synthetic import synthetic_table
 
     table = synthetic_table(nx=args.nx, ny=args.ny, n_windows=args.windows, window_s=args.window_s, seed=args.seed)
-    path = write_table(args.out, table)
+    path = write_table(args.out_file, table)
     print(f"wrote {path}: {table.n_windows} windows x {table.nx}x{table.ny} compartments")
     return 0

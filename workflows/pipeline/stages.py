@@ -265,13 +265,13 @@ def postprocess_dumps(
     refused before anything is written."""
     out = Path(out)
     if out.is_dir():
-        raise ConfigError(f"--out {out} is a directory; give a file name such as tables.h5")
+        raise ConfigError(f"--out-file {out} is a directory; give a file name such as tables.h5")
     paths = dump_paths(dumps)
     run_dir = paths[0].parent.parent if paths[0].parent.name == "dumps" else paths[0].parent
     if massflow_dir is None:
         massflow_dir = run_dir
-    refuse_output_over_inputs(out, [*paths, *massflow_files(massflow_dir), *inputs], "--out", ConfigError)
-    writable_directory(out.parent, "the directory of --out")
+    refuse_output_over_inputs(out, [*paths, *massflow_files(massflow_dir), *inputs], "--out-file", ConfigError)
+    writable_directory(out.parent, "the directory of --out-file")
     _check_same_deck(config, run_dir)
     t0 = time.monotonic()
     key = stable_hash({"dumps": [str(p.resolve()) for p in paths], "config": config.to_dict()})

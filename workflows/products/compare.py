@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from coupling.blas import single_threaded_blas
-from coupling.errors import MissingExtraError, OutputError, ResourceLimitError, os_reason
+from coupling.errors import OutputError, ResourceLimitError, os_reason
 from coupling.files import replace_file, writable_directory
 from coupling.jsonable import write_json
 from pbm.config import PbmConfig
@@ -135,7 +135,7 @@ class Comparison:
 
 def full_comparison(
     config: Config,
-    results_root: Path = Path("results"),
+    out_dir: Path | None = None,
     runs_root: Path = Path("runs"),
     np_ranks: int | None = None,
     fresh: bool = False,
@@ -146,10 +146,13 @@ def full_comparison(
     log: Log = lambda message: None,
 ) -> Path:
     """Run the whole comparison for ``config`` and return the report's path
-    (``<results_root>/<name>-<input hash>/report.html``)."""
-    writable_directory(results_root, "results directory")  # before the DEM, which may take an hour
+    (``<out_dir>/report.html``; by default ``results/<name>-<input hash>/report.html``)."""
+    # checked before the DEM, which may take an hour
+    writable_directory(Path("results") if out_dir is None else out_dir, "--out")
     dem = dem_stage(config, runs_root, np=np_ranks, fresh=fresh, resume=resume, progress=progress, log=log)
-    out_dir = writable_directory(Path(results_root) / f"{config.name}-{dem.key}", "results directory")
+    if out_dir is None:
+        out_dir = writable_directory(Path("results") / f"{config.name}-{dem.key}", "--out")
+    out_dir = Path(out_dir)
     comparison = compare(config, dem, runs_root, log)
     try:  # every file of the report: a full disk or a vanished directory is one line naming it
         write_report(comparison, out_dir, noise_members, paraview, log)
@@ -329,15 +332,10 @@ def grid_sensitivity(config: Config, dem: DemSide, pbm_config, modes, runs_root:
 
 def write_paraview(config: Config, dem: DemSide, out_dir: Path, log: Log, max_snapshots: int = 60) -> None:
     """Compartment fields over time from the table; particle snapshots and the impeller at
-    each snapshot's angle when the run directory with its dumps is still here. Without
-    pyvista (an optional extra) none are written and the log says how to get them."""
+    each snapshot's angle when the run directory with its dumps is still here."""
     from workflows.report.paraview import write_compartment_series, write_particle_series
 
-    try:
-        write_compartment_series(dem.table, out_dir, height_m=config.dem.geometry.diameter_m)
-    except MissingExtraError as exc:  # optional output: the report stands without it
-        log(f"ParaView files not written: {exc}")
-        return
+    write_compartment_series(dem.table, out_dir, height_m=config.dem.geometry.diameter_m)
     run_dir = Path(dem.provenance.get("run_dir") or "")
     if run_dir.is_dir():
         write_particle_series(config.dem, run_dir, out_dir, max_snapshots=max_snapshots)

@@ -50,7 +50,7 @@ MODES = ("measured", "velocity", "phases")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs-root", default="runs/validation", help="campaign runs and cache (default: %(default)s)")
-    parser.add_argument("--out", type=Path, default=OUT, help="JSON written (default: %(default)s)")
+    parser.add_argument("--out-file", type=Path, default=OUT, help="JSON written (default: %(default)s)")
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     parser.add_argument(
         "--unseen",
@@ -146,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
                         }
                     )
                 print("  ".join(line), flush=True)
-    write_json(args.out, json_ready(record))
-    figure = plot_fill(record, args.out.with_suffix(".png"))
-    print(f"(* inside the DEM's 95 % interval) written {args.out} and {figure}")
+    write_json(args.out_file, json_ready(record))
+    figure = plot_fill(record, args.out_file.with_suffix(".png"))
+    print(f"(* inside the DEM's 95 % interval) written {args.out_file} and {figure}")
     return 0

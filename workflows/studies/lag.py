@@ -107,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             "mean and variance within about 1 %% in a fraction of the time"
         ),
     )
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
 
 
 def sequence_states(sequences: CompartmentSequences) -> tuple[np.ndarray, np.ndarray]:
@@ -214,5 +214,5 @@ def run(args: argparse.Namespace) -> int:
             f"{len(fits.unconverged)}/{dem.table.n_windows} windows stopped at {args.max_iterations} iterations)",
             flush=True,
         )
-    write_json(args.out, out)
+    write_json(args.out_file, out)
     return 0

@@ -228,7 +228,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--results", required=True, help="the run's DEM results file (dem-*.h5)")
     parser.add_argument("--preset", default="validation", help="the run's preset (geometry and timestep)")
     parser.add_argument("--grids", default=DEFAULT_GRIDS, help="comma-separated NXxNY[xNZ] (default %(default)s)")
-    parser.add_argument("--out", default=str(OUT))
+    parser.add_argument("--out-file", default=str(OUT))
 
 
 #: what the study reads from a run directory's deck.json
@@ -335,5 +335,5 @@ def run(args: argparse.Namespace) -> int:
             f"  {name:>6} ({row['tracers']} tracers): first slice {row['slice_share'][0]:.0%}, last "
             f"{row['slice_share'][-1]:.0%}; layers " + ", ".join(f"{v:.0%}" for v in row["layer_share"])
         )
-    print(f"wrote {write_json(args.out, out)}")
+    print(f"wrote {write_json(args.out_file, out)}")
     return 0

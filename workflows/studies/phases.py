@@ -24,7 +24,7 @@ deck.
 
 Reproduce (a run directory with its dumps, ``runs/<key>``)::
 
-    pbmdem dem post --preset validation --dumps 'runs/<key>/dumps/dump.*.txt' --out dem.h5
+    pbmdem dem post --preset validation --dumps 'runs/<key>/dumps/dump.*.txt' --out-file dem.h5
     pbmdem study phases --results dem.h5 --grids 10x1,10x10 --ks 1,2,3
 
 and for NX = 20 the same post-processing with ``[dem.tables] nx = 20`` in a ``--config``

@@ -13,7 +13,7 @@ from workflows.config import load_preset
 
 
 def test_a_directory_that_is_no_completed_run_is_refused(tmp_path, capsys):
-    argv = ["--preset", "smoke", "--run-dir", str(tmp_path), "--out", str(tmp_path / "c.json")]
+    argv = ["--preset", "smoke", "--run-dir", str(tmp_path), "--out-file", str(tmp_path / "c.json")]
     assert main(["bench", "convergence", *argv]) == 2
     err = capsys.readouterr().err
     assert f"{tmp_path}: not a completed run directory" in err and len(err.strip().splitlines()) == 1
@@ -23,7 +23,7 @@ def test_a_directory_that_is_no_completed_run_is_refused(tmp_path, capsys):
 @pytest.mark.liggghts
 def test_checks_replayed_on_the_smoke_run(smoke_runs_root, tmp_path):
     out = tmp_path / "convergence.json"
-    argv = ["--preset", "smoke", "--runs-dir", str(smoke_runs_root), "--every", "10", "--out", str(out)]
+    argv = ["--preset", "smoke", "--runs-dir", str(smoke_runs_root), "--every", "10", "--out-file", str(out)]
     assert main(["bench", "convergence", *argv]) == 0
     record = json.loads(out.read_text())
     key = prepare_run(load_preset("smoke").dem).key

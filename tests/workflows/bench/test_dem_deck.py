@@ -258,7 +258,7 @@ def test_tiny_benchmark_run_writes_every_key(tmp_path):
                 "1",
                 "--work",
                 str(tmp_path / "work"),
-                "--out",
+                "--out-file",
                 str(out),
             ]
         )

@@ -22,7 +22,7 @@ def _check(record: dict, files: int) -> None:
 
 def test_synthetic_dumps(tmp_path):
     out = tmp_path / "dem_post.json"
-    argv = ["--particles", "2000", "--snapshots", "40", "--repeat", "1", "--out", str(out)]
+    argv = ["--particles", "2000", "--snapshots", "40", "--repeat", "1", "--out-file", str(out)]
     assert main(["bench", "dem-post", *argv]) == 0
     record = json.loads(out.read_text())
     _check(record, 40)
@@ -35,7 +35,7 @@ def test_real_dumps_of_the_smoke_run(smoke_runs_root, tmp_path):
     run_dir = smoke_runs_root / prepare_run(load_preset("smoke").dem).key
     dumps = sorted(run_dir.glob(DUMP_GLOB))
     out = tmp_path / "dem_post.json"
-    argv = ["--dumps", str(run_dir / DUMP_GLOB), "--preset", "smoke", "--repeat", "1", "--out", str(out)]
+    argv = ["--dumps", str(run_dir / DUMP_GLOB), "--preset", "smoke", "--repeat", "1", "--out-file", str(out)]
     assert main(["bench", "dem-post", *argv]) == 0
     record = json.loads(out.read_text())
     _check(record, len(dumps))

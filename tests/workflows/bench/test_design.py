@@ -36,7 +36,7 @@ def test_one_repeat_end_to_end(tmp_path):
     made once, the command's imports cost at least the libraries' alone, and the floor is
     the sum it says it is."""
     out = tmp_path / "design.json"
-    assert main(["bench", "design", "--repeats", "1", "--out", str(out)]) == 0
+    assert main(["bench", "design", "--repeats", "1", "--out-file", str(out)]) == 0
     record = json.loads(out.read_text())
     assert record["command"][:2] == ["pbmdem", "design"]
     for key in ("command_s", "imports_of_the_command_s", "imports_of_the_libraries_alone_s"):

@@ -11,7 +11,7 @@ from workflows.cli.main import main
 
 def test_measured_mode_on_both_cases(tmp_path):
     out = tmp_path / "fill.json"
-    assert main(["bench", "fill", "--repeats", "1", "--modes", "measured", "--out", str(out)]) == 0
+    assert main(["bench", "fill", "--repeats", "1", "--modes", "measured", "--out-file", str(out)]) == 0
     record = json.loads(out.read_text())
     rows = record["rows"]
     assert record["repeats"] == 1
@@ -37,6 +37,6 @@ def test_measured_mode_on_both_cases(tmp_path):
     ],
 )
 def test_bad_options_are_one_line(argv, message, tmp_path, capsys):
-    assert main(["bench", "fill", *argv, "--out", str(tmp_path / "fill.json")]) == 2
+    assert main(["bench", "fill", *argv, "--out-file", str(tmp_path / "fill.json")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "fill.json").exists()

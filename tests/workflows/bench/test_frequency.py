@@ -12,7 +12,7 @@ from workflows.cli.main import main
 
 def test_benchmark_agrees_with_its_checks(tmp_path):
     out = tmp_path / "frequency.json"
-    assert main(["bench", "frequency", "--points", "7", "--timing-points", "100", "--out", str(out)]) == 0
+    assert main(["bench", "frequency", "--points", "7", "--timing-points", "100", "--out-file", str(out)]) == 0
     record = json.loads(out.read_text())
     sweep = record["sweep"]
     for feeder in ("A", "B"):

@@ -50,7 +50,7 @@ def test_tiny_run_records_bound_and_speedups(tmp_path):
                 "1",
                 "--launchers",
                 launcher,
-                "--out",
+                "--out-file",
                 str(out),
             ]
         )

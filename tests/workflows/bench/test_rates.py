@@ -10,7 +10,7 @@ from workflows.cli.main import main
 def test_small_benchmark_ranks_the_estimators(tmp_path):
     out = tmp_path / "rates.json"
     argv = ["--particles", "200000", "--steps", "10", "--min-observations", "500"]
-    argv += ["--windows", "2", "--observations", "10000", "--out", str(out)]
+    argv += ["--windows", "2", "--observations", "10000", "--out-file", str(out)]
     assert main(["bench", "rates", *argv]) == 0
     record = json.loads(out.read_text())
     rows = record["accuracy"]

@@ -12,7 +12,7 @@ from workflows.shipped import REDUCED_RUN, REFERENCE_DIR
 
 def test_shipped_runs(tmp_path, capsys):
     out = tmp_path / "reference.json"
-    assert main(["bench", "reference", "--out", str(out)]) == 0
+    assert main(["bench", "reference", "--out-file", str(out)]) == 0
     rows = json.loads(out.read_text())
     assert [row["file"] for row in rows] == [str(p) for p in sorted(REFERENCE_DIR.glob("dem-*.h5"))]
     assert str(REDUCED_RUN) in {row["file"] for row in rows}
@@ -28,6 +28,6 @@ def test_shipped_runs(tmp_path, capsys):
 def test_a_file_that_is_not_results_is_skipped(tmp_path, capsys):
     (tmp_path / "dem-0000000000000000.h5").write_bytes(b"not HDF5")
     out = tmp_path / "reference.json"
-    assert main(["bench", "reference", str(tmp_path), "--out", str(out)]) == 0
+    assert main(["bench", "reference", str(tmp_path), "--out-file", str(out)]) == 0
     assert json.loads(out.read_text()) == []
     assert "dem-0000000000000000.h5: skipped" in capsys.readouterr().out

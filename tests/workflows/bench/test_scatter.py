@@ -64,7 +64,7 @@ def test_two_short_seed_runs_and_a_change_that_changes_nothing(tmp_path, capsys)
     out = tmp_path / "scatter.json"
     short = ["dem.operation.duration_s=3", "dem.tables.window_s=1", "steady_state.window_s=1"]
     argv = ["--seeds", "2", *(a for s in short for a in ("--set", s)), "--change", "dem.geometry.inlet_margin_m=0.12"]
-    assert main(["bench", "scatter", *argv, "--runs-dir", str(tmp_path / "runs"), "--out", str(out)]) == 0
+    assert main(["bench", "scatter", *argv, "--runs-dir", str(tmp_path / "runs"), "--out-file", str(out)]) == 0
     record = json.loads(out.read_text())
     first, second = record["seeds"]
     assert record["set"] == short and first == f"seed {load_preset('smoke').dem.numerics.seed}"

@@ -116,3 +116,61 @@ def test_a_refused_rerun_without_a_complete_restart_offers_only_fresh(stopped_ru
     assert "with 2 dumps and 0 complete restart files (and 1 cut short);" in line, line
     assert line.endswith("nothing to resume from: discard it and start again with --fresh"), line
     assert "--resume" not in line
+
+
+def _options(parser=None, path=()):
+    """(command path, action) of every option of the whole command line."""
+    import argparse
+
+    from workflows.cli.main import build_parser
+
+    parser = build_parser() if parser is None else parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _options(sub, (*path, name))
+        elif action.option_strings:
+            yield path, action
+
+
+def test_out_always_names_a_directory_and_a_file_flag_says_so():
+    outs = [(path, a) for path, a in _options() if "--out" in a.option_strings]
+    files = {path for path, a in _options() if "--out-file" in a.option_strings}
+    assert len(outs) > 15 and {("dem", "post"), ("pbm", "synth"), ("bench", "pbm"), ("study", "lag")} <= files
+    for path, action in outs:
+        # a default with a suffix (results/x.json) or help naming a file is a file flag under the wrong name
+        assert action.default is None or not Path(str(action.default)).suffix, (path, action.default)
+        assert not re.search(r"\b(file|HDF5|JSON)\b", action.help or ""), (path, action.help)
+    assert not [path for path, a in _options() if "--results-dir" in a.option_strings]
+
+
+def test_the_ranks_default_to_the_configuration_in_every_product_command():
+    ranks = [(path, a.default) for path, a in _options() if "--np" in a.option_strings]
+    product = [(path, default) for path, default in ranks if path[0] not in STUDIES_AND_BENCHMARKS]
+    assert {path for path, _ in product} == {("compare",), ("validate",), ("dem", "run"), ("dem", "slurm")}
+    assert all(default is None for _, default in product), product
+
+
+def test_a_flag_is_spelled_whole(tmp_path, capsys):
+    # without this, argparse would read --out as the only flag it begins, --out-file
+    table = tmp_path / "t.h5"
+    assert main(["pbm", "synth", "--out", str(table), "--nx", "2", "--ny", "2", "--windows", "1"]) == 2
+    assert "--out-file" in capsys.readouterr().err and not table.exists()
+    assert main(["pbm", "synth", "--out-file", str(table), "--nx", "2", "--ny", "2", "--windows", "1"]) == 0
+    assert table.stat().st_size > 0
+
+
+@pytest.mark.parametrize("ranks", [None, 3])
+def test_dem_slurm_takes_its_ranks_from_the_configuration(ranks, tmp_path, capsys):
+    config = load_preset("paper")
+    config = config.model_copy(
+        update={"dem": config.dem.model_copy(update={"run": config.dem.run.model_copy(update={"np": 5})})}
+    )
+    config_file = tmp_path / "paper.toml"
+    config_file.write_text(dump_toml(config))
+    argv = ["dem", "slurm", "--config", str(config_file), "--out", str(tmp_path / "job")]
+    argv += ["--holdup", "1000", "--throughput", "1e6", *([] if ranks is None else ["--np", str(ranks)])]
+    assert main(argv) == 0
+    expected = 5 if ranks is None else ranks
+    assert f"estimate on {expected} cores" in capsys.readouterr().out
+    assert f"#SBATCH --ntasks={expected}\n" in (tmp_path / "job" / "job.slurm").read_text()

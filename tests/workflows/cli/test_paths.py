@@ -12,7 +12,7 @@ def paths(tmp_path):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a directory\n")
     table = tmp_path / "table.h5"
-    assert main(["pbm", "synth", "--out", str(table), "--nx", "3", "--ny", "2", "--windows", "2"]) == 0
+    assert main(["pbm", "synth", "--out-file", str(table), "--nx", "3", "--ny", "2", "--windows", "2"]) == 0
     return {"file": blocker, "under_file": blocker / "sub", "table": table, "missing": tmp_path / "missing"}
 
 
@@ -28,7 +28,7 @@ COMMANDS = {
     ],
     "pbm run: out under a file": lambda p: ["pbm", "run", "--tables", str(p["table"]), "--out", str(p["under_file"])],
     "pbm run: out is a file": lambda p: ["pbm", "run", "--tables", str(p["table"]), "--out", str(p["file"])],
-    "pbm synth: out under a file": lambda p: ["pbm", "synth", "--out", str(p["under_file"] / "t.h5")],
+    "pbm synth: out under a file": lambda p: ["pbm", "synth", "--out-file", str(p["under_file"] / "t.h5")],
     "dem deck: out under a file": lambda p: ["dem", "deck", "--preset", "smoke", "--out", str(p["under_file"])],
     "dem run: runs dir under a file": lambda p: [
         "dem",
@@ -46,7 +46,7 @@ COMMANDS = {
         "smoke",
         "--dumps",
         str(p["missing"] / "d.*.txt"),
-        "--out",
+        "--out-file",
         str(p["missing"].parent / "r.h5"),
     ],
     "dem post: out under a file": lambda p: [
@@ -56,7 +56,7 @@ COMMANDS = {
         "smoke",
         "--dumps",
         str(p["missing"] / "*.txt"),
-        "--out",
+        "--out-file",
         str(p["under_file"] / "r.h5"),
     ],
     "dem refit-phases: missing file": lambda p: ["dem", "refit-phases", str(p["missing"] / "dem-x.h5")],
@@ -77,7 +77,7 @@ COMMANDS = {
         "compare",
         "--preset",
         "smoke",
-        "--results-dir",
+        "--out",
         str(p["under_file"]),
         "--runs-dir",
         str(p["missing"]),
@@ -89,7 +89,7 @@ COMMANDS = {
         "smoke",
         "--runs-dir",
         str(p["under_file"]),
-        "--results-dir",
+        "--out",
         str(p["missing"]),
         "--no-progress",
     ],
@@ -127,12 +127,12 @@ def test_dem_post_refuses_dumps_of_another_deck(tmp_path, capsys):
     (run_dir / "dumps" / f"dump.{step}.txt").write_bytes(format_snapshot(step, columns, rows))
     dumps = str(run_dir / "dumps" / "dump.*.txt")
     capsys.readouterr()
-    assert main(["dem", "post", "--preset", "reduced", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 2
+    assert main(["dem", "post", "--preset", "reduced", "--dumps", dumps, "--out-file", str(tmp_path / "r.h5")]) == 2
     assert "deck.json differs" in capsys.readouterr().err
-    assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 0
+    assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out-file", str(tmp_path / "r.h5")]) == 0
     (run_dir / "status.json").write_text(json.dumps({"deck_hash": "0123456789abcdef", "state": "completed"}))
     capsys.readouterr()
-    assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out", str(tmp_path / "r.h5")]) == 2
+    assert main(["dem", "post", "--preset", "smoke", "--dumps", dumps, "--out-file", str(tmp_path / "r.h5")]) == 2
     assert "come from deck 0123456789abcdef" in capsys.readouterr().err
 
 
@@ -162,7 +162,7 @@ def test_full_disk_and_read_only_directory_give_one_line(where, paths, small_mou
     for argv in (
         ["pbm", "run", "--tables", str(paths["table"]), "--out", str(target / "out")],
         ["dem", "deck", "--preset", "smoke", "--out", str(target / "deck")],
-        ["pbm", "synth", "--out", str(target / "t.h5")],
+        ["pbm", "synth", "--out-file", str(target / "t.h5")],
     ):
         capsys.readouterr()
         assert main(argv) == 2, argv
@@ -209,7 +209,7 @@ def test_no_output_over_an_input(tmp_path, capsys, target):
             str(config_file),
             "--dumps",
             str(run_dir / "dumps" / "dump.*.txt"),
-            "--out",
+            "--out-file",
             str(victim),
         ]
     )
@@ -255,7 +255,7 @@ def test_too_many_noise_members_are_refused_before_the_dem(tmp_path, capsys):
                 "100000000",
                 "--runs-dir",
                 str(tmp_path / "runs"),
-                "--results-dir",
+                "--out",
                 str(tmp_path / "results"),
                 "--no-progress",
             ]

@@ -69,7 +69,7 @@ def test_studies_over_runs_refuse_one_run_twice_before_any_work(study, kind, tmp
     twin, words = _twin(kind, tmp_path)
     out = tmp_path / "out"
     option = "--unseen" if study == "fill" else "--results"
-    argv = ["study", study, option, str(first), str(twin), "--out", str(out)]
+    argv = ["study", study, option, str(first), str(twin), "--out-file" if study == "fill" else "--out", str(out)]
     if study == "fill":  # the library would be read first: point it at nothing
         argv += ["--runs-root", str(tmp_path / "runs")]
     assert main(argv) == 2

@@ -10,7 +10,7 @@ def test_study_fill_predicts_each_feed_from_the_others(tmp_path, capsys):
     out = tmp_path / "fill.json"
     # a run of the same blender given as unseen is predicted from the whole library
     unseen = VALIDATION_DIR / "dem-26a744879a705d14.h5"  # feed x1.5
-    args = ["study", "fill", "--modes", "measured", "--runs-root", str(tmp_path / "runs"), "--out", str(out)]
+    args = ["study", "fill", "--modes", "measured", "--runs-root", str(tmp_path / "runs"), "--out-file", str(out)]
     assert main([*args, "--unseen", str(unseen)]) == 0
     record = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
@@ -30,6 +30,8 @@ def test_study_fill_predicts_each_feed_from_the_others(tmp_path, capsys):
 
 def test_study_fill_refuses_an_unseen_run_of_another_blender(tmp_path, capsys):
     longer = VALIDATION_DIR / "dem-110115e4ee2e888e.h5"  # the campaign's length x1.25
-    code = main(["study", "fill", "--modes", "measured", "--unseen", str(longer), "--out", str(tmp_path / "f.json")])
+    code = main(
+        ["study", "fill", "--modes", "measured", "--unseen", str(longer), "--out-file", str(tmp_path / "f.json")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "differs beyond the feed" in err

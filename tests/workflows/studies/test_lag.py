@@ -16,7 +16,7 @@ from workflows.shipped import REDUCED_RUN
 def test_longer_lags_carry_more_of_the_dems_dispersion(tmp_path, capsys):
     out = tmp_path / "lag.json"
     argv = ["study", "lag", "--results", str(REDUCED_RUN), "--lags", "1,10", "--max-iterations", "10"]
-    assert main([*argv, "--out", str(out)]) == 0
+    assert main([*argv, "--out-file", str(out)]) == 0
     record = json.loads(out.read_text())
     dem = DemSummary.from_record(load_entry(REDUCED_RUN).summary).pooled_rtd
     assert record["dem_mean_s"]["value"] == pytest.approx(dem.mean_residence_time_s.value)
@@ -42,7 +42,7 @@ def test_longer_lags_carry_more_of_the_dems_dispersion(tmp_path, capsys):
     ],
 )
 def test_bad_input_is_one_line(tmp_path, capsys, extra, message):
-    argv = ["study", "lag", "--results", str(REDUCED_RUN), *extra, "--out", str(tmp_path / "lag.json")]
+    argv = ["study", "lag", "--results", str(REDUCED_RUN), *extra, "--out-file", str(tmp_path / "lag.json")]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]

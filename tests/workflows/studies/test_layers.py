@@ -156,7 +156,7 @@ def test_the_command_on_a_plug_flow(synthetic_run, tmp_path, capsys):
     run_dir, results = synthetic_run
     out = tmp_path / "layers.json"
     argv = ["study", "layers", "--run-dir", str(run_dir), "--results", str(results), "--grids", "4x1,4x2,4x1x2"]
-    assert main([*argv, "--out", str(out)]) == 0
+    assert main([*argv, "--out-file", str(out)]) == 0
     record = json.loads(out.read_text())
     assert record["dem"]["mean_s"]["value"] == pytest.approx(5.0, rel=1e-6)
     assert record["dem"]["variance_s2"]["value"] == pytest.approx(1.0, rel=1e-5)
@@ -190,7 +190,7 @@ def test_bad_input_is_one_line(synthetic_run, tmp_path, capsys, argv, message):
     run_dir, results = synthetic_run
     values = {"tmp": tmp_path, "run": run_dir, "results": results}
     argv = [arg.format(**values) for arg in argv]
-    assert main(["study", "layers", *argv, "--out", str(tmp_path / "layers.json")]) == 2
+    assert main(["study", "layers", *argv, "--out-file", str(tmp_path / "layers.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not (tmp_path / "layers.json").exists()

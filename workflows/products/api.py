@@ -1,0 +1,32 @@
+"""The notebook API's own functions (the names ``workflows`` exports, :mod:`workflows`);
+the others are the library's, exported as they are."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dem.operating import operating_point
+from workflows.config import Config, load_config
+from workflows.prediction.library import load_model
+from workflows.prediction.predict import Prediction
+from workflows.prediction.predict import predict as predict_point
+from workflows.shipped import LIBRARY_MODEL
+
+
+def predict(config: Config | str | Path, library: str | Path | None = None, extrapolate: bool = False) -> Prediction:
+    """The operating point of ``config`` (a :class:`Config`, or the path of its TOML file)
+    predicted from a DEM library's law, without a DEM run: what ``pbmdem predict`` prints.
+
+    ``library``: a library model (``library.json``, made by ``pbmdem library fit``); default
+    the shipped one (:data:`LIBRARY_MODEL`). Returns a
+    :class:`~workflows.prediction.predict.Prediction` whose ``quantities`` each hold a
+    ``value`` and its 95 % prediction interval ``low``-``high``, keyed (``.quantity(key)``) as
+    the comparison's agreement table: ``mean_residence_time_s`` [s], ``rtd_variance_s2``
+    [s^2], ``holdup`` [particles], ``outflow_per_s`` [particles/s], ``C_A`` [-],
+    ``rsd_outlet`` [-], ``lacey_outlet`` [-], ``holdup_slice_<i>`` [particles]. A point
+    outside the library's domain raises ConfigError unless ``extrapolate``; then the
+    prediction is labelled (``.extrapolated``) and its intervals widened."""
+    if not isinstance(config, Config):
+        config = load_config(config)
+    model = load_model(LIBRARY_MODEL if library is None else library)
+    return predict_point(model, operating_point(config.dem), config.dem.geometry.blade_pattern, extrapolate)
