@@ -1,5 +1,5 @@
-"""The notebook API (``workflows``' top-level names): the README's example runs as printed,
-from any directory; ``import workflows`` loads nothing until a name is used; ``predict``
+"""The notebook API (``workflows``' top-level names): the README's first Python example runs
+as printed, from any directory; ``import workflows`` loads nothing until a name is used; ``predict``
 is ``pbmdem predict``'s prediction."""
 
 import json
@@ -15,20 +15,8 @@ from coupling.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: the README's Python example (README.md carries the same text)
-README_EXAMPLE = """\
-from workflows import VALIDATION_DIR, load_results, override, pbm_inputs, plot_composition, predict, simulate
-
-run = VALIDATION_DIR / "dem-aa093a229dfd2ce4.h5"  # the validation campaign's 250 rpm DEM run
-dem, config = load_results(run)
-rtd = dem.summary.pooled_rtd.mean_residence_time_s  # the DEM's value and 95 % interval [s]
-print(f"DEM mean residence time {rtd.value:.1f} s [{rtd.low:.1f}, {rtd.high:.1f}]")
-pbm = simulate(*pbm_inputs(run))  # the PBM of that run, in the validated rate mode
-print(f"PBM mean residence time {pbm.summary.mean_residence_time_s:.1f} s")
-at_225 = predict(override(config, "dem.operation.impeller_rpm=225")).quantity("mean_residence_time_s")
-print(f"225 rpm, never run: {at_225.value:.1f} s [{at_225.low:.1f}, {at_225.high:.1f}]")
-plot_composition(pbm).figure.savefig("c_a.png")
-"""
+#: the README's Python example, as printed there
+README_EXAMPLE = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)[0]
 
 NUMBER = r"(\d+\.\d)"
 
