@@ -19,16 +19,19 @@ residence time is the predicted one; their intervals are that chain stretched to
 residence time's interval ends (:func:`noise_vrr`, :func:`step_response`). The chain's
 shape is the law's: only its time scale is uncertain here, which is what the library's
 runs calibrate (the mean residence time's line); a spread of shapes between the runs left
-out is not added.
+out is not added. It is the chain the PBM's validated rate mode (``phases``) runs on
+``predict``'s table: ``design`` answers for the mode that ``pbmdem validate`` judged.
 
-The probability that the spec is met at a point (:func:`probability`): on each
+The probability that the spec is met at a point (:func:`joint_probability`): on each
 quantity's scale (log) the prediction is value + scale T, T Student's t with the line's
 degrees of freedom, scale the interval's half-width over t(0.975) (so the probability and
 the printed interval agree). The residence-time and composition criteria are all functions
 of the one mean-residence-time variable (the composition through the stretched chain's
-VRR), so their joint probability is exact: the t mass of the set where they all hold. The
+VRR), so their joint probability is the t mass of the set where they all hold (the
+composition's margin tabulated at :data:`T_NODES`, linear between: no independence
+assumed). The
 hold-up is a second variable; the two are taken as bivariate t with the correlation of the
-two lines' residuals at the library's runs (:func:`residual_correlation`; 0.9 on the
+two lines' residuals at the library's runs (:func:`residual_correlation`; 0.76 on the
 shipped library: the DEM's hold-up and its residence time miss the law together), and the
 rectangle's probability is integrated by Gauss-Legendre over the first, the second's
 conditional law being t with one degree of freedom more. When the two lines' degrees of
@@ -57,8 +60,7 @@ from scipy.special import stdtr, stdtrit
 
 from coupling.errors import ConfigError
 from coupling.operating import OperatingPoint
-from coupling.phases import PhaseTransport, transitions
-from dem.phases.chain import steady_occupancy
+from coupling.phases import transitions
 from dem.phases.law import PhaseLaw
 from pbm.frequency import StationarySystem, noise_frequencies, noise_spectrum, system_response, vrr_spectrum
 from workflows.prediction.library import (
@@ -83,15 +85,13 @@ from workflows.prediction.predict import (
     domain_issues,
     entering,
     extrapolation_floor,
-    rescaled,
     residual,
-    rtd_moments,
 )
 
 MRT = "mean_residence_time_s"
 HOLDUP = "holdup"
-#: grid points per axis of the search: speed, length, feed (the refinement then halves the
-#: step near each answer several times)
+#: grid points per axis of the search: speed, length, feed (each answer is then refined
+#: between it and its grid neighbour, :data:`REFINE_POINTS`)
 GRID = (7, 9, 5)
 #: points of each answer's refinement between its grid neighbours
 REFINE_POINTS = 8
@@ -270,31 +270,6 @@ def design_point(
     )
 
 
-def axial_chain(model: LibraryModel, point: OperatingPoint, pattern: str) -> tuple[PhaseTransport, np.ndarray]:
-    """The law's axial chain at ``point`` and the feed (2, NX) into its slices: the steady
-    hold-up and the time to discharge of :func:`~workflows.prediction.predict.point_chain`,
-    whose transverse moves change neither, from a chain a tenth its size."""
-    names = model.law.covariate_names[1:]
-    chain = model.law.chain(covariate_columns(point, AXIAL_SLICES, names, pattern), AXIAL_SLICES, 1, model.interval_s)
-    return chain, entering(point, AXIAL_SLICES, 1)
-
-
-def chain_system(model: PhaseTransport, feed: np.ndarray, stretch: float = 1.0) -> StationarySystem:
-    """The :class:`~pbm.frequency.StationarySystem` of a chain fed as ``feed`` (2, S) says,
-    every rate divided by ``stretch``: its transient states, each feeder's particles
-    entering in the chain's entry phases (one per second), discharged at the chain's exit
-    rates."""
-    q = model.generator()
-    t, exit_rate = q[:-1, :-1], q[:-1, -1]
-    columns = []
-    for f in (0, 1):
-        entry = (feed[f][:, None] * model.entry[f][None, :]).ravel()
-        columns.append(entry / entry.sum() if entry.sum() > 0 else entry)
-    return StationarySystem(
-        t.T / stretch, np.stack(columns, axis=1), np.stack([exit_rate, exit_rate]) / stretch, np.zeros(1)
-    )
-
-
 # ------------------------------------------------------------------ one point
 @dataclass(frozen=True)
 class Band:
@@ -377,9 +352,11 @@ def noise_vrr(system: StationarySystem, spec: DesignSpec, stretches: np.ndarray)
     return np.atleast_1d(vrr_spectrum(freqs, h, noise_spectrum(freqs, spec.noise_tau_s)))
 
 
-def outlet_sd(spec: DesignSpec, point: OperatingPoint, vrr) -> np.ndarray:
-    """The outlet C_A's SD C (1 - C) sigma / sqrt(VRR) under the spec's noise."""
-    c = point.feed_rate_a_per_s / point.feed_rate_total_per_s
+def outlet_sd(spec: DesignSpec, points: Sequence[OperatingPoint], vrr: np.ndarray) -> np.ndarray:
+    """The outlet C_A's SD C (1 - C) sigma / sqrt(VRR) under the spec's noise, ``vrr``
+    (B, ...) at B points."""
+    c = np.array([p.feed_rate_a_per_s / p.feed_rate_total_per_s for p in points])
+    c = c.reshape(-1, *([1] * (np.ndim(vrr) - 1)))
     return c * (1 - c) * spec.noise_sigma / np.sqrt(vrr)
 
 
@@ -446,6 +423,87 @@ def _transfer_squared(generators: np.ndarray, inlet: np.ndarray, outlet: np.ndar
     return np.abs(h) ** 2
 
 
+@dataclass(frozen=True)
+class Chains:
+    """The law's axial chains of B points at steady state: ``transient`` (B, S, S) the
+    generators' transient parts (row: from), ``exit_rate`` (B, S), ``inlet`` (B, 2, S) the
+    particles/s of feed A and B entering each (slice, phase) state, ``occupancy`` (B, S)
+    the steady particles, ``held`` (B, NX) per slice, ``totals`` (B,) the feeds."""
+
+    transient: np.ndarray
+    exit_rate: np.ndarray
+    inlet: np.ndarray
+    occupancy: np.ndarray
+    held: np.ndarray
+    totals: np.ndarray
+
+
+def solved_chains(s: Surrogate, points: Sequence[OperatingPoint]) -> Chains:
+    """The :class:`Chains` of ``points``: the steady hold-up and the time to discharge of
+    :func:`~workflows.prediction.predict.point_chain`, whose transverse moves change
+    neither, from chains a tenth its size, all solved at once. The mean residence time is
+    the steady hold-up over the feed (Little's law: the chain's
+    :func:`~workflows.prediction.predict.rtd_moments` mean, tests)."""
+    law = s.model.law
+    x = np.stack([covariate_columns(p, AXIAL_SLICES, law.covariate_names[1:], s.pattern) for p in points])
+    q = law_generators(law, x)
+    transient, exit_rate = q[:, :-1, :-1], q[:, :-1, -1]
+    feeds = _feeds(points)
+    inlet = (feeds[:, :, :, None] * law.entry[None, :, None, :]).reshape(len(points), 2, -1)
+    occupancy = np.linalg.solve(-np.swapaxes(transient, 1, 2), inlet.sum(axis=1)[..., None])[..., 0]
+    held = occupancy.reshape(len(points), AXIAL_SLICES, law.n_phases).sum(axis=2)
+    return Chains(transient, exit_rate, inlet, occupancy, held, feeds.sum(axis=(1, 2)))
+
+
+@dataclass(frozen=True)
+class Systems:
+    """The chains ``predict`` writes at B points as linear systems dN/dt = G N + b F(t)
+    (:class:`pbm.frequency.StationarySystem`'s convention): ``generators`` (B, S, S),
+    ``inlets`` (B, 2, S) one particle/s of each feeder, ``outlets`` (B, S) the exit rates."""
+
+    generators: np.ndarray
+    inlets: np.ndarray
+    outlets: np.ndarray
+
+    def system(self, n: int) -> StationarySystem:
+        return StationarySystem(
+            self.generators[n], self.inlets[n].T, np.stack([self.outlets[n], self.outlets[n]]), np.zeros(1)
+        )
+
+
+def predicted_systems(
+    s: Surrogate,
+    points: Sequence[OperatingPoint],
+    chains: Chains,
+    mrts: Sequence[PredictedQuantity],
+    holdups: Sequence[PredictedQuantity],
+) -> Systems:
+    """The chain ``predict`` writes at each point (each slice's time scale set to its
+    predicted hold-up, scaled to the predicted total:
+    :func:`~workflows.prediction.predict.rescaled`, every rate out of a slice multiplied
+    alike), its time scale then stretched so that its mean residence time is the
+    predicted one."""
+    k = s.model.law.n_phases
+    slices = np.empty_like(chains.held)
+    for i in range(AXIAL_SLICES):
+        line = s.lines.get(slice_key(i))
+        shift = 0.0 if line is None else np.array([correction_row(p, line.names) @ line.coefficients for p in points])
+        slices[:, i] = chains.held[:, i] * np.exp(shift)
+    slices *= (np.array([h.value for h in holdups]) / slices.sum(axis=1))[:, None]
+    factors = np.repeat(chains.held / slices, k, axis=1)  # per (slice, phase) state
+    mrt_rescaled = (chains.occupancy / factors).sum(axis=1) / chains.totals
+    stretch = (np.array([m.value for m in mrts]) / mrt_rescaled)[:, None]
+    generators = np.swapaxes(chains.transient * factors[:, :, None], 1, 2) / stretch[:, :, None]
+    inlets = chains.inlet / np.maximum(chains.inlet.sum(axis=2, keepdims=True), 1e-300)
+    return Systems(generators, inlets, chains.exit_rate * factors / stretch)
+
+
+def predicted_system(s: Surrogate, design: PointDesign) -> StationarySystem:
+    """The :class:`Systems` system of one designed point."""
+    chains = solved_chains(s, [design.point])
+    return predicted_systems(s, [design.point], chains, [design.mrt], [design.holdup]).system(0)
+
+
 def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoint]) -> list[PointDesign]:
     """:func:`evaluate` of every point of ``points``, their chains solved together."""
     rows = [domain_issues(s.domain, p, s.pattern) for p in points]
@@ -457,27 +515,18 @@ def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoin
             f"domain ({'; '.join(rows[points.index(p)][0])}); the domain is {s.domain.describe()}. "
             "Pass --extrapolate for labelled, widened intervals"
         )
-    law, k = s.model.law, s.model.law.n_phases
-    names = law.covariate_names[1:]
-    x = np.stack([covariate_columns(p, AXIAL_SLICES, names, s.pattern) for p in points])
-    q = law_generators(law, x)
-    t, exit_rate = q[:, :-1, :-1], q[:, :-1, -1]
-    feeds = _feeds(points)
-    entries = feeds[:, :, :, None] * law.entry[None, :, None, :]  # (B, 2, NX, K)
-    inlet = entries.reshape(len(points), 2, -1)
-    occupancy = np.linalg.solve(-np.swapaxes(t, 1, 2), inlet.sum(axis=1)[..., None])[..., 0]
-    held = occupancy.reshape(len(points), AXIAL_SLICES, k).sum(axis=2)
-    totals = feeds.sum(axis=(1, 2))
+    chains = solved_chains(s, points)
     floor = s.floor or {}
     mrts, holdups = [], []
     for n, (p, (issues, widening)) in enumerate(zip(points, rows)):
         widen = widening if issues else 1.0
-        for key, value, into in ((HOLDUP, held[n].sum(), holdups), (MRT, held[n].sum() / totals[n], mrts)):
+        held = float(chains.held[n].sum())
+        for key, value, into in ((HOLDUP, held, holdups), (MRT, held / chains.totals[n], mrts)):
             bottom = floor.get(key, 0.0) if issues else 0.0
             into.append(corrected(key, float(value), s.lines[key], p, widen, bottom))
     composition = None
     if spec.composition:
-        composition = _composition(s, spec, points, t, exit_rate, inlet, occupancy, held, totals, mrts, holdups)
+        composition = _composition(spec, points, predicted_systems(s, points, chains, mrts, holdups), mrts)
     out = []
     for n, p in enumerate(points):
         vrr = sd = None
@@ -497,24 +546,12 @@ def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoin
     return out
 
 
-def _composition(s, spec, points, t, exit_rate, inlet, occupancy, held, totals, mrts, holdups):
+def _composition(
+    spec: DesignSpec, points: Sequence[OperatingPoint], systems: Systems, mrts: Sequence[PredictedQuantity]
+) -> tuple[np.ndarray, np.ndarray]:
     """(VRR, outlet C_A SD), each (B, 3 + len(T_NODES)): at the predicted mean residence
-    time, its interval's ends, and its t values :data:`T_NODES`, of the chain ``predict``
-    writes at each point (:func:`predicted_system`), every point at once."""
-    b, k = len(points), s.model.law.n_phases
-    slices = np.empty_like(held)
-    for i in range(AXIAL_SLICES):
-        line = s.lines.get(slice_key(i))
-        shift = 0.0 if line is None else np.array([correction_row(p, line.names) @ line.coefficients for p in points])
-        slices[:, i] = held[:, i] * np.exp(shift)
-    slices *= (np.array([h.value for h in holdups]) / slices.sum(axis=1))[:, None]
-    factors = np.repeat(held / slices, k, axis=1)  # every rate out of a slice's states
-    mrt_rescaled = (occupancy / factors).sum(axis=1) / totals
-    stretch = np.array([m.value for m in mrts]) / mrt_rescaled
-    generators = np.swapaxes(t * factors[:, :, None], 1, 2) / stretch[:, None, None]
-    feeder = 0 if spec.noise_feeder == "A" else 1
-    entry = inlet[:, feeder] / inlet[:, feeder].sum(axis=1, keepdims=True)
-    outlet = exit_rate * factors / stretch[:, None]
+    time, its interval's ends, and its t values :data:`T_NODES`, every point at once."""
+    b = len(points)
     scales = np.array([t_scale(m) for m in mrts])
     relative = np.column_stack(
         [
@@ -529,7 +566,8 @@ def _composition(s, spec, points, t, exit_rate, inlet, occupancy, held, totals, 
     # interpolation in log f: H of the chain stretched by r is H(r f)
     lowest, highest = freqs[1] * relative.min(), freqs[-1] * relative.max()
     grid = np.geomspace(lowest, highest, TRANSFER_POINTS)
-    squared = _transfer_squared(generators, entry, outlet, grid)
+    feeder = 0 if spec.noise_feeder == "A" else 1
+    squared = _transfer_squared(systems.generators, systems.inlets[:, feeder], systems.outlets, grid)
     position = (np.log(relative[:, :, None] * freqs[None, None, 1:]) - math.log(lowest)) / (
         math.log(highest / lowest) / (TRANSFER_POINTS - 1)
     )
@@ -537,33 +575,9 @@ def _composition(s, spec, points, t, exit_rate, inlet, occupancy, held, totals, 
     weight = np.clip(position - left, 0.0, 1.0)
     rows = np.arange(b)[:, None, None]
     interpolated = squared[rows, left] * (1 - weight) + squared[rows, left + 1] * weight
-    magnitude = np.concatenate([np.ones((b, relative.shape[1], 1)), interpolated], axis=2)
+    magnitude = np.concatenate([np.ones((b, relative.shape[1], 1)), interpolated], axis=2)  # H(0) = 1
     vrr = np.asarray(vrr_spectrum(freqs, np.sqrt(magnitude), noise_spectrum(freqs, spec.noise_tau_s)))
-    c = np.array([p.feed_rate_a_per_s / p.feed_rate_total_per_s for p in points])[:, None]
-    return vrr, c * (1 - c) * spec.noise_sigma / np.sqrt(vrr)
-
-
-def predicted_system(
-    s: Surrogate,
-    point: OperatingPoint,
-    chain: PhaseTransport,
-    feed: np.ndarray,
-    held: np.ndarray,
-    holdup: PredictedQuantity,
-    mrt: PredictedQuantity,
-) -> tuple[StationarySystem, float]:
-    """(the stationary system of the chain ``predict`` writes at ``point``: each slice's
-    time scale set to its predicted hold-up, scaled to the predicted total; the stretch
-    that brings its mean residence time to the predicted one)."""
-    slices = np.array(
-        [
-            corrected(slice_key(i), held[i], s.lines[slice_key(i)], point).value if slice_key(i) in s.lines else held[i]
-            for i in range(held.size)
-        ]
-    )
-    slices *= holdup.value / slices.sum()
-    model = rescaled(chain, held / slices)
-    return chain_system(model, feed), mrt.value / rtd_moments(model, feed)[0]
+    return vrr, outlet_sd(spec, points, vrr)
 
 
 def _margins(
@@ -753,24 +767,13 @@ def step_response(
 
 def dynamics(s: Surrogate, spec: DesignSpec, design: PointDesign) -> Dynamics:
     """The :class:`Dynamics` of a designed point."""
-    chain, feed = axial_chain(s.model, design.point, s.pattern)
-    held = steady_occupancy(chain, feed).sum(axis=1)
-    system, stretch = predicted_system(s, design.point, chain, feed, held, design.holdup, design.mrt)
-    mrt = design.mrt
+    system, mrt = predicted_system(s, design), design.mrt
     vrr = design.vrr
     if vrr is None:  # no composition criterion: the spec's noise all the same
-        values = noise_vrr(system, spec, stretch * np.array([1.0, mrt.low / mrt.value, mrt.high / mrt.value]))
+        values = noise_vrr(system, spec, np.array([1.0, mrt.low / mrt.value, mrt.high / mrt.value]))
         vrr = Band(float(values[0]), float(values[1:].min()), float(values[1:].max()))
-    at_mrt = replace(system, generator=system.generator / stretch, outlet=system.outlet / stretch)
-    times, step, levels, delay = step_response(at_mrt, design.point, mrt)
-    return Dynamics(
-        vrr,
-        STEP_FACTOR_A,
-        levels,
-        times,
-        step,
-        delay,
-    )
+    times, step, levels, delay = step_response(system, design.point, mrt)
+    return Dynamics(vrr, STEP_FACTOR_A, levels, times, step, delay)
 
 
 # ------------------------------------------------------------------ the search

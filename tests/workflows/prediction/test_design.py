@@ -4,6 +4,7 @@ the same as ``predict``'s, the fast VRR the same as :mod:`pbm.frequency`'s, the 
 response of one tank in closed form, and the domain refused in one line."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from coupling.errors import ConfigError
 from pbm.frequency import StationarySystem
 from workflows.prediction import design as D
 from workflows.prediction.library import load_model
-from workflows.prediction.predict import predict
+from workflows.prediction.predict import entering, predict, rtd_moments
 from workflows.shipped import LIBRARY_MODEL
 
 
@@ -38,16 +39,28 @@ def test_the_library_lengths_get_their_own_blade_stations(shipped):
 
 def test_the_quantities_are_predicts(shipped):
     """The axial chains solved together give predict's hold-up and mean residence time,
-    value and interval, at a point the library never ran."""
+    value and interval, at a point the library never ran; the chain's generator is the
+    law's, its mean residence time the chain's time to discharge, and the system the
+    noise and step are read off holds predict's slices and its mean residence time."""
     point = _point(shipped, 275.0, 0.37, 90.0)
     ours = D.evaluate(shipped, D.design_spec(mrt_max_s=30.0), point)
     theirs = predict(shipped.model, point, shipped.pattern)
     for q in (ours.mrt, ours.holdup):
         other = theirs.quantity(q.key)
         assert (q.value, q.low, q.high) == pytest.approx((other.value, other.low, other.high), rel=1e-9)
-    chain, _ = D.axial_chain(shipped.model, point, shipped.pattern)
-    x = D.covariate_columns(point, D.AXIAL_SLICES, shipped.model.law.covariate_names[1:], shipped.pattern)
-    assert np.allclose(D.law_generators(shipped.model.law, x[None])[0], chain.generator(), rtol=1e-12, atol=0)
+    law = shipped.model.law
+    x = D.covariate_columns(point, D.AXIAL_SLICES, law.covariate_names[1:], shipped.pattern)
+    chain = law.chain(x, D.AXIAL_SLICES, 1, shipped.model.interval_s)
+    assert np.allclose(D.law_generators(law, x[None])[0], chain.generator(), rtol=1e-12, atol=0)
+    chains = D.solved_chains(shipped, [point])
+    feed = entering(point, D.AXIAL_SLICES, 1)
+    assert rtd_moments(chain, feed)[0] == pytest.approx(chains.held.sum() / chains.totals[0], rel=1e-10)
+    system = D.predicted_system(shipped, ours)
+    steady = np.linalg.solve(-system.generator, system.feed @ [point.feed_rate_a_per_s, point.feed_rate_b_per_s])
+    slices = steady.reshape(D.AXIAL_SLICES, -1).sum(axis=1)
+    assert slices.sum() / point.feed_rate_total_per_s == pytest.approx(ours.mrt.value, rel=1e-10)
+    written = theirs.values.counts.sum(axis=(0, 2))  # the chain predict writes for the PBM
+    assert slices / slices.sum() == pytest.approx(written / written.sum(), rel=1e-9)
 
 
 def test_a_spec_met_everywhere_or_nowhere(shipped):
@@ -105,20 +118,18 @@ def test_hold_up_and_residence_time_together_use_their_correlation(shipped):
 def test_the_fast_vrr_is_the_schur_forms(shipped):
     """The VRR read off one interpolated eigen-response equals the direct response of
     :func:`pbm.frequency.system_response` on the chain predict writes, to 1e-3."""
-    from dem.phases.chain import steady_occupancy
-
     for tau in (0.0, 5.0):
         spec = D.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=tau)
         for rpm, length, feed in ((150, 0.2475, 36.85), (350, 0.495, 147.4), (220, 0.4, 100.0)):
-            point = _point(shipped, rpm, length, feed)
-            got = D.evaluate(shipped, spec, point)
-            chain, inflow = D.axial_chain(shipped.model, point, shipped.pattern)
-            held = steady_occupancy(chain, inflow).sum(axis=1)
-            system, stretch = D.predicted_system(shipped, point, chain, inflow, held, got.holdup, got.mrt)
+            got = D.evaluate(shipped, spec, _point(shipped, rpm, length, feed))
             m = got.mrt
-            direct = D.noise_vrr(system, spec, stretch * np.array([1.0, m.low / m.value, m.high / m.value]))
+            direct = D.noise_vrr(
+                D.predicted_system(shipped, got), spec, np.array([1.0, m.low / m.value, m.high / m.value])
+            )
             assert [got.vrr.value, got.vrr.low, got.vrr.high] == pytest.approx(direct, rel=1e-3)
             assert got.vrr.low < got.vrr.value < got.vrr.high  # a longer residence filters more
+            sd = got.point.feed_rate_a_per_s / got.point.feed_rate_total_per_s * 0.5 * 0.1 / math.sqrt(got.vrr.value)
+            assert got.ca_sd.value == pytest.approx(sd, rel=1e-12)
 
 
 def test_the_step_response_of_one_tank():
@@ -129,9 +140,7 @@ def test_the_step_response_of_one_tank():
     class Mrt:
         value, low, high = 1 / k, 0.9 / k, 1.2 / k
 
-    point = D.design_point.__globals__["replace"](
-        _point(D.surrogate(load_model(LIBRARY_MODEL))), feed_rate_a_per_s=30.0, feed_rate_b_per_s=70.0
-    )
+    point = replace(_point(D.surrogate(load_model(LIBRARY_MODEL))), feed_rate_a_per_s=30.0, feed_rate_b_per_s=70.0)
     times, step, levels, delay = D.step_response(system, point, Mrt, factor=3.0)
     c0, x = 0.3, 3.0
 
