@@ -52,7 +52,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -118,6 +118,15 @@ STEP_POINTS = 200
 
 
 # ------------------------------------------------------------------ the spec
+class Noise(NamedTuple):
+    """A feeder's rate noise, first order (:func:`pbm.frequency.noise_spectrum`): its
+    correlation time [s] (0: white), bandwidth [Hz] and feeder."""
+
+    tau_s: float = 0.0
+    band_hz: float = 0.5
+    feeder: str = "A"
+
+
 class DesignSpec(BaseModel):
     """What the blender must deliver, the feeder noise it is judged under, and the box of
     operating points searched (default: the library's domain)."""
@@ -162,6 +171,10 @@ class DesignSpec(BaseModel):
             if a is not None and b is not None and a > b:
                 raise ValueError(f"{low} ({a}) must be <= {high} ({b})")
         return self
+
+    @property
+    def noise(self) -> Noise:
+        return Noise(self.noise_tau_s, self.noise_band_hz, self.noise_feeder)
 
     @property
     def composition(self) -> bool:
@@ -347,13 +360,13 @@ def t_scale(q: PredictedQuantity) -> float:
     return half / t if math.isfinite(half) and math.isfinite(t) else 0.0
 
 
-def noise_vrr(system: StationarySystem, spec: DesignSpec, stretches: np.ndarray) -> np.ndarray:
-    """The VRR of the spec's feeder noise through ``system`` with its time scale
-    multiplied by each of ``stretches``: H(f) of the stretched chain is H(stretch f)."""
-    freqs = noise_frequencies(spec.noise_band_hz, N_FREQUENCIES)
+def noise_vrr(system: StationarySystem, noise: Noise, stretches: np.ndarray) -> np.ndarray:
+    """The VRR of the feeder ``noise`` through ``system`` with its time scale multiplied by
+    each of ``stretches``: H(f) of the stretched chain is H(stretch f)."""
+    freqs = noise_frequencies(noise.band_hz, N_FREQUENCIES)
     stretches = np.atleast_1d(np.asarray(stretches, dtype=float))
-    h = system_response(system, stretches[:, None] * freqs[None, :], spec.noise_feeder)
-    return np.atleast_1d(vrr_spectrum(freqs, h, noise_spectrum(freqs, spec.noise_tau_s)))
+    h = system_response(system, stretches[:, None] * freqs[None, :], noise.feeder)
+    return np.atleast_1d(vrr_spectrum(freqs, h, noise_spectrum(freqs, noise.tau_s)))
 
 
 def outlet_sd(spec: DesignSpec, points: Sequence[OperatingPoint], vrr: np.ndarray) -> np.ndarray:
@@ -785,15 +798,27 @@ def step_response(
     return times, step, (c0, c1), Band(delays[0], min(delays), max(delays))
 
 
-def dynamics(s: Surrogate, spec: DesignSpec, design: PointDesign) -> Dynamics:
-    """The :class:`Dynamics` of a designed point."""
+def dynamics(s: Surrogate, noise: Noise, design: PointDesign) -> Dynamics:
+    """The :class:`Dynamics` of a designed point under the feeder ``noise`` (its VRR the
+    design's own when it judged the composition under that noise)."""
     system, mrt = predicted_system(s, design), design.mrt
     vrr = design.vrr
-    if vrr is None:  # no composition criterion: the spec's noise all the same
-        values = noise_vrr(system, spec, np.array([1.0, mrt.low / mrt.value, mrt.high / mrt.value]))
+    if vrr is None:
+        values = noise_vrr(system, noise, np.array([1.0, mrt.low / mrt.value, mrt.high / mrt.value]))
         vrr = Band(float(values[0]), float(values[1:].min()), float(values[1:].max()))
     times, step, levels, delay = step_response(system, design.point, mrt)
     return Dynamics(vrr, STEP_FACTOR_A, levels, times, step, delay)
+
+
+def point_dynamics(s: Surrogate, point: OperatingPoint, noise: Noise | None = None) -> Dynamics:
+    """The feeder-noise VRR and the step response, with their intervals, of any predicted
+    point (what ``pbmdem predict`` predicts there): the design of a spec with no
+    composition criterion, its noise ``noise``. Raises ConfigError outside the library's
+    domain unless ``s.extrapolate``."""
+    spec = design_spec(
+        mrt_min_s=1e-300, noise_tau_s=noise.tau_s, noise_band_hz=noise.band_hz, noise_feeder=noise.feeder
+    )
+    return dynamics(s, noise, evaluate(s, spec, point))
 
 
 # ------------------------------------------------------------------ the search
@@ -944,7 +969,7 @@ def design(s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID) ->
             "EXTRAPOLATED: part of the space searched lies outside the library's domain; its intervals widened"
         )
     answers = {"shortest": shortest, "largest_feed": largest}
-    moves = {k: dynamics(s, spec, p) for k, p in answers.items() if p is not None}
+    moves = {k: dynamics(s, spec.noise, p) for k, p in answers.items() if p is not None}
     library = tuple((r.point.impeller_rpm, r.point.length_m, r.point.feed_rate_total_per_s) for r in s.model.runs)
     return DesignResult(
         spec,

@@ -124,7 +124,7 @@ def test_the_fast_vrr_is_the_schur_forms(shipped):
             got = D.evaluate(shipped, spec, _point(shipped, rpm, length, feed))
             m = got.mrt
             direct = D.noise_vrr(
-                D.predicted_system(shipped, got), spec, np.array([1.0, m.low / m.value, m.high / m.value])
+                D.predicted_system(shipped, got), spec.noise, np.array([1.0, m.low / m.value, m.high / m.value])
             )
             assert [got.vrr.value, got.vrr.low, got.vrr.high] == pytest.approx(direct, rel=1e-3)
             assert got.vrr.low < got.vrr.value < got.vrr.high  # a longer residence filters more
@@ -187,3 +187,13 @@ def test_the_spec_names_a_bad_value():
         D.design_spec(ca_tolerance=0.04)
     with pytest.raises(ConfigError, match=r"length_min_m \(0.4\) must be <= length_max_m"):
         D.design_spec(mrt_max_s=25.0, length_min_m=0.4, length_max_m=0.3)
+
+
+def test_any_predicted_point_has_its_noise_and_step(shipped):
+    """A point's noise and step alone are those of the design that found it."""
+    spec = D.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
+    result = D.design(shipped, spec, grid=(3, 3, 2))
+    alone = D.point_dynamics(shipped, result.shortest.point, spec.noise)
+    found = result.dynamics["shortest"]
+    assert alone.vrr.value == pytest.approx(found.vrr.value, rel=1e-3)
+    assert alone.mean_delay_s == found.mean_delay_s and np.array_equal(alone.step, found.step)
