@@ -889,9 +889,9 @@ class DesignResult:
             "level": LEVEL,
             "domain": self.domain,
             "dependence": (
-                f"bivariate t, correlation {self.correlation:.3f} of the hold-up's and the mean residence time's "
-                "residuals about their lines at the library's runs; the residence-time and composition criteria "
-                "share the mean residence time's variable (exact)"
+                "the residence-time and composition criteria on the mean residence time's one t variable (no "
+                "independence assumed); a hold-up bound's t variable bivariate t with it, correlation "
+                f"{self.correlation:.3f} (the two lines' residuals at the library's runs)"
             ),
             "correlation": self.correlation,
             "grid": {
