@@ -63,6 +63,7 @@ from coupling.operating import OperatingPoint
 from coupling.phases import transitions
 from dem.phases.law import PhaseLaw
 from pbm.frequency import StationarySystem, noise_frequencies, noise_spectrum, system_response, vrr_spectrum
+from workflows.pipeline.results import VALIDATED_RATES
 from workflows.prediction.library import (
     AXIAL_SLICES,
     REFERENCE_FEED_PER_S,
@@ -887,6 +888,8 @@ class DesignResult:
         return {
             "spec": self.spec.model_dump(),
             "level": LEVEL,
+            # the chain design judges is the one `pbm run` runs on predict's table in this mode
+            "rates": VALIDATED_RATES,
             "domain": self.domain,
             "dependence": (
                 "the residence-time and composition criteria on the mean residence time's one t variable (no "
