@@ -11,10 +11,10 @@ from workflows.cli.main import main
 
 
 def test_a_fresh_interpreter_is_timed_and_a_failure_named():
-    times = _fresh(["-c", "pass"], 2)
-    assert len(times) == 2 and all(t > 0 for t in times)
+    times, cpus = _fresh(["-c", "pass"], 2)
+    assert len(times) == len(cpus) == 2 and all(t > 0 for t in times) and all(c > 0 for c in cpus)
     # exit code 1 is the design command's "met nowhere": an answer, still timed
-    assert len(_fresh(["-c", "raise SystemExit(1)"], 1)) == 1
+    assert len(_fresh(["-c", "raise SystemExit(1)"], 1)[0]) == 1
     with pytest.raises(RuntimeError, match=r"failed \(3\): .*no such spec"):
         _fresh(["-c", "import sys; sys.stderr.write('no such spec'); raise SystemExit(3)"], 1)
 
@@ -27,7 +27,7 @@ def test_one_repeat_end_to_end(tmp_path):
     assert main(["bench", "design", "--repeats", "1", "--out", str(out)]) == 0
     record = json.loads(out.read_text())
     assert record["command"][:2] == ["pbmdem", "design"]
-    for key in ("command_s", "imports_of_the_command_s", "imports_of_the_libraries_alone_s"):
+    for key in ("command_s", "command_cpu_s", "imports_of_the_command_s", "imports_of_the_libraries_alone_s"):
         assert len(record[key]) == 1 and record[key][0] > 0, key
     assert record["command_median_s"] > record["imports_of_the_libraries_alone_s"][0]
     assert len(record["stages_s"]) == 4 and all(t > 0 for t in record["stages_s"].values())
