@@ -27,7 +27,14 @@ def test_one_repeat_end_to_end(tmp_path):
     assert main(["bench", "design", "--repeats", "1", "--out", str(out)]) == 0
     record = json.loads(out.read_text())
     assert record["command"][:2] == ["pbmdem", "design"]
-    for key in ("command_s", "command_cpu_s", "imports_of_the_command_s", "imports_of_the_libraries_alone_s"):
+    for key in (
+        "command_s",
+        "command_cpu_s",
+        "command_process_cpu_s",
+        "figure_process_cpu_s",
+        "imports_of_the_command_s",
+        "imports_of_the_libraries_alone_s",
+    ):
         assert len(record[key]) == 1 and record[key][0] > 0, key
     assert record["command_median_s"] > record["imports_of_the_libraries_alone_s"][0]
     assert len(record["stages_s"]) == 4 and all(t > 0 for t in record["stages_s"].values())
