@@ -202,14 +202,16 @@ def design_spec(**values: Any) -> DesignSpec:
 class Surrogate:
     """What a design evaluates points with: the library model, its correction lines, the
     correlation of the hold-up's and the residence time's residuals at the runs, the
-    domain, the point every searched point is made from (:func:`design_point`), and under
-    extrapolation the floor of the intervals."""
+    domain, the point every searched point is made from and the runs' blade stations
+    (:func:`design_point`, :func:`station_rule`), and under extrapolation the floor of the
+    intervals."""
 
     model: LibraryModel
     lines: dict[str, Correction]
     correlation: float
     domain: Domain
     base: OperatingPoint
+    rule: tuple[float, float, float]
     extrapolate: bool = False
     floor: dict[str, float] | None = None
 
@@ -252,7 +254,9 @@ def surrogate(model: LibraryModel, extrapolate: bool = False) -> Surrogate:
         key=lambda p: sum((run_covariates(p)[axis] - centre[axis]) ** 2 for axis in centre),
     )
     floor = extrapolation_floor(model) if extrapolate else None
-    return Surrogate(model, lines, residual_correlation(model, lines, MRT, HOLDUP), dom, base, extrapolate, floor)
+    rule = station_rule([r.point for r in model.runs])
+    correlation = residual_correlation(model, lines, MRT, HOLDUP)
+    return Surrogate(model, lines, correlation, dom, base, rule, extrapolate, floor)
 
 
 def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float]:
@@ -837,10 +841,9 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
         (spec.feed_min_per_s or feed[0], spec.feed_max_per_s or feed[1]),
     )
     if not s.extrapolate:
-        rule = station_rule([run.point for run in s.model.runs])
         issues = []
         for k in (0, 1):
-            corner = design_point(s.base, rule, out[0][k], out[1][k], out[2][k])
+            corner = design_point(s.base, s.rule, out[0][k], out[1][k], out[2][k])
             issues += [i for i in domain_issues(s.domain, corner, s.pattern)[0] if i not in issues]
         if issues:
             raise ConfigError(
@@ -928,11 +931,10 @@ def design(s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID) ->
     speeds = np.linspace(r0, r1, grid[0]) if r1 > r0 else np.array([r0])
     lengths = np.linspace(l0, l1, grid[1]) if l1 > l0 else np.array([l0])
     feeds = np.geomspace(f0, f1, grid[2]) if f1 > f0 else np.array([f0])
-    rule = station_rule([run.point for run in s.model.runs])
 
     points = tuple(
         evaluate_many(
-            s, spec, [design_point(s.base, rule, r, length, f) for r in speeds for length in lengths for f in feeds]
+            s, spec, [design_point(s.base, s.rule, r, length, f) for r in speeds for length in lengths for f in feeds]
         )
     )
     good = [p for p in points if p.probability >= spec.confidence]
@@ -946,7 +948,7 @@ def design(s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID) ->
             found = evaluate_many(
                 s,
                 spec,
-                [design_point(s.base, rule, shortest.point.impeller_rpm, v, shortest.feed_per_s) for v in trial],
+                [design_point(s.base, s.rule, shortest.point.impeller_rpm, v, shortest.feed_per_s) for v in trial],
             )
             shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
         largest = min(good, key=_rank_feed)
@@ -954,7 +956,7 @@ def design(s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID) ->
         if higher.size:
             trial = np.geomspace(largest.feed_per_s, higher[0], REFINE_POINTS + 2)[1:-1]
             found = evaluate_many(
-                s, spec, [design_point(s.base, rule, largest.point.impeller_rpm, largest.length_m, v) for v in trial]
+                s, spec, [design_point(s.base, s.rule, largest.point.impeller_rpm, largest.length_m, v) for v in trial]
             )
             largest = min([largest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_feed)
         if math.isclose(shortest.length_m, l0):

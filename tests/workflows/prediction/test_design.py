@@ -25,7 +25,7 @@ def shipped():
 
 
 def _point(s, rpm=250.0, length=0.33, feed=73.7):
-    return D.design_point(s.base, D.station_rule([r.point for r in s.model.runs]), rpm, length, feed)
+    return D.design_point(s.base, s.rule, rpm, length, feed)
 
 
 def test_the_library_lengths_get_their_own_blade_stations(shipped):
