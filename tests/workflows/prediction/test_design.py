@@ -197,3 +197,15 @@ def test_any_predicted_point_has_its_noise_and_step(shipped):
     found = result.dynamics["shortest"]
     assert alone.vrr.value == pytest.approx(found.vrr.value, rel=1e-3)
     assert alone.mean_delay_s == found.mean_delay_s and np.array_equal(alone.step, found.step)
+
+
+def test_the_composition_is_judged_on_the_residence_times_t_law(shipped):
+    """A C_A tolerance met exactly at the predicted mean residence time is met with P 1/2
+    (a longer residence filters more); one met exactly at its interval's lower end, with
+    P 0.975 (the margin tabulated in t, linear between)."""
+    point = _point(shipped, 200.0, 0.3, 60.0)
+    first = D.evaluate(shipped, D.design_spec(ca_tolerance=0.5, noise_sigma=0.1, noise_tau_s=5.0), point)
+    for tolerance, expected, tol in ((3 * first.ca_sd.value, 0.5, 1e-9), (3 * first.ca_sd.high, 0.975, 3e-3)):
+        got = D.evaluate(shipped, D.design_spec(ca_tolerance=tolerance, noise_sigma=0.1, noise_tau_s=5.0), point)
+        assert got.probability == pytest.approx(expected, abs=tol)
+        assert got.margins[0].probability == pytest.approx(got.probability, abs=1e-12)
