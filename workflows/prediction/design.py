@@ -93,7 +93,9 @@ MRT = "mean_residence_time_s"
 HOLDUP = "holdup"
 #: grid points per axis of the search: speed, length, feed (each answer is then refined
 #: between it and its grid neighbour, :data:`REFINE_POINTS`)
-GRID = (7, 9, 5)
+GRID = (5, 7, 5)
+#: speeds x lengths of the finer region at the shortest blender's feed, the figure's
+REGION = (13, 17)
 #: points of each answer's refinement between its grid neighbours
 REFINE_POINTS = 8
 #: frequencies of the VRR quadrature: on the law's 40-state axial chain 201 log-spaced
@@ -855,19 +857,44 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
 
 
 @dataclass(frozen=True)
+class Slice:
+    """P(spec met) over ``speeds`` x ``lengths`` at one total feed ``feed_per_s``: the
+    region the figure draws, finer than the search's grid."""
+
+    feed_per_s: float
+    speeds: np.ndarray
+    lengths: np.ndarray
+    points: tuple[PointDesign, ...]
+
+    @property
+    def probability(self) -> np.ndarray:
+        return np.array([p.probability for p in self.points]).reshape(self.speeds.size, self.lengths.size)
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "feed_per_s": self.feed_per_s,
+            "rpm": self.speeds.tolist(),
+            "length_m": self.lengths.tolist(),
+            "probability": self.probability.tolist(),
+        }
+
+
+@dataclass(frozen=True)
 class DesignResult:
     """The grid searched (``speeds`` x ``lengths`` x ``feeds``, every point in ``points``
-    in that order), the two answers with P(spec met) >= the spec's confidence (None when
-    no point has it): the shortest blender (``shortest``, ties: the largest feed, then the
-    highest P) and the largest feed (``largest_feed``, ties: the shortest, then the highest
-    P), their noise and step (``dynamics``, keyed "shortest", "largest_feed"), the
-    correlation the joint probability used, and notes."""
+    in that order), the finer slice at the shortest blender's feed (``region``), the two
+    answers with P(spec met) >= the spec's confidence (None when no point has it): the
+    shortest blender (``shortest``, ties: the largest feed, then the highest P) and the
+    largest feed (``largest_feed``, ties: the shortest, then the highest P), their noise
+    and step (``dynamics``, keyed "shortest", "largest_feed"), the correlation the joint
+    probability used, and notes."""
 
     spec: DesignSpec
     speeds: np.ndarray
     lengths: np.ndarray
     feeds: np.ndarray
     points: tuple[PointDesign, ...]
+    region: Slice
     shortest: PointDesign | None
     largest_feed: PointDesign | None
     dynamics: dict[str, Dynamics]
@@ -909,6 +936,7 @@ class DesignResult:
                 "holdup": {p: self.grid("holdup", p).tolist() for p in ("value", "low", "high")},
                 "shape": list(shape),
             },
+            "region": self.region.record(),
             "shortest": None if self.shortest is None else self.shortest.record(),
             "largest_feed": None if self.largest_feed is None else self.largest_feed.record(),
             "dynamics": {k: d.record() for k, d in self.dynamics.items()},
@@ -925,49 +953,57 @@ def _rank_feed(p: PointDesign) -> tuple[float, float, float]:
     return (-p.feed_per_s, p.length_m, -p.probability)
 
 
-def design(s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID) -> DesignResult:
-    """The search of the module docstring."""
-    (r0, r1), (l0, l1), (f0, f1) = box(s, spec)
-    speeds = np.linspace(r0, r1, grid[0]) if r1 > r0 else np.array([r0])
-    lengths = np.linspace(l0, l1, grid[1]) if l1 > l0 else np.array([l0])
-    feeds = np.geomspace(f0, f1, grid[2]) if f1 > f0 else np.array([f0])
+def _axis(low: float, high: float, n: int, geometric: bool = False) -> np.ndarray:
+    if not high > low:
+        return np.array([low])
+    return np.geomspace(low, high, n) if geometric else np.linspace(low, high, n)
 
-    points = tuple(
-        evaluate_many(
-            s, spec, [design_point(s.base, s.rule, r, length, f) for r in speeds for length in lengths for f in feeds]
-        )
-    )
+
+def design(
+    s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID, region: tuple[int, int] = REGION
+) -> DesignResult:
+    """The search of the module docstring: the grid, then at the feed of its shortest
+    blender (else of its most likely point) the finer ``region`` over speed and length,
+    whose points the answers are chosen among too, then each answer refined along its
+    own axis."""
+    (r0, r1), (l0, l1), (f0, f1) = box(s, spec)
+    speeds, lengths, feeds = _axis(r0, r1, grid[0]), _axis(l0, l1, grid[1]), _axis(f0, f1, grid[2], geometric=True)
+
+    def at(rpm: float, length: float, feed: float) -> OperatingPoint:
+        return design_point(s.base, s.rule, rpm, length, feed)
+
+    points = tuple(evaluate_many(s, spec, [at(r, length, f) for r in speeds for length in lengths for f in feeds]))
     good = [p for p in points if p.probability >= spec.confidence]
+    shown = min(good, key=_rank_shortest) if good else max(points, key=lambda p: p.probability)
+    fine_speeds, fine_lengths = _axis(r0, r1, region[0]), _axis(l0, l1, region[1])
+    fine = tuple(
+        evaluate_many(s, spec, [at(r, length, shown.feed_per_s) for r in fine_speeds for length in fine_lengths])
+    )
+    good += [p for p in fine if p.probability >= spec.confidence]
     notes = []
     shortest = largest = None
     if good:
         shortest = min(good, key=_rank_shortest)
-        shorter = lengths[lengths < shortest.length_m]
-        if shorter.size:  # between the grid's next shorter length and the answer
+        shorter = fine_lengths[fine_lengths < shortest.length_m]
+        if shorter.size:  # between the region's next shorter length and the answer
             trial = np.linspace(shorter[-1], shortest.length_m, REFINE_POINTS + 2)[1:-1]
-            found = evaluate_many(
-                s,
-                spec,
-                [design_point(s.base, s.rule, shortest.point.impeller_rpm, v, shortest.feed_per_s) for v in trial],
-            )
+            found = evaluate_many(s, spec, [at(shortest.point.impeller_rpm, v, shortest.feed_per_s) for v in trial])
             shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
         largest = min(good, key=_rank_feed)
-        higher = feeds[feeds > largest.feed_per_s]
+        higher = feeds[feeds > largest.feed_per_s * (1 + 1e-12)]
         if higher.size:
             trial = np.geomspace(largest.feed_per_s, higher[0], REFINE_POINTS + 2)[1:-1]
-            found = evaluate_many(
-                s, spec, [design_point(s.base, s.rule, largest.point.impeller_rpm, largest.length_m, v) for v in trial]
-            )
+            found = evaluate_many(s, spec, [at(largest.point.impeller_rpm, largest.length_m, v) for v in trial])
             largest = min([largest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_feed)
         if math.isclose(shortest.length_m, l0):
             notes.append(f"the shortest blender searched ({l0:g} m) already meets the spec: a shorter one may too")
         if math.isclose(largest.feed_per_s, f1):
             notes.append(f"the highest feed searched ({f1:g} /s) still meets the spec: a higher one may too")
     else:
-        best = max(points, key=lambda p: p.probability)
         notes.append(
             f"no point searched meets the spec with P >= {spec.confidence:g}; the most likely is "
-            f"{best.point.impeller_rpm:g} rpm, {best.length_m:.4g} m, {best.feed_per_s:.4g} /s (P = {best.probability:.3f})"
+            f"{shown.point.impeller_rpm:g} rpm, {shown.length_m:.4g} m, {shown.feed_per_s:.4g} /s "
+            f"(P = {shown.probability:.3f})"
         )
     if any(p.outside for p in points):
         notes.append(
@@ -982,6 +1018,7 @@ def design(s: Surrogate, spec: DesignSpec, grid: tuple[int, int, int] = GRID) ->
         lengths,
         feeds,
         points,
+        Slice(shown.feed_per_s, fine_speeds, fine_lengths, fine),
         shortest,
         largest,
         moves,

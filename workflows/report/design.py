@@ -21,26 +21,15 @@ from matplotlib.figure import Figure
 CONTOURS = (0.05, 0.5, 0.95)
 
 
-def shown_feed(record: Mapping[str, Any]) -> int:
-    """The index of the grid's feed the region is drawn at: the shortest blender's (the
-    nearest on the grid), else the feed where P is highest."""
-    feeds = np.asarray(record["grid"]["feed_per_s"], dtype=float)
-    best = record["shortest"]
-    if best is not None:
-        return int(np.argmin(np.abs(np.log(feeds / best["feed_per_s"]))))
-    p = np.asarray(record["grid"]["probability"], dtype=float)
-    return int(np.unravel_index(np.argmax(p), p.shape)[2])
-
-
 def alt_text(record: Mapping[str, Any]) -> str:
-    grid = record["grid"]
-    k = shown_feed(record)
-    p = np.asarray(grid["probability"], dtype=float)[:, :, k]
+    region = record["region"]
+    p = np.asarray(region["probability"], dtype=float)
     text = (
-        f"Left: P(spec met) over impeller speed {grid['rpm'][0]:.0f}-{grid['rpm'][-1]:.0f} rpm and blender length "
-        f"{grid['length_m'][0]:.3f}-{grid['length_m'][-1]:.3f} m at a total feed of {grid['feed_per_s'][k]:.1f} "
-        f"particles/s, with contours at P = 0.05, 0.5 and 0.95; {np.mean(p >= record['spec']['confidence']):.0%} "
-        "of the points shown meet the spec with the required confidence."
+        f"Left: P(spec met) over impeller speed {region['rpm'][0]:.0f}-{region['rpm'][-1]:.0f} rpm and blender "
+        f"length {region['length_m'][0]:.3f}-{region['length_m'][-1]:.3f} m at a total feed of "
+        f"{region['feed_per_s']:.1f} particles/s, with contours at P = 0.05, 0.5 and 0.95; "
+        f"{np.mean(p >= record['spec']['confidence']):.0%} of the points shown meet the spec with the required "
+        "confidence."
     )
     best = record["shortest"]
     if best is not None:
@@ -62,12 +51,11 @@ def alt_text(record: Mapping[str, Any]) -> str:
 def plot_design(record: Mapping[str, Any], path: str | Path) -> str:
     """Draw ``feasible.png`` at ``path`` from a design's record and return the page
     (``report.html``) that shows it."""
-    grid = record["grid"]
-    k = shown_feed(record)
-    rpm = np.asarray(grid["rpm"], dtype=float)
-    length = np.asarray(grid["length_m"], dtype=float)
-    p = np.asarray(grid["probability"], dtype=float)[:, :, k]
-    feed = grid["feed_per_s"][k]
+    region = record["region"]
+    rpm = np.asarray(region["rpm"], dtype=float)
+    length = np.asarray(region["length_m"], dtype=float)
+    p = np.asarray(region["probability"], dtype=float)
+    feed = region["feed_per_s"]
     fig = Figure(figsize=(11, 4.5), layout="constrained")
     ax, ax2 = fig.subplots(1, 2, width_ratios=(1.2, 1))
     mesh = ax.pcolormesh(rpm, length * 1000, p.T, shading="nearest", cmap="RdYlGn", vmin=0, vmax=1)
@@ -82,7 +70,7 @@ def plot_design(record: Mapping[str, Any], path: str | Path) -> str:
             ax.plot(r, length_m * 1000, "o", mfc="none", mec="#08519c", ms=8)
     ax.plot([], [], "o", mfc="none", mec="#08519c", label="library's DEM runs at this feed")
     best = record["shortest"]
-    if best is not None:
+    if best is not None and math.isclose(best["feed_per_s"], feed, rel_tol=1e-9):
         ax.plot(best["rpm"], best["length_m"] * 1000, "k*", ms=14, label="shortest blender")
     ax.set(
         xlabel="impeller speed [rpm]",

@@ -173,7 +173,10 @@ def test_the_search_answers_within_its_box(shipped):
     assert result.probability.shape == (3, 4, 3)
     best = result.shortest
     assert best is not None and best.probability >= spec.confidence
-    assert best.length_m == pytest.approx(min(p.length_m for p in result.points if p.probability >= 0.95))
+    met = [p for p in (*result.points, *result.region.points) if p.probability >= spec.confidence]
+    assert best.length_m <= min(p.length_m for p in met) + 1e-12
+    assert result.region.feed_per_s == pytest.approx(best.feed_per_s)
+    assert result.region.probability.shape == (13, 17)
     assert result.largest_feed.feed_per_s >= max(p.feed_per_s for p in result.points if p.probability >= 0.95)
     assert set(result.dynamics) == {"shortest", "largest_feed"}
     record = result.record()
