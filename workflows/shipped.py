@@ -9,16 +9,16 @@ running LIGGGHTS:
 * :data:`REDUCED_RUN`: the ``reduced`` preset's run (NX = 10), the default input of every
   study run on DEM results, and the other ``dem-*.h5`` beside it (the same run binned at
   NX = 20, for the grid sensitivity);
-* :data:`VALIDATION_DIR`: the validation campaign's runs, also the design tool's table
-  library;
+* :data:`VALIDATION_DIR`: the validation campaign's runs, also runs of the library below;
 * :data:`STEP_DIR`: the feed-step run of the dynamic check;
 * :data:`UNSEEN_DIR`: runs at operating points outside the campaign, each with its
   20-slice twin and its configuration (``200rpm-x1.25.toml``: 200 rpm, the feed x1.25;
   ``300rpm-mono-a30.toml``: 300 rpm, particles of one size, feeder A 30 % of 60 /s): the
-  phase model judged on runs it was not built on, not part of the design tool's library;
+  phase model judged on runs it was not built on, not part of the library;
 * :data:`PAPER_SCALE_DIR`: the paper-scale probe's summary, thermo rows and throughput;
 * :data:`LIBRARY_DIR`: DEM runs at further speeds, lengths and seeds, and in ``law/`` the
-  law fitted to them and the campaign (:data:`LIBRARY_MODEL`, ``pbmdem predict``'s).
+  law fitted to them and the campaign (:data:`LIBRARY_MODEL`, ``pbmdem predict``'s and
+  ``pbmdem design``'s).
 """
 
 from __future__ import annotations

@@ -2,23 +2,28 @@
 
 Measures, each in a fresh interpreter as a user would meet it, ``--repeats`` times (median):
 
-* the command itself (:data:`EXAMPLE`), start to exit, written to a temporary directory;
+* the command itself (:data:`EXAMPLE`), start to exit, written to a temporary directory:
+  its wall time, and its CPU time split between its own process and the figure's process
+  it forks (on two free cores the wall time is about the first: on a machine whose cores
+  others are using, the wall time says more about them than about the command);
 * the imports of the command's own modules (``workflows.products.design``);
 * the floor under both: importing only the libraries the command cannot do without
-  (:data:`LIBRARIES`: the linear algebra, the root finder and HDF5), with nothing of this
-  project. The figure's plotting library is not in it: the command imports it, and draws
-  the figure, in a process forked when it starts, on the other core
+  (:data:`LIBRARIES`: numpy and scipy's linear algebra and special functions), with nothing
+  of this project. The figure's plotting library is not in it: the command imports it, and
+  draws the figure, in a process forked when it starts, on the other core
   (:class:`coupling.forked.Prepared`);
 
 and, in this process after those imports, the stages of :func:`workflows.products.design.run_design`:
-reading the library (each results file's tables, checked against its head digest), the
-blender inversion (the frequency responses of the candidate lengths and speeds), the
-throughput inversion, and drawing ``feasible.png``. Writes ``results/bench/design.json``.
+reading the library model, its correction lines, the search (every grid point's chain,
+quantities, VRR and P(spec met), then the answers' refinement, noise and step), and drawing
+``feasible.png``. Writes ``results/bench/design.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -26,21 +31,14 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from coupling.jsonable import write_json
-from workflows.shipped import VALIDATION_DIR
 
 OUT = Path("results/bench/design.json")
 #: the README's example spec
 EXAMPLE = ("--ca-within", "0.04", "--noise-sigma", "0.1", "--noise-tau", "5", "--mrt-max", "25")
-#: what any implementation of the command imports before it can answer: numpy and scipy's
-#: linear algebra and root finding (the inversion), h5py (the results files)
-LIBRARIES = "import numpy, scipy.linalg, scipy.optimize, h5py"
+#: what any implementation of the command imports before it can answer
+LIBRARIES = "import numpy, scipy.linalg, scipy.special"
 TARGET_S = 2.0
-#: the stages of the blender's search: as the command runs it, and in one process
-SEARCH = "smallest blender (lengths x speeds, {workers} process(es))"
-SERIAL = "  the same in one process (its responses counted)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,153 +46,129 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-file", default=str(OUT))
 
 
-def _fresh(code_or_args: list[str], repeats: int) -> list[float]:
-    """Wall times [s] of ``python <args>`` in a fresh interpreter; raises on a failure."""
-    times = []
+def _fresh(code_or_args: list[str], repeats: int) -> tuple[list[float], list[float]]:
+    """(wall times [s], CPU times [s], user + system, of it and every process it forked)
+    of ``python <args>`` in a fresh interpreter; raises on a failure. On a machine whose
+    cores others are using the wall time grows and the CPU time much less: both are kept."""
+    walls, cpus = [], []
     for _ in range(repeats):
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         start = time.perf_counter()
         done = subprocess.run([sys.executable, *code_or_args], capture_output=True, text=True)
-        times.append(time.perf_counter() - start)
+        walls.append(time.perf_counter() - start)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpus.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
         if done.returncode not in (0, 1):  # 1: the spec is met nowhere, still an answer
             raise RuntimeError(f"{' '.join(code_or_args)} failed ({done.returncode}): {done.stderr.strip()[-500:]}")
-    return times
+    return walls, cpus
 
 
-def _stages() -> tuple[dict[str, float], dict[str, float], int]:
-    """Seconds of each stage of run_design, in this process (imports already paid), the
-    work of its frequency responses (:func:`_responses_work`, counted in one process; and
-    ``search_seconds``, the blender search's share) and the processes the search ran on."""
-    from unittest import mock
+#: the command run by its own entry point in a fresh interpreter that then prints its CPU
+#: time [s] and that of the figure's process it forked (reaped, a child of it)
+_SPLIT = """
+import contextlib, io, resource, sys
+from workflows.cli.main import main
+with contextlib.redirect_stdout(io.StringIO()):
+    code = main(['design', *sys.argv[1:]])
+own, child = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+print(own.ru_utime + own.ru_stime, child.ru_utime + child.ru_stime)
+raise SystemExit(code)
+"""
 
-    import pbm.design
-    from pbm.design import design, design_spec, max_feed
-    from workflows.products.design import library_runs, load_feed_library, load_library
-    from workflows.report.design import plot_feasible
+
+def _split_cpu(out: str, repeats: int) -> tuple[list[float], list[float]]:
+    """CPU times [s] of the command's own process and of the figure's process it forks,
+    which runs beside it on the other core: on two free cores the wall time is about the
+    first's."""
+    own, figure = [], []
+    for _ in range(repeats):
+        done = subprocess.run(
+            [sys.executable, "-c", _SPLIT, *EXAMPLE, "--out", out], capture_output=True, text=True, check=True
+        )
+        a, b = (float(v) for v in done.stdout.split()[-2:])
+        own.append(a)
+        figure.append(b)
+    return own, figure
+
+
+def _stages() -> tuple[dict[str, float], int]:
+    """Seconds of each stage of run_design in this process (imports already paid; the
+    search run once untimed first, as every first call pays scipy's first dispatches), and
+    the grid points the search evaluated."""
+    from workflows.prediction.design import GRID, REFINE_POINTS, REGION, design, design_spec, surrogate
+    from workflows.prediction.library import load_model
+    from workflows.report.design import plot_design
+    from workflows.shipped import LIBRARY_MODEL
 
     spec = design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
     out: dict[str, float] = {}
     start = time.perf_counter()
-    runs = library_runs()
-    out["read the library (each file's tables, head digest checked)"] = time.perf_counter() - start
-    calls: list[tuple[int, int, float]] = []  # (states, frequencies, seconds) of each response
-
-    def timed(system, freqs, feeder="A", respond=pbm.design.system_response):
-        t0 = time.perf_counter()
-        h = respond(system, freqs, feeder)
-        calls.append((system.generator.shape[0], int(np.size(freqs)), time.perf_counter() - t0))
-        return h
-
-    # a first search pays what every first call does (the library's interpolated tables,
-    # scipy's first dispatches): not timed, so that the two timed ones compare
-    with mock.patch.object(pbm.design, "free_cores", lambda limit=None: 1):
-        design(load_library(runs, "measured"), spec)
-        # the responses counted in one process: forked workers' calls would not come back
-        with mock.patch.object(pbm.design, "system_response", timed):
-            start = time.perf_counter()
-            design(load_library(runs, "measured"), spec)
-            serial = time.perf_counter() - start
-    searched = sum(t for _, _, t in calls)  # the blender's responses, the rest are the feed's
-    workers = pbm.design.search_processes(len(pbm.design.speed_grid(load_library(runs, "measured"), spec)))
+    model = load_model(LIBRARY_MODEL)
+    out["read the library model"] = time.perf_counter() - start
     start = time.perf_counter()
-    result = design(load_library(runs, "measured"), spec)
-    out[SEARCH.format(workers=workers)] = time.perf_counter() - start
-    out[SERIAL] = serial
-    with mock.patch.object(pbm.design, "system_response", timed):
-        start = time.perf_counter()
-        feeds = load_feed_library(runs, "measured")
-        if feeds is not None:
-            max_feed(feeds, spec)
-        out["largest feed (fill law)"] = time.perf_counter() - start
+    s = surrogate(model)
+    out["its correction lines and domain"] = time.perf_counter() - start
+    design(s, spec)
+    start = time.perf_counter()
+    result = design(s, spec)
+    out["the search (grid, answers refined, their noise and step)"] = time.perf_counter() - start
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        plot_feasible(result.to_dict(), Path(tmp) / "feasible.png")
-    out["figure (in the command: drawn by its forked process beside the largest feed)"] = time.perf_counter() - start
-    return out, {**_responses_work(calls), "search_seconds": searched}, workers
-
-
-def _responses_work(calls: list[tuple[int, int, float]]) -> dict[str, float]:
-    """The flops of the frequency responses: per system of n states, its real Schur form
-    (~25 n^3, Golub & Van Loan) and, per frequency, the complex back substitution (n^2 / 2
-    complex multiply-adds, 4 n^2 flops); with the seconds they took, the rate achieved."""
-    flops = sum(25.0 * n**3 + 4.0 * f * n**2 for n, f, _ in calls)
-    seconds = sum(t for _, _, t in calls)
-    return {
-        "systems": len(calls),
-        "states_min": min((n for n, _, _ in calls), default=0),
-        "states_max": max((n for n, _, _ in calls), default=0),
-        "frequencies": max((f for _, f, _ in calls), default=0),
-        "flops": flops,
-        "seconds": seconds,
-        "flops_per_s": flops / seconds if seconds > 0 else float("nan"),
-    }
-
-
-def _h5_read_s(directory: Path) -> float:
-    """Seconds h5py alone takes to read the velocity tables of the library's files: what
-    any reader of them pays, before a digest or a table is made."""
-    import h5py
-
-    from coupling.tables import GROUP
-
-    def read(_name, obj):
-        if isinstance(obj, h5py.Dataset):
-            obj[()]
-
-    start = time.perf_counter()
-    for path in sorted(directory.glob("dem-*.h5")):
-        with h5py.File(path, "r") as h5:
-            h5[GROUP].visititems(read)
-    return time.perf_counter() - start
+        plot_design(result.record(), Path(tmp) / "feasible.png")
+    out["figure and page (in the command: drawn by its forked process)"] = time.perf_counter() - start
+    return out, GRID[0] * GRID[1] * GRID[2] + REGION[0] * REGION[1] + 2 * REFINE_POINTS
 
 
 def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
-        command = _fresh(["-m", "workflows.cli", "design", *EXAMPLE, "--out", tmp], args.repeats)
-    own = _fresh(["-c", "import workflows.products.design"], args.repeats)
-    floor = _fresh(["-c", LIBRARIES], args.repeats)
-    stages, work, workers = _stages()
-    h5_read = _h5_read_s(VALIDATION_DIR)
-    # the responses at the pace the search's processes gained over one: what the cores
-    # deliver together, which is not their number when they share the floating point
-    speedup = stages[SERIAL] / stages[SEARCH.format(workers=workers)]
-    responses_s = work["search_seconds"] / speedup + (work["seconds"] - work["search_seconds"])
-    floor_s = statistics.median(floor) + h5_read + responses_s
+        command, command_cpu = _fresh(["-m", "workflows.cli", "design", *EXAMPLE, "--out", tmp], args.repeats)
+        process_cpu, figure_cpu = _split_cpu(tmp, args.repeats)
+    own, own_cpu = _fresh(["-c", "import workflows.products.design"], args.repeats)
+    floor, floor_cpu = _fresh(["-c", LIBRARIES], args.repeats)
+    stages, points = _stages()
     record = {
         "command": ["pbmdem", "design", *EXAMPLE],
         "command_s": command,
         "command_median_s": statistics.median(command),
+        "command_cpu_s": command_cpu,
+        "command_process_cpu_s": process_cpu,
+        "figure_process_cpu_s": figure_cpu,
         "imports_of_the_command_s": own,
+        "imports_of_the_command_cpu_s": own_cpu,
         "imports_of_the_libraries_alone_s": floor,
+        "imports_of_the_libraries_alone_cpu_s": floor_cpu,
         "stages_s": stages,
-        "frequency_responses": work,
-        "search_processes": workers,
-        "search_speedup": speedup,
-        "h5py_read_of_the_library_s": h5_read,
-        "floor_s": floor_s,
+        "points_evaluated": points,
+        "load_average_1min": os.getloadavg()[0],
+        "cores": os.cpu_count(),
         "target_s": TARGET_S,
     }
     write_json(Path(args.out_file), record)
     rows = [
-        ("the README's `pbmdem design` example, fresh interpreter", statistics.median(command), f"<= {TARGET_S:g} s"),
-        ("  its imports (workflows.products.design)", statistics.median(own), ""),
-        ("  floor: numpy, scipy.linalg, scipy.optimize, h5py alone", statistics.median(floor), ""),
-        *((f"  {name}", seconds, "") for name, seconds in stages.items()),
         (
-            f"  of which {work['systems']} frequency responses ({work['states_min']}-{work['states_max']} states, "
-            f"{work['frequencies']} "
-            f"frequencies): {work['flops'] / 1e9:.1f} Gflop at {work['flops_per_s'] / 1e9:.1f} Gflop/s in one process",
-            work["seconds"],
+            "the README's `pbmdem design` example, fresh interpreter",
+            statistics.median(command),
+            statistics.median(command_cpu),
+            f"<= {TARGET_S:g} s",
+        ),
+        ("  CPU of the command's own process", None, statistics.median(process_cpu), ""),
+        ("  CPU of the figure's process it forks (beside it)", None, statistics.median(figure_cpu), ""),
+        ("  its imports (workflows.products.design)", statistics.median(own), statistics.median(own_cpu), ""),
+        (
+            f"  floor: {LIBRARIES.removeprefix('import ')} alone",
+            statistics.median(floor),
+            statistics.median(floor_cpu),
             "",
         ),
-        ("  reading the library's tables, h5py alone", h5_read, ""),
-        (
-            f"floor: the libraries' imports + h5py's read + the responses (search's / {speedup:.2f})",
-            floor_s,
-            f"{'above' if floor_s > TARGET_S else 'below'} {TARGET_S:g} s",
-        ),
+        *((f"  {name}", seconds, None, "") for name, seconds in stages.items()),
     ]
-    print(f"{'measurement':64s} {'median':>9s}  target")
-    for name, seconds, target in rows:
-        print(f"{name:64s} {seconds:8.2f}s  {target}")
+    print(f"{'measurement':64s} {'wall':>8s} {'CPU':>8s}  target")
+    for name, seconds, cpu, target in rows:
+        wall = "" if seconds is None else f"{seconds:7.2f}s"
+        print(f"{name:64s} {wall:>8s} {'' if cpu is None else f'{cpu:7.2f}s':>8s}  {target}")
+    print(
+        f"({points} operating points evaluated per search; load average {record['load_average_1min']:.1f} on "
+        f"{record['cores']} cores: the CPU column counts the command and the process it forks)"
+    )
     print(f"wrote {args.out_file}")
     return 0

@@ -3,7 +3,7 @@
 * :func:`load_results` -- a cache or shipped results file whole, with its configuration.
 * :func:`load_table` -- only its velocity table, summary and configuration, checked
   against the file's head digest (:func:`coupling.cache.load_head`): a reader of the
-  tables alone (the design inversion) does not read the per-particle records.
+  tables alone does not read the per-particle records.
 * :func:`pbm_config_for` / :func:`rtd_pulse` -- the PBM configuration and tracer pulse of
   the process a DEM run describes.
 * :func:`pbm_inputs` -- a results file's table and the PBM configuration of its own run,
