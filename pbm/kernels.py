@@ -1,7 +1,7 @@
 """The loops numba compiles, in a module of their own that is imported only where they run.
 
 numba's import and a kernel's load from its cache take half a second, which a
-command that neither marches nor solves the bulk under the fill law (the design search,
+command that neither marches nor solves the bulk under the fill law (`pbmdem design`,
 a parser) need not pay; :mod:`pbm.action` and :mod:`pbm.fill` import this module in the
 functions that call it.
 

@@ -83,7 +83,7 @@ class PbmResult:
 
     def timeseries(self) -> pd.DataFrame:
         """The CQA series in :data:`coupling.metrics.TIMESERIES_COLUMNS`."""
-        import pandas as pd  # here: a caller of the solver alone (the design) need not import it
+        import pandas as pd  # here: a caller of the solver alone need not import it
 
         values = (
             self.times,

@@ -444,7 +444,7 @@ def shared_pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=MAX_THREADS, thread_name_prefix="pbm-march")
 
 
-# A forked process (the design's workers) inherits the pool but not its threads, and work
+# A forked process (`coupling.forked`'s, a study's workers) inherits the pool but not its threads, and work
 # it queued there would wait forever: it starts a pool of its own.
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=shared_pool.cache_clear)

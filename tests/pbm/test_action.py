@@ -194,7 +194,7 @@ def test_dense_march_with_live_columns_equals_the_full_march(shipped):
 
 
 def test_a_forked_process_gets_a_pool_of_its_own():
-    """The design's forked workers inherit the marches' pool without its threads: work
+    """A forked process inherits the marches' pool without its threads: work
     queued on it there must still run (it would wait forever on the parent's)."""
     import multiprocessing
 

@@ -562,7 +562,7 @@ def capture_steps(out: Path) -> tuple[Step, ...]:
             "stdout/validate.txt",
         )
     )
-    # README.md, "Design the smallest blender that meets a spec" (pbm/DESIGN.md)
+    # README.md, "Design with the probability that the spec is met" (workflows/prediction/DESIGN.md)
     steps.append(
         Step(
             "design",

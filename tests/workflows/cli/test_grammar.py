@@ -147,7 +147,9 @@ def test_out_always_names_a_directory_and_a_file_flag_says_so():
 def test_the_ranks_default_to_the_configuration_in_every_product_command():
     ranks = [(path, a.default) for path, a in _options() if "--np" in a.option_strings]
     product = [(path, default) for path, default in ranks if path[0] not in STUDIES_AND_BENCHMARKS]
-    assert {("compare",), ("validate",), ("dem", "run"), ("dem", "slurm"), ("library", "build")} <= {path for path, _ in product}
+    assert {("compare",), ("validate",), ("dem", "run"), ("dem", "slurm"), ("library", "build")} <= {
+        path for path, _ in product
+    }
     assert all(default is None for _, default in product), product
 
 
