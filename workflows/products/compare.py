@@ -115,10 +115,6 @@ def _notes(dem: DemSide) -> tuple[list[str], list[str]]:
         notes.append(f"DEM results come from the cache made {made}; LIGGGHTS was not run now.")
     validity, diagnostics = split_warnings(dem.results.summary.warnings)
     notes += [f"DEM: {warning}" for warning in validity]
-    if diagnostics:
-        notes.append(
-            f"The DEM run's bookkeeping raised {len(diagnostics)} solver diagnostics: see the end of the page."
-        )
     return notes, diagnostics
 
 
@@ -321,6 +317,7 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         agreement=agreement_html(c.rows, c.sensitivity, interval_method(c.dem.results.summary.steady)),
         figures=figures,
         shown_mode=c.shown_mode,
+        studies_mode=c.pbm_config.rates,
         metrics=c.metrics,
         provenance=provenance,
         studies=studies,

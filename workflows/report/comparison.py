@@ -404,10 +404,10 @@ def recommend(rows: list[AgreementRow]) -> Recommendation | None:
 
 
 def _listed(labels: list[str], shown: int = 3) -> str:
-    """ "a, b, c and 4 more"."""
-    if len(labels) <= shown:
-        return ", ".join(labels[:-1]) + (" and " if len(labels) > 1 else "") + labels[-1] if labels else ""
-    return ", ".join(labels[:shown]) + f" and {len(labels) - shown} more"
+    """``labels`` as prose, the first ``shown``: "a, b, c and 4 more", "a and b", "a"."""
+    if len(labels) > shown:
+        return ", ".join(labels[:shown]) + f" and {len(labels) - shown} more"
+    return " and ".join(filter(None, [", ".join(labels[:-1]), *labels[-1:]]))
 
 
 def why(rec: Recommendation, rows: list[AgreementRow]) -> str:
@@ -435,9 +435,10 @@ def why(rec: Recommendation, rows: list[AgreementRow]) -> str:
             ]
         )
     )
+    where = f"on {_listed(gained)} where" if gained else "on more rows than"
     return (
-        f"It lies inside the DEM's interval on {_listed(gained)} where the runner-up, the {runner.mode} rates "
-        f"({runner.inside} of {runner.judged} inside), lies outside; {misses}."
+        f"It lies inside the DEM's interval {where} the runner-up, the {runner.mode} rates "
+        f"({runner.inside} of {runner.judged} inside){', lies outside' if gained else ''}; {misses}."
     )
 
 
@@ -552,6 +553,7 @@ def render_html(
     figures: dict[str, str],
     shown_mode: str,
     metrics: dict[str, Any],
+    studies_mode: str = "velocity",
     provenance: dict[str, Any],
     studies: list[Study],
     notes: list[str] = (),
@@ -562,7 +564,7 @@ def render_html(
     """The report page: ``notes`` on the comparison's validity, the ``bottom_line``
     (:func:`bottom_line_html`), then the details: ``agreement`` (:func:`agreement_html`),
     the curves of the DEM and of the PBM in ``shown_mode`` (``figures``: keys to PNG names
-    beside the page), further ``sections`` (HTML), the studies, the cost (``metrics``'
+    beside the page), further ``sections`` (HTML), the studies (run in ``studies_mode``), the cost (``metrics``'
     wall times), the ``files``, the provenance and last the solver ``diagnostics``."""
     mode_label = f"PBM, {shown_mode} rates"
     panels = {
@@ -615,7 +617,16 @@ def render_html(
         if k != "config_toml"
     )
     config_block = f"<details><summary>Resolved configuration</summary><pre>{html.escape(provenance.get('config_toml', ''))}</pre></details>"
-    note_html = f'<ul class="notes">{"".join(f"<li>{html.escape(n)}</li>" for n in notes)}</ul>' if notes else ""
+    pointer = (
+        [
+            f'The DEM run\'s bookkeeping raised {len(diagnostics)} <a href="#diagnostics">solver diagnostics</a>, '
+            "listed at the end."
+        ]
+        if diagnostics
+        else []
+    )
+    items = [html.escape(n) for n in notes] + pointer
+    note_html = f'<ul class="notes">{"".join(f"<li>{n}</li>" for n in items)}</ul>' if items else ""
     diagnostics_html = (
         "<h2 id=\"diagnostics\">Solver diagnostics</h2><p>The DEM post-processing's checks of the solver's "
         "bookkeeping: particle accounting, thermo counters, dump spacing (<code>dem/post.py</code>).</p><ul>"
@@ -649,7 +660,7 @@ figcaption {{ font-size: 0.9em; color: #555; }}
 {curves}
 {img("geometry", "The blender: barrel, impeller blades and weir, as the DEM deck builds them", "Blender geometry (impeller, weir)")}
 {"".join(sections)}
-<h2>Studies with the PBM on the DEM's tables (paper Figs 3-6)</h2>
+<h2>Studies with the PBM on the DEM's tables, {html.escape(studies_mode)} rates as configured (paper Figs 3-6)</h2>
 {study_html}
 {cost}
 {files_html(list(files)) if files else ""}

@@ -13,7 +13,7 @@ import pytest
 from tests.workflows.report.html_pages import broken, read_page
 from workflows.analysis.agreement import AgreementRow, ModeValue
 from workflows.config import config_from_dict, load_preset
-from workflows.report.comparison import HEADLINE, fmt, recommend, split_warnings
+from workflows.report.comparison import HEADLINE, fmt, recommend, split_warnings, why
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +118,11 @@ def test_the_mode_with_the_most_rows_inside_is_recommended():
     # |1.5 - 1| / 0.1 = 5 half-widths, 0, 0
     assert rec.score.deviation == pytest.approx(5 / 3)
     assert rec.record()["scores"]["velocity"] == {"inside": 1, "judged": 3, "deviation": pytest.approx(20 / 3)}
+    # why: where it is inside and the runner-up (measured) is not, and its own miss
+    assert why(rec, rows) == (
+        "It lies inside the DEM's interval on b and c where the runner-up, the measured rates (1 of 3 inside), "
+        "lies outside; its one miss is a (5 half-widths off)."
+    )
 
 
 def test_a_tie_goes_to_the_nearer_mode_then_to_the_fewer_fitted():
