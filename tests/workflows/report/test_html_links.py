@@ -155,3 +155,12 @@ def test_solver_diagnostics_are_told_from_the_comparisons_own_warnings():
         "something nobody classified",
     ]
     assert len(diagnostics) == 2 and diagnostics[0].startswith("solver thermo")
+
+
+def test_the_prediction_page_shows_its_figure_with_alt_text_and_links_its_files(tmp_path):
+    from workflows.cli.main import main
+    from workflows.config import preset_path
+
+    assert main(["predict", "--config", str(preset_path("validation")), "--out", str(tmp_path)]) == 0
+    assert broken(tmp_path / "report.html") == []
+    assert {"prediction.json", "table.h5"} <= set(read_page(tmp_path / "report.html").links)
