@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import subprocess
 import time
 from collections.abc import Callable
@@ -52,13 +53,18 @@ from workflows.pipeline.results import pbm_config_for, rtd_pulse
 from workflows.pipeline.stages import DemSide, dem_stage
 from workflows.products.paper_studies import run_studies
 from workflows.report.comparison import (
+    Recommendation,
+    ReportFile,
     SideResults,
     agreement_html,
+    bottom_line_html,
     comparison_metrics,
     interval_method,
     plot_agreement,
     plot_comparison,
+    recommend,
     render_html,
+    split_warnings,
 )
 from workflows.report.memory import memory_html, plot_ck
 from workflows.report.vrr import plot_vrr, vrr_html
@@ -95,7 +101,9 @@ def _git_commit() -> str:
     return out.stdout.strip() + (" (with uncommitted changes)" if dirty.stdout.strip() else "")
 
 
-def _notes(dem: DemSide) -> list[str]:
+def _notes(dem: DemSide) -> tuple[list[str], list[str]]:
+    """The page's notes: (on the comparison's validity, for its top; the DEM run's solver
+    diagnostics, for its end)."""
     notes = []
     made = dem.provenance.get("created")
     if dem.source == "reference":
@@ -105,15 +113,17 @@ def _notes(dem: DemSide) -> list[str]:
         )
     elif dem.source == "cache":
         notes.append(f"DEM results come from the cache made {made}; LIGGGHTS was not run now.")
-    notes += [f"DEM: {warning}" for warning in dem.results.summary.warnings]
-    return notes
+    validity, diagnostics = split_warnings(dem.results.summary.warnings)
+    notes += [f"DEM: {warning}" for warning in validity]
+    return notes, diagnostics
 
 
 @dataclass(frozen=True)
 class Comparison:
     """The numbers of one comparison: the DEM's side, each PBM rate mode on its tables, the
-    configured mode's curves beside the DEM's, the agreement table, the grid sensitivity and
-    the feeder-noise filtering."""
+    agreement table and the mode it recommends (None without one), that mode's curves
+    beside the DEM's (the configured mode's without a recommendation), the grid
+    sensitivity and the feeder-noise filtering."""
 
     config: Config
     dem: DemSide
@@ -123,14 +133,20 @@ class Comparison:
     pbm_view: SideResults
     metrics: dict[str, Any]
     rows: list[AgreementRow]
+    recommendation: Recommendation | None
     sensitivity: dict[str, Any] | None
     vrr: VrrComparison | None
     memory: MemoryCheck | None
 
     @property
+    def shown_mode(self) -> str:
+        """The rate mode of the report's metrics and curves: the recommended one."""
+        return self.pbm_config.rates if self.recommendation is None else self.recommendation.mode
+
+    @property
     def pbm_result(self) -> PbmResult:
-        """The configured rate mode's run: the report's metrics and curves."""
-        return self.modes[self.pbm_config.rates].result
+        """The shown rate mode's run."""
+        return self.modes[self.shown_mode].result
 
 
 def full_comparison(
@@ -183,7 +199,10 @@ def _compare(
 ) -> Comparison:
     log("running the PBM on the DEM's tables, in each rate mode the table supports")
     modes = run_modes(dem.table, pbm_config, config.steady_state, dem.results.summary)
-    pbm_result = modes[pbm_config.rates].result
+    rows = agreement_rows(dem.results.summary, dem.results.particles, modes, dem.results.steady_outlet_counts())
+    recommendation = recommend(rows)
+    shown = pbm_config.rates if recommendation is None else recommendation.mode
+    pbm_result = modes[shown].result
     dem_view = SideResults(
         "DEM",
         dem.results.timeseries,
@@ -193,14 +212,19 @@ def _compare(
         rsd_by_slice_floor=dem.results.rsd_by_slice_floor,
     )
     pbm_view = SideResults(
-        "PBM", pbm_result.timeseries(), pbm_result.rtd(), pbm_result.rsd_by_slice_final, pbm_result.summary
+        f"PBM, {shown} rates",
+        pbm_result.timeseries(),
+        pbm_result.rtd(),
+        pbm_result.rsd_by_slice_final,
+        pbm_result.summary,
     )
     metrics = comparison_metrics(dem_view, pbm_view, feed_rate_per_s=config.dem.operation.feed_rate_total_per_s)
-    rows = agreement_rows(dem.results.summary, dem.results.particles, modes, dem.results.steady_outlet_counts())
     sensitivity = grid_sensitivity(config, dem, pbm_config, modes, runs_root, log)
     vrr = feeder_filtering(dem, pbm_config, log)
     memory = memory_future.result()
-    return Comparison(config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, sensitivity, vrr, memory)
+    return Comparison(
+        config, dem, pbm_config, modes, dem_view, pbm_view, metrics, rows, recommendation, sensitivity, vrr, memory
+    )
 
 
 def write_figures(c: Comparison, out_dir: Path, log: Log) -> dict[str, str]:
@@ -246,6 +270,8 @@ def provenance_of(c: Comparison, studies_time_s: float) -> dict[str, Any]:
         "steady_state_rule": (
             f"window {config.steady_state.window_s:g} s, relative tolerance {config.steady_state.rel_tol:g}"
         ),
+        "pbm_rates_configured": c.pbm_config.rates,
+        "pbm_rates_shown": c.shown_mode,
         "pbm_conservation_max_rel_error": pbm_conservation_error(c.pbm_result),
         "pbm_feed_weights_a": c.pbm_config.feed_weights_a,
         "pbm_feed_weights_b": c.pbm_config.feed_weights_b,
@@ -257,7 +283,8 @@ def provenance_of(c: Comparison, studies_time_s: float) -> dict[str, Any]:
 
 def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: bool, log: Log) -> None:
     """``report.html`` with its figures, the paper's studies, ``summary.json``, both sides'
-    time series as CSV and (``paraview``) the VTK files, all in ``out_dir``."""
+    time series as CSV, the resolved configuration and (``paraview``) the VTK files, all in
+    ``out_dir``; the page last, linking every other file."""
     figures = write_figures(c, out_dir, log)
     vrr_section = "" if c.vrr is None else vrr_html(c.vrr, figures["vrr"])
     memory_section = "" if c.memory is None else memory_html(c.memory, figures.get("ck"))
@@ -265,20 +292,9 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
     t0 = time.monotonic()
     studies = run_studies(c.dem.table, c.pbm_config, c.config.steady_state, out_dir, noise_members)
     provenance = provenance_of(c, time.monotonic() - t0)
-    notes = _notes(c.dem)
-    page = render_html(
-        f"DEM vs PBM — preset {c.config.name} ({c.dem.key})",
-        c.metrics,
-        figures,
-        provenance,
-        studies,
-        notes,
-        agreement_html(c.rows, c.sensitivity, interval_method(c.dem.results.summary.steady))
-        + vrr_section
-        + memory_section,
-    )
-    replace_file(out_dir / "report.html", page, "report")
+    notes, diagnostics = _notes(c.dem)
     summary = {
+        "recommendation": None if c.recommendation is None else c.recommendation.record(),
         "metrics": c.metrics,
         "agreement": [r.record() for r in c.rows],
         "nx_sensitivity": c.sensitivity,
@@ -290,12 +306,93 @@ def write_report(c: Comparison, out_dir: Path, noise_members: int, paraview: boo
         "pbm_summary": c.pbm_result.summary.record(),
         "studies": {s.parameter: {"trend": s.trend, "rows": s.rows} for s in studies},
         "notes": notes,
+        "solver_diagnostics": diagnostics,
     }
     write_json(out_dir / "summary.json", summary)
     replace_file(out_dir / "dem_timeseries.csv", c.dem_view.timeseries.to_csv(index=False), "DEM time series")
     replace_file(out_dir / "pbm_timeseries.csv", c.pbm_view.timeseries.to_csv(index=False), "PBM time series")
+    replace_file(out_dir / "config.toml", provenance["config_toml"], "configuration")
     if paraview:
         write_paraview(c.config, c.dem, out_dir / "paraview", log)
+    page = render_html(
+        f"DEM vs PBM — preset {c.config.name} ({c.dem.key})",
+        bottom_line=bottom_line_html(c.recommendation, c.rows, c.pbm_config.rates),
+        agreement=agreement_html(c.rows, c.sensitivity, interval_method(c.dem.results.summary.steady)),
+        figures=figures,
+        shown_mode=c.shown_mode,
+        studies_mode=c.pbm_config.rates,
+        metrics=c.metrics,
+        provenance=provenance,
+        studies=studies,
+        notes=notes,
+        sections=[vrr_section, memory_section],
+        files=report_files(c, out_dir, figures, studies),
+        diagnostics=diagnostics,
+    )
+    replace_file(out_dir / "report.html", page, "report")
+
+
+#: what each figure of :func:`write_figures` shows, for the page's list of files
+FIGURE_FILES = {
+    "overview": "the six panels of DEM and PBM over time in one figure",
+    "rtd": "tagged RTD (paper Fig. 7)",
+    "rsd_axial": "raw RSD per axial slice at the end (Fig. 8a)",
+    "rsd_time": "raw RSD at the outlet over time (Fig. 8b)",
+    "c_a": "C_A of the outflow over time (Fig. 9)",
+    "outflow": "outflow rate over time (Fig. 10)",
+    "holdup": "hold-up over time",
+    "rtd_pooled": "pooled RTD, DEM and every PBM rate mode",
+    "holdup_profile": "steady hold-up per axial slice, DEM with its intervals and every PBM rate mode",
+    "vrr": "feeder-noise filtering, VRR(f)",
+    "ck": "Chapman-Kolmogorov test of the PBM's chains",
+    "geometry": "the blender's geometry",
+}
+
+#: the ParaView collections :func:`write_paraview` may write
+PARAVIEW_FILES = {
+    "compartments": "compartment fields (counts, velocities) per velocity window",
+    "particles": "particle snapshots",
+    "impeller": "the impeller at each snapshot's angle",
+}
+
+
+def report_files(c: Comparison, out_dir: Path, figures: dict[str, str], studies) -> list[ReportFile]:
+    """Every file of the run the page links, relative to ``out_dir``: the data first (the
+    DEM's results file where it lies, linked relative to the page too), then the figures;
+    only the files that exist."""
+    files = [
+        ReportFile("summary.json", "every number of the page, the recommendation and the provenance (JSON)"),
+        ReportFile("dem_timeseries.csv", "the DEM's time series: hold-up, outflow, C_A, raw RSDs and their floors"),
+        ReportFile("pbm_timeseries.csv", f"the PBM's time series with the {c.shown_mode} rates, the same columns"),
+        ReportFile("config.toml", "the resolved configuration of this comparison"),
+    ]
+    files = [f for f in files if (out_dir / f.href).is_file()]
+    source = {"run": "LIGGGHTS ran now", "cache": "from the cache", "reference": "shipped with the repository"}
+    files.append(
+        ReportFile(
+            _relative(c.dem.cache_file, out_dir),
+            f"the DEM's results (HDF5: velocity tables, time series, per-particle records), {source[c.dem.source]}",
+        )
+    )
+    for stem, what in PARAVIEW_FILES.items():
+        pvd = out_dir / "paraview" / f"{stem}.pvd"
+        if pvd.is_file():
+            steps = len(list(pvd.parent.glob(f"{stem}_*")))
+            files.append(ReportFile(f"paraview/{pvd.name}", f"ParaView: {what}, {steps} files"))
+    if (out_dir / "paraview" / "weir.vtp").is_file():
+        files.append(ReportFile("paraview/weir.vtp", "ParaView: the weir"))
+    files += [ReportFile(name, FIGURE_FILES.get(key, key)) for key, name in figures.items()]
+    files += [ReportFile(s.figure, f"figure: {s.title}") for s in studies]
+    return files
+
+
+def _relative(path: Path, start: Path) -> str:
+    """``path`` as a link from a page in ``start``: relative (both resolved), its file URI
+    when none exists (another drive)."""
+    try:
+        return Path(os.path.relpath(Path(path).resolve(), Path(start).resolve())).as_posix()
+    except ValueError:
+        return Path(path).resolve().as_uri()
 
 
 def feeder_filtering(dem: DemSide, pbm_config, log: Log) -> VrrComparison | None:

@@ -83,7 +83,7 @@ def rtd_overlap(dem_rtd: pd.DataFrame, pbm_rtd: pd.DataFrame) -> float:
 
 
 def comparison_metrics(dem: SideResults, pbm: SideResults, feed_rate_per_s: float) -> dict[str, Any]:
-    """Every number of the report's metrics table (also written to summary.json): the
+    """The scalars of ``summary.json``'s ``metrics`` (the page shows the wall times): the
     shared fields (:class:`coupling.summary.ProcessSummary`) side by side, the DEM's
     random-mixture floors beside its RSDs, and the wall times."""
     d, p = dem.summary, pbm.summary
@@ -132,7 +132,7 @@ def _wall_time_s(summary: ProcessSummary) -> float | None:
 def _draw_rtd(ax, dem: SideResults, pbm: SideResults) -> None:
     for side, colour in ((dem, DEM_COLOUR), (pbm, PBM_COLOUR)):
         ax.step(side.rtd["t_s"], side.rtd["E_per_s"], where="mid", color=colour, label=side.label)
-    ax.set(title="Residence time distribution (paper Fig. 7)", xlabel="t - t_pulse [s]", ylabel="E(t) [1/s]")
+    ax.set(title="Tagged RTD (paper Fig. 7)", xlabel="t - t_pulse [s]", ylabel="E(t) [1/s]")
 
 
 def _draw_rsd_axial(ax, dem: SideResults, pbm: SideResults) -> None:
@@ -142,7 +142,9 @@ def _draw_rsd_axial(ax, dem: SideResults, pbm: SideResults) -> None:
     if dem.rsd_by_slice_floor is not None:
         n = len(dem.rsd_by_slice_floor)
         ax.plot(np.arange(1, n + 1), dem.rsd_by_slice_floor, ":", color=DEM_COLOUR, label="DEM random-mixture floor")
-    ax.set(title="RSD along the blender at the end (Fig. 8a)", xlabel="axial compartment (inlet = 1)", ylabel="RSD")
+    ax.set(
+        title="Raw RSD along the blender at the end (Fig. 8a)", xlabel="axial compartment (inlet = 1)", ylabel="raw RSD"
+    )
 
 
 def _draw_rsd_time(ax, dem: SideResults, pbm: SideResults) -> None:
@@ -156,7 +158,7 @@ def _draw_rsd_time(ax, dem: SideResults, pbm: SideResults) -> None:
             color=DEM_COLOUR,
             label="DEM random-mixture floor",
         )
-    ax.set(title="RSD at the outlet (Fig. 8b)", xlabel="t [s]", ylabel="RSD across the last slice")
+    ax.set(title="Raw RSD at the outlet (Fig. 8b)", xlabel="t [s]", ylabel="raw RSD across the last slice")
 
 
 def _draw_c_a(ax, dem: SideResults, pbm: SideResults) -> None:
@@ -283,13 +285,10 @@ def agreement_html(rows: list[AgreementRow], nx_sensitivity: dict[str, Any] | No
     if not rows:
         return "<p>No agreement table: the DEM run has no steady state to average over.</p>"
 
-    def verdict(flag) -> str:
-        return "–" if flag is None else ("inside" if flag else "<b>outside</b>")
-
     body = "".join(
         f"<tr><td>{html.escape(r.quantity)}</td><td>{html.escape(r.unit)}</td><td>{fmt(r.dem)}</td>"
         f"<td>{fmt(r.dem_ci_low)} – {fmt(r.dem_ci_high)}</td>"
-        + "".join(f"<td>{fmt(r.value(m))}</td><td>{verdict(r.inside(m))}</td>" for m in MODE_STYLES)
+        + "".join(f"<td>{fmt(r.value(m))}</td><td>{_verdict(r.inside(m))}</td>" for m in MODE_STYLES)
         + "</tr>"
         for r in rows
     )
@@ -339,49 +338,264 @@ def fmt(value: Any, digits: int = 4) -> str:
     return html.escape(str(value))
 
 
-METRIC_ROWS = (
-    ("Mean residence time [s]", "mean_residence_time_dem_s", "mean_residence_time_pbm_s"),
-    ("RTD variance [s²]", "rtd_variance_dem_s2", "rtd_variance_pbm_s2"),
-    ("RTD recovered fraction", "rtd_recovered_fraction_dem", "rtd_recovered_fraction_pbm"),
-    ("Steady outflow [1/s]", "steady_outflow_dem_per_s", "steady_outflow_pbm_per_s"),
-    ("Steady C_A", "steady_C_A_dem", "steady_C_A_pbm"),
-    ("Final RSD at the outlet", "final_rsd_outlet_dem", "final_rsd_outlet_pbm"),
-    ("Final whole-blender RSD", "final_rsd_blender_dem", "final_rsd_blender_pbm"),
-    ("Final hold-up [particles]", "holdup_final_dem", "holdup_final_pbm"),
-    ("Wall time [s]", "dem_wall_time_s", "pbm_wall_time_s"),
+# --- the recommendation --------------------------------------------------------------------
+
+#: the agreement table's rows the report's first screen shows, in this order
+HEADLINE = ("mean_residence_time_s", "rtd_variance_s2", "holdup", "outflow_per_s", "C_A", "rsd_outlet", "lacey_outlet")
+
+
+@dataclass(frozen=True)
+class ModeScore:
+    """One rate mode on the agreement table: its rows inside the DEM's 95 % interval, its
+    rows judged at all, and its mean |PBM − DEM| in half-widths of the DEM's interval
+    (:meth:`~workflows.analysis.agreement.AgreementRow.half_width`) over the rows judged."""
+
+    mode: str
+    inside: int
+    judged: int
+    deviation: float
+
+
+@dataclass(frozen=True)
+class Recommendation:
+    """The rate mode to trust: the most agreement-table rows inside the DEM's intervals. A
+    tie on that count goes to the smaller mean deviation (:class:`ModeScore`), then to the
+    mode with fewer fitted parameters (the order of :data:`MODE_STYLES`). ``scores``: every
+    mode that ran, best first; ``tied``: the other modes with as many rows inside."""
+
+    mode: str
+    scores: tuple[ModeScore, ...]
+    tied: tuple[str, ...] = ()
+
+    @property
+    def score(self) -> ModeScore:
+        return self.scores[0]
+
+    def record(self) -> dict[str, Any]:
+        """The recommendation as ``summary.json`` holds it."""
+        return {
+            "mode": self.mode,
+            "tied": list(self.tied),
+            "scores": {s.mode: {"inside": s.inside, "judged": s.judged, "deviation": s.deviation} for s in self.scores},
+        }
+
+
+def recommend(rows: list[AgreementRow]) -> Recommendation | None:
+    """The :class:`Recommendation` of the agreement table ``rows``; None when no mode was
+    judged on any row (no steady DEM state to average over)."""
+    order = list(MODE_STYLES)
+    scores = []
+    for mode in order:
+        judged = [r for r in rows if r.inside(mode) is not None]
+        if not judged:
+            continue
+        off = [abs(r.value(mode) - r.dem) / r.half_width(mode) for r in judged if r.half_width(mode) > 0]
+        off = [v for v in off if math.isfinite(v)]
+        deviation = float(np.mean(off)) if off else math.nan
+        scores.append(ModeScore(mode, sum(bool(r.inside(mode)) for r in judged), len(judged), deviation))
+    if not scores:
+        return None
+    ranked = sorted(
+        scores,
+        key=lambda s: (-s.inside, s.deviation if math.isfinite(s.deviation) else math.inf, order.index(s.mode)),
+    )
+    best = ranked[0]
+    return Recommendation(best.mode, tuple(ranked), tuple(s.mode for s in ranked[1:] if s.inside == best.inside))
+
+
+def _listed(labels: list[str], shown: int = 3) -> str:
+    """``labels`` as prose, the first ``shown``: "a, b, c and 4 more", "a and b", "a"."""
+    if len(labels) > shown:
+        return ", ".join(labels[:shown]) + f" and {len(labels) - shown} more"
+    return " and ".join(filter(None, [", ".join(labels[:-1]), *labels[-1:]]))
+
+
+def why(rec: Recommendation, rows: list[AgreementRow]) -> str:
+    """One sentence on why ``rec.mode`` is the mode to trust, read off the table ``rows``."""
+    best = rec.score
+    if len(rec.scores) == 1:
+        return f"It is the only rate mode the DEM's table supports; it lies inside on {best.inside} of {best.judged}."
+    runner = rec.scores[1]
+    if rec.tied:
+        return (
+            f"It ties with the {runner.mode} rates on the count and lies nearer the DEM: on average "
+            f"{fmt(best.deviation, 2)} half-widths of the DEM's interval from it, against {fmt(runner.deviation, 2)}."
+        )
+    gained = [r.quantity for r in rows if r.inside(best.mode) and r.inside(runner.mode) is False]
+    missed = [r for r in rows if r.inside(best.mode) is False]
+    misses = (
+        "it misses nothing"
+        if not missed
+        else "its "
+        + ("one miss is " if len(missed) == 1 else "misses are ")
+        + _listed(
+            [
+                f"{r.quantity} ({fmt(abs(r.value(best.mode) - r.dem) / r.half_width(best.mode), 2)} half-widths off)"
+                for r in missed
+            ]
+        )
+    )
+    where = f"on {_listed(gained)} where" if gained else "on more rows than"
+    return (
+        f"It lies inside the DEM's interval {where} the runner-up, the {runner.mode} rates "
+        f"({runner.inside} of {runner.judged} inside){', lies outside' if gained else ''}; {misses}."
+    )
+
+
+def _cell_interval(row: AgreementRow) -> str:
+    return f"{fmt(row.dem)} [{fmt(row.dem_ci_low)}, {fmt(row.dem_ci_high)}]"
+
+
+def _verdict(flag: bool | None) -> str:
+    return "–" if flag is None else ("inside" if flag else "<b>outside</b>")
+
+
+def bottom_line_html(rec: Recommendation | None, rows: list[AgreementRow], configured: str) -> str:
+    """The report's first screen: the rate mode to trust with its score on the agreement
+    table and why, then the headline quantities (:data:`HEADLINE`): the DEM's value with
+    its 95 % interval, that mode's PBM value and the verdict. ``configured``: the mode the
+    configuration asks for (a line says how to switch when it is another)."""
+    if rec is None:
+        return (
+            '<section id="bottom-line"><h2>Bottom line</h2><p><b>No rate mode can be recommended:</b> '
+            "the DEM run has no steady state to average over, so no PBM value was judged.</p></section>"
+        )
+    best = rec.score
+    others = "; ".join(f"{s.mode} rates {s.inside} of {s.judged}" for s in rec.scores[1:])
+    tie = (
+        f" Tied on the count with {', '.join(rec.tied)}: broken by the smaller mean distance from the DEM in "
+        "half-widths of its interval, then by the fewer fitted parameters (velocity, measured, phases)."
+        if rec.tied
+        else ""
+    )
+    switch = (
+        ""
+        if configured == rec.mode
+        else f'<p>The configuration asks for <code>rates = "{html.escape(configured)}"</code>; set '
+        f'<code>rates = "{html.escape(rec.mode)}"</code> in its <code>[pbm]</code> section to run this mode.</p>'
+    )
+    by_key = {r.key: r for r in rows}
+    body = "".join(
+        f"<tr><td>{html.escape(r.quantity)}</td><td>{html.escape(r.unit)}</td><td>{_cell_interval(r)}</td>"
+        f"<td>{fmt(r.value(rec.mode))}</td><td>{_verdict(r.inside(rec.mode))}</td></tr>"
+        for r in (by_key[k] for k in HEADLINE if k in by_key)
+    )
+    return (
+        '<section id="bottom-line"><h2>Bottom line</h2>'
+        f'<p class="verdict">Recommended rate mode: <b>{html.escape(MODE_STYLES[rec.mode][1])}</b> '
+        f'(<code>rates = "{html.escape(rec.mode)}"</code>), <b>{best.inside} of {best.judged}</b> '
+        f"agreement-table rows inside the DEM's 95 % intervals ({html.escape(others) or 'the only mode run'}).</p>"
+        f"<p>{html.escape(why(rec, rows))}{html.escape(tie)}</p>{switch}"
+        f'<table id="headline"><tr><th>quantity</th><th>unit</th><th>DEM [95 % interval]</th>'
+        f"<th>PBM, {html.escape(rec.mode)} rates</th><th>verdict</th></tr>{body}</table>"
+        '<p class="small">Each quantity as <code>coupling/DEFINITIONS.md</code> defines it, the same rows as in '
+        "the agreement table below; <i>inside</i>: the PBM's value lies in the DEM's 95 % interval. The curves "
+        f"further down show the PBM with the {html.escape(rec.mode)} rates.</p></section>"
+    )
+
+
+# --- warnings ------------------------------------------------------------------------------
+
+#: how the DEM post-processing's bookkeeping checks of the solver's output read
+#: (:func:`dem.post.accounting`, the dump spacing): diagnostics of the DEM run, for the end
+#: of the page; its notes on the steady state and the RTD concern the comparison itself
+SOLVER_DIAGNOSTICS = (
+    "accounting:",
+    "discharge cross-check:",
+    "solver thermo counters",
+    "the last dump lists",
+    "particle-snapshots lie outside the vessel",
+    "particles are still in the dumps",
+    "pairs of consecutive dumps",
+    "atom types",
+    "particle-snapshots reappeared",
 )
+
+
+def split_warnings(warnings: tuple[str, ...] | list[str]) -> tuple[list[str], list[str]]:
+    """The DEM's warnings as (about the comparison's validity: the top of the page; solver
+    diagnostics: its end). A warning not known as a diagnostic stays at the top."""
+    diagnostics = [w for w in warnings if any(marker in w for marker in SOLVER_DIAGNOSTICS)]
+    return [w for w in warnings if w not in diagnostics], diagnostics
+
+
+# --- the page ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReportFile:
+    """A file the run wrote, linked from the page: ``href`` relative to the page."""
+
+    href: str
+    what: str
+
+
+def _img(src: str, alt: str, caption: str = "", wide: bool = False) -> str:
+    cls = ' class="wide"' if wide else ""
+    cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
+    return f'<figure{cls}><img src="{html.escape(src)}" alt="{html.escape(alt)}">{cap}</figure>'
+
+
+def files_html(files: list[ReportFile]) -> str:
+    """The "Files" section: one link per file the run wrote."""
+    body = "".join(
+        f'<tr><td><a href="{html.escape(f.href)}">{html.escape(f.href)}</a></td><td>{html.escape(f.what)}</td></tr>'
+        for f in files
+    )
+    return f'<h2 id="files">Files</h2><table><tr><th>file</th><th>what it holds</th></tr>{body}</table>'
 
 
 def render_html(
     title: str,
-    metrics: dict[str, Any],
+    *,
+    bottom_line: str,
+    agreement: str,
     figures: dict[str, str],
+    shown_mode: str,
+    metrics: dict[str, Any],
+    studies_mode: str = "velocity",
     provenance: dict[str, Any],
     studies: list[Study],
-    notes: list[str],
-    agreement: str = "",
+    notes: list[str] = (),
+    sections: list[str] = (),
+    files: list[ReportFile] = (),
+    diagnostics: list[str] = (),
 ) -> str:
-    """The report page. ``figures`` maps keys to PNG names beside the page; ``agreement``
-    is the HTML of :func:`agreement_html`."""
-    rows = "".join(
-        f"<tr><td>{label}</td><td>{fmt(metrics.get(d))}</td><td>{fmt(metrics.get(p))}</td></tr>"
-        for label, d, p in METRIC_ROWS
+    """The report page: ``notes`` on the comparison's validity, the ``bottom_line``
+    (:func:`bottom_line_html`), then the details: ``agreement`` (:func:`agreement_html`),
+    the curves of the DEM and of the PBM in ``shown_mode`` (``figures``: keys to PNG names
+    beside the page), further ``sections`` (HTML), the studies (run in ``studies_mode``), the cost (``metrics``'
+    wall times), the ``files``, the provenance and last the solver ``diagnostics``."""
+    mode_label = f"PBM, {shown_mode} rates"
+    panels = {
+        "rtd": f"Tagged RTD E(t) (paper Fig. 7), DEM and {mode_label}",
+        "rsd_axial": f"Raw RSD per axial slice at the end (Fig. 8a), DEM with its random-mixture floor and {mode_label}",
+        "rsd_time": f"Raw RSD across the outlet slice over time (Fig. 8b), DEM with its floor and {mode_label}",
+        "c_a": f"Fraction of A in the outflow, C_A, over time (Fig. 9), DEM and {mode_label}",
+        "outflow": f"Outflow rate over the weir over time (Fig. 10), DEM and {mode_label}",
+        "holdup": f"Hold-up in the blender over time, total and of A, DEM and {mode_label}",
+    }
+
+    def img(key: str, alt: str, caption: str = "", wide: bool = False) -> str:
+        return _img(figures[key], alt, caption, wide) if key in figures else ""
+
+    singles = " · ".join(
+        f'<a href="{html.escape(figures[k])}">{html.escape(figures[k])}</a>' for k in panels if k in figures
     )
-    derived = [
-        ("Relative difference of mean residence time (PBM − DEM)/DEM", metrics.get("mean_residence_time_rel_diff")),
-        ("RTD overlap 1 − ½∫|E_DEM − E_PBM| dt", metrics.get("rtd_overlap")),
-        ("Feed rate [1/s]", metrics.get("feed_rate_per_s")),
-        ("DEM random-mixture floor of the final outlet RSD", metrics.get("final_rsd_outlet_dem_floor")),
-        ("DEM random-mixture floor of the final whole-blender RSD", metrics.get("final_rsd_blender_dem_floor")),
-        ("PBM speed-up over DEM (wall time)", metrics.get("speedup_pbm_over_dem")),
-    ]
-    derived_rows = "".join(f"<tr><td>{label}</td><td colspan=2>{fmt(v)}</td></tr>" for label, v in derived)
-
-    def img(key: str, caption: str) -> str:
-        if key not in figures:
-            return ""
-        return f'<figure><img src="{html.escape(figures[key])}" alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
-
+    curves = (
+        img(
+            "overview",
+            f"Six panels, DEM against {mode_label}: " + "; ".join(panels.values()),
+            "",
+            wide=True,
+        )
+        + (f"<p>Each panel alone: {singles}.</p>" if singles else "")
+        + "<p><b>Raw RSD</b> (the figures' RSD): eq. 6 on each side's counts as they are. The PBM's expected "
+        "counts carry no sampling noise, so its raw RSD falls towards 0 while the DEM's stays at its "
+        "random-mixture floor (dotted); the like-for-like comparison is the outlet RSD of the table above, the "
+        "PBM sampled at the DEM's counts (<code>coupling/DEFINITIONS.md</code>). <b>Tagged RTD</b> (Fig. 7): the "
+        "paper's 1-s tag window, a second and noisier estimate; the table's RTD is the pooled one.</p>"
+    )
     study_html = ""
     for study in studies:
         header = "".join(f"<th>{html.escape(k)}</th>" for k in study.rows[0]) if study.rows else ""
@@ -389,15 +603,38 @@ def render_html(
         study_html += (
             f"<h3>{html.escape(study.title)}</h3><p>{html.escape(study.trend)}</p>"
             f"<table><tr>{header}</tr>{body}</table>"
-            f'<figure><img src="{html.escape(study.figure)}" alt="{html.escape(study.title)}"></figure>'
+            + _img(study.figure, f"{study.title} study with the PBM on the DEM's tables: {study.trend}")
         )
+    dem_s, pbm_s = metrics.get("dem_wall_time_s"), metrics.get("pbm_wall_time_s")
+    cost = (
+        f"<h2>Cost</h2><p>Wall time: DEM {fmt(dem_s)} s, {html.escape(mode_label)} {fmt(pbm_s)} s"
+        + (f" (the PBM {fmt(metrics.get('speedup_pbm_over_dem'))} times faster)" if dem_s and pbm_s else "")
+        + f"; feed {fmt(metrics.get('feed_rate_per_s'))} particles/s.</p>"
+    )
     prov_rows = "".join(
         f"<tr><td>{html.escape(k)}</td><td>{fmt(v) if not isinstance(v, dict) else '<pre>' + html.escape(json.dumps(v, indent=1)) + '</pre>'}</td></tr>"
         for k, v in provenance.items()
         if k != "config_toml"
     )
     config_block = f"<details><summary>Resolved configuration</summary><pre>{html.escape(provenance.get('config_toml', ''))}</pre></details>"
-    note_html = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
+    pointer = (
+        [
+            f'The DEM run\'s bookkeeping raised {len(diagnostics)} <a href="#diagnostics">solver diagnostics</a>, '
+            "listed at the end."
+        ]
+        if diagnostics
+        else []
+    )
+    items = [html.escape(n) for n in notes] + pointer
+    note_html = f'<ul class="notes">{"".join(f"<li>{n}</li>" for n in items)}</ul>' if items else ""
+    diagnostics_html = (
+        "<h2 id=\"diagnostics\">Solver diagnostics</h2><p>The DEM post-processing's checks of the solver's "
+        "bookkeeping: particle accounting, thermo counters, dump spacing (<code>dem/post.py</code>).</p><ul>"
+        + "".join(f"<li>{html.escape(d)}</li>" for d in diagnostics)
+        + "</ul>"
+        if diagnostics
+        else ""
+    )
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>
@@ -405,30 +642,31 @@ body {{ font-family: sans-serif; max-width: 1100px; margin: 2em auto; color: #22
 table {{ border-collapse: collapse; margin: 1em 0; }}
 td, th {{ border: 1px solid #ccc; padding: 0.3em 0.7em; text-align: left; }}
 figure {{ display: inline-block; margin: 0.5em; width: 47%; vertical-align: top; }}
+figure.wide {{ display: block; width: 100%; margin: 0.5em 0; }}
 figure img {{ width: 100%; }}
 figcaption {{ font-size: 0.9em; color: #555; }}
 .notes li {{ color: #8a4b00; }}
+.verdict {{ font-size: 1.15em; }}
+.small {{ font-size: 0.9em; color: #555; }}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
-<ul class="notes">{note_html}</ul>
-<h2>Agreement: each PBM rate mode against the DEM's 95 % intervals</h2>
+{note_html}
+{bottom_line}
+<h2 id="details">Agreement: each PBM rate mode against the DEM's 95 % intervals</h2>
 {agreement}
-{img("rtd_pooled", "Pooled RTD: DEM and both PBM rate modes")}
-{img("holdup_profile", "Steady hold-up along the blender")}
-<h2>Metrics (PBM with the paper's velocity rates; RTD from the paper's 1-s tag window)</h2>
-<table><tr><th>quantity</th><th>DEM</th><th>PBM</th></tr>{rows}{derived_rows}</table>
-<h2>DEM and PBM side by side</h2>
-{img("geometry", "Blender geometry (impeller, weir)")}
-{img("rtd", "RTD E(t) (paper Fig. 7)")}
-{img("rsd_axial", "RSD vs axial position at the end (Fig. 8a)")}
-{img("rsd_time", "RSD vs time at the outlet (Fig. 8b)")}
-{img("c_a", "C_A vs time (Fig. 9)")}
-{img("outflow", "Outflow rate vs time (Fig. 10)")}
-{img("holdup", "Hold-up vs time")}
-<h2>Studies with the PBM on the DEM's tables (paper Figs 3-6)</h2>
+{img("rtd_pooled", "Pooled RTD: the DEM's histogram against each PBM rate mode's density on the same bins", "Pooled RTD: DEM and every PBM rate mode")}
+{img("holdup_profile", "Steady hold-up per axial slice: the DEM's means with 95 % intervals against each PBM rate mode", "Steady hold-up along the blender")}
+<h2>DEM and {html.escape(mode_label)} over time (paper Figs 7-10)</h2>
+{curves}
+{img("geometry", "The blender: barrel, impeller blades and weir, as the DEM deck builds them", "Blender geometry (impeller, weir)")}
+{"".join(sections)}
+<h2>Studies with the PBM on the DEM's tables, {html.escape(studies_mode)} rates as configured (paper Figs 3-6)</h2>
 {study_html}
+{cost}
+{files_html(list(files)) if files else ""}
 <h2>Provenance</h2>
 <table>{prov_rows}</table>
 {config_block}
+{diagnostics_html}
 </body></html>
 """

@@ -77,7 +77,13 @@ def memory_html(check: MemoryCheck, figure: str | None) -> str:
         f"<th>CK max z</th><th>CK max |error|</th><th>CK</th></tr>{rows}</table>"
     )
     if figure:
-        out += f'<figure><img src="{html.escape(figure)}" alt="Chapman-Kolmogorov test"></figure>'
+        # full width: three panels side by side are unreadable at half the page
+        out += (
+            f'<figure class="wide"><img src="{html.escape(figure)}" alt="Chapman-Kolmogorov test: from the '
+            "first, middle and last slice, the probability of being still in that slice and of having been "
+            "discharged after each lag, the DEM's observed values with two standard errors against each "
+            'chain\'s prediction" style="width:100%"></figure>'
+        )
     out += _sizes_html(check)
     held = check.out_of_sample
     if held is None:

@@ -76,7 +76,8 @@ def prediction_html(prediction: Prediction, config_name: str, figure: str | None
         )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
     image = (
-        f'<img src="{figure}" alt="Predicted RTD and hold-up profile with their 95 % bands" width="900">'
+        f'<img src="{html.escape(figure)}" alt="Predicted residence-time distribution and steady hold-up per axial '
+        'slice, each with its 95 % prediction band" width="900">'
         if figure
         else ""
     )

@@ -80,5 +80,8 @@ def step_html(comparison: StepComparison, figure: str | None) -> str:
         )
     parts.append("</table>")
     if figure:
-        parts.append(f"<p><img src='{figure}' style='max-width:100%'></p>")
+        parts.append(
+            f'<p><img src="{html.escape(figure)}" alt="Outlet C_A after the feed step: the DEM per interval '
+            'with its 95 % binomial range against every PBM" style="max-width:100%"></p>'
+        )
     return "\n".join(parts)

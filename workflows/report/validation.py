@@ -39,6 +39,15 @@ PARITY = (
 )
 
 
+#: the alt text of the verdict figures
+FIGURE_ALT = {
+    "parity": "Parity plots, one per quantity: each run's PBM prediction against its DEM value with the DEM's "
+    "95 % interval, by source of the prediction and rate mode; on the diagonal a prediction is exact",
+    "profiles": "Steady hold-up per axial slice for each run: the DEM with its 95 % band against the PBM "
+    "from each source and rate mode",
+}
+
+
 def plot_parity(preds: list[Prediction], path: Path) -> None:
     """Predicted against DEM, one panel per quantity, the DEM's 95 % interval as error bars."""
     fig = Figure(figsize=(13, 6.5), layout="constrained")
@@ -191,14 +200,18 @@ def render_report(
     parts.append("</table>")
     if law:
         parts.extend(_law_section(law))
-    for name in ("parity", "profiles"):
+    for name, alt in FIGURE_ALT.items():
         if name in figures:
-            parts.append(f"<p><img src='{figures[name]}' style='max-width:100%'></p>")
+            parts.append(
+                f'<p><img src="{html.escape(figures[name])}" alt="{html.escape(alt)}" style="max-width:100%"></p>'
+            )
     if budget is not None:
         parts.extend(_budget_section(budget, figures))
     if step_section:
         parts.append(step_section)
     parts.extend(_numbers_section(judged))
+    links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(name)}</a>' for name in figures.values())
+    parts.append(f'<h2>Files</h2><p><a href="summary.json">summary.json</a> (every number of this page) · {links}</p>')
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -240,7 +253,13 @@ def _budget_section(budget: BudgetStudy, figures: dict[str, str]) -> list[str]:
         parts.append(f"<tr><td>{mode}</td><td>{fmt(t_s)}</td><td>{fmt(fraction, 2)}</td><td>{fmt(other)}</td></tr>")
     parts.append("</table>")
     if "budget" in figures:
-        parts.append(f"<p><img src='{figures['budget']}' style='max-width:100%'></p>")
+        alt = (
+            "For each rate mode, the distance of each quantity of the PBM built from the DEM's first T seconds "
+            "from the PBM built from the whole run, in half-widths of the DEM's interval, against T"
+        )
+        parts.append(
+            f'<p><img src="{html.escape(figures["budget"])}" alt="{html.escape(alt)}" style="max-width:100%"></p>'
+        )
     return parts
 
 

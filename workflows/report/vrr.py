@@ -153,7 +153,11 @@ def vrr_html(c: VrrComparison, figure: str | None = None) -> str:
             )
     parts.append("</table>")
     if figure:
-        parts.append(f"<p><img src='{figure}' style='max-width:100%'></p>")
+        parts.append(
+            f'<p><img src="{html.escape(figure)}" alt="Variance reduction ratio against frequency for each '
+            "feeder: the DEM's estimate with its 95 % band and each PBM rate mode, and each divided by the "
+            'DEM\'s" style="max-width:100%"></p>'
+        )
     return "\n".join(parts)
 
 

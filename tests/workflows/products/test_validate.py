@@ -164,6 +164,7 @@ def test_judge_lists_quantities_missing_on_either_side():
 def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path):
     import json
 
+    from tests.workflows.report.html_pages import broken
     from workflows.products.validate import validation_report
     from workflows.shipped import VALIDATION_DIR as REFERENCE_DIR
 
@@ -203,6 +204,8 @@ def test_the_report_rebuilds_from_the_shipped_campaign_without_liggghts(tmp_path
     assert {"velocity", "measured"} <= summary["dem_budget"]["smallest_T"].keys() <= set(MODES)
     for name in ("parity.png", "profiles.png", "budget.png"):
         assert (page.parent / name).stat().st_size > 10_000
+    # every figure shown with alt text, every link to a file beside the page
+    assert broken(page) == []
 
 
 def test_campaign_span_counts_side_by_side_runs_once_and_skips_the_days_between():

@@ -80,14 +80,25 @@ def test_report_writes_figures_and_page(tmp_path, rng):
     for name in figures.values():
         assert (tmp_path / name).stat().st_size > 5000
     study = Study("Blender length", "length_m", "rtd.png", "RSD falls with length", [{"length_m": 0.33, "rsd": 0.1}])
-    page = render_html("smoke", metrics, figures, {"input_hash": "abc", "config_toml": "x = 1"}, [study], ["a note"])
-    assert (
-        'src="rtd.png"' in page
-        and "Blender length" in page
-        and page.count('src="rtd.png"') == 2
-        and "a note" in page
-        and "abc" in page
+    page = render_html(
+        "smoke",
+        bottom_line='<section id="bottom-line">the bottom line</section>',
+        agreement="the agreement table",
+        figures=figures,
+        shown_mode="measured",
+        metrics=metrics,
+        provenance={"input_hash": "abc", "config_toml": "x = 1"},
+        studies=[study],
+        notes=["a note"],
+        diagnostics=["solver thermo counters are at step 5"],
     )
+    # the overview shown, each panel linked; the study's figure shown
+    assert 'src="overview.png"' in page and 'href="rtd.png"' in page and page.count('src="rtd.png"') == 1
+    assert "Blender length" in page and "abc" in page and "PBM, measured rates" in page
+    # the note on top, the bottom line before the details, the diagnostics last
+    order = [page.index(s) for s in ("a note", "the bottom line", 'id="details"', "Provenance", "thermo counters")]
+    assert order == sorted(order)
+    assert "2000 times faster" in page
 
 
 def test_side_results_requires_every_column(rng):
