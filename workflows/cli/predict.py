@@ -37,6 +37,10 @@ def run(args: argparse.Namespace) -> int:
     for q in prediction.quantities:
         interval = "-" if not math.isfinite(q.low) else f"[{q.low:.4g}, {q.high:.4g}]"
         print(f"{q.key:32s} {q.value:11.4g}  {interval}")
+    d = output.dynamics
+    print(f"{'VRR, feeder A white noise':32s} {d.vrr.value:11.4g}  [{d.vrr.low:.4g}, {d.vrr.high:.4g}]")
+    delay = d.mean_delay_s
+    print(f"{'step A x2: mean delay [s]':32s} {delay.value:11.4g}  [{delay.low:.4g}, {delay.high:.4g}]")
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")
     print(f"({output.wall_time_s:.2f} s)")

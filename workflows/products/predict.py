@@ -2,7 +2,9 @@
 
 ``predict`` reads a configuration and a library model and writes, into its output folder:
 ``prediction.json`` (one ``{key, value, low, high}`` per quantity of the comparison's
-agreement table, with the point, the domain and each interval's parts), ``table.h5`` (the
+agreement table, with the point, the domain and each interval's parts; under ``dynamics``
+the VRR of feeder A's white noise and the outlet's answer to feeder A's rate doubled, each
+with its interval, :func:`workflows.prediction.design.point_dynamics`), ``table.h5`` (the
 PBM's table at the point: ``pbmdem pbm run --tables`` runs it), ``prediction.png`` and
 ``report.html``.
 """
@@ -19,6 +21,7 @@ from coupling.jsonable import write_json
 from coupling.tables import write_table
 from dem.operating import operating_point
 from workflows.config import load_config
+from workflows.prediction.design import Dynamics, Noise, point_dynamics, surrogate
 from workflows.prediction.library import load_model
 from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
 from workflows.shipped import LIBRARY_MODEL
@@ -27,11 +30,12 @@ from workflows.shipped import LIBRARY_MODEL
 @dataclass(frozen=True)
 class PredictOutput:
     prediction: Prediction
+    dynamics: Dynamics
     files: dict[str, Path]
     wall_time_s: float
 
 
-def prediction_record(prediction: Prediction, config_name: str, library: Path) -> dict[str, Any]:
+def prediction_record(prediction: Prediction, dynamics: Dynamics, config_name: str, library: Path) -> dict[str, Any]:
     return {
         "config": config_name,
         "library": str(library),
@@ -44,6 +48,7 @@ def prediction_record(prediction: Prediction, config_name: str, library: Path) -
         "grid": [prediction.values.model.nx, prediction.values.model.ny],
         "quantities": [q.record() for q in prediction.quantities],
         "interval_parts": {q.key: q.details() for q in prediction.quantities},
+        "dynamics": dynamics.record(),
     }
 
 
@@ -62,24 +67,27 @@ def run_predict(
     model = load_model(library_path)
     point = operating_point(config.dem)
     prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
+    dynamics = point_dynamics(surrogate(model, extrapolate), point, Noise())
     folder = writable_directory(out, "--out")
     duration = config.dem.operation.duration_s
     files = {
         "prediction": write_json(
-            folder / "prediction.json", prediction_record(prediction, config.name or str(config_path), library_path)
+            folder / "prediction.json",
+            prediction_record(prediction, dynamics, config.name or str(config_path), library_path),
         ),
         "table": write_table(folder / "table.h5", point_table(prediction.values, point, duration)),
     }
     if figures:
         from workflows.report.prediction import plot_prediction, prediction_html
 
-        files["figure"] = plot_prediction(prediction, folder / "prediction.png")
+        files["figure"] = plot_prediction(prediction, dynamics, folder / "prediction.png")
         page = prediction_html(
             prediction,
+            dynamics,
             config.name or str(config_path),
             files["figure"].name,
             {"prediction.json": "prediction.json", "PBM table (HDF5)": "table.h5"},
         )
         files["report"] = folder / "report.html"
         files["report"].write_text(page)
-    return PredictOutput(prediction, files, time.perf_counter() - started)
+    return PredictOutput(prediction, dynamics, files, time.perf_counter() - started)

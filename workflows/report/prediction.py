@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from workflows.prediction.design import Dynamics
 from workflows.prediction.library import AXIAL_SLICES, SCALAR_KEYS, slice_key
 from workflows.prediction.predict import Prediction
 
@@ -25,11 +26,12 @@ LABELS = {
 }
 
 
-def plot_prediction(prediction: Prediction, path: Path) -> Path:
-    """Two panels: E(t) of the corrected chain with the band of its mean's interval, and
-    each slice's hold-up with its prediction interval."""
-    fig = Figure(figsize=(10, 4), layout="constrained")
-    left, right = fig.subplots(1, 2)
+def plot_prediction(prediction: Prediction, dynamics: Dynamics, path: Path) -> Path:
+    """Three panels: E(t) of the corrected chain with the band of its mean's interval, each
+    slice's hold-up with its prediction interval, and the outlet's answer to a step in
+    feeder A with its band."""
+    fig = Figure(figsize=(14, 4), layout="constrained")
+    left, right, step = fig.subplots(1, 3)
     t = prediction.rtd_times_s
     left.fill_between(
         t, prediction.rtd[1], prediction.rtd[2], color="#9ecae1", label="at the ends of the mean's interval"
@@ -49,6 +51,15 @@ def plot_prediction(prediction: Prediction, path: Path) -> Path:
     right.set(xlabel="axial slice (inlet to weir)", ylabel="steady hold-up [particles]", title="Hold-up profile")
     right.set_ylim(bottom=0)
     right.legend(fontsize=8)
+    t = dynamics.times_s
+    step.fill_between(t, dynamics.step[1], dynamics.step[2], color="#bcbddc", label="95 % band")
+    step.plot(t, dynamics.step[0], color="#54278f", lw=1.5, label="predicted")
+    step.set(
+        xlabel="time after the step [s]",
+        ylabel="outlet C_A",
+        title=f"Feeder A's rate x{dynamics.step_factor:g} at t = 0",
+    )
+    step.legend(fontsize=8)
     fig.savefig(path, dpi=110)
     return path
 
@@ -57,7 +68,9 @@ def _number(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{value:.4g}"
 
 
-def prediction_html(prediction: Prediction, config_name: str, figure: str | None, files: dict[str, str]) -> str:
+def prediction_html(
+    prediction: Prediction, dynamics: Dynamics, config_name: str, figure: str | None, files: dict[str, str]
+) -> str:
     p = prediction.point
     rows = []
     for q in prediction.quantities:
@@ -65,6 +78,19 @@ def prediction_html(prediction: Prediction, config_name: str, figure: str | None
         rows.append(
             f"<tr><td>{html.escape(label)}</td><td><code>{q.key}</code></td><td>{_number(q.value)}</td>"
             f"<td>[{_number(q.low)}, {_number(q.high)}]</td><td>{html.escape(unit)}</td></tr>"
+        )
+    for label, key, band, unit in (
+        ("VRR of feeder A's white noise (0.5 Hz band)", "dynamics.vrr", dynamics.vrr, "-"),
+        (
+            f"mean delay after feeder A's rate x{dynamics.step_factor:g}",
+            "dynamics.mean_delay_s",
+            dynamics.mean_delay_s,
+            "s",
+        ),
+    ):
+        rows.append(
+            f"<tr><td>{html.escape(label)}</td><td><code>{key}</code></td><td>{_number(band.value)}</td>"
+            f"<td>[{_number(band.low)}, {_number(band.high)}]</td><td>{unit}</td></tr>"
         )
     warning = ""
     if prediction.extrapolated:
@@ -76,8 +102,8 @@ def prediction_html(prediction: Prediction, config_name: str, figure: str | None
         )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
     image = (
-        f'<img src="{html.escape(figure)}" alt="Predicted residence-time distribution and steady hold-up per axial '
-        'slice, each with its 95 % prediction band" width="900">'
+        f'<img src="{html.escape(figure)}" alt="Predicted residence-time distribution, steady hold-up per axial '
+        'slice and the outlet C_A after a step in feeder A, each with its 95 % band" width="950">'
         if figure
         else ""
     )
@@ -99,7 +125,8 @@ From the library's law (no DEM run at this point): {html.escape(headline)}.</p>
 over the operating point). The interval is where a DEM run at this point would put its value, 95 % of the
 time: the scatter of the DEM about that line (seeds included) and the line's own uncertainty at this point,
 which grows away from the runs; checked on every library run left out (<code>calibration.md</code> beside
-the library).</p>
+the library). The VRR and the step's mean delay are those of the predicted chain, whose time scale alone
+is uncertain: their intervals are the chain stretched to the mean residence time's interval ends.</p>
 <table><tr><th>quantity</th><th>key</th><th>predicted</th><th>95 % interval</th><th>unit</th></tr>
 {"".join(rows)}</table>
 <p>Files: {links}</p>

@@ -49,6 +49,20 @@ def test_predict_writes_every_quantity_a_table_and_a_page(library, tmp_path, cap
     page = (tmp_path / "report.html").read_text()
     assert 'src="prediction.png"' in page and (tmp_path / "prediction.png").stat().st_size > 0
     assert "holdup_slice_10" in capsys.readouterr().out
+    # the feeders' answer: a band about each value, the step from the feed's C_A to the doubled A's
+    dynamics = record["dynamics"]
+    for band in (dynamics["vrr"], dynamics["mean_delay_s"]):
+        assert band["low"] <= band["value"] <= band["high"]
+    c0, c1 = dynamics["ca_before_after"]
+    assert c1 == pytest.approx(2 * c0 / (2 * c0 + 1 - c0))
+    step = dynamics["step_ca"]
+    assert step["value"][0] == pytest.approx(c0) and step["value"][-1] == pytest.approx(c1, abs=2e-3)
+    assert all(lo <= v <= hi for lo, v, hi in zip(step["low"], step["value"], step["high"], strict=True))
+    # the chain's time scale is the predicted residence time's: a stretch to the interval's
+    # ends moves the step's mean delay by the same factor
+    mrt = next(q for q in record["quantities"] if q["key"] == "mean_residence_time_s")
+    delay = dynamics["mean_delay_s"]
+    assert delay["high"] / delay["value"] == pytest.approx(mrt["high"] / mrt["value"], rel=2e-2)
 
 
 def test_a_point_outside_the_domain_is_refused_in_one_line_and_labelled_when_extrapolated(library, tmp_path, capsys):
