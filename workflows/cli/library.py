@@ -1,7 +1,9 @@
 """``pbmdem library fit [--results FILE...] [--out DIR]``: the law of a DEM library, its
 laws with each run left out, the intervals calibrated on them and checked
 (:mod:`workflows.products.predict`). ``pbmdem library check --results FILE...``: DEM runs
-the library does not hold, predicted by its law and judged against their DEM."""
+the library does not hold, predicted by its law and judged against their DEM.
+``pbmdem library suggest``: the next DEM run that most narrows the intervals, as a
+configuration. ``pbmdem library add RESULTS.h5...``: the library refitted with more runs."""
 
 from __future__ import annotations
 
@@ -63,6 +65,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     check.add_argument("--out", default=None, help="write check.json and check.md into this folder")
     check.set_defaults(func=check_command)
 
+    suggest = sub.add_parser(
+        "suggest", help="the next DEM run that most narrows the prediction intervals, as a configuration"
+    )
+    suggest.add_argument(
+        "--library", default=None, help="a library model (library.json or its folder; default: the shipped one)"
+    )
+    suggest.add_argument(
+        "--region",
+        default=None,
+        help="where the intervals matter, e.g. speed=200:300,length=0.33:0.41,feed=60:110 (rpm, m, particles/s; "
+        "default: the library's whole domain)",
+    )
+    suggest.add_argument(
+        "--extend",
+        type=float,
+        default=0.0,
+        help="candidates also beyond the domain's edges, by this fraction of each axis' width (default: %(default)s)",
+    )
+    suggest.add_argument(
+        "--base",
+        default=None,
+        help="configuration to build the run from (default: the library's run nearest its centre)",
+    )
+    suggest.add_argument("--top", type=int, default=5, help="candidates to list (default: %(default)s)")
+    suggest.add_argument(
+        "--out", default="results/suggest", help="folder of suggest.toml, .json and .md (default: %(default)s)"
+    )
+    suggest.set_defaults(func=suggest_command)
+
+    add = sub.add_parser("add", help="add DEM results to a library and refit it (its cached fits reused)")
+    add.add_argument("results", nargs="+", metavar="RESULTS.h5", help="DEM results files with compartment sequences")
+    add.add_argument(
+        "--library",
+        default="results/library",
+        help="the library's folder, made by `library fit` (default: %(default)s)",
+    )
+    add.set_defaults(func=add_command)
+
 
 def fit_command(args: argparse.Namespace) -> int:
     from workflows.prediction import calibration
@@ -85,6 +125,35 @@ def check_command(args: argparse.Namespace) -> int:
 
     output = library_check(args.results, args.library, args.extrapolate, args.out)
     print(output.text)
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
+    return 0
+
+
+def suggest_command(args: argparse.Namespace) -> int:
+    from coupling.errors import ConfigError
+    from workflows.products.library import library_suggest
+
+    if args.top < 1:
+        raise ConfigError(f"--top {args.top}: list at least 1 candidate")
+    output = library_suggest(args.library, args.out, args.region, args.extend, args.base, args.top)
+    for n, s in enumerate(output.suggestions, 1):
+        print(
+            f"{n}. {s.speed:.4g} rpm, {s.length:.4g} m, {s.feed:.4g} particles/s: expected to lower the "
+            f"criterion by {s.relative_reduction:.1%}" + (" (outside the domain)" if s.outside_domain else "")
+        )
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
+    return 0
+
+
+def add_command(args: argparse.Namespace) -> int:
+    from workflows.prediction import calibration
+    from workflows.products.library import library_add
+
+    output = library_add(args.results, args.library)
+    print(calibration.markdown(output.model, output.check))
+    print(f"added {len(output.added)} run(s): {', '.join(p.name for p in output.added)}")
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")
     return 0
