@@ -309,7 +309,9 @@ def residual(key: str, dem: float, predicted: float) -> float:
 
 def shifted(key: str, value: float, shift: float) -> float:
     """``value`` moved by ``shift`` on ``key``'s scale."""
-    return value + shift if key in ABSOLUTE_KEYS else value * math.exp(shift)
+    if key in ABSOLUTE_KEYS:
+        return value + shift
+    return value * math.exp(shift) if shift < 700.0 else math.copysign(math.inf, value)  # past exp's float range
 
 
 def bounds(key: str, value: float, half: float) -> tuple[float, float]:

@@ -338,6 +338,10 @@ class Suggestion:
     reductions: tuple[Reduction, ...]
     region: Region
     outside_domain: bool
+    #: the correction covariates the library identifies once it holds this run: its
+    #: intervals are then those of the larger form, which may be wider where the new
+    #: coefficient is uncertain (the residuals' spread is taken as it is now)
+    gains: tuple[str, ...] = ()
 
     @property
     def relative_reduction(self) -> float:
@@ -354,6 +358,7 @@ class Suggestion:
             "reductions": [r.record() for r in self.reductions],
             "region": self.region.record(),
             "outside_domain": self.outside_domain,
+            "gains": list(self.gains),
         }
 
 
@@ -391,6 +396,14 @@ def rank(
             continue
         now[q.key] = half_widths(line, region_terms)
         after[q.key] = _after_widths(line, q.points, names, [c.point for c in candidates], cand_terms, region_terms)
+    gains = [()] * len(candidates)
+    widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
+    line = fit_correction(widest.points, widest.residuals, names)
+    if tuple(line.names) != tuple(names):
+        gains = [
+            tuple(n for n in after_run(line, widest.points, names, c.point).names if n not in line.names)
+            for c in candidates
+        ]
     score_now = float(criterion(now))
     scores = criterion(after)
     order = np.argsort(scores, kind="stable")
@@ -413,6 +426,7 @@ def rank(
                 reductions,
                 region,
                 outside,
+                gains[c],
             )
         )
     return out

@@ -41,6 +41,7 @@ from workflows.prediction.library import (
     LibraryModel,
     file_digest,
     fit_library,
+    library_run,
     load_model,
     load_runs,
     run_covariates,
@@ -162,7 +163,13 @@ def library_add(paths: list[str], library: str | Path, log: Log = stderr_log) ->
             if k in FitSettings.__dataclass_fields__
         }
     )
-    load_runs(added + [held[0], held[-1]], settings)  # readable and of the library's pattern, before the long fit
+    for path in added:  # readable, with sequences and a steady state, before the long fit
+        run = library_run(path, settings.covariates)
+        if run.blade_pattern != model.blade_pattern:
+            raise ConfigError(
+                f"{path}: blade pattern {run.blade_pattern!r}, the library's is {model.blade_pattern!r}: "
+                "one library needs one pattern"
+            )
     output = library_fit([*map(str, held), *map(str, added)], folder, settings, log)
     return LibraryAddOutput(output.model, output.check, tuple(added), output.files)
 
@@ -256,15 +263,21 @@ def _suggest_markdown(ranked: list[Suggestion], base: str, mean: float, duration
         "",
         f"Suggested run: {best.speed:.4g} rpm, {best.length:.4g} m, {best.feed:.4g} particles/s"
         + (" (outside the library's domain)" if best.outside_domain else "")
+        + (
+            f" With it the correction gains {', '.join(best.gains)}: its intervals are then the larger form's, "
+            "wider where the new coefficient is uncertain (the residuals' spread taken as it is now)"
+            if best.gains
+            else ""
+        )
         + f", from {base}, {duration:g} s (predicted mean residence time {mean:.3g} s).",
         "",
-        "| rank | rpm | length [m] | feed [/s] | criterion after | expected reduction |",
+        "| rank | rpm | length [m] | feed [/s] | criterion after | expected change |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
     for n, s in enumerate(ranked, 1):
         lines.append(
             f"| {n} | {s.speed:.4g} | {s.length:.4g} | {s.feed:.4g} | {s.criterion_after:.3g} | "
-            f"{s.relative_reduction:.1%} |"
+            f"{-s.relative_reduction:+.1%} |"
         )
     lines += [
         "",
