@@ -138,11 +138,11 @@ def suggest_command(args: argparse.Namespace) -> int:
         raise ConfigError(f"--top {args.top}: list at least 1 candidate")
     output = library_suggest(args.library, args.out, args.region, args.extend, args.base, args.top)
     for n, s in enumerate(output.suggestions, 1):
-        notes = [" outside the domain"] if s.outside_domain else []
-        notes += [f" the correction gains {', '.join(s.gains)}"] if s.gains else []
+        notes = ["outside the domain"] if s.outside_domain else []
+        notes += [f"the correction gains {', '.join(s.gains)}"] if s.gains else []
         print(
             f"{n}. {s.speed:.4g} rpm, {s.length:.4g} m, {s.feed:.4g} particles/s: criterion {s.criterion_now:.3g} -> "
-            f"{s.criterion_after:.3g} ({-s.relative_reduction:+.1%})" + (f" ({';'.join(notes)})" if notes else "")
+            f"{s.criterion_after:.3g} ({-s.relative_reduction:+.1%})" + (f" ({'; '.join(notes)})" if notes else "")
         )
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")
