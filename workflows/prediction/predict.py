@@ -311,7 +311,7 @@ def shifted(key: str, value: float, shift: float) -> float:
     """``value`` moved by ``shift`` on ``key``'s scale."""
     if key in ABSOLUTE_KEYS:
         return value + shift
-    return value * math.exp(shift) if shift < 700.0 else math.copysign(math.inf, value)  # past exp's float range
+    return math.copysign(math.inf, value) if shift > 700.0 else value * math.exp(shift)  # past exp's range
 
 
 def bounds(key: str, value: float, half: float) -> tuple[float, float]:
