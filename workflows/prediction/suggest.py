@@ -240,12 +240,13 @@ class Quantity:
         return Quantity(self.key, tuple(p for p, _ in keep), tuple(r for _, r in keep))
 
 
-def _terms(points: Sequence[OperatingPoint]) -> np.ndarray:
+def covariate_terms(points: Sequence[OperatingPoint]) -> np.ndarray:
     """(N, 1 + len(CORRECTION_TERMS)) every correction covariate of each point."""
     return np.array([correction_row(p, CORRECTION_TERMS) for p in points]).reshape(len(points), -1)
 
 
-def _columns(names: Sequence[str]) -> list[int]:
+def term_columns(names: Sequence[str]) -> list[int]:
+    """The columns of :func:`covariate_terms` that a line in ``names`` uses, the constant first."""
     return [0] + [1 + CORRECTION_TERMS.index(n) for n in names]
 
 
@@ -255,8 +256,8 @@ def _t(dof: int) -> float:
 
 def half_widths(line: Correction, terms: np.ndarray) -> np.ndarray:
     """The half-width of ``line``'s interval (:meth:`Correction.at`) at each row of
-    ``terms`` (:func:`_terms` of the points)."""
-    x = terms[:, _columns(line.names)]
+    ``terms`` (:func:`covariate_terms` of the points)."""
+    x = terms[:, term_columns(line.names)]
     leverage = np.einsum("ij,jk,ik->i", x, line.inverse, x)
     return _t(line.dof) * np.sqrt(line.variance * (1.0 + leverage))
 
@@ -283,7 +284,7 @@ def _after_widths(
     (A'A + x x')^-1 follows from Sherman-Morrison; otherwise the form is rebuilt
     (:func:`after_run`)."""
     if tuple(line.names) == tuple(names) and len(points) >= len(names) + 1:
-        cols = _columns(names)
+        cols = term_columns(names)
         xr, xc, m = region_terms[:, cols], cand_terms[:, cols], line.inverse
         lev_r = np.einsum("ij,jk,ik->i", xr, m, xr)
         lev_c = np.einsum("ij,jk,ik->i", xc, m, xc)
@@ -383,8 +384,8 @@ def rank(
     ``domain`` the library's (to label candidates outside it)."""
     if not candidates or not region_points:
         raise ConfigError("no candidate or no region point to rank")
-    region_terms = _terms(region_points)
-    cand_terms = _terms([c.point for c in candidates])
+    region_terms = covariate_terms(region_points)
+    cand_terms = covariate_terms([c.point for c in candidates])
     now: dict[str, np.ndarray] = {}
     after: dict[str, np.ndarray] = {}
     for q in quantities:
