@@ -18,6 +18,16 @@ the slices, then over the four targets (:func:`criterion`). The candidate that l
 most is suggested (:func:`rank`); its expected reduction is reported per quantity as the
 median half-width over the region now and after the run (the targets are medians).
 
+The line's leverage alone falls most where the runs reach the domain's ends, so on it
+alone the rule piles run after run onto the corners. Where the line misses a curvature
+(the shipped runs' spread about it is 2-10 times the DEM's scatter between seeds), that
+curvature is largest there: the spread the runs measure, and every interval, come out
+wider than the line's misses over the domain (``pbmdem study suggest``). When the library
+measures its seed scatter (replicate runs), each squared half-width is therefore taken
+with t^2 times the expected squared bias of the line at the point under a quadratic
+discrepancy of the size the excess spread implies (:func:`_bias`): a mean squared error,
+least where the runs' moments match the region's.
+
 The region is the library's domain (each of speed, length and feed between its runs'
 least and greatest) or a part of it (:func:`parse_region`); the candidates a grid over the
 domain, optionally widened beyond its edges (:func:`widened`). A candidate of another
@@ -40,7 +50,7 @@ from coupling.errors import ConfigError
 from coupling.operating import OperatingPoint
 from dem.operating import operating_point
 from workflows.config import Config, config_from_dict
-from workflows.prediction.calibration import USEFUL_HALF_WIDTH
+from workflows.prediction.calibration import USEFUL_HALF_WIDTH, seed_scatter
 from workflows.prediction.library import (
     AXIAL_SLICES,
     CORRECTION_TERMS,
@@ -294,6 +304,67 @@ def _after_widths(
     return np.array([half_widths(after_run(line, points, names, c), region_terms) for c in candidates])
 
 
+def potential_terms(terms: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(N, 6) the potential terms at the rows ``terms`` (:func:`covariate_terms`): the
+    squares and products of log speed, log length and log feed, each scaled to -1..1 over
+    the rows ``reference``, less their least-squares line in the three over ``reference``,
+    and scaled to a range of 1 there (the convention of DuMouchel and Jones' potential
+    terms, Technometrics 36 (1994) 37-47)."""
+    cols = term_columns(("speed", "length", "feed"))[1:]
+    low, high = reference[:, cols].min(axis=0), reference[:, cols].max(axis=0)
+    width = np.where(high > low, high - low, 1.0)
+
+    def quadratic(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = 2 * (rows[:, cols] - low) / width - 1
+        a, b, c = u.T
+        z = np.column_stack([a * a, b * b, c * c, a * b, a * c, b * c])
+        return z, np.column_stack([np.ones(len(rows)), u])
+
+    z_ref, x_ref = quadratic(reference)
+    beta = np.linalg.lstsq(x_ref, z_ref, rcond=None)[0]
+    rest = z_ref - x_ref @ beta
+    spread = rest.max(axis=0) - rest.min(axis=0)
+    spread = np.where(spread > 1e-12, spread, 1.0)
+    z, x = quadratic(terms)
+    return (z - x @ beta) / spread
+
+
+def _bias(
+    line: Correction, run_terms: np.ndarray, cand_terms: np.ndarray, region_terms: np.ndarray, pure_sd: float | None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The expected squared bias of the line at the region's points, now (R,) and after a
+    run at each candidate (C, R), on the quantity's scale; None when it is not estimable.
+
+    The line's residual variance is the DEM's scatter between seeds (``pure_sd``, from
+    replicate runs) plus what the line cannot follow. Taken as a quadratic discrepancy
+    (:func:`potential_terms` Z over the region, each coefficient of variance v), the line
+    fitted to the runs misses it at a region point r by (z_r - B'x_r) gamma, B = (X'X)^-1
+    X'Z of the runs, of expected square v |z_r - B'x_r|^2; v follows from the spread now:
+    s^2 = pure_sd^2 + v tr(Z'(I - H)Z) / (n - p). This bias is least where the runs' moments
+    match the region's (Box and Draper's all-bias designs): without it the rule piles every
+    run onto the domain's ends, where a curvature is largest, and the intervals measured
+    there are wider than the line's misses over the domain."""
+    if pure_sd is None or not pure_sd > 0 or line.variance <= pure_sd**2:
+        return None
+    cols = term_columns(line.names)
+    x, z = run_terms[:, cols], potential_terms(run_terms, region_terms)
+    xc, zc = cand_terms[:, cols], potential_terms(cand_terms, region_terms)
+    xr, zr = region_terms[:, cols], potential_terms(region_terms, region_terms)
+    n, p = x.shape
+    m = np.linalg.pinv(x.T @ x)
+    g = x.T @ z
+    lack = (np.trace(z.T @ z) - np.trace(g.T @ m @ g)) / (n - p)
+    if not lack > 1e-12:
+        return None
+    v = (line.variance - pure_sd**2) / lack
+    now = v * np.sum((zr - xr @ (m @ g)) ** 2, axis=1)
+    mx = xc @ m  # (C, p)
+    m_c = m[None] - mx[:, :, None] * mx[:, None, :] / (1.0 + np.einsum("ij,ij->i", mx, xc))[:, None, None]
+    b_c = np.einsum("cpq,cqk->cpk", m_c, g[None] + xc[:, :, None] * zc[:, None, :])  # (C, p, 6)
+    after = v * np.sum((zr[None] - np.einsum("rp,cpk->crk", xr, b_c)) ** 2, axis=2)
+    return now, after
+
+
 def criterion(widths: dict[str, np.ndarray]) -> np.ndarray:
     """The I-optimal criterion of half-widths (key -> (..., R) at the region's points):
     per target the mean over its quantities and the points of (half-width / target)^2,
@@ -378,16 +449,21 @@ def rank(
     region_points: Sequence[OperatingPoint],
     candidates: Sequence[Candidate],
     domain: Region | None = None,
+    pure_sd: dict[str, float] | None = None,
 ) -> list[Suggestion]:
     """Every candidate as a :class:`Suggestion`, the one that lowers the criterion over
     ``region_points`` most first (module docstring); ``names`` the correction's form,
-    ``domain`` the library's (to label candidates outside it)."""
+    ``domain`` the library's (to label candidates outside it); ``pure_sd`` per quantity
+    the DEM's scatter between seeds on its scale (:func:`_bias`; None: the line's
+    intervals alone)."""
     if not candidates or not region_points:
         raise ConfigError("no candidate or no region point to rank")
     region_terms = covariate_terms(region_points)
     cand_terms = covariate_terms([c.point for c in candidates])
-    now: dict[str, np.ndarray] = {}
+    now: dict[str, np.ndarray] = {}  # the line's half-widths, reported
     after: dict[str, np.ndarray] = {}
+    ranked_now: dict[str, np.ndarray] = {}  # with the expected bias, ranked on
+    ranked_after: dict[str, np.ndarray] = {}
     for q in quantities:
         q = q.usable()
         if target_half_width(q.key) is None or not q.points:
@@ -397,6 +473,14 @@ def rank(
             continue
         now[q.key] = half_widths(line, region_terms)
         after[q.key] = _after_widths(line, q.points, names, [c.point for c in candidates], cand_terms, region_terms)
+        ranked_now[q.key], ranked_after[q.key] = now[q.key], after[q.key]
+        bias = None
+        if pure_sd is not None and tuple(line.names) == tuple(names):
+            bias = _bias(line, covariate_terms(q.points), cand_terms, region_terms, pure_sd.get(q.key))
+        if bias is not None:
+            # the interval's square plus t^2 times the expected squared bias: a mean squared error
+            ranked_now[q.key] = np.sqrt(now[q.key] ** 2 + _t(line.dof) ** 2 * bias[0])
+            ranked_after[q.key] = np.sqrt(after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
     gains = [()] * len(candidates)
     widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
     line = fit_correction(widest.points, widest.residuals, names)
@@ -405,8 +489,8 @@ def rank(
             tuple(n for n in after_run(line, widest.points, names, c.point).names if n not in line.names)
             for c in candidates
         ]
-    score_now = float(criterion(now))
-    scores = criterion(after)
+    score_now = float(criterion(ranked_now))
+    scores = criterion(ranked_after)
     order = np.argsort(scores, kind="stable")
     out = []
     for c in order:
@@ -464,4 +548,5 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
     gap = least_gap(points)
     region_points = [point_at(base, s, x, f, gap) for s, x, f in chosen.grid(REGION_LEVELS)]
     names = model.calibration.covariates if model.calibration is not None else ()
-    return rank(library_quantities(model), names, chosen, region_points, candidates_over(base, span, gap), dom)
+    scatter = seed_scatter(model)[0] or None
+    return rank(library_quantities(model), names, chosen, region_points, candidates_over(base, span, gap), dom, scatter)

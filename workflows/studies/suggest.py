@@ -80,11 +80,11 @@ OUT = Path("results/suggest-study")
 #: the coverage the targets ask of the 95 % intervals
 COVERAGE = 0.90
 #: the discrepancies' sizes (module docstring)
-PHIS = (0.5, 0.7, 0.85)
+PHIS = (0.25, 0.5, 0.7)
 #: the full grids compared: levels per axis (2: with the centre)
 GRID_LEVELS = (2, 3, 4, 5)
 #: runs after which a sequence stops unmet
-MAX_RUNS = 80
+MAX_RUNS = 64
 HELD_OUT = 200
 #: interpolated runs a subset's check needs before its medians count (b)
 LEAST_INTERPOLATED = 5
@@ -220,17 +220,24 @@ def star(setting: Setting, base, gap: float) -> list[Candidate]:
     return [Candidate(s, x, f, point_at(base, s, x, f, gap)) for s, x, f in out]
 
 
-def sequential(truth: Truth, seed: list[Candidate], rng: np.random.Generator, by_rule: bool) -> tuple[int, list]:
+#: how a sequence picks its next run: the product's rule (the residuals' spread expected
+#: to change with the design, from the seed scatter), the rule with the spread taken to
+#: stay, at random
+HOW = ("rule", "line rule", "random")
+
+
+def sequential(truth: Truth, seed: list[Candidate], rng: np.random.Generator, how: str) -> tuple[int, list]:
     """Runs until the targets are met (MAX_RUNS + 1: never), from ``seed``, each next run
-    by the rule or at random from the candidates; and each step's :class:`Judged`."""
+    picked as ``how`` says (:data:`HOW`); and each step's :class:`Judged`."""
     s = truth.setting
     library = Library(truth, rng)
     for c in seed:
         library.run(c)
     history = [library.judged()]
     while not history[-1].met and len(library.points) < MAX_RUNS:
-        if by_rule:
-            best = rank(library.quantities(), DEFAULT_CORRECTION, s.span, s.region_points, s.candidates)[0]
+        if how != "random":
+            pure = s.noise if how == "rule" else None
+            best = rank(library.quantities(), DEFAULT_CORRECTION, s.span, s.region_points, s.candidates, None, pure)[0]
             chosen = Candidate(best.speed, best.length, best.feed, best.point)
         else:
             chosen = s.candidates[int(rng.integers(len(s.candidates)))]
@@ -290,8 +297,9 @@ def synthetic(model: LibraryModel, truths: int, seed: int = 0) -> dict[str, Any]
         rows = []
         for t in range(truths):
             truth = make_truth(setting, phi, rng)
-            rule, rule_history = sequential(truth, seed_design, np.random.default_rng(1000 * t + 1), True)
-            rand, _ = sequential(truth, seed_design, np.random.default_rng(1000 * t + 2), False)
+            rule, rule_history = sequential(truth, seed_design, np.random.default_rng(1000 * t + 1), "rule")
+            plain, _ = sequential(truth, seed_design, np.random.default_rng(1000 * t + 1), "line rule")
+            rand, _ = sequential(truth, seed_design, np.random.default_rng(1000 * t + 2), "random")
             grid_n, grid_judged = MAX_RUNS + 1, {}
             for levels, design in grids.items():
                 library = Library(truth, np.random.default_rng(1000 * t + 3 + levels))
@@ -304,6 +312,7 @@ def synthetic(model: LibraryModel, truths: int, seed: int = 0) -> dict[str, Any]
             rows.append(
                 {
                     "rule": rule,
+                    "line_rule": plain,
                     "random": rand,
                     "grid": grid_n,
                     "rule_worst": [h.worst for h in rule_history],
@@ -313,7 +322,7 @@ def synthetic(model: LibraryModel, truths: int, seed: int = 0) -> dict[str, Any]
                     },
                 }
             )
-            print(f"phi {phi}, truth {t}: rule {rule}, random {rand}, grid {grid_n}", flush=True)
+            print(f"phi {phi}, truth {t}: rule {rule}, line rule {plain}, random {rand}, grid {grid_n}", flush=True)
         out["phis"][str(phi)] = rows
     out["seed_runs"] = len(seed_design)
     out["candidates"] = len(setting.candidates)
@@ -340,6 +349,7 @@ def shipped_orders(model: LibraryModel, starts: int, randoms: int, seed: int = 0
     gap = least_gap(points)
     region_points = [point_at(base, s, x, f, gap) for s, x, f in span.grid(REGION_LEVELS)]
     names = model.calibration.covariates
+    scatter = calibration.seed_scatter(model)[0]
     rng = np.random.default_rng(seed)
     n_runs = len(model.runs)
 
@@ -351,7 +361,7 @@ def shipped_orders(model: LibraryModel, starts: int, randoms: int, seed: int = 0
             if by_rule:
                 sub = calibration.restricted(model, held)
                 cands = [Candidate(0.0, 0.0, 0.0, model.runs[n].point) for n in rest]
-                ranked = rank(library_quantities(sub), names, span, region_points, cands)
+                ranked = rank(library_quantities(sub), names, span, region_points, cands, None, scatter)
                 chosen = rest[next(i for i, c in enumerate(cands) if c.point is ranked[0].point)]
             else:
                 chosen = rest[int(order_rng.integers(len(rest)))]
