@@ -259,13 +259,13 @@ def grid_design(setting: Setting, base, gap: float, levels: int) -> list[Candida
     return [Candidate(s, x, f, point_at(base, s, x, f, gap)) for s, x, f in cells]
 
 
-def synthetic(model: LibraryModel, truths: int, seed: int = 0) -> dict[str, Any]:
-    """Part (a) (module docstring): per phi, per truth, the runs each way needs."""
+def make_setting(model: LibraryModel, rng: np.random.Generator) -> tuple[Setting, Any, float]:
+    """The :class:`Setting` of the library's domain (HELD_OUT random held-out points), the
+    base configuration and the least gap to the weir."""
     base = load_preset("validation")
     points = [r.point for r in model.runs]
     span = domain_region(domain(points, model.blade_pattern))
     gap = least_gap(points)
-    rng = np.random.default_rng(seed)
     held = [
         tuple(
             float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) for lo, hi in (span.speed, span.length, span.feed)
@@ -285,11 +285,17 @@ def synthetic(model: LibraryModel, truths: int, seed: int = 0) -> dict[str, Any]
         tuple(point_at(base, s, x, f, gap) for s, x, f in span.grid(REGION_LEVELS)),
         held_points,
         covariate_terms(held_points),
-        np.array([[0.0] * 3]),
+        np.zeros((0, 3)),
         lines,
         {key: scatter.get(key, 0.004) for key in lines},
     )
-    setting = Setting(**{**setting.__dict__, "held_u": np.array([setting.unit(*h) for h in held])})
+    return Setting(**{**setting.__dict__, "held_u": np.array([setting.unit(*h) for h in held])}), base, gap
+
+
+def synthetic(model: LibraryModel, truths: int, seed: int = 0) -> dict[str, Any]:
+    """Part (a) (module docstring): per phi, per truth, the runs each way needs."""
+    rng = np.random.default_rng(seed)
+    setting, base, gap = make_setting(model, rng)
     seed_design = star(setting, base, gap)
     grids = {levels: grid_design(setting, base, gap, levels) for levels in GRID_LEVELS}
     out: dict[str, Any] = {"phis": {}}

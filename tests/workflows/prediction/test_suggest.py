@@ -235,3 +235,30 @@ def test_library_add_refuses_a_run_it_holds_and_a_missing_file_before_any_fit(li
         assert len(err) == 1 and words in err[0]
     assert (folder / "library.json").read_bytes() == before
     assert main(["library", "add", str(FEED), "--library", str(tmp_path / "nowhere")]) == 2
+
+
+def test_with_the_seed_scatter_known_a_curvature_the_line_misses_keeps_the_rule_off_the_corners():
+    """Residuals that bend (a product of speed and feed) far beyond the seed scatter: on
+    the line's intervals alone the rule picks a corner of the domain, where that bend is
+    largest; with the bias it expects there it picks a point inside."""
+    rng = np.random.default_rng(1)
+    design = [(150.0, 36.85), (150.0, 147.4), (350.0, 36.85), (350.0, 147.4), (250.0, 73.7)]
+    design += [(150.0, 73.7), (350.0, 73.7), (250.0, 36.85), (250.0, 147.4)]
+    points = [_at(s, f) for s, f in design]
+
+    def bend(p):
+        c = run_covariates(p)
+        return 0.05 * (c["speed"] / 0.4) * (c["feed"] / 0.69)
+
+    q = Quantity("holdup", tuple(points), tuple(bend(p) + rng.normal(0, 0.002) for p in points))
+    speeds = np.exp(np.linspace(math.log(150), math.log(350), 7))
+    grid = _candidates(speeds, np.exp(np.linspace(math.log(36.85), math.log(147.4), 7)))
+    region = [_at(s, f) for s, _, f in SPAN.grid(5)]
+    corner = rank([q], ("speed", "feed"), SPAN, region, grid)[0]
+    inside = rank([q], ("speed", "feed"), SPAN, region, grid, None, {"holdup": 0.002})[0]
+    assert min(abs(corner.speed - 150.0), abs(corner.speed - 350.0)) < 1e-9
+    assert min(abs(corner.feed - 36.85), abs(corner.feed - 147.4)) < 1e-9
+    assert 151.0 < inside.speed < 349.0 and 37.0 < inside.feed < 147.0
+    # within the seed scatter there is no bias to expect: the line's intervals alone
+    same = rank([q], ("speed", "feed"), SPAN, region, grid, None, {"holdup": 1.0})[0]
+    assert (same.speed, same.feed) == (corner.speed, corner.feed)
