@@ -42,6 +42,7 @@ the correction's design). A target counts once at least 5 of the runs are interp
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +51,8 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from coupling.files import writable_directory
+from coupling.errors import ConfigError
+from coupling.files import regular_file, replace_file, writable_directory
 from coupling.jsonable import write_json
 from workflows.config import load_preset
 from workflows.prediction import calibration
@@ -514,28 +516,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truths", type=int, default=8, help="synthetic truths per phi (default: %(default)s)")
     parser.add_argument("--starts", type=int, default=8, help="3-run starts on the shipped runs (default: %(default)s)")
     parser.add_argument("--randoms", type=int, default=10, help="random orders per start (default: %(default)s)")
+    parser.add_argument(
+        "--from-json", default=None, help="write the page and figure of a suggest-study.json made before, no rerun"
+    )
     parser.add_argument("--out", default=str(OUT), help="output folder (default: %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:
-    model = load_model(args.library)
-    if model.calibration is None:
-        model = calibration.calibrated(model)
     out = writable_directory(args.out, "--out")
-    result = {"synthetic": synthetic(model, args.truths), "shipped": shipped_orders(model, args.starts, args.randoms)}
+    if args.from_json is not None:
+        result = json.loads(regular_file(args.from_json, "--from-json", ConfigError).read_text())
+    else:
+        model = load_model(args.library)
+        if model.calibration is None:
+            model = calibration.calibrated(model)
+        result = {
+            "synthetic": synthetic(model, args.truths),
+            "shipped": shipped_orders(model, args.starts, args.randoms),
+            "command": f"pbmdem study suggest --truths {args.truths} --starts {args.starts} --randoms {args.randoms}",
+        }
+        write_json(out / "suggest-study.json", result)
     text = markdown(result)
     print(text)
-    written = write_json(out / "suggest-study.json", result)
     figure = plot(result, out / "suggest-study.png")
-    page = out / "SUGGEST.md"
-    page.write_text(
+    page = replace_file(
+        out / "SUGGEST.md",
         "# Sequential DEM runs against grids\n\n"
-        f"Made by `pbmdem study suggest --truths {args.truths} --starts {args.starts} --randoms {args.randoms} "
-        f"--out {args.out}`.\n\n"
+        f"Made by `{result.get('command', 'pbmdem study suggest')} --out DIR` (the numbers and `suggest-study.json`; `--from-json` rewrites "
+        "this page and its figure from that file).\n\n"
         + (__doc__ or "")
         + "\n"
         + text
-        + "\n\n![runs until the targets are met](suggest-study.png)\n"
+        + "\n\n![runs until the targets are met](suggest-study.png)\n",
+        "study page",
     )
-    print(f"wrote {written}, {figure} and {page}")
+    print(f"wrote {out / 'suggest-study.json'}, {figure} and {page}")
     return 0
