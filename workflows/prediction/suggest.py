@@ -25,8 +25,9 @@ curvature is largest there: the spread the runs measure, and every interval, com
 wider than the line's misses over the domain (``pbmdem study suggest``). When the library
 measures its seed scatter (replicate runs), each squared half-width is therefore taken
 with t^2 times the expected squared bias of the line at the point under a quadratic
-discrepancy of the size the excess spread implies (:func:`_bias`): a mean squared error,
-least where the runs' moments match the region's.
+discrepancy of the size the excess spread implies (:func:`_bias`), and its variance part
+with the seed scatter instead of the spread: Box and Draper's mean squared error, least
+where the runs' moments match the region's.
 
 The region is the library's domain (each of speed, length and feed between its runs'
 least and greatest) or a part of it (:func:`parse_region`); the candidates a grid over the
@@ -478,9 +479,12 @@ def rank(
         if pure_sd is not None and tuple(line.names) == tuple(names):
             bias = _bias(line, covariate_terms(q.points), cand_terms, region_terms, pure_sd.get(q.key))
         if bias is not None:
-            # the interval's square plus t^2 times the expected squared bias: a mean squared error
-            ranked_now[q.key] = np.sqrt(now[q.key] ** 2 + _t(line.dof) ** 2 * bias[0])
-            ranked_after[q.key] = np.sqrt(after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
+            # Box and Draper's mean squared error: the variance of the DEM's scatter between
+            # seeds (not the residuals' spread, which holds the bias the design measures) and
+            # the expected squared bias, in units of the interval (t^2)
+            pure = pure_sd[q.key] ** 2 / line.variance
+            ranked_now[q.key] = np.sqrt(pure * now[q.key] ** 2 + _t(line.dof) ** 2 * bias[0])
+            ranked_after[q.key] = np.sqrt(pure * after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
     gains = [()] * len(candidates)
     widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
     line = fit_correction(widest.points, widest.residuals, names)
