@@ -20,7 +20,7 @@ median half-width over the region now and after the run (the targets are medians
 
 The line's leverage alone falls most where the runs reach the domain's ends, so on it
 alone the rule piles run after run onto the corners. Where the line misses a curvature
-(the shipped runs' spread about it is 2-10 times the DEM's scatter between seeds), that
+(the shipped runs' spread about it is 2-20 times the DEM's scatter between seeds), that
 curvature is largest there: the spread the runs measure, and every interval, come out
 wider than the line's misses over the domain (``pbmdem study suggest``). When the library
 measures its seed scatter (replicate runs), each squared half-width is therefore taken
