@@ -544,11 +544,12 @@ def candidates_over(base: Config, span: Region, gap_m: float, levels: int = CAND
 def suggest(model: LibraryModel, base: Config, region: str | None = None, extend: float = 0.0) -> list[Suggestion]:
     """The candidates for ``model``'s next run, best first (:func:`rank`): a grid over
     the library's domain widened by ``extend`` (:func:`widened`), each run from ``base``;
-    the criterion over ``region`` (:func:`parse_region`; default the whole domain)."""
+    the criterion over ``region`` (:func:`parse_region`, within the candidates' span;
+    default the library's domain, not widened)."""
     points = [r.point for r in model.runs]
     dom = domain_region(domain(points, model.blade_pattern))
     span = widened(dom, extend)
-    chosen = parse_region(region, span)
+    chosen = parse_region(region, span) if region else dom
     gap = least_gap(points)
     region_points = [point_at(base, s, x, f, gap) for s, x, f in chosen.grid(REGION_LEVELS)]
     names = model.calibration.covariates if model.calibration is not None else ()

@@ -262,3 +262,18 @@ def test_with_the_seed_scatter_known_a_curvature_the_line_misses_keeps_the_rule_
     # within the seed scatter there is no bias to expect: the line's intervals alone
     same = rank([q], ("speed", "feed"), SPAN, region, grid, None, {"holdup": 1.0})[0]
     assert (same.speed, same.feed) == (corner.speed, corner.feed)
+
+
+def test_candidates_beyond_the_domain_are_labelled_and_the_region_stays_the_domain():
+    from workflows.prediction.suggest import suggest
+
+    model = load_model(LIBRARY_DIR / "law")
+    ranked = suggest(model, BASE, extend=0.25)
+    assert ranked[0].region.speed == pytest.approx((150.0, 350.0)) and ranked[0].region.feed == pytest.approx(
+        (36.85, 147.4)
+    )
+    outside = [s for s in ranked if s.outside_domain]
+    assert outside and all(
+        s.speed < 149.9 or s.speed > 350.1 or s.feed < 36.8 or s.feed > 147.5 or s.length < 0.2474 or s.length > 0.4951
+        for s in outside
+    )
