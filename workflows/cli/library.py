@@ -1,7 +1,9 @@
 """``pbmdem library fit [--results FILE...] [--out DIR]``: the law of a DEM library, its
 laws with each run left out, the intervals calibrated on them and checked
 (:mod:`workflows.products.predict`). ``pbmdem library check --results FILE...``: DEM runs
-the library does not hold, predicted by its law and judged against their DEM."""
+the library does not hold, predicted by its law and judged against their DEM.
+``pbmdem library suggest``: the next DEM run that most narrows the intervals, as a
+configuration. ``pbmdem library add RESULTS.h5...``: the library refitted with more runs."""
 
 from __future__ import annotations
 
@@ -72,20 +74,64 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="slurm: one job array (sbatch), returns at once, follow it with `library status`; "
         "local: each run here in turn (default: %(default)s)",
     )
-    build.add_argument("--library", default="library", help="the library folder (default: %(default)s)")
+    build.add_argument(
+        "--library",
+        default="results/library",
+        help="the library's folder, where finished results land as dem-<key>.h5 (default: %(default)s)",
+    )
     build.add_argument("--runs-dir", default="runs", help="the runs and their cache (default: %(default)s)")
     build.add_argument("--np", type=int, default=None, help="MPI ranks per run (default: the configs' dem.run.np)")
     build.add_argument("--partition", default=None, help="Slurm partition")
     build.set_defaults(func=build_command)
 
     status = sub.add_parser("status", help="the state of each run of a library build (sacct); add finished results")
-    status.add_argument("--library", default="library", help="the library folder (default: %(default)s)")
+    status.add_argument(
+        "--library", default="results/library", help="the library's folder of the build (default: %(default)s)"
+    )
     status.add_argument(
         "--resubmit-failed",
         action="store_true",
         help="submit the failed runs again as one job array; each resumes from its restart files",
     )
     status.set_defaults(func=status_command)
+
+    suggest = sub.add_parser(
+        "suggest", help="the next DEM run that most narrows the prediction intervals, as a configuration"
+    )
+    suggest.add_argument(
+        "--library", default=None, help="a library model (library.json or its folder; default: the shipped one)"
+    )
+    suggest.add_argument(
+        "--region",
+        default=None,
+        help="where the intervals matter, e.g. speed=200:300,length=0.33:0.41,feed=60:110 (rpm, m, particles/s; "
+        "default: the library's whole domain)",
+    )
+    suggest.add_argument(
+        "--extend",
+        type=float,
+        default=0.0,
+        help="candidates also beyond the domain's edges, by this fraction of each axis' width (default: %(default)s)",
+    )
+    suggest.add_argument(
+        "--base",
+        default=None,
+        help="configuration to build the run from (default: the library's run nearest its centre)",
+    )
+    suggest.add_argument("--top", type=int, default=5, help="candidates to list (default: %(default)s)")
+    suggest.add_argument(
+        "--out", default="results/suggest", help="folder of suggest.toml, .json and .md (default: %(default)s)"
+    )
+    suggest.set_defaults(func=suggest_command)
+
+    add = sub.add_parser("add", help="add DEM results to a library and refit it (its cached fits reused)")
+    add.add_argument("results", nargs="+", metavar="RESULTS.h5", help="DEM results files with compartment sequences")
+    add.add_argument(
+        "--library",
+        default="results/library",
+        help="the library's folder, made by `library fit` (default: %(default)s)",
+    )
+    add.set_defaults(func=add_command)
 
 
 def fit_command(args: argparse.Namespace) -> int:
@@ -131,4 +177,34 @@ def status_command(args: argparse.Namespace) -> int:
     from workflows.products.library_build import library_status, status_table
 
     print(status_table(library_status(args.library, resubmit_failed=args.resubmit_failed, log=stderr_log)))
+
+
+def suggest_command(args: argparse.Namespace) -> int:
+    from coupling.errors import ConfigError
+    from workflows.products.library import library_suggest
+
+    if args.top < 1:
+        raise ConfigError(f"--top {args.top}: list at least 1 candidate")
+    output = library_suggest(args.library, args.out, args.region, args.extend, args.base, args.top)
+    for n, s in enumerate(output.suggestions, 1):
+        notes = ["outside the domain"] if s.outside_domain else []
+        notes += [f"the correction gains {', '.join(s.gains)}"] if s.gains else []
+        print(
+            f"{n}. {s.speed:.4g} rpm, {s.length:.4g} m, {s.feed:.4g} particles/s: criterion {s.criterion_now:.3g} -> "
+            f"{s.criterion_after:.3g} ({-s.relative_reduction:+.1%})" + (f" ({'; '.join(notes)})" if notes else "")
+        )
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
+    return 0
+
+
+def add_command(args: argparse.Namespace) -> int:
+    from workflows.prediction import calibration
+    from workflows.products.library import library_add
+
+    output = library_add(args.results, args.library)
+    print(calibration.markdown(output.model, output.check))
+    print(f"added {len(output.added)} run(s): {', '.join(p.name for p in output.added)}")
+    for what, path in output.files.items():
+        print(f"wrote {what}: {path}")
     return 0

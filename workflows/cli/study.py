@@ -25,6 +25,7 @@ STUDIES = (
     ("fill", "workflows.studies.fill"),
     ("paper-scale", "workflows.studies.paper_scale"),
     ("law", "workflows.studies.law"),
+    ("suggest", "workflows.studies.suggest"),
 )
 
 

@@ -466,3 +466,32 @@ def _share(rows: list[CheckedQuantity]) -> str:
 def _half(rows: list[CheckedQuantity]) -> str:
     values = [r.relative_half_width for r in rows if math.isfinite(r.low)]
     return f"{100 * float(np.median(values)):.1f}" if values else "-"
+
+
+def restricted(model: LibraryModel, runs: Sequence[int]) -> LibraryModel:
+    """``model`` (calibrated) as if it held only the runs of index ``runs``, in that
+    order: their entries, laws left out and calibration values. No law is refitted: the
+    whole library's law and each law left out keep every other run they were fitted to,
+    so :func:`check` of the result judges the correction's design, not the law's."""
+    keep = list(runs)
+    cal = model.calibration
+    if cal is None:
+        raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
+    scores = [model.left_out_scores[n] for n in keep] if model.left_out_scores else []
+    sub = replace(
+        model,
+        runs=tuple(model.runs[n] for n in keep),
+        left_out=tuple(model.left_out[n] for n in keep),
+        transverse_left_out=tuple(model.transverse_left_out[n] for n in keep),
+        left_out_scores=tuple(scores),
+        ck=tuple(model.ck[n] for n in keep) if model.ck else (),
+        calibration=None,
+    )
+    inside = [not _others(sub, n)[0] for n in range(len(keep))]
+    calibration = Calibration(
+        {key: [values[n] for n in keep] for key, values in cal.whole.items()},
+        {key: [[rows[m][n] for n in keep] for m in keep] for key, rows in cal.left_out.items()},
+        inside,
+        cal.covariates,
+    )
+    return replace(sub, calibration=calibration)

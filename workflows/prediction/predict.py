@@ -309,7 +309,9 @@ def residual(key: str, dem: float, predicted: float) -> float:
 
 def shifted(key: str, value: float, shift: float) -> float:
     """``value`` moved by ``shift`` on ``key``'s scale."""
-    return value + shift if key in ABSOLUTE_KEYS else value * math.exp(shift)
+    if key in ABSOLUTE_KEYS:
+        return value + shift
+    return math.copysign(math.inf, value) if shift > 700.0 else value * math.exp(shift)  # past exp's range
 
 
 def bounds(key: str, value: float, half: float) -> tuple[float, float]:
@@ -375,16 +377,25 @@ def corrections(model: LibraryModel, leave: int | None = None) -> dict[str, Corr
         raise ConfigError("the library model has no calibration: make it with `pbmdem library fit`")
     out = {}
     for key in quantity_keys():
-        if key not in calibration.whole:
-            continue
-        law = calibration.whole[key] if leave is None else calibration.left_out[key][leave]
-        points, residuals = [], []
-        for j, entry in enumerate(model.runs):
-            if j != leave and key in entry.dem:
-                points.append(entry.point)
-                residuals.append(residual(key, entry.dem[key].value, law[j]))
-        out[key] = fit_correction(points, residuals, calibration.covariates)
+        if key in calibration.whole:
+            out[key] = fit_correction(*correction_data(model, key, leave), calibration.covariates)
     return out
+
+
+def correction_data(
+    model: LibraryModel, key: str, leave: int | None = None
+) -> tuple[list[OperatingPoint], list[float]]:
+    """The runs' points and ``key``'s residuals (DEM less law) that :func:`corrections`
+    fits ``key``'s line to: the whole library's law at every run, or, with ``leave``, the
+    law fitted without that run at the other runs. ``model`` calibrated."""
+    calibration = model.calibration
+    law = calibration.whole[key] if leave is None else calibration.left_out[key][leave]
+    points, residuals = [], []
+    for j, entry in enumerate(model.runs):
+        if j != leave and key in entry.dem:
+            points.append(entry.point)
+            residuals.append(residual(key, entry.dem[key].value, law[j]))
+    return points, residuals
 
 
 def left_out_errors(model: LibraryModel, runs: Sequence[int]) -> dict[str, list[float]]:

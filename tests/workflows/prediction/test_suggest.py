@@ -1,0 +1,279 @@
+"""The next DEM run of a library (workflows.prediction.suggest, ``pbmdem library suggest``
+and ``add``): the interval's arithmetic by hand, a noise-free linear truth, a corner
+region, the blade-station rule against the shipped configurations, and the commands'
+files and refusals."""
+
+import json
+import math
+import shutil
+import tomllib
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from coupling.errors import ConfigError
+from dem.operating import operating_point
+from workflows.cli.main import main
+from workflows.config import config_from_dict, load_config, load_preset
+from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model, run_covariates
+from workflows.prediction.predict import fit_correction
+from workflows.prediction.suggest import (
+    Candidate,
+    Quantity,
+    Region,
+    config_at,
+    half_widths,
+    parse_region,
+    rank,
+    scaled_duration,
+    widened,
+)
+from workflows.shipped import LIBRARY_DIR, VALIDATION_DIR
+
+BASE = load_preset("validation")
+POINT = operating_point(BASE.dem)
+SPAN = Region((150.0, 350.0), (0.33, 0.33), (36.85, 147.4))
+
+
+def _at(rpm: float, feed: float = 73.7):
+    return POINT.replace(impeller_rpm=rpm, feed_rate_a_per_s=feed / 2, feed_rate_b_per_s=feed / 2)
+
+
+def _candidates(speeds, feeds=(73.7,)):
+    return [Candidate(s, 0.33, f, _at(s, f)) for s in speeds for f in feeds]
+
+
+def test_the_expected_half_widths_after_one_run_are_the_textbook_line_refitted_by_hand():
+    """One covariate (log speed): the criterion after a run at c is the mean over the
+    region of (t(n + 1 - 2) s sqrt(1 + x'(A'A + x_c x_c')^-1 x) / target)^2, s unchanged."""
+    speeds, residuals = [150.0, 200.0, 250.0, 350.0], [0.01, -0.02, 0.015, 0.03]
+    points = [_at(s) for s in speeds]
+    region = [_at(s) for s in (150.0, 250.0, 350.0)]
+    q = Quantity("holdup", tuple(points), tuple(residuals))
+    out = rank([q], ("speed",), SPAN, region, _candidates([175.0, 300.0]))
+    a = np.array([[1.0, math.log(s / 250.0)] for s in speeds])
+    y = np.array(residuals)
+    misfit = y - a @ np.linalg.lstsq(a, y, rcond=None)[0]
+    s2 = misfit @ misfit / (4 - 2)
+    x = np.array([[1.0, math.log(s / 250.0)] for s in (150.0, 250.0, 350.0)])
+
+    def score(rows, dof):
+        inverse = np.linalg.inv(rows.T @ rows)
+        lev = np.array([r @ inverse @ r for r in x])
+        h = stats.t.ppf(0.975, dof) * np.sqrt(s2 * (1 + lev))
+        return float(np.mean((h / 0.04) ** 2))
+
+    assert out[0].criterion_now == pytest.approx(score(a, 2), rel=1e-10)
+    by_speed = {s.speed: s for s in out}
+    for c in (175.0, 300.0):
+        grown = np.vstack([a, [1.0, math.log(c / 250.0)]])
+        assert by_speed[c].criterion_after == pytest.approx(score(grown, 3), rel=1e-10)
+    assert out[0].criterion_after <= out[1].criterion_after
+
+
+def test_a_run_that_lets_the_line_identify_a_covariate_is_scored_with_the_larger_form():
+    """Three runs at one feed: the feed term is not identified; a fourth at another feed
+    identifies it (and leaves CORRECTION_DOF degrees of freedom)."""
+    points = [_at(s) for s in (150.0, 250.0, 350.0)]
+    q = Quantity("holdup", tuple(points), (0.01, -0.01, 0.02))
+    out = rank([q], ("feed",), SPAN, [_at(250.0)], _candidates([250.0], (36.85, 73.7)))
+    grows = next(s for s in out if s.feed == 36.85)
+    assert grows.gains == ("feed",) and next(s for s in out if s.feed == 73.7).gains == ()
+    rows = np.array([correction_row(p, ("feed",)) for p in [*points, _at(250.0, 36.85)]])
+    lev = correction_row(_at(250.0), ("feed",)) @ np.linalg.inv(rows.T @ rows) @ correction_row(_at(250.0), ("feed",))
+    s2 = np.var([0.01, -0.01, 0.02], ddof=1)
+    h = stats.t.ppf(0.975, CORRECTION_DOF) * math.sqrt(s2 * (1 + lev))
+    assert grows.criterion_after == pytest.approx((h / 0.04) ** 2, rel=1e-10)
+
+
+def test_the_vectorised_half_widths_are_the_corrections_own_intervals():
+    rng = np.random.default_rng(5)
+    points = [_at(s, f) for s in (150.0, 250.0, 350.0) for f in (40.0, 80.0, 140.0)]
+    line = fit_correction(points, rng.normal(0, 0.02, len(points)), ("speed", "feed", "speed2"))
+    region = [_at(s, f) for s in (170.0, 320.0) for f in (50.0, 120.0)]
+    terms = np.array(
+        [correction_row(p, ("speed", "speed2", "length", "length2", "feed", "feed2", "gap")) for p in region]
+    )
+    assert half_widths(line, terms) == pytest.approx([line.at(p)[1] for p in region], rel=1e-12)
+
+
+def test_a_noise_free_linear_truth_is_learnt_exactly_once_the_runs_identify_the_line():
+    """Residuals exactly linear in speed and feed: with p + CORRECTION_DOF runs the line
+    is the truth and every interval has collapsed, and the rule has nothing left to gain."""
+    names = ("speed", "feed")
+
+    def truth(p):
+        c = run_covariates(p)
+        return 0.04 - 0.3 * c["speed"] + 0.1 * c["feed"]
+
+    points = [_at(s, f) for s, f in ((150.0, 40.0), (350.0, 40.0), (150.0, 140.0), (350.0, 140.0), (250.0, 73.7))]
+    assert len(points) == 3 + CORRECTION_DOF
+    line = fit_correction(points, [truth(p) for p in points], names)
+    assert line.names == names
+    new = _at(300.0, 100.0)
+    shift, half, _ = line.at(new)
+    assert shift == pytest.approx(truth(new), abs=1e-12) and half == pytest.approx(0.0, abs=1e-12)
+    q = Quantity("holdup", tuple(points), tuple(truth(p) for p in points))
+    out = rank([q], names, SPAN, [new], _candidates([200.0, 300.0], (50.0, 120.0)))
+    assert all(s.criterion_now == pytest.approx(0.0, abs=1e-20) for s in out)
+
+
+def test_the_suggestion_for_a_region_at_a_corner_lies_at_that_corner():
+    rng = np.random.default_rng(11)
+    speeds, feeds = (150.0, 250.0, 350.0), (36.85, 73.7, 147.4)
+    points = [_at(s, f) for s in speeds for f in feeds]
+    q = Quantity("holdup", tuple(points), tuple(rng.normal(0, 0.01, len(points))))
+    corner = Region((300.0, 350.0), (0.33, 0.33), (110.0, 147.4))
+    region_points = [_at(s, f) for s, _, f in corner.grid(5)]
+    grid = _candidates(
+        np.exp(np.linspace(math.log(150), math.log(350), 7)), np.exp(np.linspace(math.log(36.85), math.log(147.4), 7))
+    )
+    best = rank([q], ("speed", "feed"), corner, region_points, grid)[0]
+    assert best.speed >= 300.0 and best.feed >= 110.0
+    whole = rank([q], ("speed", "feed"), SPAN, [_at(s, f) for s, _, f in SPAN.grid(5)], grid)[0]
+    assert whole.criterion_after < whole.criterion_now
+
+
+def test_a_region_is_parsed_within_the_span_and_refused_naming_what_is_wrong():
+    region = parse_region("speed=200:300, feed=60", SPAN)
+    assert region.speed == (200.0, 300.0) and region.feed == (60.0, 60.0) and region.length == SPAN.length
+    assert parse_region(None, SPAN) == SPAN
+    for text, words in (
+        ("rpm=200:300", "AXIS=LOW:HIGH"),
+        ("speed=300:200", "above high"),
+        ("speed=100:200", "leaves the candidates' span"),
+        ("speed=a:b", "LOW:HIGH"),
+        ("speed=200,speed=250", "twice"),
+    ):
+        with pytest.raises(ConfigError, match=words):
+            parse_region(text, SPAN)
+    wide = widened(SPAN, 0.5)
+    assert wide.speed[0] == pytest.approx(150.0 * (150.0 / 350.0) ** 0.5) and wide.length == SPAN.length
+    assert parse_region("speed=120:350", wide).speed == (120.0, 350.0)
+
+
+@pytest.mark.parametrize("name", ["length-x0.75", "length-x0.875", "length-x1.375", "length-x1.5"])
+def test_a_length_keeps_the_station_spacing_as_the_shipped_library_configurations_do(name):
+    shipped = load_config(LIBRARY_DIR / f"{name}.toml").dem.geometry
+    built = config_at(BASE, 250.0, shipped.length_m, 73.7, 0.025).dem.geometry
+    assert built.blade_stations == shipped.blade_stations
+    assert built.last_blade_x_m == pytest.approx(shipped.last_blade_x_m, abs=1e-9)
+
+
+def test_a_candidates_configuration_scales_the_feed_and_the_duration():
+    config = config_at(BASE, 300.0, 0.4125, 36.85, 0.025, scaled_duration(200.0, 21.0, 34.0))
+    assert config.dem.operation.impeller_rpm == 300.0 and config.dem.operation.duration_s == 330.0
+    assert config.pbm.feed_rate_a_per_s == pytest.approx(36.85 / 2)
+    assert (config.dem.geometry.blade_stations, config.dem.geometry.last_blade_x_m) == (13, pytest.approx(0.385))
+    assert scaled_duration(200.0, 21.0, 15.0) == 200.0
+    with pytest.raises(ConfigError, match="no blade station"):
+        config_at(BASE, 250.0, 0.06, 73.7, 0.025)
+
+
+def test_library_suggest_writes_a_configuration_that_runs_the_suggested_point(tmp_path, capsys):
+    assert main(["library", "suggest", "--out", str(tmp_path), "--top", "3"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert (
+        printed[0].startswith("1. ")
+        and "criterion" in printed[0]
+        and len([p for p in printed if p[:2] in ("1.", "2.", "3.")]) == 3
+    )
+    text = (tmp_path / "suggest.toml").read_text()
+    config = config_from_dict(tomllib.loads(text))
+    record = json.loads((tmp_path / "suggest.json").read_text())
+    best = record["suggestions"][0]
+    op = config.dem.operation
+    assert (op.impeller_rpm, config.dem.geometry.length_m, op.feed_rate_total_per_s) == (
+        best["speed_rpm"],
+        best["length_m"],
+        best["feed_per_s"],
+    )
+    assert best["criterion_after"] < best["criterion_now"] and op.duration_s >= 200.0
+    assert "| mean_residence_time_s | 4 |" in (tmp_path / "suggest.md").read_text()
+
+
+def test_library_suggest_refuses_a_region_outside_the_domain_in_one_line(tmp_path, capsys):
+    assert main(["library", "suggest", "--out", str(tmp_path), "--region", "speed=100:200"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "150-350 rpm" in err[0]
+    assert not (tmp_path / "suggest.toml").exists()
+
+
+SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
+FEED = VALIDATION_DIR / "dem-26a744879a705d14.h5"
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    out = tmp_path_factory.mktemp("library")
+    args = ["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out)]
+    assert main([*args, "--iterations", "3", "--left-out-iterations", "2"]) == 0
+    return out
+
+
+def test_library_add_refits_with_the_new_run_and_lists_every_runs_file(library, tmp_path):
+    folder = tmp_path / "lib"
+    shutil.copytree(library, folder)
+    assert main(["library", "add", str(FEED), "--library", str(folder)]) == 0
+    model = load_model(folder)
+    assert [r.file for r in model.runs] == [p.name for p in SPEEDS] + [FEED.name]
+    assert len(model.left_out) == 4 and model.settings["iterations"] == 3
+    listed = {r["file"] for r in json.loads((folder / "runs.json").read_text())["runs"]}
+    assert listed == {str(p.resolve()) for p in [*SPEEDS, FEED]}
+
+
+def test_library_add_refuses_a_run_it_holds_and_a_missing_file_before_any_fit(library, tmp_path, capsys):
+    folder = tmp_path / "lib"
+    shutil.copytree(library, folder)
+    before = (folder / "library.json").read_bytes()
+    copy = tmp_path / "copy.h5"
+    shutil.copyfile(SPEEDS[0], copy)
+    for args, words in (([str(copy)], "copy of"), ([str(tmp_path / "none.h5")], "none.h5")):
+        assert main(["library", "add", *args, "--library", str(folder)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0]
+    assert (folder / "library.json").read_bytes() == before
+    assert main(["library", "add", str(FEED), "--library", str(tmp_path / "nowhere")]) == 2
+
+
+def test_with_the_seed_scatter_known_a_curvature_the_line_misses_keeps_the_rule_off_the_corners():
+    """Residuals that bend (a product of speed and feed) far beyond the seed scatter: on
+    the line's intervals alone the rule picks a corner of the domain, where that bend is
+    largest; with the bias it expects there it picks a point inside."""
+    rng = np.random.default_rng(1)
+    design = [(150.0, 36.85), (150.0, 147.4), (350.0, 36.85), (350.0, 147.4), (250.0, 73.7)]
+    design += [(150.0, 73.7), (350.0, 73.7), (250.0, 36.85), (250.0, 147.4)]
+    points = [_at(s, f) for s, f in design]
+
+    def bend(p):
+        c = run_covariates(p)
+        return 0.05 * (c["speed"] / 0.4) * (c["feed"] / 0.69)
+
+    q = Quantity("holdup", tuple(points), tuple(bend(p) + rng.normal(0, 0.002) for p in points))
+    speeds = np.exp(np.linspace(math.log(150), math.log(350), 7))
+    grid = _candidates(speeds, np.exp(np.linspace(math.log(36.85), math.log(147.4), 7)))
+    region = [_at(s, f) for s, _, f in SPAN.grid(5)]
+    corner = rank([q], ("speed", "feed"), SPAN, region, grid)[0]
+    inside = rank([q], ("speed", "feed"), SPAN, region, grid, None, {"holdup": 0.002})[0]
+    assert min(abs(corner.speed - 150.0), abs(corner.speed - 350.0)) < 1e-9
+    assert min(abs(corner.feed - 36.85), abs(corner.feed - 147.4)) < 1e-9
+    assert 151.0 < inside.speed < 349.0 and 37.0 < inside.feed < 147.0
+    # within the seed scatter there is no bias to expect: the line's intervals alone
+    same = rank([q], ("speed", "feed"), SPAN, region, grid, None, {"holdup": 1.0})[0]
+    assert (same.speed, same.feed) == (corner.speed, corner.feed)
+
+
+def test_candidates_beyond_the_domain_are_labelled_and_the_region_stays_the_domain():
+    from workflows.prediction.suggest import suggest
+
+    model = load_model(LIBRARY_DIR / "law")
+    ranked = suggest(model, BASE, extend=0.25)
+    assert ranked[0].region.speed == pytest.approx((150.0, 350.0)) and ranked[0].region.feed == pytest.approx(
+        (36.85, 147.4)
+    )
+    outside = [s for s in ranked if s.outside_domain]
+    assert outside and all(
+        s.speed < 149.9 or s.speed > 350.1 or s.feed < 36.8 or s.feed > 147.5 or s.length < 0.2474 or s.length > 0.4951
+        for s in outside
+    )
