@@ -279,7 +279,7 @@ def test_the_campaign_follower_uses_the_array_path(slurm_cluster, tmp_path):
     once it has a restart file, resubmitted by the follower and resumed; a second call finds
     everything done and submits nothing."""
     from dem.run import prepare_run, read_status
-    from workflows.pipeline.cluster import run_campaign_on_slurm
+    from workflows.pipeline.slurm import run_campaign_on_slurm
     from workflows.pipeline.stages import dem_stage
 
     configs = {"slow": _tiny("follow-slow", 80.0)}

@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler == "slurm":
         if args.no_solver or args.fresh:
             raise ConfigError("--scheduler slurm runs the missing runs: it goes with neither --no-solver nor --fresh")
-        from workflows.pipeline.cluster import run_campaign_on_slurm
+        from workflows.pipeline.slurm import run_campaign_on_slurm
         from workflows.products.validate import campaign_configs, step_config
 
         states = run_campaign_on_slurm(

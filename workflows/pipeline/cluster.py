@@ -3,8 +3,6 @@ the hold-up of a shipped run of the same blender and a measured throughput."""
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,8 +12,6 @@ from coupling.files import writable_directory
 from dem.cluster import estimate_cost, mpi_command, slurm_script
 from dem.deck import MAIN_DECK, build_deck, write_deck
 from workflows.config import Config, dump_toml
-from workflows.pipeline.log import Log
-from workflows.pipeline.slurm import TaskStatus, array_status, resubmit, submit_array
 from workflows.shipped import measured_throughput, reference_holdup
 
 #: Particle-steps per second per core of the blender deck when no benchmark result is
@@ -87,49 +83,3 @@ def plan_cluster_run(
     return ClusterPlan(
         run_dir, mpi_command(config.dem, np, MAIN_DECK), holdup, holdup_source, throughput, throughput_source, estimate
     )
-
-
-# --------------------------------------------------------------------------- a campaign on Slurm
-#: seconds between looks at the jobs
-POLL_S = 30.0
-#: submissions of one run before it is given up: the first, then resumes from its restart files
-MAX_ATTEMPTS = 3
-
-
-def run_campaign_on_slurm(
-    configs: dict[str, Config],
-    runs_root: str | Path,
-    np: int | None,
-    log: Log,
-    partition: str | None = None,
-    env: dict[str, str] | None = None,
-    poll_s: float = POLL_S,
-    max_attempts: int = MAX_ATTEMPTS,
-    reference_dir: Path | tuple[Path, ...] | None = None,
-    watch: Callable[[tuple[TaskStatus, ...]], None] | None = None,
-) -> dict[str, TaskStatus]:
-    """Every run of ``configs`` that is neither cached, shipped nor completed under
-    ``runs_root``, a task of one Slurm job array of ``np`` ranks each (default: the largest
-    ``dem.run.np`` of the configs) -- :func:`workflows.pipeline.slurm.submit_array`, as
-    ``pbmdem library build`` -- with its manifest in ``<runs_root>/slurm``; followed through
-    :func:`workflows.pipeline.slurm.array_status` until no task is queued or running, a
-    failed task resubmitted (resuming from its restart files) up to ``max_attempts``
-    submissions. ``env``: the environment of the Slurm commands (e.g. SLURM_CONF);
-    ``watch``: called with the tasks' states after every look. Returns every run's state by
-    name; the results are then the cache's, like a local campaign's."""
-    runs_root = writable_directory(runs_root, "runs directory").resolve()
-    shipped = {} if reference_dir is None else {"reference_dir": reference_dir}
-    folder = runs_root / "slurm"
-    submit_array(configs, folder, runs_root, np, partition, env, log, **shipped)
-    while True:
-        states = array_status(folder, env)
-        if watch is not None:
-            watch(states)
-        retry = [s for s in states if s.state == "failed" and s.task.job is not None and s.task.attempts < max_attempts]
-        for s in retry:
-            log(f"slurm: {s.task.name} failed ({s.reason}); submitting it again")
-        if retry:
-            resubmit(folder, [s.task for s in retry], env, log)
-        elif not any(s.state in ("pending", "running") for s in states):
-            return {s.task.name: s for s in states}
-        time.sleep(poll_s)

@@ -9,6 +9,8 @@
   failed) and, once completed, its results file.
 * :func:`resubmit` -- failed tasks as a new array; a task whose run left restart files
   resumes from them (``--resume``).
+* :func:`run_campaign_on_slurm` -- the validation campaign through the same three, followed
+  until every run has ended (``pbmdem validate --scheduler slurm``).
 
 Why plain ``sbatch`` arrays and not submitit (installable: ``pip download submitit``
 works): submitit pickles a Python function and starts it with ``srun`` on every task of
@@ -34,6 +36,8 @@ import shlex
 import shutil
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -43,6 +47,7 @@ from coupling.files import locked, replace_file, writable_directory
 from dem.cluster import array_script, under_srun
 from dem.run import can_resume, prepare_run
 from workflows.config import Config, dump_toml, load_config
+from workflows.pipeline.cluster import cost_estimate
 from workflows.pipeline.log import Log, quiet
 from workflows.pipeline.stages import dem_stage, post_hash, results_available, results_key
 from workflows.shipped import SHIPPED_RESULTS_DIRS
@@ -291,8 +296,6 @@ def array_ranks(folder: Path, manifest: Manifest) -> int:
 
 
 def _wall_hours(configs: list[Config], np: int, log: Log) -> float | None:
-    from workflows.pipeline.cluster import cost_estimate
-
     try:
         return max(cost_estimate(config, np)[0].wall_hours for config in configs)
     except ConfigError as exc:
@@ -458,3 +461,48 @@ def array_status(folder: str | Path, env: dict[str, str] | None = None) -> tuple
         )
         out.append(replace(status, state="failed", reason=reason))
     return tuple(out)
+
+
+#: seconds between looks at the jobs
+POLL_S = 30.0
+#: submissions of one run before it is given up: the first, then resumes from its restart files
+MAX_ATTEMPTS = 3
+
+
+def run_campaign_on_slurm(
+    configs: dict[str, Config],
+    runs_root: str | Path,
+    np: int | None,
+    log: Log,
+    partition: str | None = None,
+    env: dict[str, str] | None = None,
+    poll_s: float = POLL_S,
+    max_attempts: int = MAX_ATTEMPTS,
+    reference_dir: Path | tuple[Path, ...] | None = None,
+    watch: Callable[[tuple[TaskStatus, ...]], None] | None = None,
+) -> dict[str, TaskStatus]:
+    """Every run of ``configs`` that is neither cached, shipped nor completed under
+    ``runs_root``, a task of one Slurm job array of ``np`` ranks each (default: the largest
+    ``dem.run.np`` of the configs) -- :func:`submit_array`, as
+    ``pbmdem library build`` -- with its manifest in ``<runs_root>/slurm``; followed through
+    :func:`array_status` until no task is queued or running, a
+    failed task resubmitted (resuming from its restart files) up to ``max_attempts``
+    submissions. ``env``: the environment of the Slurm commands (e.g. SLURM_CONF);
+    ``watch``: called with the tasks' states after every look. Returns every run's state by
+    name; the results are then the cache's, like a local campaign's."""
+    runs_root = writable_directory(runs_root, "runs directory").resolve()
+    shipped = {} if reference_dir is None else {"reference_dir": reference_dir}
+    folder = runs_root / "slurm"
+    submit_array(configs, folder, runs_root, np, partition, env, log, **shipped)
+    while True:
+        states = array_status(folder, env)
+        if watch is not None:
+            watch(states)
+        retry = [s for s in states if s.state == "failed" and s.task.job is not None and s.task.attempts < max_attempts]
+        for s in retry:
+            log(f"slurm: {s.task.name} failed ({s.reason}); submitting it again")
+        if retry:
+            resubmit(folder, [s.task for s in retry], env, log)
+        elif not any(s.state in ("pending", "running") for s in states):
+            return {s.task.name: s for s in states}
+        time.sleep(poll_s)
