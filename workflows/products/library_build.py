@@ -25,6 +25,7 @@ from workflows.pipeline.slurm import (
     Manifest,
     TaskStatus,
     array_status,
+    check_ranks,
     prepare_tasks,
     resubmit,
     submit_array,
@@ -64,6 +65,7 @@ def build_library(
     interrupted one resumed), its results added. Every file is validated first."""
     if scheduler not in SCHEDULERS:
         raise ConfigError(f"scheduler {scheduler!r} is not one of {', '.join(SCHEDULERS)}")
+    check_ranks(np)  # before the local path claims a run directory for a command that cannot start
     configs = library_configs(config_files)
     if scheduler == "slurm":
         submit_array(configs, library_dir, runs_root, np, partition, env, log, reference_dir=())
