@@ -200,6 +200,15 @@ def test_library_suggest_refuses_a_region_outside_the_domain_in_one_line(tmp_pat
     assert not (tmp_path / "suggest.toml").exists()
 
 
+def test_library_suggest_refuses_a_base_of_other_particles_in_one_line(tmp_path, capsys):
+    # the reduced preset's 5 mm particles: a run from it would not be a point of the 6 mm library
+    argv = ["library", "suggest", "--out", str(tmp_path / "s"), "--base", "workflows/presets/reduced.toml"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "particle_diameter_m = 0.005 (the library's is 0.006)" in err[0]
+    assert not (tmp_path / "s").exists()
+
+
 SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
 FEED = VALIDATION_DIR / "dem-26a744879a705d14.h5"
 
