@@ -40,7 +40,7 @@ from pathlib import Path
 from coupling.cache import cache_path
 from coupling.errors import ConfigError, SolverRunError
 from coupling.files import locked, replace_file, writable_directory
-from dem.cluster import array_script, under_srun
+from dem.cluster import array_script, check_tasks, under_srun
 from dem.run import can_resume, prepare_run
 from workflows.config import Config, dump_toml, load_config
 from workflows.pipeline.log import Log, quiet
@@ -342,12 +342,6 @@ def _submit(folder: Path, manifest: Manifest, indices: list[int], env, log: Log)
     return manifest
 
 
-def check_ranks(np: int | None) -> None:
-    """Refuse a number of MPI ranks per run (``--np``) below 1; None: each configuration's."""
-    if np is not None and (isinstance(np, bool) or not isinstance(np, int) or np < 1):
-        raise ConfigError(f"--np must be an integer >= 1, got {np!r}")
-
-
 def submit_array(
     configs: dict[str, Config],
     folder: str | Path,
@@ -368,7 +362,8 @@ def submit_array(
         raise ConfigError("nothing to build: give at least one configuration")
     if shutil.which("sbatch", path=(env or os.environ).get("PATH")) is None:
         raise ConfigError("sbatch not found on PATH: a Slurm build needs Slurm's commands (or --scheduler local)")
-    check_ranks(np)
+    if np is not None:
+        check_tasks(np)
     if (Path(folder) / MANIFEST).is_file():
         live = [s.task.job_id for s in array_status(folder, env) if s.state in ("pending", "running")]
         if live:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from coupling.errors import ConfigError
 from coupling.files import distinct_inputs
+from dem.cluster import check_tasks
 from dem.run import can_resume, prepare_run
 from workflows.config import Config, load_config
 from workflows.pipeline.log import Log, quiet
@@ -25,7 +26,6 @@ from workflows.pipeline.slurm import (
     Manifest,
     TaskStatus,
     array_status,
-    check_ranks,
     prepare_tasks,
     resubmit,
     submit_array,
@@ -65,7 +65,8 @@ def build_library(
     interrupted one resumed), its results added. Every file is validated first."""
     if scheduler not in SCHEDULERS:
         raise ConfigError(f"scheduler {scheduler!r} is not one of {', '.join(SCHEDULERS)}")
-    check_ranks(np)  # before the local path claims a run directory for a command that cannot start
+    if np is not None:  # before the local path claims a run directory for a command that cannot start
+        check_tasks(np)
     configs = library_configs(config_files)
     if scheduler == "slurm":
         submit_array(configs, library_dir, runs_root, np, partition, env, log, reference_dir=())

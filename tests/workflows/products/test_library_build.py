@@ -11,7 +11,7 @@ def test_a_local_build_refuses_fewer_than_one_rank_before_writing(tmp_path, caps
     library, runs = tmp_path / "lib", tmp_path / "runs"
     argv = ["library", "build", "--scheduler", "local", "--np", "0", "--library", str(library)]
     assert main([*argv, "--runs-dir", str(runs), CONFIG]) == 2
-    assert capsys.readouterr().err.strip() == "pbmdem: error: --np must be an integer >= 1, got 0"
+    assert capsys.readouterr().err.strip() == "pbmdem: error: np must be >= 1, got 0 (an integer number of MPI tasks)"
     assert not library.exists() and not runs.exists()
 
 
