@@ -14,6 +14,7 @@ HELP = "a DEM library's law: fit it, calibrate its prediction intervals on each 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from workflows.prediction.library import (
+        AXIAL_SLICES,
         CORRECTION_TERMS,
         COVARIATES,
         DEFAULT_CORRECTION,
@@ -21,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         FIT_ITERATIONS,
         LEFT_OUT_ITERATIONS,
         LIBRARY_PHASES,
+        REFERENCE_FEED_PER_S,
+        REFERENCE_RPM,
+        REFERENCE_SLICE_M,
     )
 
     sub = parser.add_subparsers(dest="library_command", required=True, metavar="LIBRARY_COMMAND")
@@ -116,7 +120,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     suggest.add_argument(
         "--base",
         default=None,
-        help="configuration to build the run from (default: the library's run nearest its centre)",
+        help="configuration to build the run from (default: the configuration of the library's run nearest its "
+        f"reference point, {REFERENCE_RPM:g} rpm, {REFERENCE_SLICE_M * AXIAL_SLICES:g} m, "
+        f"{REFERENCE_FEED_PER_S:g} particles/s)",
     )
     suggest.add_argument("--top", type=int, default=5, help="candidates to list (default: %(default)s)")
     suggest.add_argument(
@@ -177,6 +183,7 @@ def status_command(args: argparse.Namespace) -> int:
     from workflows.products.library_build import library_status, status_table
 
     print(status_table(library_status(args.library, resubmit_failed=args.resubmit_failed, log=stderr_log)))
+    return 0
 
 
 def suggest_command(args: argparse.Namespace) -> int:
