@@ -842,6 +842,18 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
         (spec.length_min_m or length[0], spec.length_max_m or length[1]),
         (spec.feed_min_per_s or feed[0], spec.feed_max_per_s or feed[1]),
     )
+    # one bound given beyond the domain's other end: the default left for the other would invert the range
+    for (low, high), names, unit in zip(
+        out,
+        (("rpm_min", "rpm_max"), ("length_min_m", "length_max_m"), ("feed_min_per_s", "feed_max_per_s")),
+        ("rpm", "m", "particles/s"),
+    ):
+        if low > high:
+            given, default = (names[1], names[0]) if getattr(spec, names[1]) is not None else names
+            raise ConfigError(
+                f"{given} {getattr(spec, given):g} lies beyond the library's domain, whose end {low if given == names[1] else high:g} "
+                f"{unit} is the default {default}: give {default} too (and --extrapolate to search outside the domain)"
+            )
     if not s.extrapolate:
         issues = []
         for k in (0, 1):

@@ -167,6 +167,16 @@ def test_outside_the_domain_refused_in_one_line_unless_extrapolated(shipped):
     assert outside and all("speed" in p.outside[0] for p in outside)
 
 
+def test_one_bound_beyond_the_domains_other_end_is_refused_not_overridden(shipped):
+    # rpm_max 100 under the domain's 150: searching 150 rpm would answer outside what was asked
+    wide = D.surrogate(shipped.model, extrapolate=True)
+    with pytest.raises(ConfigError, match=r"^rpm_max 100 lies beyond .* 150 rpm is the default rpm_min: give rpm_min"):
+        D.box(wide, D.design_spec(mrt_max_s=25.0, rpm_max=100.0))
+    with pytest.raises(ConfigError, match=r"^length_min_m 0.6 lies beyond .* 0.495 m is the default length_max_m"):
+        D.box(wide, D.design_spec(mrt_max_s=25.0, length_min_m=0.6))
+    assert D.box(wide, D.design_spec(mrt_max_s=25.0, rpm_min=80.0, rpm_max=100.0))[0] == (80.0, 100.0)
+
+
 def test_the_search_answers_within_its_box(shipped):
     spec = D.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
     result = D.design(shipped, spec, grid=(3, 4, 3))
