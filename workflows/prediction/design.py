@@ -850,9 +850,10 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
     ):
         if low > high:
             given, default = (names[1], names[0]) if getattr(spec, names[1]) is not None else names
+            end = low if given == names[1] else high
             raise ConfigError(
-                f"{given} {getattr(spec, given):g} lies beyond the library's domain, whose end {low if given == names[1] else high:g} "
-                f"{unit} is the default {default}: give {default} too (and --extrapolate to search outside the domain)"
+                f"{given} {getattr(spec, given):g} lies beyond the library's domain, whose end {end:g} {unit} is the "
+                f"default {default}: give {default} too (and --extrapolate to search outside the domain)"
             )
     if not s.extrapolate:
         issues = []
