@@ -691,8 +691,8 @@ def _bounds_t(q: PredictedQuantity, low: float | None, high: float | None) -> tu
     def at(bound: float | None, side: float) -> float:
         if bound is None:
             return side * math.inf
-        if h <= 0:  # no interval: the value decides
-            return -math.inf if (bound - q.value) * side < 0 else math.inf
+        if h <= 0:  # no interval: the value decides, as the limit h -> 0 of the line below
+            return math.copysign(math.inf, bound - q.value)
         return math.log(bound / q.value) / h
 
     return at(low, -1.0), at(high, 1.0)
@@ -731,9 +731,9 @@ def joint_probability(
     stretches = [(lo, hi) for lo, hi in stretches if hi > lo]
     c, d = _bounds_t(holdup, spec.holdup_min, spec.holdup_max)
     nu_m, nu_h = mrt.correction.dof, holdup.correction.dof
-    if math.isinf(c) and math.isinf(d):  # the hold-up is not judged
+    if (c, d) == (-math.inf, math.inf):  # the hold-up is not judged (or met for certain)
         return float(sum(stdtr(nu_m, hi) - stdtr(nu_m, lo) for lo, hi in stretches))
-    if math.isinf(a) and math.isinf(b) and composition is None:  # the hold-up alone
+    if (a, b) == (-math.inf, math.inf) and composition is None:  # the hold-up alone
         return float(max(stdtr(nu_h, d) - stdtr(nu_h, c), 0.0))
     return sum(rectangle(min(nu_m, nu_h), correlation, lo, hi, c, d) for lo, hi in stretches)
 

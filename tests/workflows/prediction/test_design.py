@@ -89,6 +89,31 @@ def test_one_constraint_is_its_t_law_by_hand(shipped):
     assert D.evaluate(shipped, D.design_spec(mrt_max_s=q.high), point).probability == pytest.approx(0.975, abs=1e-9)
 
 
+def test_without_an_interval_the_value_alone_decides_either_bound(shipped):
+    # a line that fits its runs exactly: a zero-width interval, P(spec met) 1 or 0 by the value
+    point = _point(shipped)
+    first = D.evaluate(shipped, D.design_spec(mrt_max_s=1000.0), point)
+    mrt = replace(first.mrt, low=first.mrt.value, high=first.mrt.value)
+    holdup = replace(first.holdup, low=first.holdup.value, high=first.holdup.value)
+    assert D.t_scale(mrt) == 0.0 and D.t_scale(holdup) == 0.0
+    v, h = mrt.value, holdup.value
+    for bounds, met in (
+        ({"mrt_min_s": v / 2}, 1.0),
+        ({"mrt_min_s": v * 2}, 0.0),
+        ({"mrt_max_s": v * 2}, 1.0),
+        ({"mrt_max_s": v / 2}, 0.0),
+        ({"holdup_min": h / 2}, 1.0),
+        ({"holdup_min": h * 2}, 0.0),
+        ({"mrt_min_s": v / 2, "holdup_min": h / 2}, 1.0),
+        ({"mrt_min_s": v * 2, "holdup_min": h / 2}, 0.0),
+        ({"mrt_min_s": v / 2, "holdup_min": h * 2}, 0.0),
+    ):
+        spec = D.design_spec(**bounds)
+        assert D.joint_probability(spec, mrt, holdup, shipped.correlation) == met, bounds
+        margins = [m.probability for m in D._margins(spec, point, mrt, holdup, None, math.nan)]
+        assert min(margins) == met and len(margins) == len(bounds)
+
+
 def test_the_bivariate_rectangle():
     """Against seeded draws of the bivariate t (one chi-square shared: uncorrelated is not
     independent), and the whole second axis gives the first's marginal."""
