@@ -820,8 +820,9 @@ def dynamics(s: Surrogate, noise: Noise, design: PointDesign) -> Dynamics:
 def point_dynamics(s: Surrogate, point: OperatingPoint, noise: Noise | None = None) -> Dynamics:
     """The feeder-noise VRR and the step response, with their intervals, of any predicted
     point (what ``pbmdem predict`` predicts there): the design of a spec with no
-    composition criterion, its noise ``noise``. Raises ConfigError outside the library's
-    domain unless ``s.extrapolate``."""
+    composition criterion, its noise ``noise`` (default :class:`Noise`'s: feeder A's white
+    noise). Raises ConfigError outside the library's domain unless ``s.extrapolate``."""
+    noise = noise or Noise()
     spec = design_spec(
         mrt_min_s=1e-300, noise_tau_s=noise.tau_s, noise_band_hz=noise.band_hz, noise_feeder=noise.feeder
     )

@@ -114,6 +114,13 @@ def test_without_an_interval_the_value_alone_decides_either_bound(shipped):
         assert min(margins) == met and len(margins) == len(bounds)
 
 
+def test_a_points_dynamics_default_to_feeder_a_white_noise(shipped):
+    point = _point(shipped)
+    assert (
+        D.point_dynamics(shipped, point).record() == D.point_dynamics(shipped, point, D.Noise(0.0, 0.5, "A")).record()
+    )
+
+
 def test_the_bivariate_rectangle():
     """Against seeded draws of the bivariate t (one chi-square shared: uncorrelated is not
     independent), and the whole second axis gives the first's marginal."""
