@@ -98,7 +98,8 @@ def library_status(
 
 def add_to_library(library_dir: str | Path, states: tuple[TaskStatus, ...]) -> tuple[TaskStatus, ...]:
     """Each completed task's results file linked into ``library_dir`` under its own name
-    (copied where a hard link cannot be made); the states with those paths."""
+    (copied where a hard link cannot be made, whole or not at all); the states with those
+    paths."""
     out = []
     for state in states:
         if state.results is not None:
@@ -106,8 +107,14 @@ def add_to_library(library_dir: str | Path, states: tuple[TaskStatus, ...]) -> t
             if not target.exists():
                 try:
                     os.link(state.results, target)
-                except OSError:
-                    shutil.copy2(state.results, target)
+                except OSError:  # another file system: a copy, renamed into place whole, since an
+                    # existing name is never copied again
+                    part = target.with_name(f".{target.name}.{os.getpid()}.part")
+                    try:
+                        shutil.copy2(state.results, part)
+                        os.replace(part, target)
+                    finally:
+                        part.unlink(missing_ok=True)
             state = dataclasses.replace(state, results=target)
         out.append(state)
     return tuple(out)

@@ -1,7 +1,14 @@
 """``pbmdem library build`` / ``status``: the refusals made before any run or job (no
 LIGGGHTS, no Slurm)."""
 
+import os
+import shutil
+
+import pytest
+
 from workflows.cli.main import main
+from workflows.pipeline.slurm import ArrayTask, TaskStatus
+from workflows.products.library_build import add_to_library
 from workflows.shipped import LIBRARY_DIR
 
 CONFIG = str(LIBRARY_DIR / "rpm300.toml")
@@ -19,3 +26,31 @@ def test_status_of_a_folder_without_a_build_says_how_to_start_one(tmp_path, caps
     assert main(["library", "status", "--library", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert str(tmp_path) in err and "pbmdem library build" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_copy_cut_short_leaves_no_results_file_that_a_later_status_would_keep(tmp_path, monkeypatch):
+    source = tmp_path / "cache" / "dem-0123456789abcdef.h5"
+    source.parent.mkdir()
+    source.write_bytes(b"x" * 100_000)
+    library = tmp_path / "lib"
+    library.mkdir()
+    state = TaskStatus(ArrayTask(0, "a", "configs/a.toml", "0123456789abcdef", "7", 1), "completed", results=source)
+
+    def no_link(src, dst):  # the cache on another file system
+        raise OSError(18, "Invalid cross-device link")
+
+    def cut(src, dst):
+        with open(dst, "wb") as out:
+            out.write(b"x" * 1000)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "link", no_link)
+    monkeypatch.setattr(shutil, "copy2", cut)
+    with pytest.raises(KeyboardInterrupt):
+        add_to_library(library, (state,))
+    assert list(library.iterdir()) == []
+    monkeypatch.undo()
+    monkeypatch.setattr(os, "link", no_link)
+    (added,) = add_to_library(library, (state,))
+    assert added.results == library / source.name and added.results.read_bytes() == source.read_bytes()
+    assert sorted(p.name for p in library.iterdir()) == [source.name]
