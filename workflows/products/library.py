@@ -132,6 +132,8 @@ def _library_folder(library: str | Path | None) -> Path:
         return LIBRARY_MODEL.parent
     path = Path(library)
     if path.is_file():
+        if path.name != "library.json":  # the folder's own model is read, whatever file was named
+            raise ConfigError(f"--library {library}: give a library's folder or the library.json in it")
         path = path.parent
     folder = input_directory(path, "--library", ConfigError)
     regular_file(folder / "library.json", "the library model", ConfigError)

@@ -209,6 +209,17 @@ def test_library_suggest_refuses_a_base_of_other_particles_in_one_line(tmp_path,
     assert not (tmp_path / "s").exists()
 
 
+def test_library_suggest_refuses_a_model_file_it_would_not_read(tmp_path, capsys):
+    # beside another library.json, other.json would have been passed over for it
+    shutil.copytree(LIBRARY_DIR / "law", tmp_path / "law", ignore=shutil.ignore_patterns("fits", "unseen"))
+    other = tmp_path / "law" / "other.json"
+    shutil.copy(tmp_path / "law" / "library.json", other)
+    assert main(["library", "suggest", "--library", str(other), "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"pbmdem: error: --library {other}: give a library's folder or the library.json in it"]
+    assert not (tmp_path / "s").exists()
+
+
 SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
 FEED = VALIDATION_DIR / "dem-26a744879a705d14.h5"
 
