@@ -130,8 +130,14 @@ def _slurm(args: list[str], env: dict[str, str] | None, check: bool = True) -> s
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise SolverRunError(f"{args[0]} could not run: {exc}") from None
     if check and done.returncode != 0:
-        raise SolverRunError(f"{shlex.join(args)} failed: {(done.stderr or done.stdout).strip()[-500:]}")
+        raise SolverRunError(f"{shlex.join(args)} failed: {said(done)}")
     return done
+
+
+def said(done: subprocess.CompletedProcess) -> str:
+    """What a Slurm command printed (its stderr, else its stdout) on one line, the last
+    500 characters: the error is printed as one line."""
+    return "; ".join(line.strip() for line in (done.stderr or done.stdout).splitlines() if line.strip())[-500:]
 
 
 SACCT_FORMAT = "--format=JobID,State,ExitCode,Elapsed"
@@ -153,7 +159,7 @@ def job_records(array_ids: list[str], jobs_dir: Path, env: dict[str, str] | None
     elif "accounting storage is disabled" in (accounted.stderr + accounted.stdout).lower():
         ended = _completion_records(array_ids, jobs_dir, env)
     else:
-        raise SolverRunError(f"sacct failed: {(accounted.stderr or accounted.stdout).strip()[-500:]}")
+        raise SolverRunError(f"sacct failed: {said(accounted)}")
     records = dict(live)
     for job, rec in ended.items():
         if job not in records or rec.task_state in ("completed", "failed"):

@@ -1,13 +1,16 @@
-"""``pbmdem library build`` / ``status``: the refusals made before any run or job (no
-LIGGGHTS, no Slurm)."""
+"""``pbmdem library build`` / ``status``: the refusals made before any run or job, the
+results added to the folder, a Slurm command's failure told in one line (no LIGGGHTS, no
+Slurm)."""
 
 import os
 import shutil
 
 import pytest
 
+from coupling.errors import SolverRunError
 from workflows.cli.main import main
 from workflows.pipeline.slurm import ArrayTask, TaskStatus
+from workflows.pipeline.slurm import _slurm as slurm_command
 from workflows.products.library_build import add_to_library
 from workflows.shipped import LIBRARY_DIR
 
@@ -54,3 +57,11 @@ def test_a_copy_cut_short_leaves_no_results_file_that_a_later_status_would_keep(
     (added,) = add_to_library(library, (state,))
     assert added.results == library / source.name and added.results.read_bytes() == source.read_bytes()
     assert sorted(p.name for p in library.iterdir()) == [source.name]
+
+
+def test_a_slurm_command_that_fails_over_several_lines_is_told_in_one():
+    script = "echo 'sbatch: error: no controller' >&2; echo 'sbatch: fatal: no configuration' >&2; exit 1"
+    with pytest.raises(SolverRunError) as err:
+        slurm_command(["sh", "-c", script], None)
+    assert str(err.value).endswith("failed: sbatch: error: no controller; sbatch: fatal: no configuration")
+    assert "\n" not in str(err.value)
