@@ -154,7 +154,12 @@ def widened(region: Region, fraction: float) -> Region:
         step = fraction * math.log(high / low)
         return low * math.exp(-step), high * math.exp(step)
 
-    return Region(*(wide(*getattr(region, axis)) for axis in AXES))
+    try:
+        return Region(*(wide(*getattr(region, axis)) for axis in AXES))
+    except (OverflowError, ConfigError):  # an axis beyond any float, or down to 0
+        raise ConfigError(
+            f"--extend {fraction:g} widens the domain ({region.describe()}) beyond any operating point"
+        ) from None
 
 
 def parse_region(text: str | None, span: Region) -> Region:
@@ -571,4 +576,10 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
     region_points = [point_at(base, s, x, f, gap) for s, x, f in chosen.grid(REGION_LEVELS)]
     names = model.calibration.covariates if model.calibration is not None else ()
     scatter = seed_scatter(model)[0] or None
-    return rank(library_quantities(model), names, chosen, region_points, candidates_over(base, span, gap), dom, scatter)
+    try:
+        candidates = candidates_over(base, span, gap)
+    except ConfigError as exc:
+        if not extend:
+            raise
+        raise ConfigError(f"--extend {extend:g} reaches candidates no blender can run: {exc}") from None
+    return rank(library_quantities(model), names, chosen, region_points, candidates, dom, scatter)

@@ -220,6 +220,16 @@ def test_library_suggest_refuses_a_model_file_it_would_not_read(tmp_path, capsys
     assert not (tmp_path / "s").exists()
 
 
+def test_an_extension_beyond_any_blender_is_refused_naming_extend(tmp_path, capsys):
+    with pytest.raises(ConfigError, match=r"^--extend 1000 widens the domain .* beyond any operating point"):
+        widened(SPAN, 1000.0)
+    # five widths below the shortest library blender: no room for a blade station
+    assert main(["library", "suggest", "--extend", "5", "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbmdem: error: --extend 5 reaches candidates no blender can run")
+    assert not (tmp_path / "s").exists()
+
+
 SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
 FEED = VALIDATION_DIR / "dem-26a744879a705d14.h5"
 
