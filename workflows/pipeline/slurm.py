@@ -348,6 +348,18 @@ def _submit(folder: Path, manifest: Manifest, indices: list[int], env, log: Log)
     return manifest
 
 
+def refuse_live_build(folder: str | Path, env: dict[str, str] | None = None) -> None:
+    """ConfigError while an earlier build in ``folder`` has tasks queued or running: a new
+    manifest would lose their job ids, and their results would not be added."""
+    if (Path(folder) / MANIFEST).is_file():
+        live = [s.task.job_id for s in array_status(folder, env) if s.state in ("pending", "running")]
+        if live:
+            raise ConfigError(
+                f"{folder} has a build with tasks still queued or running ({', '.join(live)}); "
+                "wait for them (`pbmdem library status`) or use another folder"
+            )
+
+
 def submit_array(
     configs: dict[str, Config],
     folder: str | Path,
@@ -370,13 +382,7 @@ def submit_array(
         raise ConfigError("sbatch not found on PATH: a Slurm build needs Slurm's commands (or --scheduler local)")
     if np is not None:
         check_tasks(np)
-    if (Path(folder) / MANIFEST).is_file():
-        live = [s.task.job_id for s in array_status(folder, env) if s.state in ("pending", "running")]
-        if live:
-            raise ConfigError(
-                f"{folder} has a build with tasks still queued or running ({', '.join(live)}); "
-                "wait for them (`pbmdem library status`) or use another folder"
-            )
+    refuse_live_build(folder, env)
     runs_root = writable_directory(runs_root, "runs directory").resolve()
     refs = (reference_dir,) if isinstance(reference_dir, (str, Path)) else tuple(reference_dir)
     folder, tasks = prepare_tasks(configs, folder)

@@ -27,6 +27,7 @@ from workflows.pipeline.slurm import (
     TaskStatus,
     array_status,
     prepare_tasks,
+    refuse_live_build,
     resubmit,
     submit_array,
     task_config,
@@ -71,6 +72,7 @@ def build_library(
     if scheduler == "slurm":
         submit_array(configs, library_dir, runs_root, np, partition, env, log, reference_dir=())
         return library_status(library_dir, env)
+    refuse_live_build(library_dir, env)
     folder, tasks = prepare_tasks(configs, library_dir, srun=False)
     write_manifest(folder, Manifest(str(Path(runs_root).resolve()), np, None, (), tasks))
     for task in tasks:
