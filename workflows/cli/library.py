@@ -3,7 +3,9 @@ laws with each run left out, the intervals calibrated on them and checked
 (:mod:`workflows.products.predict`). ``pbmdem library check --results FILE...``: DEM runs
 the library does not hold, predicted by its law and judged against their DEM.
 ``pbmdem library suggest``: the next DEM run that most narrows the intervals, as a
-configuration. ``pbmdem library add RESULTS.h5...``: the library refitted with more runs."""
+configuration. ``pbmdem library add RESULTS.h5...``: the library refitted with more runs.
+``pbmdem library build CONFIG...`` / ``status``: the DEM runs of configurations into a
+library folder (a Slurm job array, or here in turn) and their state."""
 
 from __future__ import annotations
 

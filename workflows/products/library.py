@@ -1,4 +1,5 @@
-"""``pbmdem library fit`` and ``pbmdem library check``: the files they write.
+"""``pbmdem library fit``, ``check``, ``suggest`` and ``add``: the files they write
+(``build`` and ``status``: :mod:`workflows.products.library_build`).
 
 ``library fit`` fits the law of a DEM library and its laws left out
 (:func:`workflows.prediction.library.fit_library`), calibrates the intervals on them
