@@ -88,6 +88,7 @@ from workflows.prediction.predict import (
     extrapolation_floor,
     residual,
 )
+from workflows.prediction.suggest import least_gap
 
 MRT = "mean_residence_time_s"
 HOLDUP = "holdup"
@@ -266,8 +267,7 @@ def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float]
     the library's runs."""
     first = points[0].blade_x_m[0]
     spacing = min(float(np.mean(np.diff(p.blade_x_m))) for p in points if len(p.blade_x_m) > 1)
-    gap = min(p.length_m - p.blade_x_m[-1] for p in points)
-    return first, spacing, gap
+    return first, spacing, least_gap(points)
 
 
 def design_point(
