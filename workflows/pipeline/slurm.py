@@ -352,7 +352,12 @@ def refuse_live_build(folder: str | Path, env: dict[str, str] | None = None) -> 
     """ConfigError while an earlier build in ``folder`` has tasks queued or running: a new
     manifest would lose their job ids, and their results would not be added."""
     if (Path(folder) / MANIFEST).is_file():
-        live = [s.task.job_id for s in array_status(folder, env) if s.state in ("pending", "running")]
+        # Slurm's word alone: a task without a job, or one ended, is not live whatever its files
+        tasks = [t for t in read_manifest(folder).tasks if t.job is not None]
+        records = job_records(sorted({t.job for t in tasks}), Path(folder) / JOBS_DIR, env)
+        live = [
+            t.job_id for t in tasks if t.job_id in records and records[t.job_id].task_state in ("pending", "running")
+        ]
         if live:
             raise ConfigError(
                 f"{folder} has a build with tasks still queued or running ({', '.join(live)}); "

@@ -9,7 +9,7 @@ import pytest
 
 from coupling.errors import SolverRunError
 from workflows.cli.main import main
-from workflows.pipeline.slurm import ArrayTask, TaskStatus
+from workflows.pipeline.slurm import ArrayTask, Manifest, TaskStatus, refuse_live_build, write_manifest
 from workflows.pipeline.slurm import _slurm as slurm_command
 from workflows.products.library_build import add_to_library
 from workflows.shipped import LIBRARY_DIR
@@ -65,3 +65,10 @@ def test_a_slurm_command_that_fails_over_several_lines_is_told_in_one():
         slurm_command(["sh", "-c", script], None)
     assert str(err.value).endswith("failed: sbatch: error: no controller; sbatch: fatal: no configuration")
     assert "\n" not in str(err.value)
+
+
+def test_an_earlier_build_without_jobs_is_not_live_whatever_its_files(tmp_path):
+    # a local build's manifest whose configurations are gone: no job, so nothing to wait for
+    manifest = Manifest(str(tmp_path / "runs"), None, None, (), (ArrayTask(0, "a", "configs/a.toml", None, None, 0),))
+    write_manifest(tmp_path, manifest)
+    assert refuse_live_build(tmp_path) is None
