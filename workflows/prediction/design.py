@@ -196,7 +196,10 @@ def design_spec(**values: Any) -> DesignSpec:
     try:
         return DesignSpec(**values)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'spec'}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc']))} = {e['input']!r}: {e['msg']}" if e["loc"] else f"spec: {e['msg']}"
+            for e in exc.errors()
+        )
         raise ConfigError(f"design spec: {problems}") from None
 
 

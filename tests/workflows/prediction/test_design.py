@@ -232,6 +232,8 @@ def test_the_spec_names_a_bad_value():
         D.design_spec(ca_tolerance=0.04)
     with pytest.raises(ConfigError, match=r"length_min_m \(0.4\) must be <= length_max_m"):
         D.design_spec(mrt_max_s=25.0, length_min_m=0.4, length_max_m=0.3)
+    with pytest.raises(ConfigError, match=r"^design spec: confidence = 2.0: Input should be less than 1$"):
+        D.design_spec(mrt_max_s=25.0, confidence=2.0)
 
 
 def test_any_predicted_point_has_its_noise_and_step(shipped):
