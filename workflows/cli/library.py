@@ -176,7 +176,8 @@ def build_command(args: argparse.Namespace) -> int:
         args.configs, args.library, args.scheduler, args.runs_dir, args.np, args.partition, log=stderr_log
     )
     print(status_table(states))
-    print(f"follow it with: pbmdem library status --library {args.library}")
+    if args.scheduler == "slurm":  # a local build has run to its end here
+        print(f"follow it with: pbmdem library status --library {args.library}")
     return 0
 
 
