@@ -25,9 +25,11 @@ command line does -- costs nothing.
 The rooms, each importing only its own floor or lower ones:
 
 * ``cli/`` -- ``pbmdem``, the one command line;
-* ``products/`` -- the comparison, the validation campaign, the design tool;
+* ``products/`` -- the comparison, the validation campaign, the library, prediction and design;
 * ``report/`` -- the figures and pages of each analysis;
 * ``analysis/`` -- compute only, typed results (agreement, VRR, step, DEM budget, ...);
+* ``prediction/`` -- beside ``analysis/``: the DEM library's law, its calibrated intervals,
+  a point's prediction, the next run to add and the design search;
 * ``pipeline/`` -- the stages: DEM through the cache, the PBM of a DEM run, the cluster path;
 * ``shipped.py`` -- the DEM results that ship with the repository;
 * ``config.py`` -- the typed configuration and its presets.

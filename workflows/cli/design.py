@@ -1,5 +1,7 @@
 """``pbmdem design``: the shortest blender and the largest feed that meet a spec with a
-given probability, from the DEM library's law (:mod:`workflows.products.design`)."""
+given probability, from the DEM library's law (:mod:`workflows.products.design`). Exit code
+0 with an answer; 1 when no point searched meets the spec (the files still written, the most
+likely point named); 2 for a bad spec or input, as every command."""
 
 from __future__ import annotations
 

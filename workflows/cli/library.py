@@ -3,7 +3,9 @@ laws with each run left out, the intervals calibrated on them and checked
 (:mod:`workflows.products.predict`). ``pbmdem library check --results FILE...``: DEM runs
 the library does not hold, predicted by its law and judged against their DEM.
 ``pbmdem library suggest``: the next DEM run that most narrows the intervals, as a
-configuration. ``pbmdem library add RESULTS.h5...``: the library refitted with more runs."""
+configuration. ``pbmdem library add RESULTS.h5...``: the library refitted with more runs.
+``pbmdem library build CONFIG...`` / ``status``: the DEM runs of configurations into a
+library folder (a Slurm job array, or here in turn) and their state."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ HELP = "a DEM library's law: fit it, calibrate its prediction intervals on each 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from workflows.prediction.library import (
+        AXIAL_SLICES,
         CORRECTION_TERMS,
         COVARIATES,
         DEFAULT_CORRECTION,
@@ -21,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         FIT_ITERATIONS,
         LEFT_OUT_ITERATIONS,
         LIBRARY_PHASES,
+        REFERENCE_FEED_PER_S,
+        REFERENCE_RPM,
+        REFERENCE_SLICE_M,
     )
 
     sub = parser.add_subparsers(dest="library_command", required=True, metavar="LIBRARY_COMMAND")
@@ -116,7 +122,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     suggest.add_argument(
         "--base",
         default=None,
-        help="configuration to build the run from (default: the library's run nearest its centre)",
+        help="configuration to build the run from (default: the configuration of the library's run nearest its "
+        f"reference point, {REFERENCE_RPM:g} rpm, {REFERENCE_SLICE_M * AXIAL_SLICES:g} m, "
+        f"{REFERENCE_FEED_PER_S:g} particles/s)",
     )
     suggest.add_argument("--top", type=int, default=5, help="candidates to list (default: %(default)s)")
     suggest.add_argument(
@@ -168,7 +176,8 @@ def build_command(args: argparse.Namespace) -> int:
         args.configs, args.library, args.scheduler, args.runs_dir, args.np, args.partition, log=stderr_log
     )
     print(status_table(states))
-    print(f"follow it with: pbmdem library status --library {args.library}")
+    if args.scheduler == "slurm":  # a local build has run to its end here
+        print(f"follow it with: pbmdem library status --library {args.library}")
     return 0
 
 
@@ -177,6 +186,7 @@ def status_command(args: argparse.Namespace) -> int:
     from workflows.products.library_build import library_status, status_table
 
     print(status_table(library_status(args.library, resubmit_failed=args.resubmit_failed, log=stderr_log)))
+    return 0
 
 
 def suggest_command(args: argparse.Namespace) -> int:

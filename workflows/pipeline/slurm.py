@@ -44,7 +44,7 @@ from pathlib import Path
 from coupling.cache import cache_path
 from coupling.errors import ConfigError, SolverRunError
 from coupling.files import locked, replace_file, writable_directory
-from dem.cluster import array_script, under_srun
+from dem.cluster import array_script, check_tasks, under_srun
 from dem.run import can_resume, prepare_run
 from workflows.config import Config, dump_toml, load_config
 from workflows.pipeline.cluster import cost_estimate
@@ -135,8 +135,14 @@ def _slurm(args: list[str], env: dict[str, str] | None, check: bool = True) -> s
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise SolverRunError(f"{args[0]} could not run: {exc}") from None
     if check and done.returncode != 0:
-        raise SolverRunError(f"{shlex.join(args)} failed: {(done.stderr or done.stdout).strip()[-500:]}")
+        raise SolverRunError(f"{shlex.join(args)} failed: {said(done)}")
     return done
+
+
+def said(done: subprocess.CompletedProcess) -> str:
+    """What a Slurm command printed (its stderr, else its stdout) on one line, the last
+    500 characters: the error is printed as one line."""
+    return "; ".join(line.strip() for line in (done.stderr or done.stdout).splitlines() if line.strip())[-500:]
 
 
 SACCT_FORMAT = "--format=JobID,State,ExitCode,Elapsed"
@@ -158,7 +164,7 @@ def job_records(array_ids: list[str], jobs_dir: Path, env: dict[str, str] | None
     elif "accounting storage is disabled" in (accounted.stderr + accounted.stdout).lower():
         ended = _completion_records(array_ids, jobs_dir, env)
     else:
-        raise SolverRunError(f"sacct failed: {(accounted.stderr or accounted.stdout).strip()[-500:]}")
+        raise SolverRunError(f"sacct failed: {said(accounted)}")
     records = dict(live)
     for job, rec in ended.items():
         if job not in records or rec.task_state in ("completed", "failed"):
@@ -345,6 +351,23 @@ def _submit(folder: Path, manifest: Manifest, indices: list[int], env, log: Log)
     return manifest
 
 
+def refuse_live_build(folder: str | Path, env: dict[str, str] | None = None) -> None:
+    """ConfigError while an earlier build in ``folder`` has tasks queued or running: a new
+    manifest would lose their job ids, and their results would not be added."""
+    if (Path(folder) / MANIFEST).is_file():
+        # Slurm's word alone: a task without a job, or one ended, is not live whatever its files
+        tasks = [t for t in read_manifest(folder).tasks if t.job is not None]
+        records = job_records(sorted({t.job for t in tasks}), Path(folder) / JOBS_DIR, env)
+        live = [
+            t.job_id for t in tasks if t.job_id in records and records[t.job_id].task_state in ("pending", "running")
+        ]
+        if live:
+            raise ConfigError(
+                f"{folder} has a build with tasks still queued or running ({', '.join(live)}); "
+                "wait for them (`pbmdem library status`) or use another folder"
+            )
+
+
 def submit_array(
     configs: dict[str, Config],
     folder: str | Path,
@@ -365,15 +388,9 @@ def submit_array(
         raise ConfigError("nothing to build: give at least one configuration")
     if shutil.which("sbatch", path=(env or os.environ).get("PATH")) is None:
         raise ConfigError("sbatch not found on PATH: a Slurm build needs Slurm's commands (or --scheduler local)")
-    if np is not None and (isinstance(np, bool) or np < 1):
-        raise ConfigError(f"--np must be an integer >= 1, got {np!r}")
-    if (Path(folder) / MANIFEST).is_file():
-        live = [s.task.job_id for s in array_status(folder, env) if s.state in ("pending", "running")]
-        if live:
-            raise ConfigError(
-                f"{folder} has a build with tasks still queued or running ({', '.join(live)}); "
-                "wait for them (`pbmdem library status`) or use another folder"
-            )
+    if np is not None:
+        check_tasks(np)
+    refuse_live_build(folder, env)
     runs_root = writable_directory(runs_root, "runs directory").resolve()
     refs = (reference_dir,) if isinstance(reference_dir, (str, Path)) else tuple(reference_dir)
     folder, tasks = prepare_tasks(configs, folder)

@@ -88,6 +88,7 @@ from workflows.prediction.predict import (
     extrapolation_floor,
     residual,
 )
+from workflows.prediction.suggest import least_gap
 
 MRT = "mean_residence_time_s"
 HOLDUP = "holdup"
@@ -195,7 +196,10 @@ def design_spec(**values: Any) -> DesignSpec:
     try:
         return DesignSpec(**values)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'spec'}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc']))} = {e['input']!r}: {e['msg']}" if e["loc"] else f"spec: {e['msg']}"
+            for e in exc.errors()
+        )
         raise ConfigError(f"design spec: {problems}") from None
 
 
@@ -266,8 +270,7 @@ def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float]
     the library's runs."""
     first = points[0].blade_x_m[0]
     spacing = min(float(np.mean(np.diff(p.blade_x_m))) for p in points if len(p.blade_x_m) > 1)
-    gap = min(p.length_m - p.blade_x_m[-1] for p in points)
-    return first, spacing, gap
+    return first, spacing, least_gap(points)
 
 
 def design_point(
@@ -691,8 +694,8 @@ def _bounds_t(q: PredictedQuantity, low: float | None, high: float | None) -> tu
     def at(bound: float | None, side: float) -> float:
         if bound is None:
             return side * math.inf
-        if h <= 0:  # no interval: the value decides
-            return -math.inf if (bound - q.value) * side < 0 else math.inf
+        if h <= 0:  # no interval: the value decides, as the limit h -> 0 of the line below
+            return math.copysign(math.inf, bound - q.value)
         return math.log(bound / q.value) / h
 
     return at(low, -1.0), at(high, 1.0)
@@ -731,9 +734,9 @@ def joint_probability(
     stretches = [(lo, hi) for lo, hi in stretches if hi > lo]
     c, d = _bounds_t(holdup, spec.holdup_min, spec.holdup_max)
     nu_m, nu_h = mrt.correction.dof, holdup.correction.dof
-    if math.isinf(c) and math.isinf(d):  # the hold-up is not judged
+    if (c, d) == (-math.inf, math.inf):  # the hold-up is not judged (or met for certain)
         return float(sum(stdtr(nu_m, hi) - stdtr(nu_m, lo) for lo, hi in stretches))
-    if math.isinf(a) and math.isinf(b) and composition is None:  # the hold-up alone
+    if (a, b) == (-math.inf, math.inf) and composition is None:  # the hold-up alone
         return float(max(stdtr(nu_h, d) - stdtr(nu_h, c), 0.0))
     return sum(rectangle(min(nu_m, nu_h), correlation, lo, hi, c, d) for lo, hi in stretches)
 
@@ -820,8 +823,9 @@ def dynamics(s: Surrogate, noise: Noise, design: PointDesign) -> Dynamics:
 def point_dynamics(s: Surrogate, point: OperatingPoint, noise: Noise | None = None) -> Dynamics:
     """The feeder-noise VRR and the step response, with their intervals, of any predicted
     point (what ``pbmdem predict`` predicts there): the design of a spec with no
-    composition criterion, its noise ``noise``. Raises ConfigError outside the library's
-    domain unless ``s.extrapolate``."""
+    composition criterion, its noise ``noise`` (default :class:`Noise`'s: feeder A's white
+    noise). Raises ConfigError outside the library's domain unless ``s.extrapolate``."""
+    noise = noise or Noise()
     spec = design_spec(
         mrt_min_s=1e-300, noise_tau_s=noise.tau_s, noise_band_hz=noise.band_hz, noise_feeder=noise.feeder
     )
@@ -842,6 +846,19 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
         (spec.length_min_m or length[0], spec.length_max_m or length[1]),
         (spec.feed_min_per_s or feed[0], spec.feed_max_per_s or feed[1]),
     )
+    # one bound given beyond the domain's other end: the default left for the other would invert the range
+    for (low, high), names, unit in zip(
+        out,
+        (("rpm_min", "rpm_max"), ("length_min_m", "length_max_m"), ("feed_min_per_s", "feed_max_per_s")),
+        ("rpm", "m", "particles/s"),
+    ):
+        if low > high:
+            given, default = (names[1], names[0]) if getattr(spec, names[1]) is not None else names
+            end = low if given == names[1] else high
+            raise ConfigError(
+                f"{given} {getattr(spec, given):g} lies beyond the library's domain, whose end {end:g} {unit} is the "
+                f"default {default}: give {default} too (and --extrapolate to search outside the domain)"
+            )
     if not s.extrapolate:
         issues = []
         for k in (0, 1):

@@ -262,9 +262,13 @@ class LibraryRun:
 
 
 def file_digest(path: Path) -> str:
-    """The results file's stored content digest (its bytes' when it has none)."""
-    with h5py.File(path, "r") as h5:
-        digest = stored_digest(h5)
+    """The results file's stored content digest (its bytes' when it has none); ConfigError
+    naming the file when it is not a readable HDF5 file."""
+    try:
+        with h5py.File(path, "r") as h5:
+            digest = stored_digest(h5)
+    except OSError as exc:
+        raise ConfigError(f"{path} is not a readable HDF5 file: {' '.join(str(exc).split())}") from None
     if digest is None:  # an unsigned file: its bytes
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
     return digest

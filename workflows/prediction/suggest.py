@@ -63,7 +63,15 @@ from workflows.prediction.library import (
     quantity_keys,
     slice_key,
 )
-from workflows.prediction.predict import LEVEL, Correction, Domain, correction_data, domain, fit_correction
+from workflows.prediction.predict import (
+    LEVEL,
+    Correction,
+    Domain,
+    correction_data,
+    domain,
+    domain_issues,
+    fit_correction,
+)
 
 #: the region's axes, as the command line names them, and their units
 AXES = {"speed": "rpm", "length": "m", "feed": "particles/s"}
@@ -146,7 +154,12 @@ def widened(region: Region, fraction: float) -> Region:
         step = fraction * math.log(high / low)
         return low * math.exp(-step), high * math.exp(step)
 
-    return Region(*(wide(*getattr(region, axis)) for axis in AXES))
+    try:
+        return Region(*(wide(*getattr(region, axis)) for axis in AXES))
+    except (OverflowError, ConfigError):  # an axis beyond any float, or down to 0
+        raise ConfigError(
+            f"--extend {fraction:g} widens the domain ({region.describe()}) beyond any operating point"
+        ) from None
 
 
 def parse_region(text: str | None, span: Region) -> Region:
@@ -174,7 +187,7 @@ def parse_region(text: str | None, span: Region) -> Region:
         low, high = numbers[0], numbers[-1]
         if low > high:
             raise ConfigError(f"--region {axis}={value}: low {low:g} above high {high:g}")
-        valid = span.__getattribute__(axis)
+        valid = getattr(span, axis)
         if low < valid[0] * (1 - 1e-9) or high > valid[1] * (1 + 1e-9):
             raise ConfigError(
                 f"--region {axis}={value} leaves the candidates' span {valid[0]:.4g}-{valid[1]:.4g} {AXES[axis]} "
@@ -547,11 +560,26 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
     the criterion over ``region`` (:func:`parse_region`, within the candidates' span;
     default the library's domain, not widened)."""
     points = [r.point for r in model.runs]
-    dom = domain_region(domain(points, model.blade_pattern))
+    library_domain = domain(points, model.blade_pattern)
+    dom = domain_region(library_domain)
+    gap = least_gap(points)
+    # the base moved to a point of the domain: only what the law does not vary is left to differ
+    inside = point_at(base, dom.speed[0], dom.length[0], dom.feed[0], gap)
+    fixed = domain_issues(library_domain, inside, base.dem.geometry.blade_pattern)[0]
+    if fixed:
+        raise ConfigError(
+            f"the base configuration differs from the library's runs in what its law does not vary: "
+            f"{'; '.join(fixed)}; its runs would not belong to this library"
+        )
     span = widened(dom, extend)
     chosen = parse_region(region, span) if region else dom
-    gap = least_gap(points)
     region_points = [point_at(base, s, x, f, gap) for s, x, f in chosen.grid(REGION_LEVELS)]
     names = model.calibration.covariates if model.calibration is not None else ()
     scatter = seed_scatter(model)[0] or None
-    return rank(library_quantities(model), names, chosen, region_points, candidates_over(base, span, gap), dom, scatter)
+    try:
+        candidates = candidates_over(base, span, gap)
+    except ConfigError as exc:
+        if not extend:
+            raise
+        raise ConfigError(f"--extend {extend:g} reaches candidates no blender can run: {exc}") from None
+    return rank(library_quantities(model), names, chosen, region_points, candidates, dom, scatter)

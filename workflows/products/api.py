@@ -22,10 +22,12 @@ def predict(config: Config | str | Path, library: str | Path | None = None, extr
     :class:`~workflows.prediction.predict.Prediction` whose ``quantities`` each hold a
     ``value`` and its 95 % prediction interval ``low``-``high``, keyed (``.quantity(key)``) as
     the comparison's agreement table: ``mean_residence_time_s`` [s], ``rtd_variance_s2``
-    [s^2], ``holdup`` [particles], ``outflow_per_s`` [particles/s], ``C_A`` [-],
-    ``rsd_outlet`` [-], ``lacey_outlet`` [-], ``holdup_slice_<i>`` [particles]. A point
-    outside the library's domain raises ConfigError unless ``extrapolate``; then the
-    prediction is labelled (``.extrapolated``) and its intervals widened."""
+    [s^2], ``little_mean_residence_time_s`` [s] (hold-up / outflow), ``holdup``
+    [particles], ``outflow_per_s`` [particles/s], ``C_A`` [-], ``rsd_outlet`` [-],
+    ``lacey_outlet`` [-], ``holdup_slice_<i>`` [particles], i from 1 at the inlet
+    (:data:`~workflows.prediction.library.AXIAL_SLICES` slices). A point outside the
+    library's domain raises ConfigError unless ``extrapolate``; then the prediction is
+    labelled (``.extrapolated``) and its intervals widened."""
     if not isinstance(config, Config):
         config = load_config(config)
     model = load_model(LIBRARY_MODEL if library is None else library)

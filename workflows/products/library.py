@@ -1,4 +1,5 @@
-"""``pbmdem library fit`` and ``pbmdem library check``: the files they write.
+"""``pbmdem library fit``, ``check``, ``suggest`` and ``add``: the files they write
+(``build`` and ``status``: :mod:`workflows.products.library_build`).
 
 ``library fit`` fits the law of a DEM library and its laws left out
 (:func:`workflows.prediction.library.fit_library`), calibrates the intervals on them
@@ -132,6 +133,8 @@ def _library_folder(library: str | Path | None) -> Path:
         return LIBRARY_MODEL.parent
     path = Path(library)
     if path.is_file():
+        if path.name != "library.json":  # the folder's own model is read, whatever file was named
+            raise ConfigError(f"--library {library}: give a library's folder or the library.json in it")
         path = path.parent
     folder = input_directory(path, "--library", ConfigError)
     regular_file(folder / "library.json", "the library model", ConfigError)

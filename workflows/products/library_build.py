@@ -18,6 +18,7 @@ from pathlib import Path
 
 from coupling.errors import ConfigError
 from coupling.files import distinct_inputs
+from dem.cluster import check_tasks
 from dem.run import can_resume, prepare_run
 from workflows.config import Config, load_config
 from workflows.pipeline.log import Log, quiet
@@ -26,6 +27,7 @@ from workflows.pipeline.slurm import (
     TaskStatus,
     array_status,
     prepare_tasks,
+    refuse_live_build,
     resubmit,
     submit_array,
     task_config,
@@ -64,10 +66,13 @@ def build_library(
     interrupted one resumed), its results added. Every file is validated first."""
     if scheduler not in SCHEDULERS:
         raise ConfigError(f"scheduler {scheduler!r} is not one of {', '.join(SCHEDULERS)}")
+    if np is not None:  # before the local path claims a run directory for a command that cannot start
+        check_tasks(np)
     configs = library_configs(config_files)
     if scheduler == "slurm":
         submit_array(configs, library_dir, runs_root, np, partition, env, log, reference_dir=())
         return library_status(library_dir, env)
+    refuse_live_build(library_dir, env)
     folder, tasks = prepare_tasks(configs, library_dir, srun=False)
     write_manifest(folder, Manifest(str(Path(runs_root).resolve()), np, None, (), tasks))
     for task in tasks:
@@ -95,7 +100,8 @@ def library_status(
 
 def add_to_library(library_dir: str | Path, states: tuple[TaskStatus, ...]) -> tuple[TaskStatus, ...]:
     """Each completed task's results file linked into ``library_dir`` under its own name
-    (copied where a hard link cannot be made); the states with those paths."""
+    (copied where a hard link cannot be made, whole or not at all); the states with those
+    paths."""
     out = []
     for state in states:
         if state.results is not None:
@@ -103,8 +109,14 @@ def add_to_library(library_dir: str | Path, states: tuple[TaskStatus, ...]) -> t
             if not target.exists():
                 try:
                     os.link(state.results, target)
-                except OSError:
-                    shutil.copy2(state.results, target)
+                except OSError:  # another file system: a copy, renamed into place whole, since an
+                    # existing name is never copied again
+                    part = target.with_name(f".{target.name}.{os.getpid()}.part")
+                    try:
+                        shutil.copy2(state.results, part)
+                        os.replace(part, target)
+                    finally:
+                        part.unlink(missing_ok=True)
             state = dataclasses.replace(state, results=target)
         out.append(state)
     return tuple(out)

@@ -21,7 +21,7 @@ from coupling.jsonable import write_json
 from coupling.tables import write_table
 from dem.operating import operating_point
 from workflows.config import load_config
-from workflows.prediction.design import Dynamics, Noise, point_dynamics, surrogate
+from workflows.prediction.design import Dynamics, point_dynamics, surrogate
 from workflows.prediction.library import load_model
 from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
 from workflows.shipped import LIBRARY_MODEL
@@ -67,7 +67,7 @@ def run_predict(
     model = load_model(library_path)
     point = operating_point(config.dem)
     prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
-    dynamics = point_dynamics(surrogate(model, extrapolate), point, Noise())
+    dynamics = point_dynamics(surrogate(model, extrapolate), point)
     folder = writable_directory(out, "--out")
     duration = config.dem.operation.duration_s
     files = {

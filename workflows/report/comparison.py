@@ -380,6 +380,13 @@ class Recommendation:
         }
 
 
+def half_widths_off(row: AgreementRow, mode: str) -> float:
+    """|PBM - DEM| of ``row`` in ``mode``, in half-widths of the DEM's interval; NaN when
+    the half-width is not known or is zero (a point interval gives no scale)."""
+    width = row.half_width(mode)
+    return abs(row.value(mode) - row.dem) / width if width > 0 else math.nan
+
+
 def recommend(rows: list[AgreementRow]) -> Recommendation | None:
     """The :class:`Recommendation` of the agreement table ``rows``; None when no mode was
     judged on any row (no steady DEM state to average over)."""
@@ -389,8 +396,7 @@ def recommend(rows: list[AgreementRow]) -> Recommendation | None:
         judged = [r for r in rows if r.inside(mode) is not None]
         if not judged:
             continue
-        off = [abs(r.value(mode) - r.dem) / r.half_width(mode) for r in judged if r.half_width(mode) > 0]
-        off = [v for v in off if math.isfinite(v)]
+        off = [v for v in (half_widths_off(r, mode) for r in judged) if math.isfinite(v)]
         deviation = float(np.mean(off)) if off else math.nan
         scores.append(ModeScore(mode, sum(bool(r.inside(mode)) for r in judged), len(judged), deviation))
     if not scores:
@@ -417,9 +423,15 @@ def why(rec: Recommendation, rows: list[AgreementRow]) -> str:
         return f"It is the only rate mode the DEM's table supports; it lies inside on {best.inside} of {best.judged}."
     runner = rec.scores[1]
     if rec.tied:
+        if best.deviation < runner.deviation or (math.isfinite(best.deviation) and not math.isfinite(runner.deviation)):
+            return (
+                f"It ties with the {runner.mode} rates on the count and lies nearer the DEM: on average "
+                f"{fmt(best.deviation, 2)} half-widths of the DEM's interval from it, against "
+                f"{fmt(runner.deviation, 2)}."
+            )
         return (
-            f"It ties with the {runner.mode} rates on the count and lies nearer the DEM: on average "
-            f"{fmt(best.deviation, 2)} half-widths of the DEM's interval from it, against {fmt(runner.deviation, 2)}."
+            f"It ties with the {runner.mode} rates on the count and on the distance from the DEM "
+            f"({fmt(best.deviation, 2)} half-widths of the DEM's interval) and has fewer fitted parameters."
         )
     gained = [r.quantity for r in rows if r.inside(best.mode) and r.inside(runner.mode) is False]
     missed = [r for r in rows if r.inside(best.mode) is False]
@@ -428,12 +440,7 @@ def why(rec: Recommendation, rows: list[AgreementRow]) -> str:
         if not missed
         else "its "
         + ("one miss is " if len(missed) == 1 else "misses are ")
-        + _listed(
-            [
-                f"{r.quantity} ({fmt(abs(r.value(best.mode) - r.dem) / r.half_width(best.mode), 2)} half-widths off)"
-                for r in missed
-            ]
-        )
+        + _listed([f"{r.quantity} ({fmt(half_widths_off(r, best.mode), 2)} half-widths off)" for r in missed])
     )
     where = f"on {_listed(gained)} where" if gained else "on more rows than"
     return (

@@ -10,10 +10,12 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from workflows.prediction.design import Dynamics
+from workflows.prediction.design import Dynamics, Noise
 from workflows.prediction.library import AXIAL_SLICES, SCALAR_KEYS, slice_key
 from workflows.prediction.predict import Prediction
 
+#: the feeder noise whose VRR ``predict`` reports (:func:`workflows.prediction.design.point_dynamics`'s default)
+NOISE = Noise()
 LABELS = {
     "mean_residence_time_s": ("mean residence time (RTD)", "s"),
     "rtd_variance_s2": ("RTD variance", "s²"),
@@ -80,7 +82,7 @@ def prediction_html(
             f"<td>[{_number(q.low)}, {_number(q.high)}]</td><td>{html.escape(unit)}</td></tr>"
         )
     for label, key, band, unit in (
-        ("VRR of feeder A's white noise (0.5 Hz band)", "dynamics.vrr", dynamics.vrr, "-"),
+        (f"VRR of feeder {NOISE.feeder}'s white noise ({NOISE.band_hz:g} Hz band)", "dynamics.vrr", dynamics.vrr, "-"),
         (
             f"mean delay after feeder A's rate x{dynamics.step_factor:g}",
             "dynamics.mean_delay_s",

@@ -89,6 +89,38 @@ def test_one_constraint_is_its_t_law_by_hand(shipped):
     assert D.evaluate(shipped, D.design_spec(mrt_max_s=q.high), point).probability == pytest.approx(0.975, abs=1e-9)
 
 
+def test_without_an_interval_the_value_alone_decides_either_bound(shipped):
+    # a line that fits its runs exactly: a zero-width interval, P(spec met) 1 or 0 by the value
+    point = _point(shipped)
+    first = D.evaluate(shipped, D.design_spec(mrt_max_s=1000.0), point)
+    mrt = replace(first.mrt, low=first.mrt.value, high=first.mrt.value)
+    holdup = replace(first.holdup, low=first.holdup.value, high=first.holdup.value)
+    assert D.t_scale(mrt) == 0.0 and D.t_scale(holdup) == 0.0
+    v, h = mrt.value, holdup.value
+    for bounds, met in (
+        ({"mrt_min_s": v / 2}, 1.0),
+        ({"mrt_min_s": v * 2}, 0.0),
+        ({"mrt_max_s": v * 2}, 1.0),
+        ({"mrt_max_s": v / 2}, 0.0),
+        ({"holdup_min": h / 2}, 1.0),
+        ({"holdup_min": h * 2}, 0.0),
+        ({"mrt_min_s": v / 2, "holdup_min": h / 2}, 1.0),
+        ({"mrt_min_s": v * 2, "holdup_min": h / 2}, 0.0),
+        ({"mrt_min_s": v / 2, "holdup_min": h * 2}, 0.0),
+    ):
+        spec = D.design_spec(**bounds)
+        assert D.joint_probability(spec, mrt, holdup, shipped.correlation) == met, bounds
+        margins = [m.probability for m in D._margins(spec, point, mrt, holdup, None, math.nan)]
+        assert min(margins) == met and len(margins) == len(bounds)
+
+
+def test_a_points_dynamics_default_to_feeder_a_white_noise(shipped):
+    point = _point(shipped)
+    assert (
+        D.point_dynamics(shipped, point).record() == D.point_dynamics(shipped, point, D.Noise(0.0, 0.5, "A")).record()
+    )
+
+
 def test_the_bivariate_rectangle():
     """Against seeded draws of the bivariate t (one chi-square shared: uncorrelated is not
     independent), and the whole second axis gives the first's marginal."""
@@ -167,6 +199,16 @@ def test_outside_the_domain_refused_in_one_line_unless_extrapolated(shipped):
     assert outside and all("speed" in p.outside[0] for p in outside)
 
 
+def test_one_bound_beyond_the_domains_other_end_is_refused_not_overridden(shipped):
+    # rpm_max 100 under the domain's 150: searching 150 rpm would answer outside what was asked
+    wide = D.surrogate(shipped.model, extrapolate=True)
+    with pytest.raises(ConfigError, match=r"^rpm_max 100 lies beyond .* 150 rpm is the default rpm_min: give rpm_min"):
+        D.box(wide, D.design_spec(mrt_max_s=25.0, rpm_max=100.0))
+    with pytest.raises(ConfigError, match=r"^length_min_m 0.6 lies beyond .* 0.495 m is the default length_max_m"):
+        D.box(wide, D.design_spec(mrt_max_s=25.0, length_min_m=0.6))
+    assert D.box(wide, D.design_spec(mrt_max_s=25.0, rpm_min=80.0, rpm_max=100.0))[0] == (80.0, 100.0)
+
+
 def test_the_search_answers_within_its_box(shipped):
     spec = D.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
     result = D.design(shipped, spec, grid=(3, 4, 3))
@@ -190,6 +232,8 @@ def test_the_spec_names_a_bad_value():
         D.design_spec(ca_tolerance=0.04)
     with pytest.raises(ConfigError, match=r"length_min_m \(0.4\) must be <= length_max_m"):
         D.design_spec(mrt_max_s=25.0, length_min_m=0.4, length_max_m=0.3)
+    with pytest.raises(ConfigError, match=r"^design spec: confidence = 2.0: Input should be less than 1$"):
+        D.design_spec(mrt_max_s=25.0, confidence=2.0)
 
 
 def test_any_predicted_point_has_its_noise_and_step(shipped):

@@ -96,6 +96,15 @@ def test_a_library_file_that_is_not_one_is_refused_naming_it(tmp_path, capsys):
     assert str(bad) in err and "not a library model" in err
 
 
+def test_a_truncated_results_file_is_refused_naming_it(tmp_path, capsys):
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(SPEEDS[0].read_bytes()[:20000])
+    assert main(["library", "check", "--results", str(cut), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert f"{cut} is not a readable HDF5 file" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
+
+
 def test_library_check_judges_a_run_the_library_does_not_hold_and_refuses_one_it_does(library, tmp_path, capsys):
     seed2 = LIBRARY_DIR / "dem-4b9d0082c53c03af.h5"  # the baseline with another seed
     argv = ["library", "check", "--library", str(library), "--results", str(seed2), "--out", str(tmp_path)]

@@ -200,6 +200,36 @@ def test_library_suggest_refuses_a_region_outside_the_domain_in_one_line(tmp_pat
     assert not (tmp_path / "suggest.toml").exists()
 
 
+def test_library_suggest_refuses_a_base_of_other_particles_in_one_line(tmp_path, capsys):
+    # the reduced preset's 5 mm particles: a run from it would not be a point of the 6 mm library
+    argv = ["library", "suggest", "--out", str(tmp_path / "s"), "--base", "workflows/presets/reduced.toml"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "particle_diameter_m = 0.005 (the library's is 0.006)" in err[0]
+    assert not (tmp_path / "s").exists()
+
+
+def test_library_suggest_refuses_a_model_file_it_would_not_read(tmp_path, capsys):
+    # beside another library.json, other.json would have been passed over for it
+    shutil.copytree(LIBRARY_DIR / "law", tmp_path / "law", ignore=shutil.ignore_patterns("fits", "unseen"))
+    other = tmp_path / "law" / "other.json"
+    shutil.copy(tmp_path / "law" / "library.json", other)
+    assert main(["library", "suggest", "--library", str(other), "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"pbmdem: error: --library {other}: give a library's folder or the library.json in it"]
+    assert not (tmp_path / "s").exists()
+
+
+def test_an_extension_beyond_any_blender_is_refused_naming_extend(tmp_path, capsys):
+    with pytest.raises(ConfigError, match=r"^--extend 1000 widens the domain .* beyond any operating point"):
+        widened(SPAN, 1000.0)
+    # five widths below the shortest library blender: no room for a blade station
+    assert main(["library", "suggest", "--extend", "5", "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pbmdem: error: --extend 5 reaches candidates no blender can run")
+    assert not (tmp_path / "s").exists()
+
+
 SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
 FEED = VALIDATION_DIR / "dem-26a744879a705d14.h5"
 

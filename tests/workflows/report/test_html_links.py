@@ -141,6 +141,27 @@ def test_a_tie_goes_to_the_nearer_mode_then_to_the_fewer_fitted():
     assert recommend([AgreementRow("a", "a", "-", math.nan, math.nan, math.nan, {})]) is None
 
 
+def test_why_names_the_tie_break_that_decided():
+    # equal distances: the fewer fitted parameters decide, not nearness
+    rows = [row("a", 1.0, 0.5, 1.5, velocity=1.25, phases=0.75)]
+    assert why(recommend(rows), rows) == (
+        "It ties with the phases rates on the count and on the distance from the DEM "
+        "(0.5 half-widths of the DEM's interval) and has fewer fitted parameters."
+    )
+
+
+def test_a_miss_on_a_point_interval_has_no_distance_in_half_widths():
+    # row a's DEM interval has zero width: phases misses it, by no finite number of half-widths
+    rows = [
+        row("a", 1.0, 1.0, 1.0, velocity=1.0, phases=2.0),
+        row("b", 1.0, 0.9, 1.1, velocity=3.0, phases=1.0),
+        row("c", 1.0, 0.9, 1.1, velocity=3.0, phases=1.0),
+    ]
+    rec = recommend(rows)
+    assert rec.mode == "phases" and rec.score.deviation == 0.0
+    assert why(rec, rows).endswith("its one miss is a (– half-widths off).")
+
+
 def test_solver_diagnostics_are_told_from_the_comparisons_own_warnings():
     validity, diagnostics = split_warnings(
         [
