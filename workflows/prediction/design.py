@@ -70,7 +70,6 @@ from workflows.prediction.library import (
     REFERENCE_RPM,
     REFERENCE_SLICE_M,
     LibraryModel,
-    correction_row,
     covariate_columns,
     run_covariates,
     slice_key,
@@ -231,9 +230,8 @@ def residual_correlation(model: LibraryModel, lines: dict[str, Correction], a: s
         if a in entry.dem and b in entry.dem and a in calibration.whole and b in calibration.whole:
             ra = residual(a, entry.dem[a].value, calibration.whole[a][j])
             rb = residual(b, entry.dem[b].value, calibration.whole[b][j])
-            la, lb = lines[a], lines[b]
-            ra -= float(correction_row(entry.point, la.names) @ la.coefficients)
-            rb -= float(correction_row(entry.point, lb.names) @ lb.coefficients)
+            ra -= lines[a].at(entry.point)[0]
+            rb -= lines[b].at(entry.point)[0]
             if math.isfinite(ra) and math.isfinite(rb):
                 pairs.append((ra, rb))
     if len(pairs) < 3:
@@ -515,7 +513,7 @@ def predicted_systems(
     slices = np.empty_like(chains.held)
     for i in range(AXIAL_SLICES):
         line = s.lines.get(slice_key(i))
-        shift = 0.0 if line is None else np.array([correction_row(p, line.names) @ line.coefficients for p in points])
+        shift = 0.0 if line is None else np.array([line.at(p)[0] for p in points])
         slices[:, i] = chains.held[:, i] * np.exp(shift)
     slices *= (np.array([h.value for h in holdups]) / slices.sum(axis=1))[:, None]
     factors = np.repeat(chains.held / slices, k, axis=1)  # per (slice, phase) state

@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -220,7 +221,9 @@ def test_library_add_refits_with_the_new_run_and_lists_every_runs_file(library, 
     assert [r.file for r in model.runs] == [p.name for p in SPEEDS] + [FEED.name]
     assert len(model.left_out) == 4 and model.settings["iterations"] == 3
     listed = {r["file"] for r in json.loads((folder / "runs.json").read_text())["runs"]}
-    assert listed == {str(p.resolve()) for p in [*SPEEDS, FEED]}
+    # relative to the library's folder, which is what a library moved with its runs needs
+    assert not [f for f in listed if Path(f).is_absolute()]
+    assert {(folder / f).resolve() for f in listed} == {p.resolve() for p in [*SPEEDS, FEED]}
 
 
 def test_library_add_refuses_a_run_it_holds_and_a_missing_file_before_any_fit(library, tmp_path, capsys):
