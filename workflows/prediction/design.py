@@ -31,7 +31,7 @@ VRR), so their joint probability is the t mass of the set where they all hold (t
 composition's margin tabulated at :data:`T_NODES`, linear between: no independence
 assumed). The
 hold-up is a second variable; the two are taken as bivariate t with the correlation of the
-two lines' residuals at the library's runs (:func:`residual_correlation`; 0.76 on the
+two lines' residuals at the library's runs (:func:`residual_correlation`; 0.87 on the
 shipped library: the DEM's hold-up and its residence time miss the law together), and the
 rectangle's probability is integrated by Gauss-Legendre over the first, the second's
 conditional law being t with one degree of freedom more. When the two lines' degrees of
