@@ -505,7 +505,11 @@ def rank(
         ]
     score_now = float(criterion(ranked_now))
     scores = criterion(ranked_after)
-    order = np.argsort(scores, kind="stable")
+    # a run that lets the line identify more of its form comes first: until the form is
+    # whole its intervals are the smaller form's, narrower by what that form cannot see
+    # (e.g. the last station's orientation on runs of two lengths), a bias the criterion
+    # cannot weigh; among such runs, and then among the others, the criterion ranks
+    order = np.lexsort((scores, [0 if g else 1 for g in gains]))
     out = []
     for c in order:
         candidate = candidates[c]

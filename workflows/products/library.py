@@ -23,8 +23,8 @@ folders (:func:`run_files`).
 from __future__ import annotations
 
 import json
-import os
 import math
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path

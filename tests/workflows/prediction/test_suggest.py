@@ -280,3 +280,18 @@ def test_candidates_beyond_the_domain_are_labelled_and_the_region_stays_the_doma
         s.speed < 149.9 or s.speed > 350.1 or s.feed < 36.8 or s.feed > 147.5 or s.length < 0.2474 or s.length > 0.4951
         for s in outside
     )
+
+
+def test_a_run_that_lets_the_line_see_a_covariate_of_its_form_comes_first():
+    """Every run at one feed: the line cannot identify the feed term of its form, so its
+    intervals leave out what the feed does. A run at another feed comes first, though
+    another speed would narrow the smaller form's intervals more."""
+    points = [_at(s) for s in (150.0, 200.0, 250.0, 300.0, 350.0)]
+    q = Quantity("holdup", tuple(points), tuple(0.01 * (i % 2) for i in range(len(points))))
+    grid = _candidates([150.0, 250.0, 350.0], (36.85, 73.7, 147.4))
+    region = [_at(s, f) for s, _, f in SPAN.grid(3)]
+    ranked = rank([q], ("speed", "feed"), SPAN, region, grid)
+    assert ranked[0].feed != 73.7 and ranked[0].gains == ("feed",)
+    assert all(not r.gains for r in ranked if r.feed == 73.7)
+    first_plain = next(i for i, r in enumerate(ranked) if not r.gains)
+    assert all(r.gains for r in ranked[:first_plain])
