@@ -388,6 +388,10 @@ CORRECTION_ALTERNATIVES = (
     ("speed", "speed2", "length", "gap", "feed"),
     ("speed", "speed2", "length", "gap", "feed", "feed2"),
     ("speed", "speed2", "length", "length2", "gap", "feed"),
+    ("speed", "feed", "last"),
+    ("speed", "length", "feed", "last"),
+    ("speed", "length", "gap", "feed", "last"),
+    ("speed", "speed2", "length", "feed", "last"),
 )
 
 

@@ -31,7 +31,7 @@ VRR), so their joint probability is the t mass of the set where they all hold (t
 composition's margin tabulated at :data:`T_NODES`, linear between: no independence
 assumed). The
 hold-up is a second variable; the two are taken as bivariate t with the correlation of the
-two lines' residuals at the library's runs (:func:`residual_correlation`; 0.76 on the
+two lines' residuals at the library's runs (:func:`residual_correlation`; 0.87 on the
 shipped library: the DEM's hold-up and its residence time miss the law together), and the
 rectangle's probability is integrated by Gauss-Legendre over the first, the second's
 conditional law being t with one degree of freedom more. When the two lines' degrees of
@@ -70,7 +70,6 @@ from workflows.prediction.library import (
     REFERENCE_RPM,
     REFERENCE_SLICE_M,
     LibraryModel,
-    correction_row,
     covariate_columns,
     run_covariates,
     slice_key,
@@ -235,9 +234,8 @@ def residual_correlation(model: LibraryModel, lines: dict[str, Correction], a: s
         if a in entry.dem and b in entry.dem and a in calibration.whole and b in calibration.whole:
             ra = residual(a, entry.dem[a].value, calibration.whole[a][j])
             rb = residual(b, entry.dem[b].value, calibration.whole[b][j])
-            la, lb = lines[a], lines[b]
-            ra -= float(correction_row(entry.point, la.names) @ la.coefficients)
-            rb -= float(correction_row(entry.point, lb.names) @ lb.coefficients)
+            ra -= lines[a].at(entry.point)[0]
+            rb -= lines[b].at(entry.point)[0]
             if math.isfinite(ra) and math.isfinite(rb):
                 pairs.append((ra, rb))
     if len(pairs) < 3:
@@ -518,7 +516,7 @@ def predicted_systems(
     slices = np.empty_like(chains.held)
     for i in range(AXIAL_SLICES):
         line = s.lines.get(slice_key(i))
-        shift = 0.0 if line is None else np.array([correction_row(p, line.names) @ line.coefficients for p in points])
+        shift = 0.0 if line is None else np.array([line.at(p)[0] for p in points])
         slices[:, i] = chains.held[:, i] * np.exp(shift)
     slices *= (np.array([h.value for h in holdups]) / slices.sum(axis=1))[:, None]
     factors = np.repeat(chains.held / slices, k, axis=1)  # per (slice, phase) state

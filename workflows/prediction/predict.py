@@ -324,18 +324,20 @@ class Correction:
     in the correction covariates (module docstring): ``names`` the covariates the runs
     identify, ``coefficients`` the constant's first, ``variance`` the residuals' about the
     line, ``inverse`` (A'A)^-1 of the runs' covariates A, ``dof`` the runs less the
-    coefficients."""
+    coefficients, ``pattern`` the blade pattern of the runs' stations."""
 
     names: tuple[str, ...]
     coefficients: np.ndarray
     variance: float
     inverse: np.ndarray
     dof: int
+    pattern: str = ""
 
-    def at(self, point: OperatingPoint) -> tuple[float, float, float]:
+    def at(self, point: OperatingPoint, pattern: str | None = None) -> tuple[float, float, float]:
         """(shift, half-width of the 95 % prediction interval, leverage x'(A'A)^-1 x) at
-        ``point`` on the quantity's scale; the half-width NaN without a degree of freedom."""
-        x = correction_row(point, self.names)
+        ``point`` (its stations oriented by ``pattern``, default the runs') on the
+        quantity's scale; the half-width NaN without a degree of freedom."""
+        x = correction_row(point, self.names, pattern or self.pattern)
         shift = float(x @ self.coefficients)
         leverage = float(x @ self.inverse @ x)
         if self.dof < 1 or not math.isfinite(self.variance):
@@ -344,28 +346,31 @@ class Correction:
         return shift, t * math.sqrt(self.variance * (1.0 + leverage)), leverage
 
 
-def fit_correction(points: Sequence[OperatingPoint], residuals: Sequence[float], names: Sequence[str]) -> Correction:
+def fit_correction(
+    points: Sequence[OperatingPoint], residuals: Sequence[float], names: Sequence[str], pattern: str = ""
+) -> Correction:
     """The :class:`Correction` of ``residuals`` (one per point, NaN skipped) in the
-    covariates ``names``, taken in their order, each kept when the points identify it (it
+    covariates ``names`` (the points' stations oriented by ``pattern``: :func:`correction_row`),
+    taken in their order, each kept when the points identify it (it
     raises the rank of the runs' covariates) and leave :data:`CORRECTION_DOF` degrees of
     freedom: a library too small or too narrow for the whole form gets the part it
     supports, down to the constant (the law's mean error)."""
     use = [(p, float(r)) for p, r in zip(points, residuals) if math.isfinite(r)]
     if not use:
-        return Correction((), np.zeros(1), math.nan, np.full((1, 1), math.inf), 0)
+        return Correction((), np.zeros(1), math.nan, np.full((1, 1), math.inf), 0, pattern)
     kept: list[str] = []
     for name in names:
         trial = [*kept, name]
-        rows = np.array([correction_row(p, trial) for p, _ in use])
+        rows = np.array([correction_row(p, trial, pattern) for p, _ in use])
         if len(use) - rows.shape[1] >= CORRECTION_DOF and np.linalg.matrix_rank(rows) == rows.shape[1]:
             kept = trial
-    a = np.array([correction_row(p, kept) for p, _ in use])
+    a = np.array([correction_row(p, kept, pattern) for p, _ in use])
     y = np.array([r for _, r in use])
     coefficients = np.linalg.lstsq(a, y, rcond=None)[0]
     dof = len(use) - a.shape[1]
     misfit = y - a @ coefficients
     variance = float(misfit @ misfit / dof) if dof > 0 else math.nan
-    return Correction(tuple(kept), coefficients, variance, np.linalg.pinv(a.T @ a), dof)
+    return Correction(tuple(kept), coefficients, variance, np.linalg.pinv(a.T @ a), dof, pattern)
 
 
 def corrections(model: LibraryModel, leave: int | None = None) -> dict[str, Correction]:
@@ -378,7 +383,7 @@ def corrections(model: LibraryModel, leave: int | None = None) -> dict[str, Corr
     out = {}
     for key in quantity_keys():
         if key in calibration.whole:
-            out[key] = fit_correction(*correction_data(model, key, leave), calibration.covariates)
+            out[key] = fit_correction(*correction_data(model, key, leave), calibration.covariates, model.blade_pattern)
     return out
 
 
@@ -464,11 +469,13 @@ def corrected(
     point: OperatingPoint,
     widening: float = 1.0,
     floor: float = 0.0,
+    pattern: str | None = None,
 ) -> PredictedQuantity:
-    """The law's ``value`` of ``key`` at ``point`` corrected, with its interval (module
-    docstring): the line's half-width, at least ``floor`` (an extrapolation's), times
-    ``widening``; NaN bounds where the correction has no degree of freedom."""
-    shift, half, leverage = correction.at(point)
+    """The law's ``value`` of ``key`` at ``point`` (its stations oriented by ``pattern``,
+    default the library's) corrected, with its interval (module docstring): the line's
+    half-width, at least ``floor`` (an extrapolation's), times ``widening``; NaN bounds
+    where the correction has no degree of freedom."""
+    shift, half, leverage = correction.at(point, pattern)
     centre = shifted(key, value, shift)
     low, high = bounds(key, centre, max(half, floor) * widening)
     return PredictedQuantity(key, centre, low, high, value, shift, correction, leverage, widening)
@@ -521,7 +528,7 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
     law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
     floor = extrapolation_floor(model) if issues else {}
     quantities = tuple(
-        corrected(key, law.values[key], lines[key], point, widening, floor.get(key, 0.0))
+        corrected(key, law.values[key], lines[key], point, widening, floor.get(key, 0.0), pattern)
         for key in quantity_keys()
         if key in lines
     )

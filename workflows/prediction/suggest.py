@@ -264,9 +264,17 @@ class Quantity:
         return Quantity(self.key, tuple(p for p, _ in keep), tuple(r for _, r in keep))
 
 
-def covariate_terms(points: Sequence[OperatingPoint]) -> np.ndarray:
-    """(N, 1 + len(CORRECTION_TERMS)) every correction covariate of each point."""
-    return np.array([correction_row(p, CORRECTION_TERMS) for p in points]).reshape(len(points), -1)
+def covariate_terms(points: Sequence[OperatingPoint], pattern: str = "") -> np.ndarray:
+    """(N, 1 + len(CORRECTION_TERMS)) every correction covariate of each point, its
+    stations oriented by ``pattern``; without a pattern the ``last`` column is NaN, so that
+    a line using it has NaN half-widths rather than wrong ones."""
+    if pattern:
+        return np.array([correction_row(p, CORRECTION_TERMS, pattern) for p in points]).reshape(len(points), -1)
+    names = tuple(n for n in CORRECTION_TERMS if n != "last")
+    rows = np.full((len(points), 1 + len(CORRECTION_TERMS)), math.nan)
+    if points:
+        rows[:, term_columns(names)] = np.array([correction_row(p, names) for p in points])
+    return rows
 
 
 def term_columns(names: Sequence[str]) -> list[int]:
@@ -291,7 +299,7 @@ def after_run(
 ) -> Correction:
     """``line`` as expected with one more run at ``candidate``: the form the runs then
     identify, their (A'A)^-1 and degrees of freedom, the residuals' variance unchanged."""
-    grown = fit_correction([*points, candidate], [0.0] * (len(points) + 1), names)
+    grown = fit_correction([*points, candidate], [0.0] * (len(points) + 1), names, line.pattern)
     return replace(grown, coefficients=np.zeros(len(grown.names) + 1), variance=line.variance)
 
 
@@ -464,16 +472,18 @@ def rank(
     candidates: Sequence[Candidate],
     domain: Region | None = None,
     pure_sd: dict[str, float] | None = None,
+    pattern: str = "",
 ) -> list[Suggestion]:
     """Every candidate as a :class:`Suggestion`, the one that lowers the criterion over
     ``region_points`` most first (module docstring); ``names`` the correction's form,
     ``domain`` the library's (to label candidates outside it); ``pure_sd`` per quantity
     the DEM's scatter between seeds on its scale (:func:`_bias`; None: the line's
-    intervals alone)."""
+    intervals alone); ``pattern`` the blade pattern of every point's stations (needed by a
+    form with ``last``)."""
     if not candidates or not region_points:
         raise ConfigError("no candidate or no region point to rank")
-    region_terms = covariate_terms(region_points)
-    cand_terms = covariate_terms([c.point for c in candidates])
+    region_terms = covariate_terms(region_points, pattern)
+    cand_terms = covariate_terms([c.point for c in candidates], pattern)
     now: dict[str, np.ndarray] = {}  # the line's half-widths, reported
     after: dict[str, np.ndarray] = {}
     ranked_now: dict[str, np.ndarray] = {}  # with the expected bias, ranked on
@@ -482,7 +492,7 @@ def rank(
         q = q.usable()
         if target_half_width(q.key) is None or not q.points:
             continue
-        line = fit_correction(q.points, q.residuals, names)
+        line = fit_correction(q.points, q.residuals, names, pattern)
         if line.dof < 1 or not math.isfinite(line.variance):
             continue
         now[q.key] = half_widths(line, region_terms)
@@ -490,7 +500,7 @@ def rank(
         ranked_now[q.key], ranked_after[q.key] = now[q.key], after[q.key]
         bias = None
         if pure_sd is not None and tuple(line.names) == tuple(names):
-            bias = _bias(line, covariate_terms(q.points), cand_terms, region_terms, pure_sd.get(q.key))
+            bias = _bias(line, covariate_terms(q.points, pattern), cand_terms, region_terms, pure_sd.get(q.key))
         if bias is not None:
             # Box and Draper's mean squared error: the variance of the DEM's scatter between
             # seeds (not the residuals' spread, which holds the bias the design measures) and
@@ -500,7 +510,7 @@ def rank(
             ranked_after[q.key] = np.sqrt(pure * after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
     gains = [()] * len(candidates)
     widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
-    line = fit_correction(widest.points, widest.residuals, names)
+    line = fit_correction(widest.points, widest.residuals, names, pattern)
     if tuple(line.names) != tuple(names):
         gains = [
             tuple(n for n in after_run(line, widest.points, names, c.point).names if n not in line.names)
@@ -508,7 +518,11 @@ def rank(
         ]
     score_now = float(criterion(ranked_now))
     scores = criterion(ranked_after)
-    order = np.argsort(scores, kind="stable")
+    # a run that lets the line identify more of its form comes first: until the form is
+    # whole its intervals are the smaller form's, narrower by what that form cannot see
+    # (e.g. the last station's orientation on runs of two lengths), a bias the criterion
+    # cannot weigh; among such runs, and then among the others, the criterion ranks
+    order = np.lexsort((scores, [0 if g else 1 for g in gains]))
     out = []
     for c in order:
         candidate = candidates[c]
@@ -582,4 +596,4 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
         if not extend:
             raise
         raise ConfigError(f"--extend {extend:g} reaches candidates no blender can run: {exc}") from None
-    return rank(library_quantities(model), names, chosen, region_points, candidates, dom, scatter)
+    return rank(library_quantities(model), names, chosen, region_points, candidates, dom, scatter, model.blade_pattern)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,10 +92,12 @@ def library_fit(
 
 def _write_runs(folder: Path, runs: dict[str, Path]) -> Path:
     """``runs.json``: these runs' paths and those it lists already (a superset of the
-    model's runs until the model is written)."""
+    model's runs until the model is written), each relative to ``folder``, so that a
+    library moved or cloned with its runs beside it still finds them."""
     listed = _listed_runs(folder)
     listed.update({digest: Path(path).resolve() for digest, path in runs.items()})
-    record = {"runs": [{"digest": d, "file": str(p)} for d, p in sorted(listed.items())]}
+    home = folder.resolve()
+    record = {"runs": [{"digest": d, "file": os.path.relpath(p, home)} for d, p in sorted(listed.items())]}
     return write_json(folder / RUNS_FILE, record)
 
 
@@ -103,7 +106,7 @@ def _listed_runs(folder: Path) -> dict[str, Path]:
     if not path.is_file():
         return {}
     try:
-        return {str(r["digest"]): Path(r["file"]) for r in json.loads(path.read_text())["runs"]}
+        return {str(r["digest"]): (folder / r["file"]).resolve() for r in json.loads(path.read_text())["runs"]}
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: not a list of library runs ({type(exc).__name__}: {exc})") from None
 

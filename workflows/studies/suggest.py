@@ -125,6 +125,8 @@ class Setting:
     held_u: np.ndarray
     lines: dict[str, tuple[tuple[str, ...], np.ndarray]]
     noise: dict[str, float]
+    #: the blade pattern of every point's stations
+    pattern: str
 
     def unit(self, speed: float, length: float, feed: float) -> np.ndarray:
         """The point's log axes scaled to -1..1 over the domain."""
@@ -190,7 +192,7 @@ def judge(truth: Truth, points: list, residuals: dict[str, list[float]]) -> Judg
     s = truth.setting
     covered, widths = [], {}
     for key, values in residuals.items():
-        line = fit_correction(points, values, DEFAULT_CORRECTION)
+        line = fit_correction(points, values, DEFAULT_CORRECTION, s.pattern)
         h = half_widths(line, s.held_terms)
         if not np.all(np.isfinite(h)):
             return Judged(0.0, {k: math.inf for k in calibration.USEFUL_HALF_WIDTH})
@@ -214,7 +216,7 @@ class Library:
 
     def run(self, candidate: Candidate) -> None:
         s = self.truth.setting
-        terms = covariate_terms([candidate.point])
+        terms = covariate_terms([candidate.point], s.pattern)
         u = s.unit(candidate.speed, candidate.length, candidate.feed)[None, :]
         self.points.append(candidate.point)
         for key in self.residuals:
@@ -257,7 +259,9 @@ def sequential(truth: Truth, seed: list[Candidate], rng: np.random.Generator, ho
     while not history[-1].met and len(library.points) < MAX_RUNS:
         if how != "random":
             pure = s.noise if how == "rule" else None
-            best = rank(library.quantities(), DEFAULT_CORRECTION, s.span, s.region_points, s.candidates, None, pure)[0]
+            best = rank(
+                library.quantities(), DEFAULT_CORRECTION, s.span, s.region_points, s.candidates, None, pure, s.pattern
+            )[0]
             chosen = Candidate(best.speed, best.length, best.feed, best.point)
         else:
             chosen = s.candidates[int(rng.integers(len(s.candidates)))]
@@ -304,10 +308,11 @@ def make_setting(model: LibraryModel, rng: np.random.Generator) -> tuple[Setting
         tuple(candidates_over(base, span, gap, CANDIDATE_LEVELS)),
         tuple(point_at(base, s, x, f, gap) for s, x, f in span.grid(REGION_LEVELS)),
         held_points,
-        covariate_terms(held_points),
+        covariate_terms(held_points, model.blade_pattern),
         np.zeros((0, 3)),
         lines,
         {key: scatter.get(key, 0.004) for key in lines},
+        model.blade_pattern,
     )
     return Setting(**{**setting.__dict__, "held_u": np.array([setting.unit(*h) for h in held])}), base, gap
 
@@ -387,7 +392,9 @@ def shipped_orders(model: LibraryModel, starts: int, randoms: int, seed: int = 0
             if by_rule:
                 sub = calibration.restricted(model, held)
                 cands = [Candidate(0.0, 0.0, 0.0, model.runs[n].point) for n in rest]
-                ranked = rank(library_quantities(sub), names, span, region_points, cands, None, scatter)
+                ranked = rank(
+                    library_quantities(sub), names, span, region_points, cands, None, scatter, model.blade_pattern
+                )
                 chosen = rest[next(i for i, c in enumerate(cands) if c.point is ranked[0].point)]
             else:
                 chosen = rest[int(order_rng.integers(len(rest)))]

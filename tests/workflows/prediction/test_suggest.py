@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -250,7 +251,9 @@ def test_library_add_refits_with_the_new_run_and_lists_every_runs_file(library, 
     assert [r.file for r in model.runs] == [p.name for p in SPEEDS] + [FEED.name]
     assert len(model.left_out) == 4 and model.settings["iterations"] == 3
     listed = {r["file"] for r in json.loads((folder / "runs.json").read_text())["runs"]}
-    assert listed == {str(p.resolve()) for p in [*SPEEDS, FEED]}
+    # relative to the library's folder, which is what a library moved with its runs needs
+    assert not [f for f in listed if Path(f).is_absolute()]
+    assert {(folder / f).resolve() for f in listed} == {p.resolve() for p in [*SPEEDS, FEED]}
 
 
 def test_library_add_refuses_a_run_it_holds_and_a_missing_file_before_any_fit(library, tmp_path, capsys):
@@ -307,3 +310,18 @@ def test_candidates_beyond_the_domain_are_labelled_and_the_region_stays_the_doma
         s.speed < 149.9 or s.speed > 350.1 or s.feed < 36.8 or s.feed > 147.5 or s.length < 0.2474 or s.length > 0.4951
         for s in outside
     )
+
+
+def test_a_run_that_lets_the_line_see_a_covariate_of_its_form_comes_first():
+    """Every run at one feed: the line cannot identify the feed term of its form, so its
+    intervals leave out what the feed does. A run at another feed comes first, though
+    another speed would narrow the smaller form's intervals more."""
+    points = [_at(s) for s in (150.0, 200.0, 250.0, 300.0, 350.0)]
+    q = Quantity("holdup", tuple(points), tuple(0.01 * (i % 2) for i in range(len(points))))
+    grid = _candidates([150.0, 250.0, 350.0], (36.85, 73.7, 147.4))
+    region = [_at(s, f) for s, _, f in SPAN.grid(3)]
+    ranked = rank([q], ("speed", "feed"), SPAN, region, grid)
+    assert ranked[0].feed != 73.7 and ranked[0].gains == ("feed",)
+    assert all(not r.gains for r in ranked if r.feed == 73.7)
+    first_plain = next(i for i, r in enumerate(ranked) if not r.gains)
+    assert all(r.gains for r in ranked[:first_plain])
