@@ -26,8 +26,7 @@ and tested at the function named):
   ``seed`` (member 0 is the single run).
 """
 
-import importlib
-
+from coupling.lazy import lazy_names
 from pbm.config import PbmConfig
 from pbm.model import fill_missing_velocities
 from pbm.simulate import PbmResult, simulate
@@ -64,14 +63,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str):
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module 'pbm' has no attribute {name!r}")
-    value = getattr(importlib.import_module(home), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_names(__name__, _HOMES)

@@ -37,9 +37,9 @@ The rooms, each importing only its own floor or lower ones:
 ``studies/`` and ``bench/`` import the product; only ``cli/`` imports them.
 """
 
-# Nothing is imported here but importlib, and the names' homes hold their code: the command
-# line imports this package first, and pays for none of it.
-import importlib
+# Nothing is imported here but the look-up of the names' homes, which hold their code:
+# the command line imports this package first, and pays for none of it.
+from coupling.lazy import lazy_names
 
 _HOMES = {
     "Config": "workflows.config",
@@ -60,14 +60,4 @@ _HOMES = {
 __all__ = sorted(_HOMES)
 
 
-def __getattr__(name: str):
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module 'workflows' has no attribute {name!r}")
-    value = getattr(importlib.import_module(home), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_names(__name__, _HOMES)

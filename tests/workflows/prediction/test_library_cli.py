@@ -8,21 +8,12 @@ from pathlib import Path
 import pytest
 
 from coupling.tables import read_table
+from tests.workflows.prediction.small_library import SPEEDS
 from workflows.cli.main import main
 from workflows.prediction.library import load_model, quantity_keys
-from workflows.shipped import LIBRARY_DIR, VALIDATION_DIR
+from workflows.shipped import LIBRARY_DIR
 
-#: 150, 350 and 250 rpm at the baseline's length and feed
-SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
 VALIDATION = "workflows/presets/validation.toml"
-
-
-@pytest.fixture(scope="module")
-def library(tmp_path_factory):
-    out = tmp_path_factory.mktemp("library")
-    args = ["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out)]
-    assert main([*args, "--iterations", "3", "--left-out-iterations", "2"]) == 0
-    return out
 
 
 def test_library_fit_writes_a_model_that_reads_back_with_a_law_left_out_per_run(library):

@@ -15,6 +15,7 @@ from scipy import stats
 
 from coupling.errors import ConfigError
 from dem.operating import operating_point
+from tests.workflows.prediction.small_library import SPEEDS
 from workflows.cli.main import main
 from workflows.config import config_from_dict, load_config, load_preset
 from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model, run_covariates
@@ -231,16 +232,7 @@ def test_an_extension_beyond_any_blender_is_refused_naming_extend(tmp_path, caps
     assert not (tmp_path / "s").exists()
 
 
-SPEEDS = [VALIDATION_DIR / f"dem-{h}.h5" for h in ("57ed37b232c5816c", "5c3093abd07ae686", "aa093a229dfd2ce4")]
 FEED = VALIDATION_DIR / "dem-26a744879a705d14.h5"
-
-
-@pytest.fixture(scope="module")
-def library(tmp_path_factory):
-    out = tmp_path_factory.mktemp("library")
-    args = ["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out)]
-    assert main([*args, "--iterations", "3", "--left-out-iterations", "2"]) == 0
-    return out
 
 
 def test_library_add_refits_with_the_new_run_and_lists_every_runs_file(library, tmp_path):
