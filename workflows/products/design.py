@@ -47,10 +47,11 @@ def run_design(
     which draws the figure and writes the page; else they are made in this process. The
     files are replaced only when all are made."""
     started = time.perf_counter()
-    out_dir = writable_directory(out_dir, "design output directory")
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
+    # the search first: a box it refuses leaves no output folder behind
     result = design(surrogate(model, extrapolate), spec)
+    out_dir = writable_directory(out_dir, "design output directory")
     record = {**result.record(), "library": str(library_path)}
     figures = figures or Prepared(DESIGN_FIGURES, fork=False)
     drawn = out_dir / f".feasible-{os.getpid()}.png"

@@ -26,7 +26,9 @@ def test_a_spec_met_nowhere_exits_1(tmp_path, capsys):
     assert "no point searched meets the spec" in capsys.readouterr().out
 
 
-def test_outside_the_domain_is_one_line(tmp_path, capsys):
-    assert main(["design", "--mrt-max", "25", "--rpm-max", "500", "--out", str(tmp_path)]) == 2
+def test_outside_the_domain_is_one_line_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "design"
+    assert main(["design", "--mrt-max", "25", "--rpm-max", "500", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "the domain is 150-350 rpm" in err and "--extrapolate" in err
+    assert not out.exists()
