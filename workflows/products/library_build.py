@@ -92,6 +92,12 @@ def library_status(
     restart files) and their new states."""
     states = add_to_library(library_dir, array_status(library_dir, env))
     failed = [s.task for s in states if s.state == "failed" and s.task.job is not None]
+    here = [s.task.name for s in states if s.state == "failed" and s.task.job is None]
+    if resubmit_failed and here:
+        raise ConfigError(
+            f"{', '.join(here)} failed in a build run here, not as Slurm jobs: nothing to resubmit; "
+            "build the same configurations again with --scheduler local, which resumes them from their restart files"
+        )
     if resubmit_failed and failed:
         resubmit(library_dir, failed, env, log)
         states = add_to_library(library_dir, array_status(library_dir, env))

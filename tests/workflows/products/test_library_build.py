@@ -72,3 +72,14 @@ def test_an_earlier_build_without_jobs_is_not_live_whatever_its_files(tmp_path):
     manifest = Manifest(str(tmp_path / "runs"), None, None, (), (ArrayTask(0, "a", "configs/a.toml", None, None, 0),))
     write_manifest(tmp_path, manifest)
     assert refuse_live_build(tmp_path) is None
+
+
+def test_resubmitting_a_run_that_failed_in_a_local_build_says_how_to_resume_it(tmp_path, capsys):
+    # a local build whose run left no results: no Slurm job to resubmit
+    (tmp_path / "configs").mkdir()
+    shutil.copyfile(CONFIG, tmp_path / "configs" / "a.toml")
+    manifest = Manifest(str(tmp_path / "runs"), None, None, (), (ArrayTask(0, "a", "configs/a.toml", None, None, 0),))
+    write_manifest(tmp_path, manifest)
+    assert main(["library", "status", "--library", str(tmp_path), "--resubmit-failed"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "a failed in a build run here" in err and "--scheduler local" in err
