@@ -562,7 +562,7 @@ def capture_steps(out: Path) -> tuple[Step, ...]:
             "stdout/validate.txt",
         )
     )
-    # README.md, "Design with the probability that the spec is met" (workflows/prediction/DESIGN.md)
+    # README.md, "Design with the probability that the spec is met" (workflows/prediction/DESIGN-SEARCH.md)
     steps.append(
         Step(
             "design",

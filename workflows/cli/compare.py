@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="where report.html and its files go (default: results/<preset>-<input hash>)",
     )
+    # the flag's earlier name, kept so that scripts written against it still run; unlisted,
+    # since --out is the one spelling every command shares
+    parser.add_argument("--results-dir", dest="out", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     parser.add_argument("--runs-dir", default="runs", help="root of the DEM run directories and cache")
     parser.add_argument("--noise-members", type=int, default=200, help="realisations per noise level")
     parser.add_argument("--no-paraview", action="store_true", help="skip the ParaView (VTK) files")
