@@ -136,8 +136,8 @@ ABSOLUTE_KEYS = ("C_A", "lacey_outlet")
 #: of length and feed, and ``last`` (:func:`last_push`)
 CORRECTION_TERMS = ("speed", "speed2", "length", "length2", "feed", "feed2", "gap", "last")
 #: the correction's form. ``last`` narrows the mean residence time's intervals of the 15
-#: shipped runs, each left out, from 5.4 to 3.3-3.6 % (median; the law misses it by 3-4 %
-#: more where the last blade station pushes towards the weir); with ``gap`` beside it the
+#: shipped runs, each left out, from 5.4 to 3.3-3.6 % (median; the law misses it most where
+#: the last blade station pushes towards the weir); with ``gap`` beside it the
 #: unseen runs' check keeps the run changed on every axis (a last station pushing, 43 mm
 #: before the weir) inside on its residence time and hold-up, which ``last`` alone misses.
 #: The form was chosen on both checks: 89.6 % of the runs' values held left out, 96.7 % of
@@ -171,13 +171,12 @@ def run_covariates(point: OperatingPoint, nx: int = AXIAL_SLICES) -> dict[str, f
 
 def last_push(point: OperatingPoint, pattern: str) -> float:
     """+1 when the blade station nearest the weir pushes towards it ("F" of ``pattern``,
-    cycled from the inlet), -1 when it pushes back, 0 without stations: a blender with one
-    station more or less turns its last paddle round, and the bed before the weir with it."""
+    cycled from the inlet), -1 when it pushes back (an operating point has at least one
+    station): a blender with one station more or less turns its last paddle round, and the
+    bed before the weir with it."""
     if not pattern or set(pattern) - {"F", "B"}:
         raise ConfigError(f"blade pattern {pattern!r}: letters F (forward) and B (backward) only")
     n = len(point.blade_x_m)
-    if n == 0:
-        return 0.0
     return 1.0 if pattern[(n - 1) % len(pattern)] == "F" else -1.0
 
 

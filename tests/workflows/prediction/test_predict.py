@@ -224,3 +224,17 @@ def test_an_extrapolated_blade_pattern_is_predicted_with_its_own_stations():
     own = point_values(push, _transverse(), BASE, "FFB", 0.1).values["holdup"]
     assert other.quantity("holdup").law_value == pytest.approx(own)
     assert own != pytest.approx(point_values(push, _transverse(), BASE, "FB", 0.1).values["holdup"])
+
+
+def test_last_is_the_direction_of_the_station_nearest_the_weir():
+    from workflows.prediction.library import last_push
+
+    seven, ten = (BASE.replace(blade_x_m=tuple(0.045 + 0.0283 * k for k in range(n))) for n in (7, 10))
+    # "FB" cycled from the inlet: the 7th station pushes forward, the 10th back
+    assert last_push(seven, "FB") == 1.0 and last_push(ten, "FB") == -1.0
+    assert last_push(ten, "FFB") == 1.0  # F F B F F B F F B F
+    assert correction_row(seven, ("speed", "last"), "FB")[-1] == 1.0
+    with pytest.raises(ConfigError, match="blade pattern ''"):
+        correction_row(seven, ("last",))  # the covariate needs the pattern
+    with pytest.raises(ConfigError, match="letters F"):
+        last_push(seven, "FX")
