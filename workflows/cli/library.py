@@ -15,8 +15,8 @@ HELP = "a DEM library's law: fit it, calibrate its prediction intervals on each 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from workflows.prediction.covariates import AXIAL_SLICES, REFERENCE_FEED_PER_S, REFERENCE_RPM, REFERENCE_SLICE_M
     from workflows.prediction.library import (
-        AXIAL_SLICES,
         CORRECTION_TERMS,
         COVARIATES,
         DEFAULT_CORRECTION,
@@ -24,9 +24,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         FIT_ITERATIONS,
         LEFT_OUT_ITERATIONS,
         LIBRARY_PHASES,
-        REFERENCE_FEED_PER_S,
-        REFERENCE_RPM,
-        REFERENCE_SLICE_M,
     )
 
     sub = parser.add_subparsers(dest="library_command", required=True, metavar="LIBRARY_COMMAND")

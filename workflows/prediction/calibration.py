@@ -29,6 +29,7 @@ from coupling.errors import ConfigError
 from coupling.files import regular_file
 from coupling.operating import OperatingPoint
 from workflows.pipeline.results import load_results, run_operating_point
+from workflows.prediction.covariates import AXIAL_SLICES
 from workflows.prediction.library import (
     ABSOLUTE_KEYS,
     DEFAULT_CORRECTION,
@@ -37,17 +38,19 @@ from workflows.prediction.library import (
     dem_quantities,
     file_digest,
     quantity_keys,
+    slice_key,
 )
 from workflows.prediction.predict import (
-    corrected,
-    corrections,
+    LEVEL,
     domain,
     domain_issues,
     extrapolation_floor,
+    held_out,
     point_values,
     predict,
     residual,
 )
+from workflows.prediction.profile import ProfileLaw, fit_profile, refit
 
 #: the headline quantities and the half-widths the issue asks of them, as fractions of the
 #: value (slices: every slice)
@@ -96,8 +99,64 @@ def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> 
         {key: [[v[key] for v in row] for row in left] for key in keys},
         inside,
         names,
+        *slice_profiles(model),
     )
-    return replace(model, calibration=calibration)
+    model = replace(model, calibration=calibration)
+    if calibration.profile is None:
+        return model
+    zone_law, lines = slice_scores(model)
+    return model if zone_law <= lines else without_profile(model)
+
+
+def without_profile(model: LibraryModel) -> LibraryModel:
+    """``model`` (calibrated) with its slices taken from the correction's lines."""
+    return replace(model, calibration=replace(model.calibration, profile=None, profile_left_out=()))
+
+
+def interval_score(rows: Sequence[CheckedQuantity]) -> float:
+    """The mean 95 % interval score of ``rows`` on the log scale (Gneiting and Raftery's
+    proper score: the interval's width, plus 2 / 0.05 times how far the DEM's value lies
+    outside it); infinite when a row has no interval."""
+    scores = []
+    for r in rows:
+        if not (r.low > 0 and r.high > 0 and r.dem > 0):
+            return math.inf
+        low, high, dem = math.log(r.low), math.log(r.high), math.log(r.dem)
+        scores.append(high - low + 2 / (1 - LEVEL) * (max(low - dem, 0.0) + max(dem - high, 0.0)))
+    return float(np.mean(scores)) if scores else math.inf
+
+
+def slice_scores(model: LibraryModel) -> tuple[float, float]:
+    """(the slices' zone law, the correction's lines): the interval score
+    (:func:`interval_score`) of every run's slices predicted without it by each. The
+    slices take the lower (:func:`calibrated`): the zone law carries what one blender
+    shows of the bed to another, the lines follow each slice alone, which only a library of
+    one blade layout supports."""
+    if model.calibration.profile is None:
+        raise ConfigError("the library model has no slice zone law to score")
+
+    def slices(m: LibraryModel) -> list[CheckedQuantity]:
+        return sorted((r for r in check(m).rows if _slice_of(r.key, "holdup_slice")), key=lambda r: (r.run, r.key))
+
+    return interval_score(slices(model)), interval_score(slices(without_profile(model)))
+
+
+def slice_profiles(model: LibraryModel) -> tuple[ProfileLaw | None, tuple[ProfileLaw, ...]]:
+    """The slices' zone law of every run of ``model``, and of every run but one (the
+    swept half-width chosen once, on every run); (None, ()) when the runs left out leave
+    it no degree of freedom: the slices then keep the correction's lines."""
+    keys = [slice_key(i) for i in range(AXIAL_SLICES)]
+    held = np.array([[e.dem[k].value if k in e.dem else math.nan for k in keys] for e in model.runs])
+    points = [e.point for e in model.runs]
+    try:
+        whole = fit_profile(points, held, model.blade_pattern)
+        left = tuple(
+            refit(whole, [p for m, p in enumerate(points) if m != n], np.delete(held, n, axis=0))
+            for n in range(len(points))
+        )
+    except ConfigError:
+        return None, ()
+    return whole, left
 
 
 def recalibrated(model: LibraryModel, covariates: Sequence[str]) -> LibraryModel:
@@ -244,19 +303,16 @@ def check(model: LibraryModel) -> Check:
     is not."""
     if model.calibration is None:
         model = calibrated(model)
-    calibration = model.calibration
     scatter, pairs = seed_scatter(model)
     rows = []
     for n, entry in enumerate(model.runs):
         issues, widening = _others(model, n)
-        lines = corrections(model, leave=n)
         floor = extrapolation_floor(model, leave=n) if issues else {}
-        for key, line in lines.items():
-            dem = entry.dem.get(key)
+        for q in held_out(model, n, widening, floor):
+            dem = entry.dem.get(q.key)
             if dem is None:
                 continue
-            value = calibration.left_out[key][n][n]
-            q = corrected(key, value, line, entry.point, widening, floor.get(key, 0.0))
+            key = q.key
             rows.append(
                 CheckedQuantity(
                     entry.file,
@@ -419,6 +475,43 @@ def alternatives(model: LibraryModel, forms: Sequence[Sequence[str]] = CORRECTIO
         + ", ".join(f"{100 * v:g} % ({k})" for k, v in USEFUL_HALF_WIDTH.items())
         + " and a coverage of at least 90 %.\n\n"
         + "\n".join(head)
+    )
+
+
+def slice_sources(model: LibraryModel) -> str:
+    """A markdown table of the slices' hold-ups checked like :func:`check` from each
+    source (:func:`slice_scores`): the zone law and the correction's lines, and which the
+    library's predictions take."""
+    chosen = "zone law" if model.calibration.profile is not None else "lines"
+    sources = {"lines": without_profile(model)}
+    profile, left = (model.calibration.profile, model.calibration.profile_left_out)
+    if profile is None:
+        profile, left = slice_profiles(model)
+    if profile is not None:
+        zone = replace(model, calibration=replace(model.calibration, profile=profile, profile_left_out=left))
+        sources = {"zone law": zone, **sources}
+    rows = [
+        "| slices from | coverage, interpolated | extrapolated | all | median half-width, interpolated [%] | "
+        "interval score [log] |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, m in sources.items():
+        result = check(m)
+        kept = tuple(r for r in result.rows if _slice_of(r.key, "holdup_slice"))
+        part = Check(kept, result.seed_sd, result.seed_pairs)
+        label = {
+            "zone law": "the zone law of the bed (`workflows/prediction/profile.py`)",
+            "lines": "a correction line per slice",
+        }[name]
+        rows.append(
+            f"| {label}{' (chosen)' if name == chosen else ''} | {_percent(part.coverage(True))} | "
+            f"{_percent(part.coverage(False))} | {_percent(part.coverage(None))} | "
+            f"{100 * part.median_half_width('holdup_slice'):.1f} | {interval_score(kept):.4f} |"
+        )
+    return (
+        "## The slices' hold-ups\n\nEvery run's slices predicted without it, from each source; the predictions "
+        "take the one of the lower interval score (the mean width of the 95 % intervals on the log scale plus 40 "
+        "times any miss).\n\n" + "\n".join(rows)
     )
 
 

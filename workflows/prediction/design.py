@@ -64,16 +64,14 @@ from coupling.phases import transitions
 from dem.phases.law import PhaseLaw
 from pbm.frequency import StationarySystem, noise_frequencies, noise_spectrum, system_response, vrr_spectrum
 from workflows.pipeline.results import VALIDATED_RATES
-from workflows.prediction.library import (
+from workflows.prediction.covariates import (
     AXIAL_SLICES,
     REFERENCE_FEED_PER_S,
     REFERENCE_RPM,
     REFERENCE_SLICE_M,
-    LibraryModel,
-    covariate_columns,
     run_covariates,
-    slice_key,
 )
+from workflows.prediction.library import LibraryModel, covariate_columns, slice_key
 from workflows.prediction.predict import (
     LEVEL,
     Correction,
@@ -508,16 +506,21 @@ def predicted_systems(
     holdups: Sequence[PredictedQuantity],
 ) -> Systems:
     """The chain ``predict`` writes at each point (each slice's time scale set to its
-    predicted hold-up, scaled to the predicted total:
+    predicted hold-up, from the slices' zone law where the library has one, scaled to the
+    predicted total:
     :func:`~workflows.prediction.predict.rescaled`, every rate out of a slice multiplied
     alike), its time scale then stretched so that its mean residence time is the
     predicted one."""
     k = s.model.law.n_phases
-    slices = np.empty_like(chains.held)
-    for i in range(AXIAL_SLICES):
-        line = s.lines.get(slice_key(i))
-        shift = 0.0 if line is None else np.array([line.at(p)[0] for p in points])
-        slices[:, i] = chains.held[:, i] * np.exp(shift)
+    profile = s.model.calibration.profile
+    if profile is not None:
+        slices = np.array([profile.at(p, s.pattern)[0] for p in points])
+    else:
+        slices = np.empty_like(chains.held)
+        for i in range(AXIAL_SLICES):
+            line = s.lines.get(slice_key(i))
+            shift = 0.0 if line is None else np.array([line.at(p)[0] for p in points])
+            slices[:, i] = chains.held[:, i] * np.exp(shift)
     slices *= (np.array([h.value for h in holdups]) / slices.sum(axis=1))[:, None]
     factors = np.repeat(chains.held / slices, k, axis=1)  # per (slice, phase) state
     mrt_rescaled = (chains.occupancy / factors).sum(axis=1) / chains.totals

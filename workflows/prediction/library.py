@@ -68,14 +68,12 @@ from dem.phases.settings import PHASE_LAG_S, PhaseSettings
 from dem.summary import Estimate
 from workflows.pipeline.log import Log, stderr_log
 from workflows.pipeline.results import load_results, run_operating_point
+from workflows.prediction.covariates import (
+    AXIAL_SLICES,
+    run_covariates,
+)
+from workflows.prediction.profile import ProfileLaw
 
-#: the library's baseline: the validation preset's speed, slice length (0.33 m over 10
-#: slices) and total feed [rpm, m, particles/s]
-REFERENCE_RPM = 250.0
-REFERENCE_SLICE_M = 0.033
-REFERENCE_FEED_PER_S = 73.7
-#: the baseline's gap from its last blade station to the weir [m]
-REFERENCE_GAP_M = 0.03
 COVARIATES = (
     "speed",
     "length",
@@ -98,8 +96,6 @@ DEFAULT_COVARIATES = ("speed", "length", "position", "feed", "speed2", "position
 #: the transverse law's covariates: those of the run, not of the slice (it is fitted per
 #: compartment)
 TRANSVERSE_COVARIATES = ("speed", "length", "feed", "speed2")
-#: the axial grid the law is fitted on (the product's phase model is axial)
-AXIAL_SLICES = 10
 #: the law's phases. On the 13 shipped runs (the shipped covariates) four beat three on the
 #: held-out log-likelihood of the interpolated runs (-1.03326 against -1.03671 nats per
 #: particle-step) and of the extrapolated ones, and narrow every interval (`pbmdem library
@@ -115,7 +111,8 @@ FIT_TOL = 1e-7
 CK_LAGS_S = (1.0, 2.0, 5.0, 10.0)
 #: what a library file says it is
 FORMAT = "pbmdem-library"
-VERSION = 2
+#: 3: the calibration holds the slices' zone law
+VERSION = 3
 #: the agreement table's quantities a prediction gives (the keys of ``summary.json``),
 #: the slices' hold-ups after them as ``holdup_slice_<i>``
 SCALAR_KEYS = (
@@ -154,19 +151,6 @@ def slice_key(i: int) -> str:
 
 def quantity_keys(nx: int = AXIAL_SLICES) -> tuple[str, ...]:
     return (*SCALAR_KEYS, *(slice_key(i) for i in range(nx)))
-
-
-def run_covariates(point: OperatingPoint, nx: int = AXIAL_SLICES) -> dict[str, float]:
-    """The covariates of a run that are the same in every slice (module docstring)."""
-    speed = math.log(point.impeller_rpm / REFERENCE_RPM)
-    last = max(point.blade_x_m, default=0.0)
-    return {
-        "speed": speed,
-        "length": math.log(point.length_m / nx / REFERENCE_SLICE_M),
-        "feed": math.log(point.feed_rate_total_per_s / REFERENCE_FEED_PER_S),
-        "speed2": speed**2,
-        "gap": math.log(max(point.length_m - last, 1e-6) / REFERENCE_GAP_M),
-    }
 
 
 def last_push(point: OperatingPoint, pattern: str) -> float:
@@ -440,6 +424,11 @@ class Calibration:
     left_out: dict[str, list[list[float]]]
     inside: list[bool]
     covariates: tuple[str, ...] = ()
+    #: the slices' zone law (:mod:`workflows.prediction.profile`) of every run, and of every
+    #: run but one (in the order of the runs); None for a library too small for it, whose
+    #: slices keep the correction's lines
+    profile: ProfileLaw | None = None
+    profile_left_out: tuple[ProfileLaw, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.inside)
@@ -450,6 +439,8 @@ class Calibration:
         unknown = sorted(set(self.covariates) - set(CORRECTION_TERMS))
         if unknown:
             raise ValueError(f"correction covariates {unknown} unknown; valid: {', '.join(CORRECTION_TERMS)}")
+        if self.profile is not None and len(self.profile_left_out) != n:
+            raise ValueError(f"{len(self.profile_left_out)} slice zone laws left out for {n} runs")
 
     def record(self) -> dict[str, Any]:
         def clean(values: list[float]) -> list[float | None]:
@@ -460,6 +451,8 @@ class Calibration:
             "left_out": {k: [clean(row) for row in rows] for k, rows in self.left_out.items()},
             "inside": list(self.inside),
             "covariates": list(self.covariates),
+            "profile": None if self.profile is None else self.profile.record(),
+            "profile_left_out": [law.record() for law in self.profile_left_out],
         }
 
     @classmethod
@@ -472,6 +465,8 @@ class Calibration:
             {str(k): [read(row) for row in rows] for k, rows in record["left_out"].items()},
             [bool(v) for v in record["inside"]],
             tuple(str(v) for v in record.get("covariates") or ()),
+            None if record.get("profile") is None else ProfileLaw.from_record(record["profile"]),
+            tuple(ProfileLaw.from_record(r) for r in record.get("profile_left_out") or ()),
         )
 
 
@@ -533,7 +528,10 @@ class LibraryModel:
                 f"{source}: not a library model (no format {FORMAT!r}); make one with `pbmdem library fit`"
             )
         if record.get("version") != VERSION:
-            raise ConfigError(f"{source}: library model version {record.get('version')!r}; this tool reads {VERSION}")
+            raise ConfigError(
+                f"{source}: library model version {record.get('version')!r}; this tool reads {VERSION}: "
+                "refit it with `pbmdem library fit` (its fits' cache makes that quick)"
+            )
         try:
             runs = tuple(LibraryEntry.from_record(r, source) for r in record["runs"])
             left = tuple(PhaseLaw.from_record(r, source) for r in record["left_out"])

@@ -59,21 +59,24 @@ from dem.phases.assembly import axial_part, with_transverse
 from dem.phases.chain import steady_occupancy
 from dem.phases.law import PhaseLaw
 from pbm.feed import feed_at
-from workflows.prediction.library import (
-    ABSOLUTE_KEYS,
+from workflows.prediction.covariates import (
     AXIAL_SLICES,
-    CORRECTION_DOF,
     REFERENCE_FEED_PER_S,
     REFERENCE_RPM,
     REFERENCE_SLICE_M,
+    run_covariates,
+)
+from workflows.prediction.library import (
+    ABSOLUTE_KEYS,
+    CORRECTION_DOF,
     LibraryModel,
     TransverseLaw,
     correction_row,
     covariate_columns,
     quantity_keys,
-    run_covariates,
     slice_key,
 )
+from workflows.prediction.profile import ProfileLaw
 
 #: binomial draws of the predicted outlet RSD and Lacey index (fixed seed: the law at the
 #: library's runs and at the point is sampled alike, so the correction compares laws, not
@@ -403,16 +406,27 @@ def correction_data(
     return points, residuals
 
 
+def held_out(
+    model: LibraryModel, n: int, widening: float = 1.0, floor: dict[str, float] | None = None
+) -> tuple[PredictedQuantity, ...]:
+    """Run ``n`` predicted without it (:func:`assembled`): the law fitted without it,
+    corrected by the lines of that law's misses on the other runs, and its slices by the
+    zone law fitted without it. ``model`` calibrated."""
+    calibration = model.calibration
+    entry = model.runs[n]
+    law = {key: rows[n][n] for key, rows in calibration.left_out.items()}
+    profile = calibration.profile_left_out[n] if calibration.profile is not None else None
+    return assembled(law, corrections(model, leave=n), profile, entry.point, model.blade_pattern, widening, floor)
+
+
 def left_out_errors(model: LibraryModel, runs: Sequence[int]) -> dict[str, list[float]]:
-    """Per quantity, the error of each run of ``runs`` predicted without it: the law fitted
-    without it, corrected by the line of that law's misses on the other runs."""
+    """Per quantity, the error of each run of ``runs`` predicted without it (:func:`held_out`)."""
     out: dict[str, list[float]] = {key: [] for key in quantity_keys()}
     for n in runs:
         entry = model.runs[n]
-        for key, line in corrections(model, leave=n).items():
-            if key in entry.dem:
-                value = shifted(key, model.calibration.left_out[key][n][n], line.at(entry.point)[0])
-                out[key].append(residual(key, entry.dem[key].value, value))
+        for q in held_out(model, n):
+            if q.key in entry.dem:
+                out[q.key].append(residual(q.key, entry.dem[q.key].value, q.value))
     return out
 
 
@@ -433,9 +447,11 @@ def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[s
 
 @dataclass(frozen=True)
 class PredictedQuantity:
-    """One quantity: ``value`` the law's ``law_value`` moved by the correction's ``shift``,
-    with its 95 % prediction interval ``low``-``high``; ``correction`` the line it came
-    from and ``leverage`` the point's; ``widening`` the factor outside the domain."""
+    """One quantity: ``value`` the law's ``law_value`` moved by ``shift`` (on the quantity's
+    scale), with its 95 % prediction interval ``low``-``high``; ``correction`` the line it
+    came from and ``leverage`` the point's, or for a slice's hold-up ``profile``, the zone
+    law it came from (:mod:`workflows.prediction.profile`); ``widening`` the factor outside
+    the domain."""
 
     key: str
     value: float
@@ -443,14 +459,25 @@ class PredictedQuantity:
     high: float
     law_value: float
     shift: float
-    correction: Correction
+    correction: Correction | None
     leverage: float
     widening: float = 1.0
+    profile: ProfileLaw | None = None
 
     def record(self) -> dict[str, Any]:
         return {"key": self.key, "value": self.value, "low": self.low, "high": self.high}
 
     def details(self) -> dict[str, Any]:
+        if self.correction is None:
+            i = int(self.key.rpartition("_")[2]) - 1
+            return {
+                "law_value": self.law_value,
+                "correction": self.shift,
+                "source": "the slices' zone law (workflows.prediction.profile)",
+                "residual_sd": float(self.profile.slice_sd[i]),
+                "degrees_of_freedom": self.profile.dof,
+                "widening": self.widening,
+            }
         return {
             "law_value": self.law_value,
             "correction": self.shift,
@@ -479,6 +506,51 @@ def corrected(
     centre = shifted(key, value, shift)
     low, high = bounds(key, centre, max(half, floor) * widening)
     return PredictedQuantity(key, centre, low, high, value, shift, correction, leverage, widening)
+
+
+def profiled(
+    key: str,
+    law_value: float,
+    value: float,
+    half: float,
+    profile: ProfileLaw,
+    widening: float = 1.0,
+    floor: float = 0.0,
+) -> PredictedQuantity:
+    """A slice's hold-up ``value`` from the zone law ``profile``, its half-width ``half`` on
+    the log scale, at least ``floor`` (an extrapolation's), times ``widening``."""
+    low, high = bounds(key, value, max(half, floor) * widening)
+    shift = residual(key, value, law_value)
+    return PredictedQuantity(key, value, low, high, law_value, shift, None, math.nan, widening, profile)
+
+
+def assembled(
+    law: dict[str, float],
+    lines: dict[str, Correction],
+    profile: ProfileLaw | None,
+    point: OperatingPoint,
+    pattern: str,
+    widening: float = 1.0,
+    floor: dict[str, float] | None = None,
+) -> tuple[PredictedQuantity, ...]:
+    """Every quantity a line corrects, at ``point`` (its stations oriented by ``pattern``):
+    the law's value ``law`` moved by its line (:func:`corrected`), or, with ``profile``,
+    each slice's hold-up from the zone law (:func:`profiled`); each half-width at least
+    ``floor``'s, times ``widening``."""
+    floor = floor or {}
+    slices = {}
+    if profile is not None:
+        values, halves = profile.at(point, pattern)
+        slices = {slice_key(i): (float(v), float(h)) for i, (v, h) in enumerate(zip(values, halves))}
+    out = []
+    for key in quantity_keys():
+        if key not in lines:
+            continue
+        if key in slices:
+            out.append(profiled(key, law[key], *slices[key], profile, widening, floor.get(key, 0.0)))
+        else:
+            out.append(corrected(key, law[key], lines[key], point, widening, floor.get(key, 0.0), pattern))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -527,11 +599,7 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
         )
     law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
     floor = extrapolation_floor(model) if issues else {}
-    quantities = tuple(
-        corrected(key, law.values[key], lines[key], point, widening, floor.get(key, 0.0), pattern)
-        for key in quantity_keys()
-        if key in lines
-    )
+    quantities = assembled(law.values, lines, model.calibration.profile, point, pattern, widening, floor)
     by_key = {q.key: q for q in quantities}
     held = law.counts.sum(axis=(0, 2))
     slices = np.array([by_key[slice_key(i)].value if slice_key(i) in by_key else held[i] for i in range(held.size)])

@@ -52,17 +52,8 @@ from coupling.operating import OperatingPoint
 from dem.operating import operating_point
 from workflows.config import Config, config_from_dict
 from workflows.prediction.calibration import USEFUL_HALF_WIDTH, seed_scatter
-from workflows.prediction.library import (
-    AXIAL_SLICES,
-    CORRECTION_TERMS,
-    REFERENCE_FEED_PER_S,
-    REFERENCE_RPM,
-    REFERENCE_SLICE_M,
-    LibraryModel,
-    correction_row,
-    quantity_keys,
-    slice_key,
-)
+from workflows.prediction.covariates import AXIAL_SLICES, REFERENCE_FEED_PER_S, REFERENCE_RPM, REFERENCE_SLICE_M
+from workflows.prediction.library import CORRECTION_TERMS, LibraryModel, correction_row, quantity_keys, slice_key
 from workflows.prediction.predict import (
     LEVEL,
     Correction,

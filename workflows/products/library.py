@@ -38,6 +38,7 @@ from workflows.config import Config, config_from_dict, dump_toml, load_config
 from workflows.pipeline.log import Log, stderr_log
 from workflows.pipeline.results import load_table
 from workflows.prediction import calibration
+from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import (
     FitSettings,
     LibraryModel,
@@ -46,7 +47,6 @@ from workflows.prediction.library import (
     library_run,
     load_model,
     load_runs,
-    run_covariates,
     save_model,
 )
 from workflows.prediction.predict import predict
@@ -84,6 +84,8 @@ def library_fit(
         + calibration.markdown(model, check)
         + "\n\n"
         + calibration.alternatives(model)
+        + "\n\n"
+        + calibration.slice_sources(model)
         + "\n",
         "library page",
     )

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from workflows.prediction.covariates import AXIAL_SLICES
 from workflows.prediction.design import Dynamics, Noise
-from workflows.prediction.library import AXIAL_SLICES, SCALAR_KEYS, slice_key
+from workflows.prediction.library import SCALAR_KEYS, slice_key
 from workflows.prediction.predict import Prediction
 
 #: the feeder noise whose VRR ``predict`` reports (:func:`workflows.prediction.design.point_dynamics`'s default)

@@ -16,14 +16,8 @@ from pbm.config import PbmConfig
 from pbm.simulate import simulate
 from workflows.config import load_preset
 from workflows.prediction.calibration import calibrated, check
-from workflows.prediction.library import (
-    LibraryEntry,
-    LibraryModel,
-    TransverseLaw,
-    correction_row,
-    quantity_keys,
-    run_covariates,
-)
+from workflows.prediction.covariates import run_covariates
+from workflows.prediction.library import LibraryEntry, LibraryModel, TransverseLaw, correction_row, quantity_keys
 from workflows.prediction.predict import (
     chain_values,
     corrected,

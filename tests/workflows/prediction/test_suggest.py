@@ -18,7 +18,8 @@ from dem.operating import operating_point
 from tests.workflows.prediction.small_library import SPEEDS
 from workflows.cli.main import main
 from workflows.config import config_from_dict, load_config, load_preset
-from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model, run_covariates
+from workflows.prediction.covariates import run_covariates
+from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model
 from workflows.prediction.predict import fit_correction
 from workflows.prediction.suggest import (
     Candidate,
