@@ -26,6 +26,7 @@ STUDIES = (
     ("paper-scale", "workflows.studies.paper_scale"),
     ("law", "workflows.studies.law"),
     ("suggest", "workflows.studies.suggest"),
+    ("profile-forms", "workflows.studies.profile_forms"),
 )
 
 

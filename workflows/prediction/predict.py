@@ -475,7 +475,7 @@ class PredictedQuantity:
                 "correction": self.shift,
                 "source": "the slices' zone law (workflows.prediction.profile)",
                 "residual_sd": float(self.profile.slice_sd[i]),
-                "degrees_of_freedom": self.profile.dof,
+                "degrees_of_freedom": float(self.profile.slice_dof[i]),
                 "widening": self.widening,
             }
         return {

@@ -1,0 +1,120 @@
+"""``pbmdem study profile-forms``: which blade stations the slices' zone law gives a line
+of their own.
+
+The zone law (:mod:`workflows.prediction.profile`) puts every forward station's swept zone
+on one line and every backward one's on another. The stations beside the inlet's pile,
+or the one before the weir, may not behave like the rest. Each form (a set of stations
+with swept zones of their own) is fitted to a library's runs with one run left out at a
+time, at the whole library's swept half-width, and that run's slices predicted: the root
+mean square of the log errors, the share of DEM values inside the law's own 95 %
+intervals, and their median half-width, over the runs inside the others' domain and over
+the runs at an end of a range (the intervals without the extrapolation floor and widening
+``pbmdem predict`` adds there). Writes ``profile-forms.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from coupling.errors import ConfigError
+from coupling.files import writable_directory
+from coupling.jsonable import write_json
+from workflows.prediction.covariates import AXIAL_SLICES
+from workflows.prediction.library import LibraryModel, load_model, slice_key
+from workflows.prediction.profile import fit_profile, refit
+from workflows.shipped import LIBRARY_MODEL
+
+HELP = "the slices' zone law with swept zones of their own at other stations, every run left out"
+OUT = Path("results/profile-forms")
+#: the forms compared: stations counted from the inlet, negative from the weir
+FORMS = ((), (0,), (0, 1), (0, 1, -1), (0, 1, 2))
+
+
+@dataclass(frozen=True)
+class FormCheck:
+    """One form's runs left out: per group ("interpolated", "extrapolated"), the root mean
+    square log error, the coverage and the median relative half-width of the slices."""
+
+    own_stations: tuple[int, ...]
+    half_width_m: float
+    groups: dict[str, tuple[float, float, float]]
+
+    def record(self) -> dict:
+        return {
+            "own_stations": list(self.own_stations),
+            "half_width_m": self.half_width_m,
+            "groups": {
+                k: dict(zip(("rms_log_error", "coverage", "median_half_width"), v)) for k, v in self.groups.items()
+            },
+        }
+
+
+def form_check(model: LibraryModel, own_stations: tuple[int, ...]) -> FormCheck:
+    """Every run of ``model`` (calibrated) left out under the form ``own_stations``."""
+    keys = [slice_key(i) for i in range(AXIAL_SLICES)]
+    held = np.array([[e.dem[k].value if k in e.dem else np.nan for k in keys] for e in model.runs])
+    points = [e.point for e in model.runs]
+    whole = fit_profile(points, held, model.blade_pattern, own_stations=own_stations)
+    errors, covered, halves = [], [], []
+    for n in range(len(points)):
+        law = refit(whole, [p for m, p in enumerate(points) if m != n], np.delete(held, n, axis=0))
+        values, half = law.at(points[n])
+        error = np.log(held[n] / values)
+        errors.append(error)
+        covered.append(np.abs(error) <= half)
+        halves.append(np.sinh(half))  # (high - low) / 2 / value on the log scale's bounds
+    errors, covered, halves = map(np.array, (errors, covered, halves))
+    inside = np.array(model.calibration.inside)
+    groups = {}
+    for name, rows in (("interpolated", inside), ("extrapolated", ~inside)):
+        if rows.any():
+            e, c, h = errors[rows], covered[rows], halves[rows]
+            ok = np.isfinite(e)
+            groups[name] = (float(np.sqrt(np.mean(e[ok] ** 2))), float(np.mean(c[ok])), float(np.median(h[ok])))
+    return FormCheck(tuple(own_stations), whole.half_width_m, groups)
+
+
+def markdown(rows: list[FormCheck], library: str) -> str:
+    lines = [
+        "# The slices' zone law: which stations get a swept zone of their own",
+        "",
+        f"Made by `pbmdem study profile-forms --library {library}`. Every run left out; stations counted from "
+        "the inlet from 0, negative from the weir. The intervals are the law's own (without the extrapolation "
+        "floor and widening `pbmdem predict` adds at an end of a range).",
+        "",
+        "| own stations | swept half-width [mm] | interpolated: rms log error | coverage | median half-width [%] "
+        "| extrapolated: rms log error | coverage | median half-width [%] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        cells = []
+        for group in ("interpolated", "extrapolated"):
+            rms, cov, half = r.groups.get(group, (np.nan, np.nan, np.nan))
+            cells += [f"{rms:.4f}", f"{100 * cov:.0f} %", f"{100 * half:.1f}"]
+        name = ", ".join(map(str, r.own_stations)) or "none"
+        lines.append(f"| {name} | {1000 * r.half_width_m:.0f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--library", default=str(LIBRARY_MODEL), help="a library model (default: the shipped one)")
+    parser.add_argument("--out", default=str(OUT), help=f"output folder (default: {OUT})")
+
+
+def run(args: argparse.Namespace) -> int:
+    model = load_model(args.library)
+    if model.calibration is None:
+        raise ConfigError(f"{args.library}: the library model has no calibration; make it with `pbmdem library fit`")
+    rows = [form_check(model, form) for form in FORMS]
+    text = markdown(rows, os.path.relpath(args.library))
+    print(text)
+    out = writable_directory(args.out, "--out")
+    (out / "profile-forms.md").write_text(text)
+    written = write_json(out / "profile-forms.json", {"forms": [r.record() for r in rows]})
+    print(f"wrote {out / 'profile-forms.md'} and {written}")
+    return 0
