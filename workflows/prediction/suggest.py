@@ -10,6 +10,23 @@ more: the t quantile drops, which matters most in a small library), and, in a li
 small for the correction's whole form, the covariates the runs identify (the form grows
 once the runs allow it, :func:`~workflows.prediction.predict.fit_correction`).
 
+The slices' hold-ups are judged as ``pbmdem predict`` gives them: when the library has a
+zone law of its bed (:mod:`workflows.prediction.profile`, ``calibration.profile``), by it,
+in place of their lines (:func:`profile_half_widths`). Slice i's half-width at a point is
+then t(0.975, d_i) sqrt(s_i^2 + g_i' C g_i): g_i the gradient of its log hold-up in the
+law's coefficients there, C = (J'WJ)^-1 their covariance, W = diag(1 / s_i^2), d_i the
+slice's degrees of freedom (its observations less their leverage). A run at c whose
+slices lie on the law leaves the coefficients where they are and adds its information:
+C becomes (J'WJ + G_c'W G_c)^-1, G_c the gradients of its slices
+(:meth:`~workflows.prediction.profile.ProfileLaw.covariance_after`); s_i is expected to
+stay. Each d_i is taken to grow by one: the run adds one observation per slice and no
+coefficient, so the leverages' sum stays and the law's degrees of freedom grow by exactly
+one per slice, while how they share among the slices needs the refit itself (the refits
+of synthetic slices in tests/workflows/prediction/test_suggest.py put each slice's growth
+between 0.8 and 1.1). Counting only the new
+observation's own 1 - h_i instead would leave out the leverage it takes off the runs
+before it, and so cut the gain most where the run teaches the law most.
+
 The rule is I-optimal: per quantity the mean over the region's points of the squared
 half-width, divided by the square of the quantity's target half-width
 (:data:`~workflows.prediction.calibration.USEFUL_HALF_WIDTH`: 4 % of the mean residence
@@ -27,7 +44,12 @@ measures its seed scatter (replicate runs), each squared half-width is therefore
 with t^2 times the expected squared bias of the line at the point under a quadratic
 discrepancy of the size the excess spread implies (:func:`_bias`), and its variance part
 with the seed scatter instead of the spread: Box and Draper's mean squared error, least
-where the runs' moments match the region's.
+where the runs' moments match the region's. The zone law's slices take no such term: it
+is a discrepancy quadratic in a line's covariates, of the size of the line's spread beyond
+the seed scatter, and the zone law is no such line; its scatter s_i is each slice's about
+a law of the whole bed, and the law was chosen over the lines by the intervals of runs
+left out (:func:`~workflows.prediction.calibration.calibrated`): what it misses from one
+blender to another was scored there.
 
 The region is the library's domain (each of speed, length and feed between its runs'
 least and greatest) or a part of it (:func:`parse_region`); the candidates a grid over the
