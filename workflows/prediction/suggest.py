@@ -23,9 +23,9 @@ stay. Each d_i is taken to grow by one: the run adds one observation per slice a
 coefficient, so the leverages' sum stays and the law's degrees of freedom grow by exactly
 one per slice, while how they share among the slices needs the refit itself (the refits
 of synthetic slices in tests/workflows/prediction/test_suggest.py put each slice's growth
-between 0.8 and 1.1). Counting only the new
-observation's own 1 - h_i instead would leave out the leverage it takes off the runs
-before it, and so cut the gain most where the run teaches the law most.
+between 0.8 and 1.1). Counting only the new observation's own 1 - h_i instead would leave
+out the leverage it takes off the runs before it, and so cut the gain most where the run
+teaches the law most.
 
 The rule is I-optimal: per quantity the mean over the region's points of the squared
 half-width, divided by the square of the quantity's target half-width
