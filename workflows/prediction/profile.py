@@ -177,6 +177,24 @@ class ProfileLaw:
         t = stdtrit(np.maximum(self.slice_dof, 1e-3), 0.5 + LEVEL / 2)
         return np.exp(values), t * sd
 
+    def gradient(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(log hold-up of each slice at ``point``, its gradient in the coefficients (NX, P))."""
+        return _log_slices(_design(point, pattern or self.pattern, self.half_width_m, self.nx), self.coefficients)
+
+    def information(self) -> np.ndarray:
+        """J'WJ of the runs the law was fitted to (P, P): the inverse of its covariance,
+        W = diag(1 / slice_sd^2)."""
+        return np.linalg.pinv(self.covariance, hermitian=True)
+
+    def covariance_after(self, gradients: np.ndarray) -> np.ndarray:
+        """(..., P, P) the coefficients' covariance with one more run whose slices' log
+        hold-ups have ``gradients`` (..., NX, P) (:meth:`gradient`) and lie on the law:
+        pinv(J'WJ + G'WG), each slice weighted by its present scatter. Such a run leaves
+        the coefficients where they are, so its information adds to the runs' exactly."""
+        gradients = np.asarray(gradients, dtype=float)
+        added = np.einsum("...ip,i,...iq->...pq", gradients, self.slice_sd**-2.0, gradients)
+        return np.linalg.pinv(self.information() + added, hermitian=True)
+
     def record(self) -> dict[str, Any]:
         return {
             "half_width_m": self.half_width_m,

@@ -10,6 +10,23 @@ more: the t quantile drops, which matters most in a small library), and, in a li
 small for the correction's whole form, the covariates the runs identify (the form grows
 once the runs allow it, :func:`~workflows.prediction.predict.fit_correction`).
 
+The slices' hold-ups are judged as ``pbmdem predict`` gives them: when the library has a
+zone law of its bed (:mod:`workflows.prediction.profile`, ``calibration.profile``), by it,
+in place of their lines (:func:`profile_half_widths`). Slice i's half-width at a point is
+then t(0.975, d_i) sqrt(s_i^2 + g_i' C g_i): g_i the gradient of its log hold-up in the
+law's coefficients there, C = (J'WJ)^-1 their covariance, W = diag(1 / s_i^2), d_i the
+slice's degrees of freedom (its observations less their leverage). A run at c whose
+slices lie on the law leaves the coefficients where they are and adds its information:
+C becomes (J'WJ + G_c'W G_c)^-1, G_c the gradients of its slices
+(:meth:`~workflows.prediction.profile.ProfileLaw.covariance_after`); s_i is expected to
+stay. Each d_i is taken to grow by one: the run adds one observation per slice and no
+coefficient, so the leverages' sum stays and the law's degrees of freedom grow by exactly
+one per slice, while how they share among the slices needs the refit itself (the refits
+of synthetic slices in tests/workflows/prediction/test_suggest.py put each slice's growth
+between 0.8 and 1.1). Counting only the new observation's own 1 - h_i instead would leave
+out the leverage it takes off the runs before it, and so cut the gain most where the run
+teaches the law most.
+
 The rule is I-optimal: per quantity the mean over the region's points of the squared
 half-width, divided by the square of the quantity's target half-width
 (:data:`~workflows.prediction.calibration.USEFUL_HALF_WIDTH`: 4 % of the mean residence
@@ -27,7 +44,12 @@ measures its seed scatter (replicate runs), each squared half-width is therefore
 with t^2 times the expected squared bias of the line at the point under a quadratic
 discrepancy of the size the excess spread implies (:func:`_bias`), and its variance part
 with the seed scatter instead of the spread: Box and Draper's mean squared error, least
-where the runs' moments match the region's.
+where the runs' moments match the region's. The zone law's slices take no such term: it
+is a discrepancy quadratic in a line's covariates, of the size of the line's spread beyond
+the seed scatter, and the zone law is no such line; its scatter s_i is each slice's about
+a law of the whole bed, and the law was chosen over the lines by the intervals of runs
+left out (:func:`~workflows.prediction.calibration.calibrated`): what it misses from one
+blender to another was scored there.
 
 The region is the library's domain (each of speed, length and feed between its runs'
 least and greatest) or a part of it (:func:`parse_region`); the candidates a grid over the
@@ -63,6 +85,7 @@ from workflows.prediction.predict import (
     domain_issues,
     fit_correction,
 )
+from workflows.prediction.profile import ProfileLaw
 
 #: the region's axes, as the command line names them, and their units
 AXES = {"speed": "rpm", "length": "m", "feed": "particles/s"}
@@ -317,6 +340,31 @@ def _after_widths(
     return np.array([half_widths(after_run(line, points, names, c), region_terms) for c in candidates])
 
 
+def profile_half_widths(
+    profile: ProfileLaw,
+    region_points: Sequence[OperatingPoint],
+    candidate_points: Sequence[OperatingPoint],
+    pattern: str | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The half-widths of the zone law's slice intervals (log scale, :meth:`ProfileLaw.at`)
+    at the region's points, (NX, R) now and (NX, C, R) expected after one more run at each
+    candidate (module docstring): t(slice_dof_i) sqrt(s_i^2 + g_i' C g_i), then with the
+    candidate's information added to C (:meth:`ProfileLaw.covariance_after`) and one more
+    degree of freedom per slice."""
+    region = np.array([profile.gradient(p, pattern)[1] for p in region_points])  # (R, NX, P)
+    grown = profile.covariance_after(np.array([profile.gradient(p, pattern)[1] for p in candidate_points]))
+
+    def spread(covariance: np.ndarray) -> np.ndarray:
+        return np.maximum(np.sum((region @ covariance) * region, axis=2).T, 0.0)  # (NX, R)
+
+    now = spread(profile.covariance)
+    after = np.stack([spread(c) for c in grown], axis=1)
+    s2 = (profile.slice_sd**2)[:, None]
+    t_now = stdtrit(np.maximum(profile.slice_dof, 1e-3), 0.5 + LEVEL / 2)[:, None]
+    t_after = stdtrit(profile.slice_dof + 1.0, 0.5 + LEVEL / 2)[:, None, None]
+    return t_now * np.sqrt(s2 + now), t_after * np.sqrt(s2[:, None] + after)
+
+
 def potential_terms(terms: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(N, 6) the potential terms at the rows ``terms`` (:func:`covariate_terms`): the
     squares and products of log speed, log length and log feed, each scaled to -1..1 over
@@ -464,13 +512,15 @@ def rank(
     domain: Region | None = None,
     pure_sd: dict[str, float] | None = None,
     pattern: str = "",
+    profile: ProfileLaw | None = None,
 ) -> list[Suggestion]:
     """Every candidate as a :class:`Suggestion`, the one that lowers the criterion over
     ``region_points`` most first (module docstring); ``names`` the correction's form,
     ``domain`` the library's (to label candidates outside it); ``pure_sd`` per quantity
     the DEM's scatter between seeds on its scale (:func:`_bias`; None: the line's
     intervals alone); ``pattern`` the blade pattern of every point's stations (needed by a
-    form with ``last``)."""
+    form with ``last``); ``profile`` the slices' zone law, which then judges the slices
+    in place of their lines (:func:`profile_half_widths`)."""
     if not candidates or not region_points:
         raise ConfigError("no candidate or no region point to rank")
     region_terms = covariate_terms(region_points, pattern)
@@ -479,9 +529,10 @@ def rank(
     after: dict[str, np.ndarray] = {}
     ranked_now: dict[str, np.ndarray] = {}  # with the expected bias, ranked on
     ranked_after: dict[str, np.ndarray] = {}
+    zoned = [slice_key(i) for i in range(profile.nx)] if profile is not None else []
     for q in quantities:
         q = q.usable()
-        if target_half_width(q.key) is None or not q.points:
+        if target_half_width(q.key) is None or not q.points or q.key in zoned:
             continue
         line = fit_correction(q.points, q.residuals, names, pattern)
         if line.dof < 1 or not math.isfinite(line.variance):
@@ -499,6 +550,13 @@ def rank(
             pure = pure_sd[q.key] ** 2 / line.variance
             ranked_now[q.key] = np.sqrt(pure * now[q.key] ** 2 + _t(line.dof) ** 2 * bias[0])
             ranked_after[q.key] = np.sqrt(pure * after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
+    if profile is not None:
+        # no bias term: the zone law's scatter is measured about a law that carries the
+        # bed from blender to blender, and chosen over the lines on runs left out
+        halves = profile_half_widths(profile, region_points, [c.point for c in candidates], pattern or None)
+        for key, h_now, h_after in zip(zoned, *halves):
+            now[key] = ranked_now[key] = h_now
+            after[key] = ranked_after[key] = h_after
     gains = [()] * len(candidates)
     widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
     line = fit_correction(widest.points, widest.residuals, names, pattern)
@@ -587,4 +645,7 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
         if not extend:
             raise
         raise ConfigError(f"--extend {extend:g} reaches candidates no blender can run: {exc}") from None
-    return rank(library_quantities(model), names, chosen, region_points, candidates, dom, scatter, model.blade_pattern)
+    profile = model.calibration.profile if model.calibration is not None else None
+    return rank(
+        library_quantities(model), names, chosen, region_points, candidates, dom, scatter, model.blade_pattern, profile
+    )

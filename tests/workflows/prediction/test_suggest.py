@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,15 +20,18 @@ from tests.workflows.prediction.small_library import SPEEDS
 from workflows.cli.main import main
 from workflows.config import config_from_dict, load_config, load_preset
 from workflows.prediction.covariates import run_covariates
-from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model
+from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model, slice_key
 from workflows.prediction.predict import fit_correction
+from workflows.prediction.profile import fit_profile, refit
 from workflows.prediction.suggest import (
     Candidate,
     Quantity,
     Region,
     config_at,
+    criterion,
     half_widths,
     parse_region,
+    profile_half_widths,
     rank,
     scaled_duration,
     widened,
@@ -318,3 +322,93 @@ def test_a_run_that_lets_the_line_see_a_covariate_of_its_form_comes_first():
     assert all(not r.gains for r in ranked if r.feed == 73.7)
     first_plain = next(i for i, r in enumerate(ranked) if not r.gains)
     assert all(r.gains for r in ranked[:first_plain])
+
+
+# ------------------------------------------------------------------ the slices' zone law
+@pytest.fixture(scope="module")
+def zoned():
+    """A zone law fitted to nine of the shipped library's operating points (three
+    lengths), their slices the shipped law's hold-ups times a known log-normal scatter."""
+    shipped = load_model(LIBRARY_DIR / "law")
+    truth = shipped.calibration.profile
+    points = [r.point for r in shipped.runs[:9]]
+    rng = np.random.default_rng(3)
+    held = np.array([np.exp(truth.gradient(p)[0] + rng.normal(0.0, 0.03, truth.nx)) for p in points])
+    law = fit_profile(points, held, shipped.blade_pattern, (truth.half_width_m,))
+    return law, points, held, shipped
+
+
+def _information(gradients, sd):
+    return sum(np.einsum("ip,i,iq->pq", g, sd**-2.0, g) for g in gradients)
+
+
+def test_the_zone_laws_information_is_its_runs_gradients_weighted_by_each_slices_scatter(zoned):
+    law, points, _, _ = zoned
+    runs = [law.gradient(p)[1] for p in points]
+    info = _information(runs, law.slice_sd)
+    assert law.information() == pytest.approx(info, rel=1e-8, abs=1e-8 * np.abs(info).max())
+    values, sd = law.log_slices(points[2])
+    assert law.gradient(points[2])[0] == pytest.approx(values, rel=1e-14)
+    extra = law.gradient(points[0])[1]
+    expected = np.linalg.pinv(info + extra.T @ np.diag(law.slice_sd**-2.0) @ extra)
+    assert law.covariance_after(extra) == pytest.approx(expected, rel=1e-6, abs=1e-9 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("far", [True, False])
+def test_the_covariance_after_a_run_on_the_law_is_the_refitted_laws(zoned, far):
+    """A run whose slices lie on the law: refitted with it, the law's information is the
+    runs' and the run's at the re-estimated scatters, the coefficients barely moved; each
+    slice's degrees of freedom grow by about one, all of them by exactly one per slice."""
+    law, points, held, shipped = zoned
+    c = shipped.runs[13].point if far else points[4]
+    values, extra = law.gradient(c)
+    refitted = refit(law, [*points, c], np.vstack([held, np.exp(values)]))
+    assert np.abs(refitted.coefficients - law.coefficients).max() < 0.05
+    runs = _information([law.gradient(p)[1] for p in points], refitted.slice_sd)
+    before = replace(law, slice_sd=refitted.slice_sd, covariance=np.linalg.pinv(runs))
+    after = np.linalg.pinv(before.covariance_after(extra))
+    assert np.abs(after - refitted.information()).max() < 1e-3 * np.abs(after).max()
+    region = [r.point for r in shipped.runs]
+    for p in region[::3]:
+        g = law.gradient(p)[1]
+        ours = np.einsum("ip,pq,iq->i", g, before.covariance_after(extra), g)
+        theirs = np.einsum("ip,pq,iq->i", g, refitted.covariance, g)
+        assert ours == pytest.approx(theirs, rel=0.02)
+    grown = refitted.slice_dof - law.slice_dof
+    assert grown.sum() == pytest.approx(law.nx, rel=1e-9) and np.all(np.abs(grown - 1.0) < 0.25)
+
+
+def test_the_zone_laws_half_widths_now_are_its_intervals_and_a_run_far_from_the_runs_narrows_them_most(zoned):
+    law, points, _, shipped = zoned
+    region = [r.point for r in shipped.runs]
+    far, near = shipped.runs[13].point, points[4]  # the shortest blender; the centre run
+    now, after = profile_half_widths(law, region, [far, near])
+    assert now.shape == (law.nx, len(region)) and after.shape == (law.nx, 2, len(region))
+    assert now == pytest.approx(np.array([law.at(p)[1] for p in region]).T, rel=1e-12)
+    assert np.all(after <= now[:, None, :] * (1 + 1e-12))
+    # after the run: its information added, and one more degree of freedom per slice
+    g, grown = law.gradient(region[7])[1], law.covariance_after(law.gradient(far)[1])
+    by_hand = stats.t.ppf(0.975, law.slice_dof + 1) * np.sqrt(law.slice_sd**2 + np.einsum("ip,pq,iq->i", g, grown, g))
+    assert after[:, 0, 7] == pytest.approx(by_hand, rel=1e-10)
+    keys = [slice_key(i) for i in range(law.nx)]
+    score = criterion(dict(zip(keys, after)))  # (candidates,)
+    assert score[0] < score[1] < criterion(dict(zip(keys, now)))
+
+
+def test_with_a_zone_law_the_slices_are_judged_by_it_not_by_their_lines(zoned):
+    law, points, _, shipped = zoned
+    region = [r.point for r in shipped.runs[9:]]
+    rng = np.random.default_rng(2)
+    slices = [Quantity(slice_key(i), tuple(points), tuple(rng.normal(0, 0.3, len(points)))) for i in range(law.nx)]
+    cands = [Candidate(0.0, 0.0, 0.0, shipped.runs[n].point) for n in (10, 13)]
+    lines = rank(slices, ("speed",), SPAN, region, cands, pattern=shipped.blade_pattern)
+    zone = rank(slices, ("speed",), SPAN, region, cands, pattern=shipped.blade_pattern, profile=law)
+    now = np.array([law.at(p)[1] for p in region])
+    for ranked, expected in ((zone, np.median(now, axis=0)), (lines, None)):
+        got = np.array([r.now for r in ranked[0].reductions])
+        assert [r.key for r in ranked[0].reductions] == [slice_key(i) for i in range(law.nx)]
+        if expected is not None:
+            assert got == pytest.approx(expected, rel=1e-12)
+        else:
+            assert not got == pytest.approx(np.median(now, axis=0), rel=0.1)
+    assert zone[0].point is shipped.runs[13].point
