@@ -569,7 +569,9 @@ def restricted(model: LibraryModel, runs: Sequence[int]) -> LibraryModel:
     """``model`` (calibrated) as if it held only the runs of index ``runs``, in that
     order: their entries, laws left out and calibration values. No law is refitted: the
     whole library's law and each law left out keep every other run they were fitted to,
-    so :func:`check` of the result judges the correction's design, not the law's."""
+    so :func:`check` of the result judges the correction's design, not the law's. Its
+    slices take the correction's lines: the zone law is the whole library's (refitting it
+    to every subset is :func:`calibrated`'s work)."""
     keep = list(runs)
     cal = model.calibration
     if cal is None:

@@ -164,8 +164,7 @@ class ProfileLaw:
 
     def log_slices(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(log hold-up of each slice at ``point``, the standard deviation of its prediction)."""
-        design = _design(point, pattern or self.pattern, self.half_width_m, self.own_stations, self.nx)
-        values, gradient = _log_slices(design, self.coefficients)
+        values, gradient = self.gradient(point, pattern)
         spread = np.einsum("ip,pq,iq->i", gradient, self.covariance, gradient)
         return values, np.sqrt(self.slice_sd**2 + np.maximum(spread, 0.0))
 
@@ -179,7 +178,8 @@ class ProfileLaw:
 
     def gradient(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(log hold-up of each slice at ``point``, its gradient in the coefficients (NX, P))."""
-        return _log_slices(_design(point, pattern or self.pattern, self.half_width_m, self.nx), self.coefficients)
+        design = _design(point, pattern or self.pattern, self.half_width_m, self.own_stations, self.nx)
+        return _log_slices(design, self.coefficients)
 
     def information(self) -> np.ndarray:
         """J'WJ of the runs the law was fitted to (P, P): the inverse of its covariance,

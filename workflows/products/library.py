@@ -268,7 +268,8 @@ def _suggest_markdown(ranked: list[Suggestion], base: str, mean: float, duration
         f"Library {folder}; criterion over {best.region.describe()}: the mean over the region of (half-width / "
         "target)^2, averaged over the targets (mean residence time 4 %, hold-up 4 %, RTD variance 15 %, each "
         "slice's hold-up 8 %), each squared half-width with t^2 times the line's expected squared bias under a "
-        "curvature it cannot follow (from the spread beyond the seed scatter; `workflows/prediction/suggest.py`); "
+        "curvature it cannot follow (from the spread beyond the seed scatter; `workflows/prediction/suggest.py`), "
+        "the slices' from the zone law of the bed where the library has one, without that bias; "
         f"now {best.criterion_now:.3g}.",
         "",
         f"Suggested run: {best.speed:.4g} rpm, {best.length:.4g} m, {best.feed:.4g} particles/s"
