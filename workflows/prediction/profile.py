@@ -61,7 +61,7 @@ SHARED_TERMS = ("distance", "distance2", "speed_distance", "feed_distance", "spe
 OWN_STATIONS = (0, 1)
 #: the distance to the weir is measured in this unit [m]
 DISTANCE_UNIT_M = 0.1
-#: the step of the grid the density is integrated on [m]
+#: the greatest step of the grid the density is integrated on [m] (each run's fills its slices)
 GRID_M = 0.0005
 #: the swept half-widths tried [m]
 HALF_WIDTHS_M = tuple(round(0.001 * k, 4) for k in range(4, 17))
@@ -109,15 +109,21 @@ def zones(
 @dataclass(frozen=True)
 class _Design:
     """The law's linear part on one run's grid: log density = ``rows`` @ coefficients;
-    ``slice_of`` each grid point's slice."""
+    ``slice_of`` each grid point's slice; ``step_m`` the grid's step."""
 
     rows: np.ndarray
     slice_of: np.ndarray
     nx: int
+    step_m: float
 
 
-def _design(point: OperatingPoint, pattern: str, half_width_m: float, own_stations: Sequence[int], nx: int) -> _Design:
-    x, zone = zones(point, pattern, half_width_m, own_stations)
+def _design(
+    point: OperatingPoint, pattern: str, half_width_m: float, own_stations: Sequence[int], nx: int
+) -> _Design:
+    # the step nearest GRID_M that fills each slice with whole steps: a slice of 0.02475 m
+    # on a 0.5-mm grid would hold 49 or 50 of them, 1 % off the slice it integrates
+    step = point.length_m / nx / math.ceil(point.length_m / nx / GRID_M - 1e-9)
+    x, zone = zones(point, pattern, half_width_m, own_stations, step)
     covariates = run_covariates(point, nx)
     speed, feed, gap = covariates["speed"], covariates["feed"], covariates["gap"]
     own = np.zeros((x.size, len(ZONES) + len(own_stations), len(ZONE_TERMS)))
@@ -126,12 +132,12 @@ def _design(point: OperatingPoint, pattern: str, half_width_m: float, own_statio
     shared = np.column_stack([d, d**2, speed * d, feed * d, np.full(x.size, speed**2), (zone == 5) * gap])
     edges = np.linspace(0.0, point.length_m, nx + 1)
     slice_of = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, nx - 1)
-    return _Design(np.hstack([own.reshape(x.size, -1), shared]), slice_of, nx)
+    return _Design(np.hstack([own.reshape(x.size, -1), shared]), slice_of, nx, step)
 
 
 def _log_slices(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(log hold-up of each slice, its gradient in the coefficients (NX, P))."""
-    density = np.exp(np.clip(design.rows @ coefficients, -700.0, 700.0)) * GRID_M
+    density = np.exp(np.clip(design.rows @ coefficients, -700.0, 700.0)) * design.step_m
     held = np.bincount(design.slice_of, weights=density, minlength=design.nx)
     weighted = np.zeros((design.nx, design.rows.shape[1]))
     np.add.at(weighted, design.slice_of, design.rows * density[:, None])
@@ -275,9 +281,10 @@ def _fit(
     nx = observed.shape[1]
     mask = np.isfinite(observed)
     start = np.zeros(n_coefficients(own_stations))
-    lengths = np.array([d.rows.shape[0] * GRID_M for d in designs])
+    lengths = np.array([d.rows.shape[0] * d.step_m for d in designs])
+    # the mean density of the slices observed: a run may lack any of its slices
     start[0 : -len(SHARED_TERMS) : len(ZONE_TERMS)] = math.log(
-        float(np.nanmean(np.exp(observed).sum(axis=1) / lengths))
+        float(np.nanmean(np.exp(observed) * nx / lengths[:, None]))
     )
     weights = np.ones(nx)
     theta = start
