@@ -42,10 +42,11 @@ from workflows.prediction.library import (
 )
 from workflows.prediction.predict import (
     LEVEL,
+    Placement,
     domain,
-    domain_issues,
-    extrapolation_floor,
+    floor_at,
     held_out,
+    placement,
     point_values,
     predict,
     residual,
@@ -74,11 +75,11 @@ def _slice_of(key: str, family: str) -> bool:
     return head == family and tail.isdigit()
 
 
-def _others(model: LibraryModel, n: int) -> tuple[list[str], float]:
-    """Run ``n``'s place against the domain of the other runs: (what lies outside it, the
-    widening :func:`workflows.prediction.predict.predict` would give it)."""
+def _others(model: LibraryModel, n: int) -> Placement:
+    """Run ``n``'s place against the domain of the other runs (as
+    :func:`workflows.prediction.predict.predict` would place it)."""
     others = domain([r.point for m, r in enumerate(model.runs) if m != n], model.blade_pattern)
-    return domain_issues(others, model.runs[n].point, model.blade_pattern)
+    return placement(others, model.runs[n].point, model.blade_pattern)
 
 
 def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> LibraryModel:
@@ -87,7 +88,7 @@ def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> 
     ``covariates`` (default: the model's settings', else
     :data:`~workflows.prediction.library.DEFAULT_CORRECTION`)."""
     names = tuple(covariates if covariates is not None else model.settings.get("correction", DEFAULT_CORRECTION))
-    inside = [not _others(model, n)[0] for n in range(len(model.runs))]
+    inside = [not _others(model, n).extrapolated for n in range(len(model.runs))]
     whole = [_values(model.law, model.transverse, model, entry.point) for entry in model.runs]
     left = [
         [_values(law, transverse, model, entry.point) for entry in model.runs]
@@ -306,9 +307,8 @@ def check(model: LibraryModel) -> Check:
     scatter, pairs = seed_scatter(model)
     rows = []
     for n, entry in enumerate(model.runs):
-        issues, widening = _others(model, n)
-        floor = extrapolation_floor(model, leave=n) if issues else {}
-        for q in held_out(model, n, widening, floor):
+        place = _others(model, n)
+        for q in held_out(model, n, place.widening, floor_at(model, place, leave=n)):
             dem = entry.dem.get(q.key)
             if dem is None:
                 continue
@@ -324,7 +324,7 @@ def check(model: LibraryModel) -> Check:
                     q.low,
                     q.high,
                     scatter.get(key, 0.0),
-                    not issues,
+                    not place.extrapolated,
                 )
             )
     return Check(tuple(rows), scatter, tuple(pairs))
@@ -586,7 +586,7 @@ def restricted(model: LibraryModel, runs: Sequence[int]) -> LibraryModel:
         ck=tuple(model.ck[n] for n in keep) if model.ck else (),
         calibration=None,
     )
-    inside = [not _others(sub, n)[0] for n in range(len(keep))]
+    inside = [not _others(sub, n).extrapolated for n in range(len(keep))]
     calibration = Calibration(
         {key: [values[n] for n in keep] for key, values in cal.whole.items()},
         {key: [[rows[m][n] for n in keep] for m in keep] for key, rows in cal.left_out.items()},

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -80,9 +80,9 @@ from workflows.prediction.predict import (
     corrected,
     corrections,
     domain,
-    domain_issues,
     entering,
     extrapolation_floor,
+    placement,
     residual,
 )
 from workflows.prediction.suggest import least_gap
@@ -206,8 +206,8 @@ class Surrogate:
     """What a design evaluates points with: the library model, its correction lines, the
     correlation of the hold-up's and the residence time's residuals at the runs, the
     domain, the point every searched point is made from and the runs' blade stations
-    (:func:`design_point`, :func:`station_rule`), and under extrapolation the floor of the
-    intervals."""
+    (:func:`design_point`, :func:`station_rule`), and the extrapolation floor of the
+    intervals beyond the runs (:func:`~workflows.prediction.predict.floor_at`)."""
 
     model: LibraryModel
     lines: dict[str, Correction]
@@ -216,7 +216,7 @@ class Surrogate:
     base: OperatingPoint
     rule: tuple[float, float, float]
     extrapolate: bool = False
-    floor: dict[str, float] | None = None
+    floor: dict[str, float] = field(default_factory=dict)
 
     @property
     def pattern(self) -> str:
@@ -255,7 +255,7 @@ def surrogate(model: LibraryModel, extrapolate: bool = False) -> Surrogate:
         (r.point for r in model.runs),
         key=lambda p: sum((run_covariates(p)[axis] - centre[axis]) ** 2 for axis in centre),
     )
-    floor = extrapolation_floor(model) if extrapolate else None
+    floor = extrapolation_floor(model)
     rule = station_rule([r.point for r in model.runs])
     correlation = residual_correlation(model, lines, MRT, HOLDUP)
     return Surrogate(model, lines, correlation, dom, base, rule, extrapolate, floor)
@@ -538,23 +538,22 @@ def predicted_system(s: Surrogate, design: PointDesign) -> StationarySystem:
 
 def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoint]) -> list[PointDesign]:
     """:func:`evaluate` of every point of ``points``, their chains solved together."""
-    rows = [domain_issues(s.domain, p, s.pattern) for p in points]
-    outside = [p for p, (issues, _) in zip(points, rows) if issues]
+    rows = [placement(s.domain, p, s.pattern) for p in points]
+    outside = [p for p, place in zip(points, rows) if place.issues]
     if outside and not s.extrapolate:
         p = outside[0]
         raise ConfigError(
             f"{p.impeller_rpm:g} rpm, {p.length_m:g} m, {p.feed_rate_total_per_s:g} /s lies outside the library's "
-            f"domain ({'; '.join(rows[points.index(p)][0])}); the domain is {s.domain.describe()}. "
+            f"domain ({'; '.join(rows[points.index(p)].issues)}); the domain is {s.domain.describe()}. "
             "Pass --extrapolate for labelled, widened intervals"
         )
     chains = solved_chains(s, points)
-    floor = s.floor or {}
     mrts, holdups = [], []
-    for n, (p, (issues, widening)) in enumerate(zip(points, rows)):
-        widen = widening if issues else 1.0
+    for n, (p, place) in enumerate(zip(points, rows)):
+        widen = place.widening if place.extrapolated else 1.0
         held = float(chains.held[n].sum())
         for key, value, into in ((HOLDUP, held, holdups), (MRT, held / chains.totals[n], mrts)):
-            bottom = floor.get(key, 0.0) if issues else 0.0
+            bottom = s.floor.get(key, 0.0) * place.floor_share if place.extrapolated else 0.0
             into.append(corrected(key, float(value), s.lines[key], p, widen, bottom))
     judged = list(range(len(points)))
     if spec.composition:
@@ -586,7 +585,7 @@ def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoin
             )
         margins = _margins(spec, p, mrts[n], holdups[n], sd, composition_p)
         probability = joint_probability(spec, mrts[n], holdups[n], s.correlation, composition_t)
-        out.append(PointDesign(p, mrts[n], holdups[n], vrr, sd, margins, probability, tuple(rows[n][0])))
+        out.append(PointDesign(p, mrts[n], holdups[n], vrr, sd, margins, probability, rows[n].labels()))
     return out
 
 
@@ -864,7 +863,7 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
         issues = []
         for k in (0, 1):
             corner = design_point(s.base, s.rule, out[0][k], out[1][k], out[2][k])
-            issues += [i for i in domain_issues(s.domain, corner, s.pattern)[0] if i not in issues]
+            issues += [i for i in placement(s.domain, corner, s.pattern).issues if i not in issues]
         if issues:
             raise ConfigError(
                 f"the design space {out[0][0]:g}-{out[0][1]:g} rpm, {out[1][0]:g}-{out[1][1]:g} m, "
@@ -1025,7 +1024,8 @@ def design(
         )
     if any(p.outside for p in points):
         notes.append(
-            "EXTRAPOLATED: part of the space searched lies outside the library's domain; its intervals widened"
+            "EXTRAPOLATED: part of the space searched lies outside the library's domain or beyond the combinations "
+            "its runs span; its intervals widened"
         )
     answers = {"shortest": shortest, "largest_feed": largest}
     moves = {k: dynamics(s, spec.noise, p) for k, p in answers.items() if p is not None}

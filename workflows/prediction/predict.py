@@ -29,24 +29,34 @@ own coefficients are uncertain. The chain written for the PBM has each slice's t
 set so that it holds the predicted slice hold-ups, scaled to the predicted total
 (:func:`rescaled`): ``pbm run`` on the table settles where the prediction says.
 
-Outside the domain (:func:`domain_issues`) a prediction is refused unless extrapolation is
-asked for; then it is labelled, its half-width is at least the extrapolation floor (t
-times the root mean square error of the library's end runs, each predicted without it:
-the line knows nothing of how the law bends beyond its runs, these errors do;
-:func:`extrapolation_floor`), and it is multiplied by 1 + the distance outside the domain
-in units of the domain's width (one more for each fixed property the library does not
-vary, e.g. a particle size it never ran).
+Outside the domain's ranges (:func:`placement`) a prediction is refused unless
+extrapolation is asked for; then it is labelled, its half-width is at least the
+extrapolation floor (t times the root mean square error of the library's end runs, each
+predicted without it: the line knows nothing of how the law bends beyond its runs, these
+errors do; :func:`extrapolation_floor`), and it is multiplied by 1 + the distance outside
+the domain in units of the domain's width (one more for each fixed property the library
+does not vary, e.g. a particle size it never ran).
+
+Inside the ranges, a point may still combine speed, length and feed as no run does: a
+library that changes one thing at a time spans a star, not the box of its ranges, and the
+line has no term for two changes at once (the library's run at 150 rpm and twice the feed,
+each an end of its range, was missed by 15 % on its hold-up and residence time by an
+interval of 5 %). A point beyond the runs' convex hull is labelled, its interval widened
+by 1 + its distance from the hull and kept at least a share of the floor: the distance
+over the median distance of the library's own end runs from the others' hull, at most
+all of it (:class:`Placement`). Only the ranges refuse.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy.linalg import expm
+from scipy.optimize import nnls
 from scipy.special import stdtrit
 
 from coupling.compartments import grid_edges
@@ -255,10 +265,16 @@ def point_table(values: PointValues, point: OperatingPoint, duration_s: float) -
 @dataclass(frozen=True)
 class Domain:
     """The library's domain: each axis of :data:`DOMAIN_AXES` from its least to its
-    greatest covariate value over the runs, and the fixed properties every run shares."""
+    greatest covariate value over the runs, the fixed properties every run shares, and the
+    runs' covariates on the axes that vary (``vertices``, in units of each axis' width)
+    whose convex hull is where the runs' combinations reach; ``end_distance`` the median
+    distance of the runs beyond the hull of the others (how far the library's own
+    extrapolations, which calibrate the floor, reach)."""
 
     ranges: dict[str, tuple[float, float]]
     fixed: dict[str, Any]
+    vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    end_distance: float = 1.0
 
     def describe(self) -> str:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
@@ -270,6 +286,26 @@ class Domain:
             + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
         )
 
+    def _scaled(self, point: OperatingPoint) -> np.ndarray:
+        values = run_covariates(point)
+        return np.array([values[a] / (hi - lo) for a, (lo, hi) in self.ranges.items() if hi - lo > 1e-9])
+
+    def beyond(self, point: OperatingPoint) -> float:
+        """``point``'s distance from the runs' convex hull, in widths of the axes (0 inside)."""
+        if not self.vertices.size:
+            return 0.0
+        return hull_distance(self.vertices, self._scaled(point))
+
+
+def hull_distance(vertices: np.ndarray, x: np.ndarray) -> float:
+    """The Euclidean distance from ``x`` to the convex hull of the rows of ``vertices``:
+    non-negative weights of the rows nearest ``x``, their sum held at 1 by a heavy row."""
+    heavy = 1e3 * (1.0 + float(np.abs(vertices).max(initial=0.0)))
+    a = np.vstack([vertices.T, np.full(vertices.shape[0], heavy)])
+    weights = nnls(a, np.append(x, heavy))[0]
+    distance = float(np.linalg.norm(vertices.T @ weights - x))
+    return distance if distance > 1e-6 else 0.0
+
 
 def _fixed(point: OperatingPoint, pattern: str) -> dict[str, Any]:
     return {**{name: getattr(point, name) for name in FIXED}, "blade_pattern": pattern}
@@ -279,11 +315,42 @@ def domain(points: Sequence[OperatingPoint], pattern: str) -> Domain:
     """The :class:`Domain` of a library's operating points, its stations oriented by ``pattern``."""
     values = [run_covariates(p) for p in points]
     ranges = {axis: (min(v[axis] for v in values), max(v[axis] for v in values)) for axis in DOMAIN_AXES}
-    return Domain(ranges, _fixed(points[0], pattern))
+    box = Domain(ranges, _fixed(points[0], pattern))
+    vertices = np.array([box._scaled(p) for p in points])
+    ends = [hull_distance(np.delete(vertices, n, axis=0), vertices[n]) for n in range(len(points))]
+    ends = [d for d in ends if d > 0]
+    return replace(box, vertices=vertices, end_distance=float(np.median(ends)) if ends else 1.0)
 
 
-def domain_issues(dom: Domain, point: OperatingPoint, pattern: str) -> tuple[list[str], float]:
-    """(what lies outside ``dom``, the widening factor of :func:`predict`'s interval)."""
+@dataclass(frozen=True)
+class Placement:
+    """Where a point lies against a library's :class:`Domain`: ``issues`` what lies outside
+    its ranges or differs from its fixed properties (a prediction there is refused unless
+    extrapolation is asked for); ``beyond`` its distance from the runs' convex hull (a
+    combination of speed, length and feed no run brackets: inside the ranges of a library
+    of one change at a time, two changes at once leave it); ``widening`` the interval's
+    factor, 1 + the distance outside the ranges + ``beyond`` (+1 per fixed property);
+    ``floor_share`` the share of the extrapolation floor the interval keeps: all of it
+    outside the ranges, else ``beyond`` over the library's own extrapolations' reach."""
+
+    issues: tuple[str, ...]
+    beyond: float
+    widening: float
+    floor_share: float
+
+    @property
+    def extrapolated(self) -> bool:
+        return bool(self.issues) or self.beyond > 0
+
+    def labels(self) -> tuple[str, ...]:
+        """What an extrapolated prediction is labelled with."""
+        if self.beyond > 0:
+            return (*self.issues, f"beyond the combinations the runs span ({self.beyond:.2f} domain widths from them)")
+        return self.issues
+
+
+def placement(dom: Domain, point: OperatingPoint, pattern: str) -> Placement:
+    """The :class:`Placement` of ``point`` (its stations oriented by ``pattern``) in ``dom``."""
     issues, distance = [], 0.0
     values = run_covariates(point)
     for axis in DOMAIN_AXES:
@@ -297,7 +364,9 @@ def domain_issues(dom: Domain, point: OperatingPoint, pattern: str) -> tuple[lis
         if not (value == library or (isinstance(value, float) and math.isclose(value, library, rel_tol=1e-9))):
             issues.append(f"{name} = {value} (the library's is {library})")
             distance += 1.0
-    return issues, 1.0 + distance
+    beyond = 0.0 if issues else dom.beyond(point)
+    share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))
+    return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share)
 
 
 # ------------------------------------------------------------------ the prediction
@@ -443,6 +512,15 @@ def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[s
         if errors:
             out[key] = float(stdtrit(len(errors), 0.5 + LEVEL / 2)) * math.sqrt(float(np.mean(np.square(errors))))
     return out
+
+
+def floor_at(model: LibraryModel, place: Placement, leave: int | None = None) -> dict[str, float]:
+    """Per quantity, the least half-width at a point placed as ``place`` says: the
+    extrapolation floor (:func:`extrapolation_floor`, ``leave`` not among its runs) times
+    the point's share of it; none inside the runs' hull."""
+    if not place.extrapolated:
+        return {}
+    return {key: value * place.floor_share for key, value in extrapolation_floor(model, leave).items()}
 
 
 @dataclass(frozen=True)
@@ -591,15 +669,15 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
     the point lies outside the library's domain and ``extrapolate`` is False."""
     lines = corrections(model)
     dom = domain([r.point for r in model.runs], model.blade_pattern)
-    issues, widening = domain_issues(dom, point, pattern)
-    if issues and not extrapolate:
+    place = placement(dom, point, pattern)
+    if place.issues and not extrapolate:
         raise ConfigError(
-            f"the point lies outside the library's domain ({'; '.join(issues)}); the domain is {dom.describe()}. "
-            "Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
+            f"the point lies outside the library's domain ({'; '.join(place.issues)}); the domain is "
+            f"{dom.describe()}. Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
     law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
-    floor = extrapolation_floor(model) if issues else {}
-    quantities = assembled(law.values, lines, model.calibration.profile, point, pattern, widening, floor)
+    floor = floor_at(model, place)
+    quantities = assembled(law.values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     by_key = {q.key: q for q in quantities}
     held = law.counts.sum(axis=(0, 2))
     slices = np.array([by_key[slice_key(i)].value if slice_key(i) in by_key else held[i] for i in range(held.size)])
@@ -615,4 +693,4 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
         ends = [q.value, q.low, q.high]
     curves = np.array([stretched(curve, times, end / mean) if math.isfinite(end) else curve for end in ends])
     rtd = np.vstack([curves[0], curves.min(axis=0), curves.max(axis=0)])
-    return Prediction(point, quantities, tuple(issues), dom, values, times, rtd)
+    return Prediction(point, quantities, place.labels() if place.extrapolated else (), dom, values, times, rtd)

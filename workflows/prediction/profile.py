@@ -117,9 +117,7 @@ class _Design:
     step_m: float
 
 
-def _design(
-    point: OperatingPoint, pattern: str, half_width_m: float, own_stations: Sequence[int], nx: int
-) -> _Design:
+def _design(point: OperatingPoint, pattern: str, half_width_m: float, own_stations: Sequence[int], nx: int) -> _Design:
     # the step nearest GRID_M that fills each slice with whole steps: a slice of 0.02475 m
     # on a 0.5-mm grid would hold 49 or 50 of them, 1 % off the slice it integrates
     step = point.length_m / nx / math.ceil(point.length_m / nx / GRID_M - 1e-9)

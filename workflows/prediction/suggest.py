@@ -82,8 +82,8 @@ from workflows.prediction.predict import (
     Domain,
     correction_data,
     domain,
-    domain_issues,
     fit_correction,
+    placement,
 )
 from workflows.prediction.profile import ProfileLaw
 
@@ -628,7 +628,7 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
     gap = least_gap(points)
     # the base moved to a point of the domain: only what the law does not vary is left to differ
     inside = point_at(base, dom.speed[0], dom.length[0], dom.feed[0], gap)
-    fixed = domain_issues(library_domain, inside, base.dem.geometry.blade_pattern)[0]
+    fixed = placement(library_domain, inside, base.dem.geometry.blade_pattern).issues
     if fixed:
         raise ConfigError(
             f"the base configuration differs from the library's runs in what its law does not vary: "

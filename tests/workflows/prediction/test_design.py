@@ -196,7 +196,14 @@ def test_outside_the_domain_refused_in_one_line_unless_extrapolated(shipped):
     wide = D.design(D.surrogate(shipped.model, extrapolate=True), spec, grid=(3, 2, 2))
     assert any("EXTRAPOLATED" in n for n in wide.notes)
     outside = [p for p in wide.points if p.outside]
-    assert outside and all("speed" in p.outside[0] for p in outside)
+    # beyond 350 rpm: outside the speed range; inside it, a corner of the box (shortest
+    # blender, least feed) is beyond the combinations a library of one change at a time spans
+    above = [p for p in outside if p.point.impeller_rpm > 350.0]
+    assert above and all("speed outside" in p.outside[0] for p in above)
+    corners = [p for p in outside if p.point.impeller_rpm <= 350.0]
+    assert corners and all(p.outside == (p.outside[0],) and "beyond the combinations" in p.outside[0] for p in corners)
+    # labelled and widened, never narrower than the same point's interval inside the hull would be
+    assert all(p.mrt.widening > 1.0 for p in outside)
 
 
 def test_one_bound_beyond_the_domains_other_end_is_refused_not_overridden(shipped):
