@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     output = run_predict(args.config, args.library, args.out, args.extrapolate, figures=not args.no_figures)
     prediction = output.prediction
     if prediction.extrapolated:
-        print(f"EXTRAPOLATED: outside the library's domain ({'; '.join(prediction.outside)})")
+        print(f"EXTRAPOLATED: {'; '.join(prediction.outside)}")
     print(f"{'quantity':32s} {'predicted':>11s}  95 % prediction interval")
     for q in prediction.quantities:
         interval = "-" if not math.isfinite(q.low) else f"[{q.low:.4g}, {q.high:.4g}]"

@@ -98,10 +98,10 @@ def prediction_html(
     warning = ""
     if prediction.extrapolated:
         warning = (
-            '<p class="warn"><b>Extrapolated:</b> this point lies outside the library\'s domain ('
+            '<p class="warn"><b>Extrapolated:</b> '
             + html.escape("; ".join(prediction.outside))
-            + f"); the intervals are widened {prediction.quantities[0].widening:.2f}x, at least to the errors of the "
-            "library's end runs predicted without them.</p>"
+            + f". The intervals are widened {prediction.quantities[0].widening:.2f}x, at least to a share of the "
+            "errors of the library's end runs predicted without them.</p>"
         )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
     image = (
