@@ -106,7 +106,8 @@ def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> 
     if calibration.profile is None:
         return model
     zone_law, lines = slice_scores(model)
-    return model if zone_law <= lines else without_profile(model)
+    # a tie (neither bounds a slice both can) keeps the lines
+    return model if zone_law < lines else without_profile(model)
 
 
 def without_profile(model: LibraryModel) -> LibraryModel:
@@ -136,10 +137,17 @@ def slice_scores(model: LibraryModel) -> tuple[float, float]:
     if model.calibration.profile is None:
         raise ConfigError("the library model has no slice zone law to score")
 
-    def slices(m: LibraryModel) -> list[CheckedQuantity]:
-        return sorted((r for r in check(m).rows if _slice_of(r.key, "holdup_slice")), key=lambda r: (r.run, r.key))
+    def slices(m: LibraryModel) -> dict[tuple[str, str], CheckedQuantity]:
+        return {(r.run, r.key): r for r in check(m).rows if _slice_of(r.key, "holdup_slice")}
 
-    return interval_score(slices(model)), interval_score(slices(without_profile(model)))
+    zone, lines = slices(model), slices(without_profile(model))
+    # scored where both give an interval: a slice neither can bound says nothing of which is better
+    both = [
+        k
+        for k in zone
+        if k in lines and math.isfinite(interval_score([zone[k]])) and math.isfinite(interval_score([lines[k]]))
+    ]
+    return interval_score([zone[k] for k in both]), interval_score([lines[k] for k in both])
 
 
 def slice_profiles(model: LibraryModel) -> tuple[ProfileLaw | None, tuple[ProfileLaw, ...]]:
@@ -391,8 +399,8 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     intro = intro or (
         f"Each run predicted by the law fitted without it ({len(model.runs)} runs, {n_keys} quantities each), its "
         "interval calibrated without it. A run inside the other runs' domain is an interpolation, calibrated on the "
-        "other such runs; one outside it (an end of a range) an extrapolation, calibrated on every other run and "
-        "widened by its distance."
+        "other such runs; one outside it (an end of a range, or a combination beyond the others' convex hull) an "
+        "extrapolation, calibrated on every other run and widened by its distance."
     )
     lines = [
         f"{intro} Coverage of the 95 % intervals: {_percent(result.coverage(True))} interpolated, "

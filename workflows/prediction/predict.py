@@ -273,7 +273,7 @@ class Domain:
 
     ranges: dict[str, tuple[float, float]]
     fixed: dict[str, Any]
-    vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), compare=False)
     end_distance: float = 1.0
 
     def describe(self) -> str:
@@ -287,19 +287,25 @@ class Domain:
         )
 
     def _scaled(self, point: OperatingPoint) -> np.ndarray:
+        """``point``'s covariates on the axes that vary, clipped into their ranges, in
+        units of each range (what lies beyond a range is counted by :func:`placement`)."""
         values = run_covariates(point)
-        return np.array([values[a] / (hi - lo) for a, (lo, hi) in self.ranges.items() if hi - lo > 1e-9])
+        return np.array(
+            [min(max(values[a], lo), hi) / (hi - lo) for a, (lo, hi) in self.ranges.items() if hi - lo > 1e-9]
+        )
 
     def beyond(self, point: OperatingPoint) -> float:
-        """``point``'s distance from the runs' convex hull, in widths of the axes (0 inside)."""
-        if not self.vertices.size:
-            return 0.0
+        """``point``'s distance from the runs' convex hull, in widths of the axes (0 inside),
+        once brought into the ranges."""
         return hull_distance(self.vertices, self._scaled(point))
 
 
 def hull_distance(vertices: np.ndarray, x: np.ndarray) -> float:
     """The Euclidean distance from ``x`` to the convex hull of the rows of ``vertices``:
-    non-negative weights of the rows nearest ``x``, their sum held at 1 by a heavy row."""
+    non-negative weights of the rows nearest ``x``, their sum held at 1 by a heavy row;
+    0 without a row or a column (one run, or no axis that varies)."""
+    if vertices.size == 0:
+        return 0.0
     heavy = 1e3 * (1.0 + float(np.abs(vertices).max(initial=0.0)))
     a = np.vstack([vertices.T, np.full(vertices.shape[0], heavy)])
     weights = nnls(a, np.append(x, heavy))[0]
@@ -358,13 +364,14 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str) -> Placement:
         excess = max(low - values[axis], values[axis] - high, 0.0)
         if excess > 1e-9:
             issues.append(f"{axis} outside the library's range")
-            distance += excess / max(high - low, 1e-9)
+            # an axis the library never varied counts like a fixed property it does not vary
+            distance += excess / (high - low) if high - low > 1e-9 else 1.0
     for name, value in _fixed(point, pattern).items():
         library = dom.fixed[name]
         if not (value == library or (isinstance(value, float) and math.isclose(value, library, rel_tol=1e-9))):
             issues.append(f"{name} = {value} (the library's is {library})")
             distance += 1.0
-    beyond = 0.0 if issues else dom.beyond(point)
+    beyond = dom.beyond(point)
     share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))
     return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share)
 
@@ -501,7 +508,8 @@ def left_out_errors(model: LibraryModel, runs: Sequence[int]) -> dict[str, list[
 
 def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
     """Per quantity, the least half-width of an extrapolation: t(0.975, m) times the root
-    mean square error of the m runs at an end of the library's ranges, each predicted
+    mean square error of the m runs beyond the other runs' hull (the ends of the library's
+    ranges, and its corners off a star of one change at a time), each predicted
     without it (:func:`left_out_errors`; ``leave`` not among them). The line's own interval
     knows nothing of how the law bends beyond its runs; these errors do. Zero without such
     a run."""

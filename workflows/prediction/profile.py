@@ -25,12 +25,13 @@ The law is fitted by Gauss-Newton to the log of the DEM's slice hold-ups, each s
 position weighted by its own scatter about the law (re-estimated from the residuals,
 :data:`WEIGHT_ROUNDS` times: the slices at the inlet and the weir follow the law more
 closely than the middle ones). The swept half-width is the one of :data:`HALF_WIDTHS_M`
-with the greatest likelihood (on the shipped library 12-13 mm, half the blades' 25 mm
+with the greatest likelihood (on the shipped library 13 mm, about half the blades' 25 mm
 chord: the zone a paddle sweeps as it turns).
 
-A slice's 95 % interval is its log hold-up +- t(0.975, m - p) sqrt(s_i^2 + g_i' C g_i):
-s_i the slice's scatter, g_i the gradient of its log hold-up in the coefficients, C their
-covariance (J'WJ)^-1, m the slices observed and p the coefficients the runs identify.
+A slice's 95 % interval is its log hold-up +- t(0.975, nu_i) sqrt(s_i^2 + g_i' C g_i): s_i
+the slice's scatter, g_i the gradient of its log hold-up in the coefficients, C their
+covariance (J'WJ)^-1, nu_i the slice's own degrees of freedom (its observations less their
+leverage: s_i is estimated from that slice's residuals alone).
 """
 
 from __future__ import annotations
@@ -143,7 +144,7 @@ def _log_slices(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, 
     return np.log(held), weighted / held[:, None]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ProfileLaw:
     """The zone law of the bed's density (module docstring): ``coefficients`` in the order
     of :data:`ZONES` and then the swept zones of ``own_stations``, each with its

@@ -51,7 +51,7 @@ from workflows.prediction.library import (
 )
 from workflows.prediction.predict import predict
 from workflows.prediction.suggest import Suggestion, config_at, least_gap, scaled_duration, suggest
-from workflows.shipped import LIBRARY_DIR, LIBRARY_MODEL, VALIDATION_DIR
+from workflows.shipped import LIBRARY_DIR, LIBRARY_MODEL, VALIDATION_DIR, library_runs
 
 #: beside ``library.json``: the paths of the runs (module docstring)
 RUNS_FILE = "runs.json"
@@ -80,7 +80,7 @@ def library_fit(
     files["page"] = replace_file(
         folder / "calibration.md",
         "# The library's law, each run predicted without it\n\n"
-        f"Made by `pbmdem library fit --out {out}` from {len(runs)} DEM runs.\n\n"
+        f"Made by `pbmdem library fit{_results_argument(paths)} --out {out}` from {len(runs)} DEM runs.\n\n"
         + calibration.markdown(model, check)
         + "\n\n"
         + calibration.alternatives(model)
@@ -90,6 +90,14 @@ def library_fit(
         "library page",
     )
     return LibraryFitOutput(model, check, files)
+
+
+def _results_argument(paths: list[str]) -> str:
+    """`` --results ...`` of the command that fits ``paths``; empty for the shipped runs
+    (the command's default)."""
+    if sorted(Path(p).resolve() for p in paths) == sorted(Path(p).resolve() for p in library_runs()):
+        return ""
+    return " --results " + " ".join(os.path.relpath(Path(p).resolve()) for p in paths)
 
 
 def _write_runs(folder: Path, runs: dict[str, Path]) -> Path:

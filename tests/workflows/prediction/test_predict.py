@@ -232,3 +232,76 @@ def test_last_is_the_direction_of_the_station_nearest_the_weir():
         correction_row(seven, ("last",))  # the covariate needs the pattern
     with pytest.raises(ConfigError, match="letters F"):
         last_push(seven, "FX")
+
+
+# ------------------------------------------------------------------ the runs' hull
+def test_the_distance_to_a_hull_is_the_distance_to_its_nearest_face_or_corner():
+    from workflows.prediction.predict import hull_distance
+
+    triangle = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    assert hull_distance(triangle, np.array([0.2, 0.2])) == 0.0  # inside
+    assert hull_distance(triangle, np.array([1.0, 1.0])) == pytest.approx(math.sqrt(0.5), rel=1e-5)  # the face
+    assert hull_distance(triangle, np.array([-1.0, -1.0])) == pytest.approx(math.sqrt(2.0), rel=1e-5)  # a corner
+    # no run, or no axis that varies: nothing to be beyond
+    assert hull_distance(np.zeros((0, 2)), np.array([1.0, 1.0])) == 0.0
+    assert hull_distance(np.zeros((3, 0)), np.zeros(0)) == 0.0
+
+
+def _star() -> list:
+    """A library of one change at a time: the baseline, and speed and feed each at both ends,
+    x1.5 and x2 either side (symmetric on the log scale the domain is measured on)."""
+    feed = BASE.feed_rate_total_per_s
+    moves = [(250.0, 1.0), (250.0 / 1.5, 1.0), (375.0, 1.0), (250.0, 0.5), (250.0, 2.0)]
+    return [
+        BASE.replace(impeller_rpm=rpm, feed_rate_a_per_s=f * feed / 2, feed_rate_b_per_s=f * feed / 2)
+        for rpm, f in moves
+    ]
+
+
+def test_a_corner_of_a_star_library_is_beyond_its_runs_labelled_and_widened():
+    from workflows.prediction.predict import domain, placement
+
+    runs = _star()
+    dom = domain(runs, "FB")
+    # each end run lies half the other runs' width beyond them (the hull of the others misses it)
+    assert dom.end_distance == pytest.approx(0.5, rel=1e-3)
+    feed = BASE.feed_rate_total_per_s
+    corner = BASE.replace(impeller_rpm=250.0 / 1.5, feed_rate_a_per_s=feed, feed_rate_b_per_s=feed)
+    place = placement(dom, corner, "FB")
+    # the corner (-1/2, 1/2) of the square of the ranges against the star's diamond: 1/sqrt(8)
+    # from its face
+    assert not place.issues and place.extrapolated
+    assert place.beyond == pytest.approx(1 / math.sqrt(8), rel=1e-4)
+    assert place.widening == pytest.approx(1 + place.beyond, rel=1e-9)
+    assert place.floor_share == pytest.approx(place.beyond / dom.end_distance, rel=1e-6)
+    assert "beyond the combinations the runs span" in place.labels()[0]
+    # the runs themselves and the diamond's inside are not extrapolated
+    assert all(not placement(dom, p, "FB").extrapolated for p in runs)
+    # one step further out in speed is no less widened than the corner it passes
+    further = placement(dom, corner.replace(impeller_rpm=150.0), "FB")
+    assert further.issues and further.widening > place.widening and further.floor_share == 1.0
+
+
+def test_an_axis_the_library_never_varied_counts_one_width_outside_it():
+    from workflows.prediction.predict import domain, placement
+
+    runs = [BASE.replace(impeller_rpm=rpm) for rpm in (150.0, 250.0, 350.0)]
+    dom = domain(runs, "FB")
+    feed = BASE.feed_rate_total_per_s * 1.1
+    place = placement(dom, BASE.replace(feed_rate_a_per_s=feed / 2, feed_rate_b_per_s=feed / 2), "FB")
+    assert place.issues == ("feed outside the library's range",) and place.widening == pytest.approx(2.0)
+    # one run: no hull to be beyond, and no crash
+    assert placement(domain(runs[:1], "FB"), BASE, "FB").beyond == 0.0
+
+
+def test_the_interval_score_is_the_width_plus_forty_times_a_miss():
+    from workflows.prediction.calibration import CheckedQuantity, interval_score
+
+    def row(dem: float) -> CheckedQuantity:
+        return CheckedQuantity("r", "holdup_slice_1", dem, dem, dem, 100.0, 90.0, 110.0, 0.0)
+
+    width = math.log(110 / 90)
+    assert interval_score([row(100.0)]) == pytest.approx(width)
+    assert interval_score([row(121.0)]) == pytest.approx(width + 40 * math.log(121 / 110))
+    assert interval_score([row(100.0), row(81.0)]) == pytest.approx(width + 20 * math.log(90 / 81))
+    assert interval_score([CheckedQuantity("r", "k", 1.0, 1.0, 1.0, 1.0, math.nan, math.nan, 0.0)]) == math.inf
