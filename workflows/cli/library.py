@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fit.add_argument(
         "--covariates",
         default=",".join(DEFAULT_COVARIATES),
-        help=f"comma-separated, from {', '.join(COVARIATES)} (default: all)",
+        help=f"comma-separated, from {', '.join(COVARIATES)} (default: %(default)s)",
     )
     fit.add_argument(
         "--iterations", type=int, default=FIT_ITERATIONS, help="EM iterations of the whole fit (default: %(default)s)"
