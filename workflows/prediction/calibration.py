@@ -150,12 +150,18 @@ def slice_scores(model: LibraryModel) -> tuple[float, float]:
     return interval_score([zone[k] for k in both]), interval_score([lines[k] for k in both])
 
 
+def slice_holdups(model: LibraryModel) -> np.ndarray:
+    """(runs, slices) the DEM's hold-up of each slice of each library run, NaN where a run
+    lacks it: what the slices' zone law is fitted to."""
+    keys = [slice_key(i) for i in range(AXIAL_SLICES)]
+    return np.array([[e.dem[k].value if k in e.dem else math.nan for k in keys] for e in model.runs])
+
+
 def slice_profiles(model: LibraryModel) -> tuple[ProfileLaw | None, tuple[ProfileLaw, ...]]:
     """The slices' zone law of every run of ``model``, and of every run but one (the
     swept half-width chosen once, on every run); (None, ()) when the runs left out leave
     it no degree of freedom: the slices then keep the correction's lines."""
-    keys = [slice_key(i) for i in range(AXIAL_SLICES)]
-    held = np.array([[e.dem[k].value if k in e.dem else math.nan for k in keys] for e in model.runs])
+    held = slice_holdups(model)
     points = [e.point for e in model.runs]
     try:
         whole = fit_profile(points, held, model.blade_pattern)

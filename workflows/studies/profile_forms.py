@@ -24,8 +24,8 @@ import numpy as np
 from coupling.errors import ConfigError
 from coupling.files import writable_directory
 from coupling.jsonable import write_json
-from workflows.prediction.covariates import AXIAL_SLICES
-from workflows.prediction.library import LibraryModel, load_model, slice_key
+from workflows.prediction.calibration import slice_holdups
+from workflows.prediction.library import LibraryModel, load_model
 from workflows.prediction.profile import fit_profile, refit
 from workflows.shipped import LIBRARY_MODEL
 
@@ -56,8 +56,7 @@ class FormCheck:
 
 def form_check(model: LibraryModel, own_stations: tuple[int, ...]) -> FormCheck:
     """Every run of ``model`` (calibrated) left out under the form ``own_stations``."""
-    keys = [slice_key(i) for i in range(AXIAL_SLICES)]
-    held = np.array([[e.dem[k].value if k in e.dem else np.nan for k in keys] for e in model.runs])
+    held = slice_holdups(model)
     points = [e.point for e in model.runs]
     whole = fit_profile(points, held, model.blade_pattern, own_stations=own_stations)
     errors, covered, halves = [], [], []

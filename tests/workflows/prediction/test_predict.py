@@ -305,3 +305,17 @@ def test_the_interval_score_is_the_width_plus_forty_times_a_miss():
     assert interval_score([row(121.0)]) == pytest.approx(width + 40 * math.log(121 / 110))
     assert interval_score([row(100.0), row(81.0)]) == pytest.approx(width + 20 * math.log(90 / 81))
     assert interval_score([CheckedQuantity("r", "k", 1.0, 1.0, 1.0, 1.0, math.nan, math.nan, 0.0)]) == math.inf
+
+
+def test_the_shipped_librarys_slices_take_the_zone_law_that_beats_the_lines_left_out():
+    from workflows.prediction.calibration import slice_scores
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    # a library of seven lengths: the zone law carries one blender's bed to another, the
+    # lines follow each slice alone, and every run left out scores the law far better
+    zone_law, lines = slice_scores(model)
+    assert model.calibration.profile is not None and zone_law < 0.5 * lines
+    held = predict(model, model.runs[0].point, model.blade_pattern).quantity("holdup_slice_3")
+    assert held.correction is None and held.profile is model.calibration.profile
