@@ -452,7 +452,10 @@ class Chains:
     """The law's axial chains of B points at steady state: ``transient`` (B, S, S) the
     generators' transient parts (row: from), ``exit_rate`` (B, S), ``inlet`` (B, 2, S) the
     particles/s of feed A and B entering each (slice, phase) state, ``occupancy`` (B, S)
-    the steady particles, ``held`` (B, NX) per slice, ``totals`` (B,) the feeds."""
+    the steady particles, ``held`` (B, NX) per slice, ``totals`` (B,) the feeds; ``bed``
+    (B, NX) each slice's hold-up the prediction takes before it is scaled to the total:
+    the slices' zone law's where the library has one, else the chain's moved by each
+    slice's line."""
 
     transient: np.ndarray
     exit_rate: np.ndarray
@@ -460,6 +463,7 @@ class Chains:
     occupancy: np.ndarray
     held: np.ndarray
     totals: np.ndarray
+    bed: np.ndarray
 
     def subset(self, rows: Sequence[int]) -> Chains:
         return Chains(*(getattr(self, f.name)[list(rows)] for f in fields(self)))
@@ -479,7 +483,16 @@ def solved_chains(s: Surrogate, points: Sequence[OperatingPoint]) -> Chains:
     inlet = (feeds[:, :, :, None] * law.entry[None, :, None, :]).reshape(len(points), 2, -1)
     occupancy = np.linalg.solve(-np.swapaxes(transient, 1, 2), inlet.sum(axis=1)[..., None])[..., 0]
     held = occupancy.reshape(len(points), AXIAL_SLICES, law.n_phases).sum(axis=2)
-    return Chains(transient, exit_rate, inlet, occupancy, held, feeds.sum(axis=(1, 2)))
+    profile = s.model.calibration.profile
+    if profile is not None:
+        bed = np.array([profile.holdups(p, s.pattern) for p in points])
+    else:
+        bed = np.empty_like(held)
+        for i in range(AXIAL_SLICES):
+            line = s.lines.get(slice_key(i))
+            shift = 0.0 if line is None else np.array([line.at(p)[0] for p in points])
+            bed[:, i] = held[:, i] * np.exp(shift)
+    return Chains(transient, exit_rate, inlet, occupancy, held, feeds.sum(axis=(1, 2)), bed)
 
 
 @dataclass(frozen=True)
@@ -512,16 +525,7 @@ def predicted_systems(
     alike), its time scale then stretched so that its mean residence time is the
     predicted one."""
     k = s.model.law.n_phases
-    profile = s.model.calibration.profile
-    if profile is not None:
-        slices = np.array([profile.at(p, s.pattern)[0] for p in points])
-    else:
-        slices = np.empty_like(chains.held)
-        for i in range(AXIAL_SLICES):
-            line = s.lines.get(slice_key(i))
-            shift = 0.0 if line is None else np.array([line.at(p)[0] for p in points])
-            slices[:, i] = chains.held[:, i] * np.exp(shift)
-    slices *= (np.array([h.value for h in holdups]) / slices.sum(axis=1))[:, None]
+    slices = chains.bed * (np.array([h.value for h in holdups]) / chains.bed.sum(axis=1))[:, None]
     factors = np.repeat(chains.held / slices, k, axis=1)  # per (slice, phase) state
     mrt_rescaled = (chains.occupancy / factors).sum(axis=1) / chains.totals
     stretch = (np.array([m.value for m in mrts]) / mrt_rescaled)[:, None]
@@ -551,7 +555,8 @@ def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoin
     mrts, holdups = [], []
     for n, (p, place) in enumerate(zip(points, rows)):
         widen = place.widening if place.extrapolated else 1.0
-        held = float(chains.held[n].sum())
+        # a chain timed by the zone law holds the zone law's total (Little's law gives its time)
+        held = float((chains.bed if s.model.calibration.timed else chains.held)[n].sum())
         for key, value, into in ((HOLDUP, held, holdups), (MRT, held / chains.totals[n], mrts)):
             bottom = s.floor.get(key, 0.0) * place.floor_share if place.extrapolated else 0.0
             into.append(corrected(key, float(value), s.lines[key], p, widen, bottom))

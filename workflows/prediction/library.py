@@ -429,6 +429,10 @@ class Calibration:
     #: slices keep the correction's lines
     profile: ProfileLaw | None = None
     profile_left_out: tuple[ProfileLaw, ...] = ()
+    #: the values of every quantity but the slices' are those of the chain timed by the
+    #: zone law (each slice's rates scaled so that it holds the zone law's hold-up:
+    #: :func:`workflows.prediction.predict.timed`), not of the law's chain as fitted
+    timed: bool = False
 
     def __post_init__(self) -> None:
         n = len(self.inside)
@@ -441,6 +445,8 @@ class Calibration:
             raise ValueError(f"correction covariates {unknown} unknown; valid: {', '.join(CORRECTION_TERMS)}")
         if self.profile is not None and len(self.profile_left_out) != n:
             raise ValueError(f"{len(self.profile_left_out)} slice zone laws left out for {n} runs")
+        if self.timed and self.profile is None:
+            raise ValueError("a calibration timed by the slices' zone law needs that law")
 
     def record(self) -> dict[str, Any]:
         def clean(values: list[float]) -> list[float | None]:
@@ -453,6 +459,7 @@ class Calibration:
             "covariates": list(self.covariates),
             "profile": None if self.profile is None else self.profile.record(),
             "profile_left_out": [law.record() for law in self.profile_left_out],
+            "timed": self.timed,
         }
 
     @classmethod
@@ -467,6 +474,7 @@ class Calibration:
             tuple(str(v) for v in record.get("covariates") or ()),
             None if record.get("profile") is None else ProfileLaw.from_record(record["profile"]),
             tuple(ProfileLaw.from_record(r) for r in record.get("profile_left_out") or ()),
+            bool(record.get("timed", False)),
         )
 
 

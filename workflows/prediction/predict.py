@@ -235,6 +235,16 @@ def chain_values(model: PhaseTransport, point: OperatingPoint) -> PointValues:
     return PointValues(values, model, feed, occupancy)
 
 
+def timed(values: PointValues, profile: ProfileLaw, point: OperatingPoint, pattern: str) -> PointValues:
+    """The chain of ``values`` timed by the slices' zone law ``profile``: every rate out of
+    slice i scaled so that the slice holds the zone law's hold-up at ``point`` (its
+    stations oriented by ``pattern``; :func:`rescaled`). Where particles go is the law's,
+    how long they stay the bed's: the hold-up, Little's-law time and the mean residence
+    time are the zone law's total over the feed."""
+    held = values.counts.sum(axis=(0, 2))
+    return chain_values(rescaled(values.model, held / profile.holdups(point, pattern)), point)
+
+
 def point_table(values: PointValues, point: OperatingPoint, duration_s: float) -> VelocityTable:
     """The PBM's table of a predicted point: the phase model on the library's grid, one
     window over the run, the steady counts; its velocities the chain's mean rates times the
@@ -684,6 +694,8 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
             f"{dom.describe()}. Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
     law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
+    if model.calibration.timed:
+        law = timed(law, model.calibration.profile, point, pattern)
     floor = floor_at(model, place)
     quantities = assembled(law.values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     by_key = {q.key: q for q in quantities}

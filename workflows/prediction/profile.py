@@ -134,13 +134,18 @@ def _design(point: OperatingPoint, pattern: str, half_width_m: float, own_statio
     return _Design(np.hstack([own.reshape(x.size, -1), shared]), slice_of, nx, step)
 
 
-def _log_slices(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(log hold-up of each slice, its gradient in the coefficients (NX, P))."""
+def _held(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the particles on each grid step, each slice's hold-up)."""
     density = np.exp(np.clip(design.rows @ coefficients, -700.0, 700.0)) * design.step_m
     held = np.bincount(design.slice_of, weights=density, minlength=design.nx)
+    return density, np.maximum(held, 1e-300)
+
+
+def _log_slices(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(log hold-up of each slice, its gradient in the coefficients (NX, P))."""
+    density, held = _held(design, coefficients)
     weighted = np.zeros((design.nx, design.rows.shape[1]))
     np.add.at(weighted, design.slice_of, design.rows * density[:, None])
-    held = np.maximum(held, 1e-300)
     return np.log(held), weighted / held[:, None]
 
 
@@ -180,6 +185,12 @@ class ProfileLaw:
         values, sd = self.log_slices(point, pattern)
         t = stdtrit(np.maximum(self.slice_dof, 1e-3), 0.5 + LEVEL / 2)
         return np.exp(values), t * sd
+
+    def holdups(self, point: OperatingPoint, pattern: str | None = None) -> np.ndarray:
+        """Each slice's predicted hold-up at ``point``: :meth:`at`'s values, without the
+        gradient its interval needs (what ``design`` evaluates at every point it searches)."""
+        design = _design(point, pattern or self.pattern, self.half_width_m, self.own_stations, self.nx)
+        return _held(design, self.coefficients)[1]
 
     def gradient(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(log hold-up of each slice at ``point``, its gradient in the coefficients (NX, P))."""

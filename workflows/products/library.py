@@ -86,6 +86,8 @@ def library_fit(
         + calibration.alternatives(model)
         + "\n\n"
         + calibration.slice_sources(model)
+        + "\n\n"
+        + calibration.chain_sources(model)
         + "\n",
         "library page",
     )
