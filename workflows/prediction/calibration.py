@@ -11,8 +11,10 @@ other runs, with that line's interval (an end run's at least the extrapolation f
 the other end runs); the DEM's value inside that interval or not. Beside it, the DEM's
 scatter between seeds, from the library's replicate pairs (two runs at one operating
 point, :func:`seed_scatter`), and whether each prediction lies inside the DEM's interval
-widened by that scatter. :func:`alternatives` repeats the check for other forms of the
-line, which is how its form is chosen.
+widened by that scatter (t(0.975, pairs) seed standard deviations: the scatter is measured
+from that many pairs). :func:`alternatives` repeats the check for other forms of the line,
+which is how its form is chosen; :func:`slice_sources` and :func:`chain_sources` compare the
+sources each prediction may take its slices and its other quantities from.
 """
 
 from __future__ import annotations
@@ -130,7 +132,9 @@ def _timed_model(
     cal = model.calibration
     points = [entry.point for entry in model.runs]
     timed_whole = [_timed(v, cal.profile, model, p) for v, p in zip(whole, points)]
-    timed_left = [[_timed(v, law, model, p) for v, p in zip(row, points)] for row, law in zip(left, cal.profile_left_out)]
+    timed_left = [
+        [_timed(v, law, model, p) for v, p in zip(row, points)] for row, law in zip(left, cal.profile_left_out)
+    ]
     chained = _calibration(timed_whole, timed_left, cal.inside, cal.covariates)
     return replace(
         model, calibration=replace(chained, profile=cal.profile, profile_left_out=cal.profile_left_out, timed=True)
@@ -153,9 +157,7 @@ def without_profile(model: LibraryModel) -> LibraryModel:
     """``model`` (calibrated) with its slices taken from the correction's lines. Of a
     model timed by the zone law (``calibration.timed``) only the slices' check means
     anything: its other quantities keep the timed chain's values."""
-    return replace(
-        model, calibration=replace(model.calibration, profile=None, profile_left_out=(), timed=False)
-    )
+    return replace(model, calibration=replace(model.calibration, profile=None, profile_left_out=(), timed=False))
 
 
 def interval_score(rows: Sequence[CheckedQuantity]) -> float:
@@ -203,7 +205,7 @@ def chain_scores(timed_model: LibraryModel, chain_model: LibraryModel) -> tuple[
     """(the chain timed by the zone law, the law's chain as fitted): the interval score of
     every run's quantities but the slices, predicted without it from each. A law fitted to
     the particles' moves may keep a slow phase that holds what the bed does not (left out,
-    the shipped law put 77 % too many particles in the x1.25 blender, whose slices the
+    the shipped law put 80 % too many particles in the x1.25 blender, whose slices the
     zone law missed by 3 %); timed, the chain keeps its moves and takes the bed's time
     scale (:func:`~workflows.prediction.predict.timed`)."""
     return _scores(timed_model, chain_model, lambda key: not _slice_of(key, "holdup_slice"))
@@ -617,7 +619,9 @@ def chain_sources(model: LibraryModel) -> str:
     if cal.profile is None:
         return ""
     whole, left = _chains(model)
-    fitted = _calibration([v.values for v in whole], [[v.values for v in row] for row in left], cal.inside, cal.covariates)
+    fitted = _calibration(
+        [v.values for v in whole], [[v.values for v in row] for row in left], cal.inside, cal.covariates
+    )
     fitted = replace(fitted, profile=cal.profile, profile_left_out=cal.profile_left_out)
     sources = {
         "the law's chain as fitted": replace(model, calibration=fitted),
@@ -707,7 +711,8 @@ def restricted(model: LibraryModel, runs: Sequence[int]) -> LibraryModel:
     whole library's law and each law left out keep every other run they were fitted to,
     so :func:`check` of the result judges the correction's design, not the law's. Its
     slices take the correction's lines: the zone law is the whole library's (refitting it
-    to every subset is :func:`calibrated`'s work)."""
+    to every subset is :func:`calibrated`'s work); so is the time scale of a chain timed by
+    it, whose values the result keeps."""
     keep = list(runs)
     cal = model.calibration
     if cal is None:

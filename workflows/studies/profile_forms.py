@@ -32,7 +32,7 @@ from workflows.shipped import LIBRARY_MODEL
 HELP = "the slices' zone law with swept zones of their own at other stations, every run left out"
 OUT = Path("results/profile-forms")
 #: the forms compared: stations counted from the inlet, negative from the weir
-FORMS = ((), (0,), (0, 1), (0, 1, -1), (0, 1, 2))
+FORMS = ((), (0,), (0, 1), (0, 1, -1), (0, 1, 2), (0, 1, -2), (0, 1, -3))
 
 
 @dataclass(frozen=True)
