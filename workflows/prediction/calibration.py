@@ -23,7 +23,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.special import stdtrit
@@ -55,6 +55,7 @@ from workflows.prediction.predict import (
     predict,
     residual,
     timed,
+    timed_values,
 )
 from workflows.prediction.profile import ProfileLaw, fit_profile, refit
 
@@ -87,6 +88,18 @@ def _others(model: LibraryModel, n: int) -> Placement:
     return placement(others, model.runs[n].point, model.blade_pattern)
 
 
+@dataclass(frozen=True)
+class Sources:
+    """A library calibrated from each source :func:`calibrated` chooses between:
+    ``chosen`` the one it keeps; ``fitted`` and ``timed`` the library with its slices from
+    the zone law and its other quantities from the law's chain as fitted and timed by the
+    zone law (both None where the library has no zone law or its slices keep the lines)."""
+
+    chosen: LibraryModel
+    fitted: LibraryModel | None = None
+    timed: LibraryModel | None = None
+
+
 def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> LibraryModel:
     """``model`` with its :class:`Calibration`: the whole library's law and each law left
     out at every run, whether each run lay inside the others' domain, and the correction's
@@ -96,6 +109,11 @@ def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> 
     from the zone law of the bed or from the correction's lines (:func:`slice_scores`);
     with the zone law, the other quantities from the law's chain as fitted or timed by the
     zone law (:func:`chain_scores`)."""
+    return sources(model, covariates).chosen
+
+
+def sources(model: LibraryModel, covariates: Sequence[str] | None = None) -> Sources:
+    """:func:`calibrated`'s choice, with the libraries it chose between."""
     names = tuple(covariates if covariates is not None else model.settings.get("correction", DEFAULT_CORRECTION))
     inside = [not _others(model, n).extrapolated for n in range(len(model.runs))]
     whole, left = _chains(model)
@@ -103,14 +121,14 @@ def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> 
     calibration = _calibration([v.values for v in whole], [[v.values for v in row] for row in left], inside, names)
     model = replace(model, calibration=replace(calibration, profile=profile, profile_left_out=profiles))
     if profile is None:
-        return model
+        return Sources(model)
     zone_law, lines = slice_scores(model)
     # a tie (neither bounds a slice both can) keeps the lines
     if not zone_law < lines:
-        return without_profile(model)
+        return Sources(without_profile(model))
     timed_model = _timed_model(model, whole, left)
     by_timed, by_chain = chain_scores(timed_model, model)
-    return timed_model if by_timed < by_chain else model
+    return Sources(timed_model if by_timed < by_chain else model, model, timed_model)
 
 
 def _chains(model: LibraryModel) -> tuple[list[PointValues], list[list[PointValues]]]:
@@ -154,10 +172,11 @@ def _calibration(
 
 
 def without_profile(model: LibraryModel) -> LibraryModel:
-    """``model`` (calibrated) with its slices taken from the correction's lines. Of a
-    model timed by the zone law (``calibration.timed``) only the slices' check means
-    anything: its other quantities keep the timed chain's values."""
-    return replace(model, calibration=replace(model.calibration, profile=None, profile_left_out=(), timed=False))
+    """``model`` (calibrated) with its slices taken from the correction's lines. A model
+    timed by the zone law (``calibration.timed``) keeps the timed chain's values for its
+    other quantities, so it can be checked (:func:`check`) but not predicted from
+    (:meth:`~workflows.prediction.library.Calibration.time_scale` refuses)."""
+    return replace(model, calibration=replace(model.calibration, profile=None, profile_left_out=()))
 
 
 def interval_score(rows: Sequence[CheckedQuantity]) -> float:
@@ -249,11 +268,20 @@ def _chain(law, transverse, model: LibraryModel, point: OperatingPoint) -> Point
 def _timed(values: PointValues, profile: ProfileLaw, model: LibraryModel, point: OperatingPoint) -> dict[str, float]:
     """The timed chain's values (:func:`~workflows.prediction.predict.timed`), the slices'
     kept from the chain as fitted: the correction's lines of the slices stay the lines'."""
-    out = timed(values, profile, point, model.blade_pattern).values
-    return {key: values.values[key] if _slice_of(key, "holdup_slice") else v for key, v in out.items()}
+    return timed_values(values, timed(values, profile, point, model.blade_pattern))
 
 
-def seed_scatter(model: LibraryModel) -> tuple[dict[str, float], list[tuple[str, str]]]:
+class SeedScatter(NamedTuple):
+    """The DEM's scatter between seeds (:func:`seed_scatter`): per quantity its standard
+    deviation ``sd`` on the quantity's scale and ``dof`` the pairs it was measured from;
+    ``pairs`` the replicate pairs' files."""
+
+    sd: dict[str, float]
+    pairs: list[tuple[str, str]]
+    dof: dict[str, int]
+
+
+def seed_scatter(model: LibraryModel) -> SeedScatter:
     """Per quantity, the DEM's standard deviation between seeds on the quantity's scale,
     from every pair of library runs at one operating point (half the mean square of their
     differences); and the pairs. Empty without a pair."""
@@ -262,7 +290,7 @@ def seed_scatter(model: LibraryModel) -> tuple[dict[str, float], list[tuple[str,
         for b in range(a + 1, len(model.runs)):
             if not model.runs[a].point.differences(model.runs[b].point):
                 pairs.append((a, b))
-    out = {}
+    sd, dof = {}, {}
     for key in quantity_keys():
         diffs = []
         for a, b in pairs:
@@ -271,8 +299,9 @@ def seed_scatter(model: LibraryModel) -> tuple[dict[str, float], list[tuple[str,
                 diffs.append(residual(key, ea.value, eb.value))
         diffs = [d for d in diffs if math.isfinite(d)]
         if diffs:
-            out[key] = math.sqrt(float(np.mean(np.square(diffs))) / 2)
-    return out, [(model.runs[a].file, model.runs[b].file) for a, b in pairs]
+            sd[key] = math.sqrt(float(np.mean(np.square(diffs))) / 2)
+            dof[key] = len(diffs)
+    return SeedScatter(sd, [(model.runs[a].file, model.runs[b].file) for a, b in pairs], dof)
 
 
 @dataclass(frozen=True)
@@ -360,12 +389,17 @@ class Check:
         scatter; and the verdict's text."""
         rows = self.of_run(run)
         missed = [r.key for r in rows if not r.inside_widened]
-        headline = [k for k in HEADLINE if k in missed]
-        ok = bool(rows) and not headline and len(missed) <= MAY_MISS
+        ok = self.headline_inside(run) and len(missed) <= MAY_MISS
         inside = f"{len(rows) - len(missed)}/{len(rows)} inside the DEM's interval widened by the seed scatter"
         if ok:
             return True, f"the library's law predicts this ({inside})"
         return False, f"needs a new DEM run: {inside}; missed {', '.join(missed)}"
+
+    def headline_inside(self, run: str) -> bool:
+        """Every :data:`HEADLINE` quantity of ``run`` lies inside the DEM's interval widened
+        by the seed scatter: the first half of :meth:`verdict`."""
+        rows = {r.key: r for r in self.of_run(run)}
+        return bool(rows) and all(rows[k].inside_widened for k in HEADLINE if k in rows)
 
     def median_half_width(self, key: str, interpolated: bool | None = True) -> float:
         """The median half-width of ``key`` (or of every slice's ``key_<i>``) as a fraction of
@@ -391,7 +425,7 @@ def check(model: LibraryModel) -> Check:
     is not."""
     if model.calibration is None:
         model = calibrated(model)
-    scatter, pairs = seed_scatter(model)
+    scatter, pairs, dof = seed_scatter(model)
     rows = []
     for n, entry in enumerate(model.runs):
         place = _others(model, n)
@@ -412,7 +446,7 @@ def check(model: LibraryModel) -> Check:
                     q.high,
                     scatter.get(key, 0.0),
                     not place.extrapolated,
-                    len(pairs),
+                    dof.get(key, 0),
                 )
             )
     return Check(tuple(rows), scatter, tuple(pairs))
@@ -423,7 +457,7 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
     (:func:`workflows.prediction.predict.predict`) and judged like :func:`check` judges the
     runs left out. A run outside the domain is judged only with ``extrapolate`` (else
     ConfigError names it); a run the library holds is refused (it was fitted to it)."""
-    scatter, pairs = seed_scatter(model)
+    scatter, pairs, dof = seed_scatter(model)
     held = {r.digest: r.file for r in model.runs}
     rows, points = [], {}
     for path in paths:
@@ -453,7 +487,7 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
                         q.high,
                         scatter.get(q.key, 0.0),
                         not prediction.extrapolated,
-                        len(pairs),
+                        dof.get(q.key, 0),
                     )
                 )
     return Check(tuple(rows), scatter, tuple(pairs), points)
@@ -485,7 +519,8 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
     )
     lines = [
         f"{intro} Coverage of the 95 % intervals: {_percent(result.coverage(True))} interpolated, "
-        f"{_percent(result.coverage(False))} extrapolated, {_percent(result.coverage(None))} in all.{mean_scores}",
+        f"{_percent(result.coverage(False))} extrapolated, {_percent(result.coverage(None))} in all.{mean_scores}"
+        + _verdicts(result),
         "",
         f"| run | rpm | feed [/s] | length [m] | predicted | held-out log-likelihood [nats/step] | CK test of the "
         f"law: largest error, z | DEM inside the prediction interval (of {n_keys}) | prediction inside the DEM "
@@ -611,23 +646,16 @@ def slice_sources(model: LibraryModel) -> str:
     )
 
 
-def chain_sources(model: LibraryModel) -> str:
+def chain_sources(found: Sources) -> str:
     """A markdown table of every quantity but the slices checked like :func:`check` from
     the law's chain as fitted and timed by the zone law (:func:`chain_scores`), and which
-    the library's predictions take; empty without a zone law."""
-    cal = model.calibration
-    if cal.profile is None:
+    the library's predictions take; empty when ``found`` holds no such pair."""
+    if found.fitted is None or found.timed is None:
         return ""
-    whole, left = _chains(model)
-    fitted = _calibration(
-        [v.values for v in whole], [[v.values for v in row] for row in left], cal.inside, cal.covariates
-    )
-    fitted = replace(fitted, profile=cal.profile, profile_left_out=cal.profile_left_out)
+    cal = found.chosen.calibration
     sources = {
-        "the law's chain as fitted": replace(model, calibration=fitted),
-        "the chain timed by the zone law (`workflows.prediction.predict.timed`)": _timed_model(
-            replace(model, calibration=fitted), whole, left
-        ),
+        "the law's chain as fitted": found.fitted,
+        "the chain timed by the zone law (`workflows.prediction.predict.timed`)": found.timed,
     }
     keys = [k for k in HEADLINE if k in cal.whole]
     rows = [
@@ -687,6 +715,21 @@ def _mean_scores(model: LibraryModel, result: Check) -> str:
     return f" Mean held-out log-likelihood [nats/particle-step]: {', '.join(parts)}."
 
 
+def _verdicts(result: Check) -> str:
+    """How many runs the law predicts (:meth:`Check.verdict`), and on how many the
+    headline quantities alone are inside the DEM's widened interval."""
+    runs = result.runs()
+    if not runs:
+        return ""
+    predicted = sum(result.verdict(run)[0] for run in runs)
+    headline = sum(result.headline_inside(run) for run in runs)
+    return (
+        f" The law predicts {predicted} of {len(runs)} runs (the {len(HEADLINE)} headline quantities, "
+        f"{', '.join(HEADLINE)}, and all but {MAY_MISS} of the others inside the DEM's interval widened by the seed "
+        f"scatter); the headline quantities alone are inside it on {headline} of {len(runs)}."
+    )
+
+
 def _ck(test: tuple[float, float] | None) -> str:
     return "-" if test is None else f"{test[0]:.3f}, {test[1]:.1f}"
 
@@ -733,5 +776,6 @@ def restricted(model: LibraryModel, runs: Sequence[int]) -> LibraryModel:
         {key: [[rows[m][n] for n in keep] for m in keep] for key, rows in cal.left_out.items()},
         inside,
         cal.covariates,
+        timed=cal.timed,
     )
     return replace(sub, calibration=calibration)

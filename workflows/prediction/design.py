@@ -11,8 +11,9 @@ C (1 - C) sigma / sqrt(VRR) (:mod:`pbm.frequency`).
 Every quantity comes from the prediction of :mod:`workflows.prediction.predict`, evaluated
 only as far as the spec needs it (:func:`evaluate`): the law's axial chain at the point
 (the transverse moves change neither the hold-up nor the time to discharge), its steady
-hold-up and mean residence time corrected by the library's lines, each with its t
-prediction interval. The feeder-noise VRR and the step response are those of the chain
+hold-up and mean residence time (of a library timed by the slices' zone law, the zone law's
+total and that total over the feed: :func:`~workflows.prediction.predict.timed`) corrected by
+the library's lines, each with its t prediction interval. The feeder-noise VRR and the step response are those of the chain
 ``predict`` writes for the PBM (each slice's time scale set to the predicted slice hold-ups,
 :func:`~workflows.prediction.predict.rescaled`), its time scale stretched so that its mean
 residence time is the predicted one; their intervals are that chain stretched to the mean
@@ -31,7 +32,7 @@ VRR), so their joint probability is the t mass of the set where they all hold (t
 composition's margin tabulated at :data:`T_NODES`, linear between: no independence
 assumed). The
 hold-up is a second variable; the two are taken as bivariate t with the correlation of the
-two lines' residuals at the library's runs (:func:`residual_correlation`; 0.87 on the
+two lines' residuals at the library's runs (:func:`residual_correlation`; 0.77 on the
 shipped library: the DEM's hold-up and its residence time miss the law together), and the
 rectangle's probability is integrated by Gauss-Legendre over the first, the second's
 conditional law being t with one degree of freedom more. When the two lines' degrees of
@@ -552,11 +553,12 @@ def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoin
             "Pass --extrapolate for labelled, widened intervals"
         )
     chains = solved_chains(s, points)
+    # a chain timed by the zone law holds the zone law's total (Little's law gives its time)
+    held_by = chains.bed if s.model.calibration.time_scale() is not None else chains.held
     mrts, holdups = [], []
     for n, (p, place) in enumerate(zip(points, rows)):
         widen = place.widening if place.extrapolated else 1.0
-        # a chain timed by the zone law holds the zone law's total (Little's law gives its time)
-        held = float((chains.bed if s.model.calibration.timed else chains.held)[n].sum())
+        held = float(held_by[n].sum())
         for key, value, into in ((HOLDUP, held, holdups), (MRT, held / chains.totals[n], mrts)):
             bottom = s.floor.get(key, 0.0) * place.floor_share if place.extrapolated else 0.0
             into.append(corrected(key, float(value), s.lines[key], p, widen, bottom))

@@ -21,9 +21,8 @@ that the slice holds the zone law's hold-up. Particles go where the law sends th
 as long as the bed says.
 
 The law is fitted to the particles' moves, not to the quantities: at the library's own runs
-it misses the DEM's hold-up by up to 6 %, smoothly over the operating point (too little at
-one end of a range, too much at the other), while the DEM's own scatter between seeds is
-0.4-1 %. What it misses there is carried to the point (:func:`predict`): on each
+its chain, timed, misses the DEM's hold-up by -3.1 to +3.3 % (as fitted by up to 6 %),
+smoothly over the operating point, while the DEM's own scatter between seeds is 0.4-1 %. What it misses there is carried to the point (:func:`predict`): on each
 quantity's scale (the log of the value, or the value itself for
 :data:`~workflows.prediction.library.ABSOLUTE_KEYS`) the residuals DEM less law at the
 library's runs are fitted by least squares as a line in the correction covariates x
@@ -249,9 +248,27 @@ def timed(values: PointValues, profile: ProfileLaw, point: OperatingPoint, patte
     slice i scaled so that the slice holds the zone law's hold-up at ``point`` (its
     stations oriented by ``pattern``; :func:`rescaled`). Where particles go is the law's,
     how long they stay the bed's: the hold-up, Little's-law time and the mean residence
-    time are the zone law's total over the feed."""
+    time are the zone law's total over the feed. Raises ConfigError when a slice holds
+    nothing, or no finite number, in the chain or in the zone law."""
     held = values.counts.sum(axis=(0, 2))
-    return chain_values(rescaled(values.model, held / profile.holdups(point, pattern)), point)
+    bed = profile.holdups(point, pattern)
+    bad = ~(np.isfinite(held) & np.isfinite(bed) & (held > 0) & (bed > 1e-300))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ConfigError(
+            f"slice {i + 1} holds {held[i]:.6g} particles in the law's chain and {bed[i]:.6g} in the zone law at "
+            f"{point.impeller_rpm:g} rpm, {point.length_m:g} m, {point.feed_rate_total_per_s:g} /s: the chain can "
+            "be timed only where both are positive and finite"
+        )
+    return chain_values(rescaled(values.model, held / bed), point)
+
+
+def timed_values(chain: PointValues, timed_chain: PointValues) -> dict[str, float]:
+    """The quantities the corrections of a timed library are fitted to: ``timed_chain``'s
+    (:func:`timed`), each slice's hold-up ``chain``'s as fitted (the slices' own source is
+    chosen apart: the zone law, or the correction's lines on the chain as fitted)."""
+    slices = {slice_key(i) for i in range(chain.model.nx)}
+    return {key: chain.values[key] if key in slices else v for key, v in timed_chain.values.items()}
 
 
 def point_table(values: PointValues, point: OperatingPoint, duration_s: float) -> VelocityTable:
@@ -504,9 +521,10 @@ def correction_data(
 def held_out(
     model: LibraryModel, n: int, widening: float = 1.0, floor: dict[str, float] | None = None
 ) -> tuple[PredictedQuantity, ...]:
-    """Run ``n`` predicted without it (:func:`assembled`): the law fitted without it,
-    corrected by the lines of that law's misses on the other runs, and its slices by the
-    zone law fitted without it. ``model`` calibrated."""
+    """Run ``n`` predicted without it (:func:`assembled`): the law fitted without it (its
+    chain timed by the zone law fitted without it, when the library's is timed), corrected
+    by the lines of that law's misses on the other runs, and its slices by the zone law
+    fitted without it. ``model`` calibrated."""
     calibration = model.calibration
     entry = model.runs[n]
     law = {key: rows[n][n] for key, rows in calibration.left_out.items()}
@@ -703,10 +721,14 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
             f"{dom.describe()}. Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
     law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
-    if model.calibration.timed:
-        law = timed(law, model.calibration.profile, point, pattern)
+    values = law.values
+    scale = model.calibration.time_scale()
+    if scale is not None:
+        chain = law
+        law = timed(chain, scale, point, pattern)
+        values = timed_values(chain, law)
     floor = floor_at(model, place)
-    quantities = assembled(law.values, lines, model.calibration.profile, point, pattern, place.widening, floor)
+    quantities = assembled(values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     by_key = {q.key: q for q in quantities}
     held = law.counts.sum(axis=(0, 2))
     slices = np.array([by_key[slice_key(i)].value if slice_key(i) in by_key else held[i] for i in range(held.size)])

@@ -638,7 +638,7 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
     chosen = parse_region(region, span) if region else dom
     region_points = [point_at(base, s, x, f, gap) for s, x, f in chosen.grid(REGION_LEVELS)]
     names = model.calibration.covariates if model.calibration is not None else ()
-    scatter = seed_scatter(model)[0] or None
+    scatter = seed_scatter(model).sd or None
     try:
         candidates = candidates_over(base, span, gap)
     except ConfigError as exc:

@@ -72,7 +72,8 @@ def library_fit(
     settings = settings or FitSettings()
     folder = writable_directory(out, "--out")
     runs = load_runs(paths, settings)
-    model = calibration.calibrated(fit_library(runs, settings, folder / "fits", log))
+    found = calibration.sources(fit_library(runs, settings, folder / "fits", log))
+    model = found.chosen
     check = calibration.check(model)
     files = {"runs": _write_runs(folder, {r.digest: r.path for r in runs})}
     files["model"] = save_model(model, folder / "library.json")
@@ -86,9 +87,8 @@ def library_fit(
         + calibration.alternatives(model)
         + "\n\n"
         + calibration.slice_sources(model)
-        + "\n\n"
-        + calibration.chain_sources(model)
-        + "\n",
+        + "\n"
+        + "".join(f"\n{table}\n" for table in [calibration.chain_sources(found)] if table),
         "library page",
     )
     return LibraryFitOutput(model, check, files)

@@ -364,7 +364,7 @@ def test_the_shipped_librarys_chain_is_timed_by_the_zone_law_which_the_x1_25_ble
     assert again.values["holdup"] == pytest.approx(cal.left_out["holdup"][n][n], rel=1e-9)
 
 
-def test_a_timed_calibration_needs_its_zone_law_and_reads_back():
+def test_a_timed_calibration_file_needs_its_zone_law_and_reads_back():
     from dataclasses import replace
 
     from workflows.prediction.library import Calibration, load_model
@@ -372,8 +372,8 @@ def test_a_timed_calibration_needs_its_zone_law_and_reads_back():
 
     cal = load_model(LIBRARY_MODEL).calibration
     assert Calibration.from_record(cal.record()).timed
-    with pytest.raises(ValueError, match="timed by the slices' zone law needs that law"):
-        replace(cal, profile=None, profile_left_out=())
+    with pytest.raises(ValueError, match="timed by the slices' zone law has no zone law"):
+        Calibration.from_record(replace(cal, profile=None, profile_left_out=()).record())
     record = cal.record()
     del record["timed"]  # a file written before the chain was timed: the chain as fitted
     assert not Calibration.from_record(record).timed
@@ -391,3 +391,48 @@ def test_the_seed_scatter_widens_the_dem_interval_by_students_t_of_its_pairs():
     assert not row(100.0 + math.hypot(1.0, 2.05), 30).inside_widened
     assert row(100.0 + math.hypot(1.0, 2.04), 30).inside_widened
     assert not row(101.01, 0).inside_widened and row(100.99, 0).inside_widened
+
+
+def test_the_shipped_library_recalibrated_times_its_chain_as_its_file_says():
+    from workflows.prediction.calibration import chain_scores, chain_sources, sources
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    stored = load_model(LIBRARY_MODEL)
+    found = sources(stored)
+    cal = found.chosen.calibration
+    assert cal.timed and found.chosen is found.timed
+    for key in ("holdup", "mean_residence_time_s", "rtd_variance_s2", "holdup_slice_4"):
+        assert np.allclose(cal.whole[key], stored.calibration.whole[key], rtol=1e-9)
+        assert np.allclose(cal.left_out[key], stored.calibration.left_out[key], rtol=1e-9)
+    by_timed, by_chain = chain_scores(found.timed, found.fitted)
+    assert by_timed < 0.5 * by_chain
+    table = chain_sources(found)
+    assert "timed by the zone law (`workflows.prediction.predict.timed`) (chosen)" in table
+
+
+def test_a_timed_library_stripped_for_a_check_is_refused_for_a_prediction():
+    from workflows.prediction.calibration import check, restricted, without_profile
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    for part in (without_profile(model), restricted(model, range(10))):
+        assert part.calibration.timed and part.calibration.profile is None
+        with pytest.raises(ValueError, match="can be checked, not predicted from"):
+            predict(part, model.runs[0].point, model.blade_pattern)
+    assert check(restricted(model, range(10))).rows
+
+
+def test_a_chain_is_not_timed_where_the_zone_law_holds_nothing():
+    from dataclasses import replace
+
+    from workflows.prediction.library import load_model
+    from workflows.prediction.predict import timed
+    from workflows.shipped import LIBRARY_MODEL
+
+    profile = load_model(LIBRARY_MODEL).calibration.profile
+    empty = replace(profile, coefficients=profile.coefficients - 800.0)
+    law = point_values(_law(), _transverse(), BASE, "FB", 0.1)
+    with pytest.raises(ConfigError, match="slice 1 holds .* both are positive and finite"):
+        timed(law, empty, BASE, "FB")
