@@ -68,7 +68,7 @@ from scipy.optimize import nnls
 from scipy.special import stdtrit
 
 from coupling.compartments import grid_edges
-from coupling.errors import ConfigError
+from coupling.errors import ConfigError, TableError
 from coupling.metrics import sampled_lacey, sampled_rsd
 from coupling.operating import OperatingPoint
 from coupling.phases import PhaseTransport
@@ -720,13 +720,19 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
             f"the point lies outside the library's domain ({'; '.join(place.issues)}); the domain is "
             f"{dom.describe()}. Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
-    law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
-    values = law.values
-    scale = model.calibration.time_scale()
-    if scale is not None:
-        chain = law
-        law = timed(chain, scale, point, pattern)
-        values = timed_values(chain, law)
+    try:
+        law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
+        values = law.values
+        scale = model.calibration.time_scale()
+        if scale is not None:
+            chain = law
+            law = timed(chain, scale, point, pattern)
+            values = timed_values(chain, law)
+    except TableError as exc:
+        raise ConfigError(
+            f"the library's law cannot be evaluated at {point.impeller_rpm:g} rpm, {point.length_m:g} m, "
+            f"{point.feed_rate_total_per_s:g} /s ({exc}): too far beyond its domain, {dom.describe()}"
+        ) from None
     floor = floor_at(model, place)
     quantities = assembled(values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     by_key = {q.key: q for q in quantities}

@@ -436,3 +436,13 @@ def test_a_chain_is_not_timed_where_the_zone_law_holds_nothing():
     law = point_values(_law(), _transverse(), BASE, "FB", 0.1)
     with pytest.raises(ConfigError, match="slice 1 holds .* both are positive and finite"):
         timed(law, empty, BASE, "FB")
+
+
+def test_a_point_whose_law_cannot_be_evaluated_is_refused_naming_the_domain():
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    far = model.runs[0].point.replace(impeller_rpm=700.0)
+    with pytest.raises(ConfigError, match=r"cannot be evaluated at 700 rpm.*too far beyond its domain, 150-350 rpm"):
+        predict(model, far, model.blade_pattern, extrapolate=True)
