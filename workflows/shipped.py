@@ -13,8 +13,10 @@ running LIGGGHTS:
 * :data:`STEP_DIR`: the feed-step run of the dynamic check;
 * :data:`UNSEEN_DIR`: runs at operating points outside the campaign, each with its
   20-slice twin and its configuration (``200rpm-x1.25.toml``: 200 rpm, the feed x1.25;
-  ``300rpm-mono-a30.toml``: 300 rpm, particles of one size, feeder A 30 % of 60 /s): the
-  phase model judged on runs it was not built on, not part of the library;
+  ``300rpm-mono-a30.toml``: 300 rpm, particles of one size, feeder A 30 % of 60 /s), the
+  runs ``pbmdem library suggest`` chose (``suggested-*.toml``) and campaign points run with
+  another seed (``replicate-*.toml``): the phase model and the library's law judged on runs
+  they were not built on, not part of the library;
 * :data:`PAPER_SCALE_DIR`: the paper-scale probe's summary, thermo rows and throughput;
 * :data:`LIBRARY_DIR`: DEM runs at further speeds, lengths and seeds, and in ``law/`` the
   law fitted to them and the campaign (:data:`LIBRARY_MODEL`, ``pbmdem predict``'s and
