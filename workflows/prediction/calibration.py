@@ -149,9 +149,11 @@ def _timed_model(
     library's and each left out."""
     cal = model.calibration
     points = [entry.point for entry in model.runs]
-    timed_whole = [_timed(v, cal.profile, model, p) for v, p in zip(whole, points)]
+    pattern = model.blade_pattern
+    timed_whole = [timed_values(v, timed(v, cal.profile, p, pattern)) for v, p in zip(whole, points)]
     timed_left = [
-        [_timed(v, law, model, p) for v, p in zip(row, points)] for row, law in zip(left, cal.profile_left_out)
+        [timed_values(v, timed(v, law, p, pattern)) for v, p in zip(row, points)]
+        for row, law in zip(left, cal.profile_left_out)
     ]
     chained = _calibration(timed_whole, timed_left, cal.inside, cal.covariates)
     return replace(
@@ -263,12 +265,6 @@ def recalibrated(model: LibraryModel, covariates: Sequence[str]) -> LibraryModel
 
 def _chain(law, transverse, model: LibraryModel, point: OperatingPoint) -> PointValues:
     return point_values(law, transverse, point, model.blade_pattern, model.interval_s)
-
-
-def _timed(values: PointValues, profile: ProfileLaw, model: LibraryModel, point: OperatingPoint) -> dict[str, float]:
-    """The timed chain's values (:func:`~workflows.prediction.predict.timed`), the slices'
-    kept from the chain as fitted: the correction's lines of the slices stay the lines'."""
-    return timed_values(values, timed(values, profile, point, model.blade_pattern))
 
 
 class SeedScatter(NamedTuple):
@@ -609,36 +605,43 @@ def alternatives(model: LibraryModel, forms: Sequence[Sequence[str]] = CORRECTIO
     )
 
 
+def _source_rows(
+    head: str, sources: Sequence[tuple[str, LibraryModel, bool]], keep, widths: Sequence[str]
+) -> list[str]:
+    """The rows of a table comparing ``sources`` (label, calibrated model, chosen) on the
+    rows of the quantities ``keep`` accepts, checked like :func:`check`: coverage, the
+    median half-widths of ``widths`` and the interval score."""
+    rows = [
+        f"| {head} | coverage, interpolated | extrapolated | all | "
+        + "".join(f"median half-width {k}, interpolated [%] | " for k in widths)
+        + "interval score [log] |",
+        "|" + " --- |" * (5 + len(widths)),
+    ]
+    for label, m, chosen in sources:
+        result = check(m)
+        kept = tuple(r for r in result.rows if keep(r.key))
+        part = Check(kept, result.seed_sd, result.seed_pairs)
+        half = "".join(f"{100 * part.median_half_width(k):.1f} | " for k in widths)
+        rows.append(
+            f"| {label}{' (chosen)' if chosen else ''} | {_percent(part.coverage(True))} | "
+            f"{_percent(part.coverage(False))} | {_percent(part.coverage(None))} | {half}{interval_score(kept):.4f} |"
+        )
+    return rows
+
+
 def slice_sources(model: LibraryModel) -> str:
     """A markdown table of the slices' hold-ups checked like :func:`check` from each
     source (:func:`slice_scores`): the zone law and the correction's lines, and which the
     library's predictions take."""
-    chosen = "zone law" if model.calibration.profile is not None else "lines"
-    sources = {"lines": without_profile(model)}
+    chosen = model.calibration.profile is not None
+    sources = [("a correction line per slice", without_profile(model), not chosen)]
     profile, left = (model.calibration.profile, model.calibration.profile_left_out)
     if profile is None:
         profile, left = slice_profiles(model)
     if profile is not None:
         zone = replace(model, calibration=replace(model.calibration, profile=profile, profile_left_out=left))
-        sources = {"zone law": zone, **sources}
-    rows = [
-        "| slices from | coverage, interpolated | extrapolated | all | median half-width, interpolated [%] | "
-        "interval score [log] |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for name, m in sources.items():
-        result = check(m)
-        kept = tuple(r for r in result.rows if _slice_of(r.key, "holdup_slice"))
-        part = Check(kept, result.seed_sd, result.seed_pairs)
-        label = {
-            "zone law": "the zone law of the bed (`workflows/prediction/profile.py`)",
-            "lines": "a correction line per slice",
-        }[name]
-        rows.append(
-            f"| {label}{' (chosen)' if name == chosen else ''} | {_percent(part.coverage(True))} | "
-            f"{_percent(part.coverage(False))} | {_percent(part.coverage(None))} | "
-            f"{100 * part.median_half_width('holdup_slice'):.1f} | {interval_score(kept):.4f} |"
-        )
+        sources.insert(0, ("the zone law of the bed (`workflows/prediction/profile.py`)", zone, chosen))
+    rows = _source_rows("slices from", sources, lambda key: _slice_of(key, "holdup_slice"), ["holdup_slice"])
     return (
         "## The slices' hold-ups\n\nEvery run's slices predicted without it, from each source; the predictions "
         "take the one of the lower interval score (the mean width of the 95 % intervals on the log scale plus 40 "
@@ -652,28 +655,13 @@ def chain_sources(found: Sources) -> str:
     the library's predictions take; empty when ``found`` holds no such pair."""
     if found.fitted is None or found.timed is None:
         return ""
-    cal = found.chosen.calibration
-    sources = {
-        "the law's chain as fitted": found.fitted,
-        "the chain timed by the zone law (`workflows.prediction.predict.timed`)": found.timed,
-    }
-    keys = [k for k in HEADLINE if k in cal.whole]
-    rows = [
-        "| quantities from | coverage, interpolated | extrapolated | all | "
-        + "".join(f"median half-width {k}, interpolated [%] | " for k in keys)
-        + "interval score [log] |",
-        "|" + " --- |" * (5 + len(keys)),
+    timed_chosen = found.chosen.calibration.timed
+    sources = [
+        ("the law's chain as fitted", found.fitted, not timed_chosen),
+        ("the chain timed by the zone law (`workflows.prediction.predict.timed`)", found.timed, timed_chosen),
     ]
-    for (name, m), chosen in zip(sources.items(), (not cal.timed, cal.timed)):
-        result = check(m)
-        kept = tuple(r for r in result.rows if not _slice_of(r.key, "holdup_slice"))
-        part = Check(kept, result.seed_sd, result.seed_pairs)
-        widths = "".join(f"{100 * part.median_half_width(k):.1f} | " for k in keys)
-        rows.append(
-            f"| {name}{' (chosen)' if chosen else ''} | {_percent(part.coverage(True))} | "
-            f"{_percent(part.coverage(False))} | {_percent(part.coverage(None))} | {widths}"
-            f"{interval_score(kept):.4f} |"
-        )
+    widths = [k for k in HEADLINE if k in found.chosen.calibration.whole]
+    rows = _source_rows("quantities from", sources, lambda key: not _slice_of(key, "holdup_slice"), widths)
     return (
         "## The chain's time scale\n\nEvery run's quantities but the slices predicted without it, from the law's "
         "chain as fitted and from that chain with each slice's rates scaled so that it holds the zone law's "
