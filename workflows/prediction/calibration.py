@@ -105,10 +105,11 @@ def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> 
     out at every run, whether each run lay inside the others' domain, and the correction's
     ``covariates`` (default: the model's settings', else
     :data:`~workflows.prediction.library.DEFAULT_CORRECTION`). Each choice of source is
-    made on every run left out, by the interval score (:func:`interval_score`): the slices
-    from the zone law of the bed or from the correction's lines (:func:`slice_scores`);
-    with the zone law, the other quantities from the law's chain as fitted or timed by the
-    zone law (:func:`chain_scores`)."""
+    made on every run left out, by the interval score (:func:`interval_score`): where the
+    library has a zone law of the bed, the other quantities from the law's chain as fitted
+    or timed by it (:func:`chain_scores`); then the slices, scaled to that chain's
+    hold-up, from the zone law or from the correction's lines (:func:`slice_scores`),
+    the chain as fitted with the lines."""
     return sources(model, covariates).chosen
 
 
@@ -122,13 +123,15 @@ def sources(model: LibraryModel, covariates: Sequence[str] | None = None) -> Sou
     model = replace(model, calibration=replace(calibration, profile=profile, profile_left_out=profiles))
     if profile is None:
         return Sources(model)
-    zone_law, lines = slice_scores(model)
-    # a tie (neither bounds a slice both can) keeps the lines
-    if not zone_law < lines:
-        return Sources(without_profile(model))
     timed_model = _timed_model(model, whole, left)
     by_timed, by_chain = chain_scores(timed_model, model)
-    return Sources(timed_model if by_timed < by_chain else model, model, timed_model)
+    chain = timed_model if by_timed < by_chain else model
+    # the slices are scaled to the chosen chain's hold-up (predict.held_in_total): judged
+    # on it; a tie (neither bounds a slice both can) keeps the lines
+    zone_law, lines = slice_scores(chain)
+    if not zone_law < lines:
+        return Sources(without_profile(model))
+    return Sources(chain, model, timed_model)
 
 
 def _chains(model: LibraryModel) -> tuple[list[PointValues], list[list[PointValues]]]:

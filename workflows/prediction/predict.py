@@ -33,9 +33,11 @@ the point, and its 95 % interval the line's prediction interval,
 +- t(0.975, n - p) s sqrt(1 + x'(A'A)^-1 x), n the runs, p the line's coefficients, s the
 residuals' standard deviation about it (the DEM's scatter between seeds and what the line
 cannot follow) and A the runs' covariates: it widens away from the runs, where the line's
-own coefficients are uncertain. The chain written for the PBM has each slice's time scale
-set so that it holds the predicted slice hold-ups, scaled to the predicted total
-(:func:`rescaled`): ``pbm run`` on the table settles where the prediction says.
+own coefficients are uncertain. The slices' hold-ups (from the zone law, or each moved by
+its own line) are scaled alike to the predicted total (:func:`held_in_total`): one bed,
+whose total the hold-up's line corrects. The chain written for the PBM has each slice's
+time scale set so that it holds them (:func:`rescaled`): ``pbm run`` on the table settles
+where the prediction says.
 
 Outside the domain's ranges (:func:`placement`) a prediction is refused unless
 extrapolation is asked for; then it is labelled, its half-width is at least the
@@ -596,7 +598,7 @@ class PredictedQuantity:
             return {
                 "law_value": self.law_value,
                 "correction": self.shift,
-                "source": "the slices' zone law (workflows.prediction.profile)",
+                "source": "the slices' zone law (workflows.prediction.profile), scaled to the predicted hold-up",
                 "residual_sd": float(self.profile.slice_sd[i]),
                 "degrees_of_freedom": float(self.profile.slice_dof[i]),
                 "widening": self.widening,
@@ -659,7 +661,8 @@ def assembled(
     """Every quantity a line corrects, at ``point`` (its stations oriented by ``pattern``):
     the law's value ``law`` moved by its line (:func:`corrected`), or, with ``profile``,
     each slice's hold-up from the zone law (:func:`profiled`); each half-width at least
-    ``floor``'s, times ``widening``."""
+    ``floor``'s, times ``widening``. The slices are then scaled alike so that they hold the
+    predicted hold-up (:func:`held_in_total`)."""
     floor = floor or {}
     slices = {}
     if profile is not None:
@@ -673,7 +676,30 @@ def assembled(
             out.append(profiled(key, law[key], *slices[key], profile, widening, floor.get(key, 0.0)))
         else:
             out.append(corrected(key, law[key], lines[key], point, widening, floor.get(key, 0.0), pattern))
-    return tuple(out)
+    return held_in_total(tuple(out))
+
+
+def held_in_total(quantities: Sequence[PredictedQuantity]) -> tuple[PredictedQuantity, ...]:
+    """``quantities`` with every slice's hold-up and interval scaled alike so that the
+    slices sum to the predicted hold-up, where both are predicted: one bed, whose total the
+    hold-up's line corrects, and which the PBM's table (:func:`predict`) and ``design``
+    keep. Every run of the shipped library left out, its slices so scaled hold the DEM's
+    in 97 % of their intervals (94 % unscaled), the same widths, interval score 0.222
+    (0.242): ``law/calibration.md``, "The slices' hold-ups"."""
+    by_key = {q.key: q for q in quantities}
+    keys = [slice_key(i) for i in range(AXIAL_SLICES)]
+    if "holdup" not in by_key or not all(k in by_key for k in keys):
+        return tuple(quantities)
+    held = sum(by_key[k].value for k in keys)
+    if not (held > 0 and math.isfinite(held)):
+        return tuple(quantities)
+    scale = by_key["holdup"].value / held
+    return tuple(
+        replace(q, value=q.value * scale, low=q.low * scale, high=q.high * scale, shift=q.shift + math.log(scale))
+        if q.key in keys
+        else q
+        for q in quantities
+    )
 
 
 @dataclass(frozen=True)

@@ -446,3 +446,39 @@ def test_a_point_whose_law_cannot_be_evaluated_is_refused_naming_the_domain():
     far = model.runs[0].point.replace(impeller_rpm=700.0)
     with pytest.raises(ConfigError, match=r"cannot be evaluated at 700 rpm.*too far beyond its domain, 150-350 rpm"):
         predict(model, far, model.blade_pattern, extrapolate=True)
+
+
+def test_the_predicted_slices_are_the_zone_laws_shares_of_the_predicted_holdup():
+    from workflows.prediction.library import load_model, slice_key
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    profile = model.calibration.profile
+    longer = next(r.point for r in model.runs if r.point.length_m > 0.4)
+    for point in (model.runs[3].point, longer.replace(impeller_rpm=275.0)):
+        prediction = predict(model, point, model.blade_pattern)
+        slices = [prediction.quantity(slice_key(i)) for i in range(10)]
+        total = sum(q.value for q in slices)
+        assert total == pytest.approx(prediction.quantity("holdup").value, rel=1e-12)
+        bed, halves = profile.at(point, model.blade_pattern)
+        # the zone law's shares, each with its own relative width, moved by one factor
+        assert [q.value / total for q in slices] == pytest.approx(bed / bed.sum(), rel=1e-12)
+        assert [math.log(q.high / q.low) / 2 for q in slices] == pytest.approx(halves, rel=1e-9)
+        assert len({round(q.value / b, 12) for q, b in zip(slices, bed)}) == 1
+        # and the PBM's table holds them
+        held = prediction.values.counts.sum(axis=(0, 2))
+        assert held == pytest.approx([q.value for q in slices], rel=5e-3)
+
+
+def test_slices_without_a_predicted_holdup_are_left_as_they_are():
+    from workflows.prediction.predict import PredictedQuantity, held_in_total
+
+    def q(key: str, value: float) -> PredictedQuantity:
+        return PredictedQuantity(key, value, 0.9 * value, 1.1 * value, value, 0.0, None, math.nan)
+
+    slices = [q(f"holdup_slice_{i + 1}", 10.0 + i) for i in range(10)]
+    assert held_in_total(slices) == tuple(slices)
+    assert held_in_total([*slices[:9], q("holdup", 500.0)]) == (*slices[:9], q("holdup", 500.0))
+    scaled = held_in_total([q("holdup", 290.0), *slices])
+    assert sum(s.value for s in scaled[1:]) == pytest.approx(290.0)
+    assert scaled[1].low / scaled[1].value == pytest.approx(0.9) and scaled[1].shift == pytest.approx(math.log(2))
