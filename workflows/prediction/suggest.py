@@ -15,7 +15,8 @@ zone law of its bed (:mod:`workflows.prediction.profile`, ``calibration.profile`
 in place of their lines (:func:`profile_half_widths`). Slice i's half-width at a point is
 then t(0.975, d_i) sqrt(s_i^2 + g_i' C g_i): g_i the gradient of its log hold-up in the
 law's coefficients there, C = (J'WJ)^-1 their covariance, W = diag(1 / s_i^2), d_i the
-slice's degrees of freedom (its observations less their leverage). A run at c whose
+slice's degrees of freedom (its observations less their leverage), in quadrature with the
+hold-up's (the slices are scaled to the predicted hold-up). A run at c whose
 slices lie on the law leaves the coefficients where they are and adds its information:
 C becomes (J'WJ + G_c'W G_c)^-1, G_c the gradients of its slices
 (:meth:`~workflows.prediction.profile.ProfileLaw.covariance_after`); s_i is expected to
@@ -503,6 +504,13 @@ class Candidate:
     point: OperatingPoint
 
 
+def _with_total(half: np.ndarray, widths: dict[str, np.ndarray]) -> np.ndarray:
+    """A slice's half-width ``half`` with the hold-up's of ``widths`` in quadrature, as
+    ``pbmdem predict`` gives it; alone without a hold-up interval."""
+    total = widths.get("holdup")
+    return half if total is None else np.hypot(half, total)
+
+
 def rank(
     quantities: Sequence[Quantity],
     names: Sequence[str],
@@ -552,11 +560,13 @@ def rank(
             ranked_after[q.key] = np.sqrt(pure * after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
     if profile is not None:
         # no bias term: the zone law's scatter is measured about a law that carries the
-        # bed from blender to blender, and chosen over the lines on runs left out
+        # bed from blender to blender, and chosen over the lines on runs left out. The
+        # slices are scaled to the predicted hold-up, its half-width in quadrature with
+        # theirs (predict.held_in_total)
         halves = profile_half_widths(profile, region_points, [c.point for c in candidates], pattern or None)
         for key, h_now, h_after in zip(zoned, *halves):
-            now[key] = ranked_now[key] = h_now
-            after[key] = ranked_after[key] = h_after
+            now[key], after[key] = _with_total(h_now, now), _with_total(h_after, after)
+            ranked_now[key], ranked_after[key] = _with_total(h_now, ranked_now), _with_total(h_after, ranked_after)
     gains = [()] * len(candidates)
     widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
     line = fit_correction(widest.points, widest.residuals, names, pattern)

@@ -461,9 +461,12 @@ def test_the_predicted_slices_are_the_zone_laws_shares_of_the_predicted_holdup()
         total = sum(q.value for q in slices)
         assert total == pytest.approx(prediction.quantity("holdup").value, rel=1e-12)
         bed, halves = profile.at(point, model.blade_pattern)
-        # the zone law's shares, each with its own relative width, moved by one factor
+        # the zone law's shares moved by one factor, each with its own width and the
+        # total's in quadrature
         assert [q.value / total for q in slices] == pytest.approx(bed / bed.sum(), rel=1e-12)
-        assert [math.log(q.high / q.low) / 2 for q in slices] == pytest.approx(halves, rel=1e-9)
+        holdup = prediction.quantity("holdup")
+        spread = math.log(holdup.high / holdup.low) / 2
+        assert [math.log(q.high / q.low) / 2 for q in slices] == pytest.approx(np.hypot(halves, spread), rel=1e-9)
         assert len({round(q.value / b, 12) for q, b in zip(slices, bed)}) == 1
         # and the PBM's table holds them
         held = prediction.values.counts.sum(axis=(0, 2))
@@ -481,4 +484,8 @@ def test_slices_without_a_predicted_holdup_are_left_as_they_are():
     assert held_in_total([*slices[:9], q("holdup", 500.0)]) == (*slices[:9], q("holdup", 500.0))
     scaled = held_in_total([q("holdup", 290.0), *slices])
     assert sum(s.value for s in scaled[1:]) == pytest.approx(290.0)
-    assert scaled[1].low / scaled[1].value == pytest.approx(0.9) and scaled[1].shift == pytest.approx(math.log(2))
+    assert scaled[1].value == pytest.approx(20.0) and scaled[1].shift == pytest.approx(math.log(2))
+    half = math.hypot(math.log(1.1 / 0.9) / 2, math.log(1.1 / 0.9) / 2)
+    assert scaled[1].low == pytest.approx(20.0 * math.exp(-half)) and scaled[1].high == pytest.approx(
+        20.0 * math.exp(half)
+    )

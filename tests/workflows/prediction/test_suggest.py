@@ -412,3 +412,19 @@ def test_with_a_zone_law_the_slices_are_judged_by_it_not_by_their_lines(zoned):
         else:
             assert not got == pytest.approx(np.median(now, axis=0), rel=0.1)
     assert zone[0].point is shipped.runs[13].point
+
+
+def test_with_a_holdup_line_the_slices_carry_its_half_width_in_quadrature_as_predict_gives_them(zoned):
+    law, points, _, shipped = zoned
+    region = [r.point for r in shipped.runs[9:]]
+    rng = np.random.default_rng(5)
+    holdup = Quantity("holdup", tuple(points), tuple(rng.normal(0.0, 0.02, len(points))))
+    cands = [Candidate(0.0, 0.0, 0.0, shipped.runs[13].point)]
+    ranked = rank([holdup], ("speed",), SPAN, region, cands, pattern=shipped.blade_pattern, profile=law)
+    line = fit_correction(holdup.points, holdup.residuals, ("speed",), shipped.blade_pattern)
+    total = np.array([line.at(p)[1] for p in region])
+    zone = np.array([law.at(p)[1] for p in region])  # (R, NX)
+    by_key = {r.key: r for r in ranked[0].reductions}
+    assert by_key["holdup"].now == pytest.approx(np.median(total), rel=1e-10)
+    for i in range(law.nx):
+        assert by_key[slice_key(i)].now == pytest.approx(np.median(np.hypot(zone[:, i], total)), rel=1e-10)
