@@ -27,9 +27,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.no_figures:
+        return _run(args, None)
+    from coupling.forked import Prepared
+    from workflows.report import PREDICTION_FIGURES
+
+    # forked first, so that matplotlib is imported on the other core while this process
+    # imports and predicts; it draws the figure while this one writes the rest
+    with Prepared(PREDICTION_FIGURES) as drawer:
+        return _run(args, drawer)
+
+
+def _run(args: argparse.Namespace, drawer) -> int:
     from workflows.products.predict import run_predict
 
-    output = run_predict(args.config, args.library, args.out, args.extrapolate, figures=not args.no_figures)
+    output = run_predict(args.config, args.library, args.out, args.extrapolate, not args.no_figures, drawer)
     prediction = output.prediction
     if prediction.extrapolated:
         print(f"EXTRAPOLATED: {'; '.join(prediction.outside)}")

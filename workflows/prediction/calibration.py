@@ -280,15 +280,47 @@ class SeedScatter(NamedTuple):
     dof: dict[str, int]
 
 
+def replicate_pairs(model: LibraryModel) -> list[tuple[int, int]]:
+    """The pairs (a < b) of library runs at one operating point (other seeds)."""
+    runs = model.runs
+    return [
+        (a, b)
+        for a in range(len(runs))
+        for b in range(a + 1, len(runs))
+        if not runs[a].point.differences(runs[b].point)
+    ]
+
+
+def twin_rows(judged: str, dem: dict, by: str, twin: dict, scatter: SeedScatter) -> list[CheckedQuantity]:
+    """Run ``judged`` (its DEM quantities ``dem``) with the DEM quantities ``twin`` of the
+    run ``by`` at its operating point taken as its prediction, value and interval: the
+    rows of the verdict a second DEM run gets, judged like the law's (labelled
+    "``judged`` by ``by``")."""
+    label = f"{judged} by {by}"
+    return [
+        CheckedQuantity(
+            label,
+            key,
+            float(dem[key].value),
+            float(dem[key].low),
+            float(dem[key].high),
+            float(twin[key].value),
+            float(twin[key].low),
+            float(twin[key].high),
+            scatter.sd.get(key, 0.0),
+            True,
+            scatter.dof.get(key, 0),
+        )
+        for key in quantity_keys()
+        if key in dem and key in twin
+    ]
+
+
 def seed_scatter(model: LibraryModel) -> SeedScatter:
     """Per quantity, the DEM's standard deviation between seeds on the quantity's scale,
     from every pair of library runs at one operating point (half the mean square of their
     differences); and the pairs. Empty without a pair."""
-    pairs = []
-    for a in range(len(model.runs)):
-        for b in range(a + 1, len(model.runs)):
-            if not model.runs[a].point.differences(model.runs[b].point):
-                pairs.append((a, b))
+    pairs = replicate_pairs(model)
     sd, dof = {}, {}
     for key in quantity_keys():
         diffs = []
@@ -365,6 +397,8 @@ class Check:
     seed_pairs: tuple[tuple[str, str], ...]
     #: the operating points of runs that are not the library's (:func:`judge_results`)
     points: dict[str, OperatingPoint] = field(default_factory=dict)
+    #: each replicate judged with its twin's DEM values as the prediction (:func:`twin_rows`)
+    twins: tuple[CheckedQuantity, ...] = ()
 
     def _rows(self, interpolated: bool | None) -> list[CheckedQuantity]:
         return [r for r in self.rows if interpolated is None or r.interpolated == interpolated]
@@ -413,6 +447,7 @@ class Check:
             "rows": [r.record() for r in self.rows],
             "seed_sd": self.seed_sd,
             "seed_pairs": [list(p) for p in self.seed_pairs],
+            "twins": [r.record() for r in self.twins],
             "median_relative_half_width": {key: self.median_half_width(key) for key in USEFUL_HALF_WIDTH},
             "target_half_width": USEFUL_HALF_WIDTH,
         }
@@ -448,7 +483,12 @@ def check(model: LibraryModel) -> Check:
                     dof.get(key, 0),
                 )
             )
-    return Check(tuple(rows), scatter, tuple(pairs))
+    seeds = SeedScatter(scatter, pairs, dof)
+    twins = []
+    for a, b in replicate_pairs(model):
+        for judged, by in ((model.runs[a], model.runs[b]), (model.runs[b], model.runs[a])):
+            twins += twin_rows(judged.file, judged.dem, by.file, by.dem, seeds)
+    return Check(tuple(rows), scatter, tuple(pairs), twins=tuple(twins))
 
 
 def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate: bool = False) -> Check:
@@ -456,9 +496,10 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
     (:func:`workflows.prediction.predict.predict`) and judged like :func:`check` judges the
     runs left out. A run outside the domain is judged only with ``extrapolate`` (else
     ConfigError names it); a run the library holds is refused (it was fitted to it)."""
-    scatter, pairs, dof = seed_scatter(model)
+    seeds = seed_scatter(model)
+    scatter, pairs, dof = seeds
     held = {r.digest: r.file for r in model.runs}
-    rows, points = [], {}
+    rows, points, twins = [], {}, []
     for path in paths:
         path = regular_file(path, "a DEM results file", ConfigError)
         digest = file_digest(path)
@@ -471,6 +512,9 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
         points[path.name] = point
         prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
         dem = dem_quantities(results.summary)
+        for entry in model.runs:
+            if not point.differences(entry.point):
+                twins += twin_rows(path.name, dem, entry.file, entry.dem, seeds)
         for q in prediction.quantities:
             if q.key in dem:
                 d = dem[q.key]
@@ -489,7 +533,7 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
                         dof.get(q.key, 0),
                     )
                 )
-    return Check(tuple(rows), scatter, tuple(pairs), points)
+    return Check(tuple(rows), scatter, tuple(pairs), points, tuple(twins))
 
 
 #: what :func:`markdown` says a check of runs the library does not hold is
@@ -558,9 +602,32 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
             "",
             "Seed pairs: " + "; ".join(f"{a} and {b}" for a, b in result.seed_pairs) + ". The DEM's interval is "
             f"widened (in quadrature) by t(0.975, {n}) = {t:.2f} seed standard deviations: the standard deviation is "
-            f"measured from {n} pair{'s' if n > 1 else ''}.",
+            f"measured from {n} pair{'s' if n > 1 else ''}." + _twin_verdicts(result),
         ]
     return "\n".join(lines)
+
+
+def _twin_verdicts(result: Check) -> str:
+    """The verdict a second DEM run gets (:func:`twin_rows`): what the law's is measured
+    against."""
+    if not result.twins:
+        return ""
+    judged = Check(result.twins, result.seed_sd, result.seed_pairs)
+    runs = judged.runs()
+    parts = []
+    for run in runs:
+        rows, ok = judged.of_run(run), judged.verdict(run)[0]
+        missed = [r.key for r in rows if not r.inside_widened]
+        parts.append(
+            f"{run}: {len(rows) - len(missed)}/{len(rows)}"
+            + (f" (missed {', '.join(missed)})" if missed else "")
+            + ("" if ok else ", not predicted")
+        )
+    good = sum(judged.verdict(run)[0] for run in runs)
+    return (
+        " A second DEM run judged the same way (each replicate with its twin's values and intervals taken as its "
+        f"prediction) is a prediction the verdict accepts on {good} of {len(runs)}: " + "; ".join(parts) + "."
+    )
 
 
 #: the correction forms :func:`alternatives` compares (the constant alone is the law's mean

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from coupling.files import writable_directory
+from coupling.forked import Prepared
 from coupling.jsonable import write_json
 from coupling.tables import write_table
 from dem.operating import operating_point
@@ -24,6 +25,7 @@ from workflows.config import load_config
 from workflows.prediction.design import Dynamics, point_dynamics, surrogate
 from workflows.prediction.library import load_model
 from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
+from workflows.report import PREDICTION_FIGURES
 from workflows.shipped import LIBRARY_MODEL
 
 
@@ -58,9 +60,13 @@ def run_predict(
     out: str | Path = "results/predict",
     extrapolate: bool = False,
     figures: bool = True,
+    drawer: Prepared | None = None,
 ) -> PredictOutput:
     """Predict the configuration at ``config_path`` from the library model ``library``
-    (default the shipped one) and write the files of the module docstring."""
+    (default the shipped one) and write the files of the module docstring. ``drawer``: a
+    process of :data:`workflows.report.PREDICTION_FIGURES` forked by the caller before its
+    own imports, which draws the figure and makes the page while this process writes the
+    rest; else they are made here."""
     started = time.perf_counter()
     config = load_config(config_path)
     library_path = Path(library) if library is not None else LIBRARY_MODEL
@@ -70,24 +76,20 @@ def run_predict(
     dynamics = point_dynamics(surrogate(model, extrapolate), point)
     folder = writable_directory(out, "--out")
     duration = config.dem.operation.duration_s
+    name = config.name or str(config_path)
+    if figures:
+        drawer = drawer or Prepared(PREDICTION_FIGURES, fork=False)
+        links = {"prediction.json": "prediction.json", "PBM table (HDF5)": "table.h5"}
+        drawer.start("draw", prediction, dynamics, name, folder / "prediction.png", links)
     files = {
         "prediction": write_json(
-            folder / "prediction.json",
-            prediction_record(prediction, dynamics, config.name or str(config_path), library_path),
+            folder / "prediction.json", prediction_record(prediction, dynamics, name, library_path)
         ),
         "table": write_table(folder / "table.h5", point_table(prediction.values, point, duration)),
     }
     if figures:
-        from workflows.report.prediction import plot_prediction, prediction_html
-
-        files["figure"] = plot_prediction(prediction, dynamics, folder / "prediction.png")
-        page = prediction_html(
-            prediction,
-            dynamics,
-            config.name or str(config_path),
-            files["figure"].name,
-            {"prediction.json": "prediction.json", "PBM table (HDF5)": "table.h5"},
-        )
+        page = drawer.result()
+        files["figure"] = folder / "prediction.png"
         files["report"] = folder / "report.html"
         files["report"].write_text(page)
     return PredictOutput(prediction, dynamics, files, time.perf_counter() - started)

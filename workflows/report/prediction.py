@@ -67,6 +67,13 @@ def plot_prediction(prediction: Prediction, dynamics: Dynamics, path: Path) -> P
     return path
 
 
+def draw(prediction: Prediction, dynamics: Dynamics, config_name: str, figure: Path, files: dict[str, str]) -> str:
+    """The figure written to ``figure`` (:func:`plot_prediction`) and the page that shows
+    it (:func:`prediction_html`): what ``predict``'s forked process runs."""
+    plot_prediction(prediction, dynamics, figure)
+    return prediction_html(prediction, dynamics, config_name, figure.name, files)
+
+
 def _number(value: float) -> str:
     return "-" if not math.isfinite(value) else f"{value:.4g}"
 

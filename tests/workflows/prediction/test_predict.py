@@ -489,3 +489,30 @@ def test_slices_without_a_predicted_holdup_are_left_as_they_are():
     assert scaled[1].low == pytest.approx(20.0 * math.exp(-half)) and scaled[1].high == pytest.approx(
         20.0 * math.exp(half)
     )
+
+
+def test_a_twin_run_is_judged_as_the_laws_prediction_is_its_values_and_intervals_taken_as_the_prediction():
+    from workflows.prediction.calibration import Check, SeedScatter, twin_rows
+
+    seeds = SeedScatter({"holdup": 0.01, "C_A": 0.001}, [("a.h5", "b.h5")], {"holdup": 2, "C_A": 2})
+    dem = {"holdup": Estimate(1000.0, 990.0, 1010.0), "C_A": Estimate(0.5, 0.49, 0.51), "other": Estimate(1, 0, 2)}
+    # inside when |twin - 1000| <= hypot(10, t(0.975, 2) * 0.01 * 1000) = 44.17
+    for value, inside in ((1044.0, True), (1045.0, False)):
+        twin = {"holdup": Estimate(value, value - 5, value + 5), "C_A": Estimate(0.5, 0.49, 0.51)}
+        rows = twin_rows("a.h5", dem, "b.h5", twin, seeds)
+        assert [r.key for r in rows] == ["holdup", "C_A"] and {r.run for r in rows} == {"a.h5 by b.h5"}
+        assert rows[0].inside_widened is inside and rows[1].inside_widened
+        assert (rows[0].value, rows[0].low, rows[0].high) == (value, value - 5, value + 5)
+        assert Check(tuple(rows), seeds.sd, tuple(seeds.pairs)).verdict("a.h5 by b.h5")[0] is inside
+
+
+def test_the_shipped_librarys_replicates_pass_the_verdict_the_law_is_judged_by():
+    from workflows.prediction.calibration import check
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    result = check(load_model(LIBRARY_MODEL))
+    judged = {r.run for r in result.twins}
+    assert len(judged) == 2 * len(result.seed_pairs) == 4
+    # a second DEM run at the point meets the verdict the law's prediction is held to
+    assert sum(r.inside_widened for r in result.twins) >= len(result.twins) - len(judged)
