@@ -27,6 +27,7 @@ STUDIES = (
     ("law", "workflows.studies.law"),
     ("suggest", "workflows.studies.suggest"),
     ("profile-forms", "workflows.studies.profile_forms"),
+    ("error-structure", "workflows.studies.error_structure"),
 )
 
 
