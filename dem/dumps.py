@@ -52,7 +52,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from coupling.errors import DumpFormatError
 from coupling.files import regular_file
@@ -305,6 +304,8 @@ def _parse_single(buf, size: int, path: Path, checked=None) -> Snapshot | None:
     # raises) or the row count would differ, and the general path takes over.
     if natoms == 0:
         return None
+    import pandas as pd  # here: a reader of results files, not dumps, need not import it
+
     try:
         frame = pd.read_csv(
             path, sep=" ", header=None, skiprows=header_lines, dtype=np.float64, engine="c", low_memory=False
@@ -561,6 +562,8 @@ def _parse_block(
         raise DumpFormatError(
             f"{path}: line {_line_of(buf, body_start)}: snapshot announces {natoms} atoms but has {nlines} lines"
         )
+    import pandas as pd  # here: a reader of results files, not dumps, need not import it
+
     try:
         frame = pd.read_csv(io.BytesIO(block), sep=" ", header=None, dtype=np.float64, engine="c", low_memory=False)
     except (ValueError, pd.errors.ParserError) as exc:

@@ -10,16 +10,28 @@ compiled with numba (:func:`_fb_kernel_python`, identical to 1e-10) 0.04 s, so n
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
 
-try:  # compiled kernels (module docstring); the numpy versions are the reference
-    import numba
-except ImportError:  # pragma: no cover - numba is a dependency; kept importable without it
-    numba = None
-
 from dem.phases.data import PhaseData
+
+#: numba is there to compile the kernels (module docstring); the numpy versions are the
+#: reference. It is imported when a kernel is first compiled, not with this module: a
+#: prediction reads the law's classes and never runs an E-step (``pbmdem predict``'s 2 s)
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+
+
+@functools.cache
+def _compiled(kernel):
+    """``kernel`` compiled by numba (cached on disk), or None without numba."""
+    if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency; kept importable without it
+        return None
+    import numba
+
+    return numba.njit(cache=True, nogil=True)(kernel)
 
 
 @dataclass(frozen=True)
@@ -52,7 +64,7 @@ def forward_backward(
     the numba kernel (default: when numba is there) or the vectorised numpy version (the
     reference it is tested against)."""
     if compiled is None:
-        compiled = numba is not None
+        compiled = HAVE_NUMBA
     if compiled:
         return _forward_backward_compiled(p, entry, data, k, backward)
     s, obs, active = data.n_cells, data.obs, data.active
@@ -171,15 +183,12 @@ def _fb_kernel_python(blocks, entry, flat, offsets, feeder, backward):
     return total, counts, entry_sums
 
 
-_fb_kernel = numba.njit(cache=True, nogil=True)(_fb_kernel_python) if numba is not None else None
-
-
 def _forward_backward_compiled(
     p: np.ndarray, entry: np.ndarray, data: PhaseData, k: int, backward: bool
 ) -> Expectations:
     s = data.n_cells
     blocks = _blocks(p, s, k)
-    log_likelihood, counts4, entry_sums = _fb_kernel(
+    log_likelihood, counts4, entry_sums = _compiled(_fb_kernel_python)(
         blocks, np.ascontiguousarray(entry, dtype=np.float64), data.flat, data.offsets, data.group, backward
     )
     if not np.isfinite(log_likelihood):
@@ -246,4 +255,6 @@ def _ck_counts_python(flat, offsets, start, last_dump, slice_of, lags, nx, s):
     return cell_counts, sums, n_squared, particles
 
 
-ck_counts = numba.njit(cache=True, nogil=True)(_ck_counts_python) if numba is not None else _ck_counts_python
+def ck_counts(*args):
+    """:func:`_ck_counts_python`, compiled by numba when it is there."""
+    return (_compiled(_ck_counts_python) or _ck_counts_python)(*args)

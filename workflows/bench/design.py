@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-file", default=str(OUT))
 
 
-def _fresh(code_or_args: list[str], repeats: int) -> tuple[list[float], list[float]]:
+def fresh(code_or_args: list[str], repeats: int) -> tuple[list[float], list[float]]:
     """(wall times [s], CPU times [s], user + system, of it and every process it forked)
     of ``python <args>`` in a fresh interpreter; raises on a failure. On a machine whose
     cores others are using the wall time grows and the CPU time much less: both are kept."""
@@ -121,10 +121,10 @@ def _stages() -> tuple[dict[str, float], int]:
 
 def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
-        command, command_cpu = _fresh(["-m", "workflows.cli", "design", *EXAMPLE, "--out", tmp], args.repeats)
+        command, command_cpu = fresh(["-m", "workflows.cli", "design", *EXAMPLE, "--out", tmp], args.repeats)
         process_cpu, figure_cpu = _split_cpu(tmp, args.repeats)
-    own, own_cpu = _fresh(["-c", "import workflows.products.design"], args.repeats)
-    floor, floor_cpu = _fresh(["-c", LIBRARIES], args.repeats)
+    own, own_cpu = fresh(["-c", "import workflows.products.design"], args.repeats)
+    floor, floor_cpu = fresh(["-c", LIBRARIES], args.repeats)
     stages, points = _stages()
     record = {
         "command": ["pbmdem", "design", *EXAMPLE],

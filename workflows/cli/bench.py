@@ -17,6 +17,7 @@ BENCHMARKS = (
     ("frequency", "workflows.bench.frequency", "Frequency response against the noise ensemble"),
     ("fill", "workflows.bench.fill", "What the fill law costs: table rates, the law with LSODA and BDF"),
     ("design", "workflows.bench.design", "Where the README's pbmdem design example spends its time"),
+    ("predict", "workflows.bench.predict", "What the README's pbmdem predict example costs from the shell"),
     ("dem-post", "workflows.bench.dem_post", "DEM dump reader and post-processing"),
     ("rates", "workflows.bench.rates", "Transfer-rate estimators on a known chain"),
     ("dem-deck", "workflows.bench.dem_deck", "DEM deck efficiency and core-hours"),

@@ -4,9 +4,11 @@
 ``prediction.json`` (one ``{key, value, low, high}`` per quantity of the comparison's
 agreement table, with the point, the domain and each interval's parts; under ``dynamics``
 the VRR of feeder A's white noise and the outlet's answer to feeder A's rate doubled, each
-with its interval, :func:`workflows.prediction.design.point_dynamics`), ``table.h5`` (the
-PBM's table at the point: ``pbmdem pbm run --tables`` runs it), ``prediction.png`` and
-``report.html``.
+with its interval, :func:`workflows.prediction.design.point_dynamics`; under ``rtd`` the
+predicted E(t) with its band), ``table.h5`` (the PBM's table at the point: ``pbmdem pbm run
+--tables`` runs it), and ``prediction.png`` and ``report.html``, made from the record
+``prediction.json`` holds by a process that imports matplotlib alone
+(:data:`workflows.report.PREDICTION_FIGURES`).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from coupling.jsonable import write_json
 from coupling.tables import write_table
 from dem.operating import operating_point
 from workflows.config import load_config
-from workflows.prediction.design import Dynamics, point_dynamics, surrogate
+from workflows.prediction.design import Dynamics, Noise, point_dynamics, surrogate
 from workflows.prediction.library import load_model
 from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
 from workflows.report import PREDICTION_FIGURES
@@ -37,7 +39,12 @@ class PredictOutput:
     wall_time_s: float
 
 
+#: the feeder noise whose VRR ``predict`` reports
+NOISE = Noise()
+
+
 def prediction_record(prediction: Prediction, dynamics: Dynamics, config_name: str, library: Path) -> dict[str, Any]:
+    """``prediction.json``'s content, from which the page and its figure are made too."""
     return {
         "config": config_name,
         "library": str(library),
@@ -51,6 +58,12 @@ def prediction_record(prediction: Prediction, dynamics: Dynamics, config_name: s
         "quantities": [q.record() for q in prediction.quantities],
         "interval_parts": {q.key: q.details() for q in prediction.quantities},
         "dynamics": dynamics.record(),
+        "noise": NOISE._asdict(),
+        # E(t) at the predicted mean residence time, and the envelope at its interval's ends
+        "rtd": {
+            "times_s": prediction.rtd_times_s.tolist(),
+            "density_per_s": dict(zip(("value", "low", "high"), (row.tolist() for row in prediction.rtd))),
+        },
     }
 
 
@@ -73,18 +86,16 @@ def run_predict(
     model = load_model(library_path)
     point = operating_point(config.dem)
     prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
-    dynamics = point_dynamics(surrogate(model, extrapolate), point)
+    dynamics = point_dynamics(surrogate(model, extrapolate), point, NOISE)
     folder = writable_directory(out, "--out")
-    duration = config.dem.operation.duration_s
-    name = config.name or str(config_path)
+    record = prediction_record(prediction, dynamics, config.name or str(config_path), library_path)
     if figures:
         drawer = drawer or Prepared(PREDICTION_FIGURES, fork=False)
         links = {"prediction.json": "prediction.json", "PBM table (HDF5)": "table.h5"}
-        drawer.start("draw", prediction, dynamics, name, folder / "prediction.png", links)
+        drawer.start("draw", record, folder / "prediction.png", links)
+    duration = config.dem.operation.duration_s
     files = {
-        "prediction": write_json(
-            folder / "prediction.json", prediction_record(prediction, dynamics, name, library_path)
-        ),
+        "prediction": write_json(folder / "prediction.json", record),
         "table": write_table(folder / "table.h5", point_table(prediction.values, point, duration)),
     }
     if figures:

@@ -1,22 +1,19 @@
-"""``pbmdem predict``'s page: the predicted RTD and hold-up profile with their bands, and
-every quantity with its 95 % prediction interval."""
+"""``pbmdem predict``'s page, made from its record (``prediction.json``): the predicted RTD
+and hold-up profile with their bands, the outlet's answer to a step in feeder A, and every
+quantity with its 95 % prediction interval. The process that draws it imports matplotlib
+and nothing of the prediction (:mod:`workflows.products.predict` forks it when it starts)."""
 
 from __future__ import annotations
 
 import html
 import math
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from workflows.prediction.covariates import AXIAL_SLICES
-from workflows.prediction.design import Dynamics, Noise
-from workflows.prediction.library import SCALAR_KEYS, slice_key
-from workflows.prediction.predict import Prediction
-
-#: the feeder noise whose VRR ``predict`` reports (:func:`workflows.prediction.design.point_dynamics`'s default)
-NOISE = Noise()
 LABELS = {
     "mean_residence_time_s": ("mean residence time (RTD)", "s"),
     "rtd_variance_s2": ("RTD variance", "s²"),
@@ -27,87 +24,97 @@ LABELS = {
     "rsd_outlet": ("outlet RSD", "-"),
     "lacey_outlet": ("outlet Lacey index", "-"),
 }
+#: the quantities the page's first line names
+HEADLINE = ("mean_residence_time_s", "rtd_variance_s2", "little_mean_residence_time_s", "holdup")
+SLICE = "holdup_slice_"
 
 
-def plot_prediction(prediction: Prediction, dynamics: Dynamics, path: Path) -> Path:
-    """Three panels: E(t) of the corrected chain with the band of its mean's interval, each
-    slice's hold-up with its prediction interval, and the outlet's answer to a step in
-    feeder A with its band."""
-    fig = Figure(figsize=(14, 4), layout="constrained")
+def _slices(record: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    rows = [q for q in record["quantities"] if q["key"].startswith(SLICE)]
+    return sorted(rows, key=lambda q: int(q["key"][len(SLICE) :]))
+
+
+def plot_prediction(record: Mapping[str, Any], path: str | Path) -> Path:
+    """Three panels of a prediction's record: E(t) of the corrected chain with the band of
+    its mean's interval, each slice's hold-up with its prediction interval, and the outlet's
+    answer to a step in feeder A with its band."""
+    fig = Figure(figsize=(14, 4))
+    # fixed margins: the constrained layout took 40 % of the drawing's time
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.13, top=0.92, wspace=0.22)
     left, right, step = fig.subplots(1, 3)
-    t = prediction.rtd_times_s
-    left.fill_between(
-        t, prediction.rtd[1], prediction.rtd[2], color="#9ecae1", label="at the ends of the mean's interval"
-    )
-    left.plot(t, prediction.rtd[0], color="#08519c", lw=1.5, label="the library's law, corrected")
-    mean = prediction.quantity("mean_residence_time_s")
-    left.axvspan(mean.low, mean.high, color="#fdae6b", alpha=0.4, label="mean: 95 % prediction interval")
-    left.axvline(mean.value, color="#e6550d", lw=1)
+    rtd = record["rtd"]
+    t, e = np.asarray(rtd["times_s"]), rtd["density_per_s"]
+    left.fill_between(t, e["low"], e["high"], color="#9ecae1", label="at the ends of the mean's interval")
+    left.plot(t, e["value"], color="#08519c", lw=1.5, label="the library's law, corrected")
+    mean = next(q for q in record["quantities"] if q["key"] == "mean_residence_time_s")
+    left.axvspan(mean["low"], mean["high"], color="#fdae6b", alpha=0.4, label="mean: 95 % prediction interval")
+    left.axvline(mean["value"], color="#e6550d", lw=1)
     left.set(xlabel="residence time [s]", ylabel="E(t) [1/s]", title="Residence time distribution")
-    left.legend(fontsize=8)
-    slices = [prediction.quantity(slice_key(i)) for i in range(AXIAL_SLICES)]
-    x = np.arange(1, AXIAL_SLICES + 1)
-    value = np.array([q.value for q in slices])
-    low, high = np.array([q.low for q in slices]), np.array([q.high for q in slices])
+    left.legend(fontsize=8, loc="upper right")
+    slices = _slices(record)
+    x = np.arange(1, len(slices) + 1)
+    value = np.array([q["value"] for q in slices])
+    low, high = np.array([q["low"] for q in slices]), np.array([q["high"] for q in slices])
     right.fill_between(x, low, high, color="#a1d99b", step="mid", label="95 % prediction interval")
     right.step(x, value, where="mid", color="#006d2c", lw=1.5, label="predicted")
     right.set(xlabel="axial slice (inlet to weir)", ylabel="steady hold-up [particles]", title="Hold-up profile")
     right.set_ylim(bottom=0)
-    right.legend(fontsize=8)
-    t = dynamics.times_s
-    step.fill_between(t, dynamics.step[1], dynamics.step[2], color="#bcbddc", label="95 % band")
-    step.plot(t, dynamics.step[0], color="#54278f", lw=1.5, label="predicted")
+    right.legend(fontsize=8, loc="lower right")
+    dynamics = record["dynamics"]
+    t, ca = np.asarray(dynamics["step_times_s"]), dynamics["step_ca"]
+    step.fill_between(t, ca["low"], ca["high"], color="#bcbddc", label="95 % band")
+    step.plot(t, ca["value"], color="#54278f", lw=1.5, label="predicted")
     step.set(
         xlabel="time after the step [s]",
         ylabel="outlet C_A",
-        title=f"Feeder A's rate x{dynamics.step_factor:g} at t = 0",
+        title=f"Feeder A's rate x{dynamics['step_factor_a']:g} at t = 0",
     )
-    step.legend(fontsize=8)
+    step.legend(fontsize=8, loc="lower right")
     fig.savefig(path, dpi=110)
-    return path
+    return Path(path)
 
 
-def draw(prediction: Prediction, dynamics: Dynamics, config_name: str, figure: Path, files: dict[str, str]) -> str:
-    """The figure written to ``figure`` (:func:`plot_prediction`) and the page that shows
-    it (:func:`prediction_html`): what ``predict``'s forked process runs."""
-    plot_prediction(prediction, dynamics, figure)
-    return prediction_html(prediction, dynamics, config_name, figure.name, files)
+def draw(record: Mapping[str, Any], figure: str | Path, files: dict[str, str]) -> str:
+    """The figure of ``record`` written to ``figure`` (:func:`plot_prediction`) and the
+    page that shows it (:func:`prediction_html`): what ``predict``'s forked process runs."""
+    plot_prediction(record, figure)
+    return prediction_html(record, Path(figure).name, files)
 
 
 def _number(value: float) -> str:
-    return "-" if not math.isfinite(value) else f"{value:.4g}"
+    return "-" if value is None or not math.isfinite(value) else f"{value:.4g}"
 
 
-def prediction_html(
-    prediction: Prediction, dynamics: Dynamics, config_name: str, figure: str | None, files: dict[str, str]
-) -> str:
-    p = prediction.point
+def prediction_html(record: Mapping[str, Any], figure: str | None, files: dict[str, str]) -> str:
+    """The page of a prediction's record, showing ``figure`` and linking ``files``."""
+    p = record["point"]
+    feed = p["feed_rate_a_per_s"] + p["feed_rate_b_per_s"]
+    config_name = str(record["config"])
+    quantities = {q["key"]: q for q in record["quantities"]}
     rows = []
-    for q in prediction.quantities:
-        label, unit = LABELS.get(q.key, (f"hold-up of slice {q.key.rsplit('_', 1)[-1]}", "particles"))
+    for q in record["quantities"]:
+        label, unit = LABELS.get(q["key"], (f"hold-up of slice {q['key'][len(SLICE) :]}", "particles"))
         rows.append(
-            f"<tr><td>{html.escape(label)}</td><td><code>{q.key}</code></td><td>{_number(q.value)}</td>"
-            f"<td>[{_number(q.low)}, {_number(q.high)}]</td><td>{html.escape(unit)}</td></tr>"
+            f"<tr><td>{html.escape(label)}</td><td><code>{q['key']}</code></td><td>{_number(q['value'])}</td>"
+            f"<td>[{_number(q['low'])}, {_number(q['high'])}]</td><td>{html.escape(unit)}</td></tr>"
         )
-    for label, key, band, unit in (
-        (f"VRR of feeder {NOISE.feeder}'s white noise ({NOISE.band_hz:g} Hz band)", "dynamics.vrr", dynamics.vrr, "-"),
-        (
-            f"mean delay after feeder A's rate x{dynamics.step_factor:g}",
-            "dynamics.mean_delay_s",
-            dynamics.mean_delay_s,
-            "s",
-        ),
+    dynamics, noise = record["dynamics"], record["noise"]
+    for label, key, unit in (
+        (f"VRR of feeder {noise['feeder']}'s white noise ({noise['band_hz']:g} Hz band)", "vrr", "-"),
+        (f"mean delay after feeder A's rate x{dynamics['step_factor_a']:g}", "mean_delay_s", "s"),
     ):
+        band = dynamics[key]
         rows.append(
-            f"<tr><td>{html.escape(label)}</td><td><code>{key}</code></td><td>{_number(band.value)}</td>"
-            f"<td>[{_number(band.low)}, {_number(band.high)}]</td><td>{unit}</td></tr>"
+            f"<tr><td>{html.escape(label)}</td><td><code>dynamics.{key}</code></td><td>{_number(band['value'])}</td>"
+            f"<td>[{_number(band['low'])}, {_number(band['high'])}]</td><td>{unit}</td></tr>"
         )
     warning = ""
-    if prediction.extrapolated:
+    if record["extrapolated"]:
+        widening = next(iter(record["interval_parts"].values()))["widening"]
         warning = (
             '<p class="warn"><b>Extrapolated:</b> '
-            + html.escape("; ".join(prediction.outside))
-            + f". The intervals are widened {prediction.quantities[0].widening:.2f}x, at least to a share of the "
+            + html.escape("; ".join(record["outside_domain"]))
+            + f". The intervals are widened {widening:.2f}x, at least to a share of the "
             "errors of the library's end runs predicted without them.</p>"
         )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
@@ -118,21 +125,22 @@ def prediction_html(
         else ""
     )
     headline = ", ".join(
-        f"{LABELS[k][0]} {_number(prediction.quantity(k).value)} {LABELS[k][1]}" for k in SCALAR_KEYS[:4]
+        f"{LABELS[k][0]} {_number(quantities[k]['value'])} {LABELS[k][1]}" for k in HEADLINE if k in quantities
     )
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>Prediction: {html.escape(config_name)}</title>
 <style>body{{font-family:sans-serif;max-width:960px;margin:2em auto}}td,th{{padding:2px 8px;text-align:left}}
 .warn{{background:#fee;padding:6px}}</style></head><body>
 <h1>Prediction without DEM: {html.escape(config_name)}</h1>
-<p>{p.impeller_rpm:g} rpm, total feed {p.feed_rate_total_per_s:g} particles/s, length {p.length_m:g} m.
+<p>{p["impeller_rpm"]:g} rpm, total feed {feed:g} particles/s, length {p["length_m"]:g} m.
 From the library's law (no DEM run at this point): {html.escape(headline)}.</p>
 {warning}
-<p>Library domain: {html.escape(prediction.domain.describe())}.</p>
+<p>Library domain: {html.escape(record["domain"])}.</p>
 {image}
 <h2>Every quantity with its 95 % prediction interval</h2>
 <p>Each value is the library's law corrected by what it misses at the library's runs (a least-squares line
-over the operating point). The interval is where a DEM run at this point would put its value, 95 % of the
+over the operating point); each slice's hold-up comes from the zone law of the bed, scaled so that the
+slices hold the predicted hold-up. The interval is where a DEM run at this point would put its value, 95 % of the
 time: the scatter of the DEM about that line (seeds included) and the line's own uncertainty at this point,
 which grows away from the runs; checked on every library run left out (<code>calibration.md</code> beside
 the library). The VRR and the step's mean delay are those of the predicted chain, whose time scale alone

@@ -6,17 +6,17 @@ import json
 
 import pytest
 
-from workflows.bench.design import _fresh
+from workflows.bench.design import fresh
 from workflows.cli.main import main
 
 
 def test_a_fresh_interpreter_is_timed_and_a_failure_named():
-    times, cpus = _fresh(["-c", "pass"], 2)
+    times, cpus = fresh(["-c", "pass"], 2)
     assert len(times) == len(cpus) == 2 and all(t > 0 for t in times) and all(c > 0 for c in cpus)
     # exit code 1 is the design command's "met nowhere": an answer, still timed
-    assert len(_fresh(["-c", "raise SystemExit(1)"], 1)[0]) == 1
+    assert len(fresh(["-c", "raise SystemExit(1)"], 1)[0]) == 1
     with pytest.raises(RuntimeError, match=r"failed \(3\): .*no such spec"):
-        _fresh(["-c", "import sys; sys.stderr.write('no such spec'); raise SystemExit(3)"], 1)
+        fresh(["-c", "import sys; sys.stderr.write('no such spec'); raise SystemExit(3)"], 1)
 
 
 def test_one_repeat_end_to_end(tmp_path):

@@ -3,8 +3,11 @@ iterations: the files, the refusals and the round trip, not the law's accuracy).
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from coupling.tables import read_table
@@ -54,6 +57,27 @@ def test_predict_writes_every_quantity_a_table_and_a_page(library, tmp_path, cap
     mrt = next(q for q in record["quantities"] if q["key"] == "mean_residence_time_s")
     delay = dynamics["mean_delay_s"]
     assert delay["high"] / delay["value"] == pytest.approx(mrt["high"] / mrt["value"], rel=2e-2)
+    # the predicted RTD is a density whose mean is the predicted one, inside its band
+    rtd = record["rtd"]
+    t, e = np.array(rtd["times_s"]), rtd["density_per_s"]
+    assert np.all(np.array(e["low"]) <= np.array(e["value"]) + 1e-12)
+    assert np.all(np.array(e["value"]) <= np.array(e["high"]) + 1e-12)
+    assert np.trapezoid(np.array(e["value"]) * t, t) == pytest.approx(mrt["value"], rel=0.03)
+    # the page is made from prediction.json alone, as the forked process makes it
+    from workflows.report.prediction import draw
+
+    links = {"prediction.json": "prediction.json", "PBM table (HDF5)": "table.h5"}
+    assert draw(record, tmp_path / "again.png", links).replace("again.png", "prediction.png") == page
+
+
+def test_the_predict_page_draws_without_the_prediction_code():
+    """The process ``predict`` forks to draw its page imports matplotlib alone, so it is
+    ready before the prediction is."""
+    code = (
+        "import sys, workflows.report.prediction; "
+        "assert not [m for m in sys.modules if m.startswith(('workflows.prediction', 'dem.', 'pbm.'))]"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
 
 
 def test_a_point_outside_the_domain_is_refused_in_one_line_and_labelled_when_extrapolated(library, tmp_path, capsys):
