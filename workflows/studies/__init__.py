@@ -7,7 +7,7 @@ from pathlib import Path
 
 from coupling.errors import ConfigError
 from coupling.files import distinct_inputs
-from workflows.shipped import REDUCED_RUN, VALIDATION_DIR
+from workflows.shipped import LIBRARY_MODEL, REDUCED_RUN, VALIDATION_DIR
 
 
 def add_runs_arguments(parser: argparse.ArgumentParser, needs: str, out: str) -> None:
@@ -22,6 +22,24 @@ def add_runs_arguments(parser: argparse.ArgumentParser, needs: str, out: str) ->
         help=f"DEM results files with {needs} (default: the shipped reduced run and the validation campaign)",
     )
     parser.add_argument("--out", default=out, help="output folder (default: %(default)s)")
+
+
+def add_library_arguments(parser: argparse.ArgumentParser, out: Path) -> None:
+    """``--library`` (a library model, by default the shipped one) and ``--out``, for a
+    study of a library's law."""
+    parser.add_argument("--library", default=str(LIBRARY_MODEL), help="a library model (default: the shipped one)")
+    parser.add_argument("--out", default=str(out), help=f"output folder (default: {out})")
+
+
+def calibrated_library(path: str | Path):
+    """The library model at ``path``, refused (ConfigError naming it) without the
+    calibration every study of its law reads."""
+    from workflows.prediction.library import load_model
+
+    model = load_model(path)
+    if model.calibration is None:
+        raise ConfigError(f"{path}: the library model has no calibration; make it with `pbmdem library fit`")
+    return model
 
 
 def distinct_runs(paths: Iterable[str | Path], what: str = "--results") -> list[Path]:

@@ -26,14 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from coupling.errors import ConfigError
 from coupling.files import writable_directory
 from coupling.jsonable import write_json
 from workflows.prediction.calibration import check
 from workflows.prediction.covariates import run_covariates
-from workflows.prediction.library import LibraryModel, load_model, quantity_keys
+from workflows.prediction.library import LibraryModel, quantity_keys
 from workflows.prediction.predict import DOMAIN_AXES, residual
-from workflows.shipped import LIBRARY_MODEL
+from workflows.studies import add_library_arguments, calibrated_library
 
 HELP = "whether the law's errors, every run left out, follow the operating point (kriged from the other runs)"
 OUT = Path("results/error-structure")
@@ -138,14 +137,11 @@ def markdown(table: dict[str, dict], bias: dict[str, tuple[float, float]], libra
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--library", default=str(LIBRARY_MODEL), help="a library model (default: the shipped one)")
-    parser.add_argument("--out", default=str(OUT), help=f"output folder (default: {OUT})")
+    add_library_arguments(parser, OUT)
 
 
 def run(args: argparse.Namespace) -> int:
-    model = load_model(args.library)
-    if model.calibration is None:
-        raise ConfigError(f"{args.library}: the library model has no calibration; make it with `pbmdem library fit`")
+    model = calibrated_library(args.library)
     table = error_table(model)
     bias = slice_bias(model, table)
     text = markdown(table, bias, os.path.relpath(args.library), model.runs)

@@ -21,13 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from coupling.errors import ConfigError
 from coupling.files import writable_directory
 from coupling.jsonable import write_json
 from workflows.prediction.calibration import slice_holdups
-from workflows.prediction.library import LibraryModel, load_model
+from workflows.prediction.library import LibraryModel
 from workflows.prediction.profile import fit_profile, refit
-from workflows.shipped import LIBRARY_MODEL
+from workflows.studies import add_library_arguments, calibrated_library
 
 HELP = "the slices' zone law with swept zones of their own at other stations, every run left out"
 OUT = Path("results/profile-forms")
@@ -101,14 +100,11 @@ def markdown(rows: list[FormCheck], library: str) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--library", default=str(LIBRARY_MODEL), help="a library model (default: the shipped one)")
-    parser.add_argument("--out", default=str(OUT), help=f"output folder (default: {OUT})")
+    add_library_arguments(parser, OUT)
 
 
 def run(args: argparse.Namespace) -> int:
-    model = load_model(args.library)
-    if model.calibration is None:
-        raise ConfigError(f"{args.library}: the library model has no calibration; make it with `pbmdem library fit`")
+    model = calibrated_library(args.library)
     rows = [form_check(model, form) for form in FORMS]
     text = markdown(rows, os.path.relpath(args.library))
     print(text)
