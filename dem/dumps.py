@@ -304,7 +304,7 @@ def _parse_single(buf, size: int, path: Path, checked=None) -> Snapshot | None:
     # raises) or the row count would differ, and the general path takes over.
     if natoms == 0:
         return None
-    import pandas as pd  # here: a reader of results files, not dumps, need not import it
+    import pandas as pd  # here, not with the module: what reads results files never needs it
 
     try:
         frame = pd.read_csv(
@@ -562,7 +562,7 @@ def _parse_block(
         raise DumpFormatError(
             f"{path}: line {_line_of(buf, body_start)}: snapshot announces {natoms} atoms but has {nlines} lines"
         )
-    import pandas as pd  # here: a reader of results files, not dumps, need not import it
+    import pandas as pd  # here, not with the module: what reads results files never needs it
 
     try:
         frame = pd.read_csv(io.BytesIO(block), sep=" ", header=None, dtype=np.float64, engine="c", low_memory=False)

@@ -11,26 +11,23 @@ compiled with numba (:func:`_fb_kernel_python`, identical to 1e-10) 0.04 s, so n
 from __future__ import annotations
 
 import functools
-import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
 
 from dem.phases.data import PhaseData
 
-#: numba is there to compile the kernels (module docstring); the numpy versions are the
-#: reference. It is imported when a kernel is first compiled, not with this module: a
-#: prediction reads the law's classes and never runs an E-step (``pbmdem predict``'s 2 s)
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
-
 
 @functools.cache
 def _compiled(kernel):
-    """``kernel`` compiled by numba (cached on disk), or None without numba."""
-    if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency; kept importable without it
+    """``kernel`` compiled by numba (cached on disk), or None without numba: the numpy
+    versions are the reference (module docstring). numba is imported when a kernel is
+    first wanted, not with this module: a prediction reads the law's classes and never runs
+    an E-step (``pbmdem predict``'s 2 s)."""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency; kept importable without it
         return None
-    import numba
-
     return numba.njit(cache=True, nogil=True)(kernel)
 
 
@@ -64,7 +61,7 @@ def forward_backward(
     the numba kernel (default: when numba is there) or the vectorised numpy version (the
     reference it is tested against)."""
     if compiled is None:
-        compiled = HAVE_NUMBA
+        compiled = _compiled(_fb_kernel_python) is not None
     if compiled:
         return _forward_backward_compiled(p, entry, data, k, backward)
     s, obs, active = data.n_cells, data.obs, data.active

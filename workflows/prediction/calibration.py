@@ -93,11 +93,15 @@ class Sources:
     """A library calibrated from each source :func:`calibrated` chooses between:
     ``chosen`` the one it keeps; ``fitted`` and ``timed`` the library with its slices from
     the zone law and its other quantities from the law's chain as fitted and timed by the
-    zone law (both None where the library has no zone law or its slices keep the lines)."""
+    zone law (both None where the library has no zone law or its slices keep the lines);
+    ``zone`` and ``lines`` the two its slices were chosen between, the zone law on the
+    chosen chain and the lines on the chain as fitted (both None without a zone law)."""
 
     chosen: LibraryModel
     fitted: LibraryModel | None = None
     timed: LibraryModel | None = None
+    zone: LibraryModel | None = None
+    lines: LibraryModel | None = None
 
 
 def calibrated(model: LibraryModel, covariates: Sequence[str] | None = None) -> LibraryModel:
@@ -126,12 +130,14 @@ def sources(model: LibraryModel, covariates: Sequence[str] | None = None) -> Sou
     timed_model = _timed_model(model, whole, left)
     by_timed, by_chain = chain_scores(timed_model, model)
     chain = timed_model if by_timed < by_chain else model
-    # the slices are scaled to the chosen chain's hold-up (predict.held_in_total): judged
-    # on it; a tie (neither bounds a slice both can) keeps the lines
-    zone_law, lines = slice_scores(chain)
-    if not zone_law < lines:
-        return Sources(without_profile(model))
-    return Sources(chain, model, timed_model)
+    # each source judged as it would be shipped: the zone law's slices scaled to the chosen
+    # chain's hold-up (predict.held_in_total), the lines' to the chain as fitted's (a timed
+    # chain needs the zone law); a tie (neither bounds a slice both can) keeps the lines
+    lines = without_profile(model)
+    by_zone, by_lines = slice_scores(chain, lines)
+    if not by_zone < by_lines:
+        return Sources(lines, zone=chain, lines=lines)
+    return Sources(chain, model, timed_model, chain, lines)
 
 
 def _chains(model: LibraryModel) -> tuple[list[PointValues], list[list[PointValues]]]:
@@ -214,15 +220,15 @@ def _scores(a: LibraryModel, b: LibraryModel, keep) -> tuple[float, float]:
     return interval_score([first[k] for k in both]), interval_score([second[k] for k in both])
 
 
-def slice_scores(model: LibraryModel) -> tuple[float, float]:
-    """(the slices' zone law, the correction's lines): the interval score
-    (:func:`interval_score`) of every run's slices predicted without it by each. The
+def slice_scores(zone: LibraryModel, lines: LibraryModel) -> tuple[float, float]:
+    """(the slices' zone law of ``zone``, the correction's lines of ``lines``): the interval
+    score (:func:`interval_score`) of every run's slices predicted without it by each. The
     slices take the lower (:func:`calibrated`): the zone law carries what one blender
     shows of the bed to another, the lines follow each slice alone, which only a library of
     one blade layout supports."""
-    if model.calibration.profile is None:
+    if zone.calibration.profile is None:
         raise ConfigError("the library model has no slice zone law to score")
-    return _scores(model, without_profile(model), lambda key: _slice_of(key, "holdup_slice"))
+    return _scores(zone, lines, lambda key: _slice_of(key, "holdup_slice"))
 
 
 def chain_scores(timed_model: LibraryModel, chain_model: LibraryModel) -> tuple[float, float]:
@@ -316,11 +322,11 @@ def twin_rows(judged: str, dem: dict, by: str, twin: dict, scatter: SeedScatter)
     ]
 
 
-def seed_scatter(model: LibraryModel) -> SeedScatter:
+def seed_scatter(model: LibraryModel, leave: tuple[int, int] | None = None) -> SeedScatter:
     """Per quantity, the DEM's standard deviation between seeds on the quantity's scale,
     from every pair of library runs at one operating point (half the mean square of their
-    differences); and the pairs. Empty without a pair."""
-    pairs = replicate_pairs(model)
+    differences) but the pair ``leave``; and the pairs. Empty without a pair."""
+    pairs = [pair for pair in replicate_pairs(model) if pair != leave]
     sd, dof = {}, {}
     for key in quantity_keys():
         diffs = []
@@ -483,11 +489,16 @@ def check(model: LibraryModel) -> Check:
                     dof.get(key, 0),
                 )
             )
-    seeds = SeedScatter(scatter, pairs, dof)
     twins = []
     for a, b in replicate_pairs(model):
+        # the pair's own difference left out of the scatter it is judged by: with it, a
+        # pair of two or three could not fail (its difference is at most sqrt(2 n) sd,
+        # under t(0.975, n) sd)
+        others = seed_scatter(model, leave=(a, b))
+        if not others.pairs:
+            continue
         for judged, by in ((model.runs[a], model.runs[b]), (model.runs[b], model.runs[a])):
-            twins += twin_rows(judged.file, judged.dem, by.file, by.dem, seeds)
+            twins += twin_rows(judged.file, judged.dem, by.file, by.dem, others)
     return Check(tuple(rows), scatter, tuple(pairs), twins=tuple(twins))
 
 
@@ -626,7 +637,8 @@ def _twin_verdicts(result: Check) -> str:
     good = sum(judged.verdict(run)[0] for run in runs)
     return (
         " A second DEM run judged the same way (each replicate with its twin's values and intervals taken as its "
-        f"prediction) is a prediction the verdict accepts on {good} of {len(runs)}: " + "; ".join(parts) + "."
+        "prediction; a library pair judged by the scatter of the other pairs, a run the library does not hold by "
+        f"every pair's) is a prediction the verdict accepts on {good} of {len(runs)}: " + "; ".join(parts) + "."
     )
 
 
@@ -699,23 +711,23 @@ def _source_rows(
     return rows
 
 
-def slice_sources(model: LibraryModel) -> str:
+def slice_sources(found: Sources) -> str:
     """A markdown table of the slices' hold-ups checked like :func:`check` from each
-    source (:func:`slice_scores`): the zone law and the correction's lines, and which the
-    library's predictions take."""
-    chosen = model.calibration.profile is not None
-    sources = [("a correction line per slice", without_profile(model), not chosen)]
-    profile, left = (model.calibration.profile, model.calibration.profile_left_out)
-    if profile is None:
-        profile, left = slice_profiles(model)
-    if profile is not None:
-        zone = replace(model, calibration=replace(model.calibration, profile=profile, profile_left_out=left))
-        sources.insert(0, ("the zone law of the bed (`workflows/prediction/profile.py`)", zone, chosen))
+    source :func:`calibrated` chose between (:func:`slice_scores`): the zone law and the
+    correction's lines, and which the library's predictions take."""
+    if found.zone is None or found.lines is None:
+        sources = [("a correction line per slice", found.chosen, True)]
+    else:
+        zone_chosen = found.chosen is found.zone
+        sources = [
+            ("the zone law of the bed (`workflows/prediction/profile.py`)", found.zone, zone_chosen),
+            ("a correction line per slice", found.lines, not zone_chosen),
+        ]
     rows = _source_rows("slices from", sources, lambda key: _slice_of(key, "holdup_slice"), ["holdup_slice"])
     return (
-        "## The slices' hold-ups\n\nEvery run's slices predicted without it, from each source; the predictions "
-        "take the one of the lower interval score (the mean width of the 95 % intervals on the log scale plus 40 "
-        "times any miss).\n\n" + "\n".join(rows)
+        "## The slices' hold-ups\n\nEvery run's slices predicted without it, from each source, scaled to the "
+        "predicted hold-up; the predictions take the one of the lower interval score (the mean width of the 95 % "
+        "intervals on the log scale plus 40 times any miss).\n\n" + "\n".join(rows)
     )
 
 

@@ -694,18 +694,21 @@ def held_in_total(quantities: Sequence[PredictedQuantity]) -> tuple[PredictedQua
     keys = [slice_key(i) for i in range(AXIAL_SLICES)]
     if "holdup" not in by_key or not all(k in by_key for k in keys):
         return tuple(quantities)
-    held = sum(by_key[k].value for k in keys)
-    if not (held > 0 and math.isfinite(held)):
+    held, total = sum(by_key[k].value for k in keys), by_key["holdup"]
+    if not (held > 0 and math.isfinite(held) and total.value > 0 and math.isfinite(total.value)):
         return tuple(quantities)
-    total = by_key["holdup"]
     scale = total.value / held
-    spread = math.log(total.high / total.low) / 2 if total.low > 0 else math.nan
+    # without an interval of the hold-up (a line without a degree of freedom) a slice keeps
+    # its own
+    spread = math.log(total.high / total.low) / 2 if total.low > 0 and total.high > 0 else 0.0
+    spread = spread if math.isfinite(spread) else 0.0
 
     def moved(q: PredictedQuantity) -> PredictedQuantity:
-        value = q.value * scale
-        half = math.hypot(math.log(q.high / q.low) / 2, spread) if q.low > 0 else math.nan
-        low, high = value * math.exp(-half), value * math.exp(half)
-        return replace(q, value=value, low=low, high=high, shift=q.shift + math.log(scale))
+        value, shift = q.value * scale, q.shift + math.log(scale)
+        if not (q.low > 0 and q.high > 0):  # an empty slice, or no interval: scaled as it is
+            return replace(q, value=value, low=q.low * scale, high=q.high * scale, shift=shift)
+        half = math.hypot(math.log(q.high / q.low) / 2, spread)
+        return replace(q, value=value, low=value * math.exp(-half), high=value * math.exp(half), shift=shift)
 
     return tuple(moved(q) if q.key in keys else q for q in quantities)
 

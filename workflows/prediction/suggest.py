@@ -15,8 +15,7 @@ zone law of its bed (:mod:`workflows.prediction.profile`, ``calibration.profile`
 in place of their lines (:func:`profile_half_widths`). Slice i's half-width at a point is
 then t(0.975, d_i) sqrt(s_i^2 + g_i' C g_i): g_i the gradient of its log hold-up in the
 law's coefficients there, C = (J'WJ)^-1 their covariance, W = diag(1 / s_i^2), d_i the
-slice's degrees of freedom (its observations less their leverage), in quadrature with the
-hold-up's (the slices are scaled to the predicted hold-up). A run at c whose
+slice's degrees of freedom (its observations less their leverage). A run at c whose
 slices lie on the law leaves the coefficients where they are and adds its information:
 C becomes (J'WJ + G_c'W G_c)^-1, G_c the gradients of its slices
 (:meth:`~workflows.prediction.profile.ProfileLaw.covariance_after`); s_i is expected to
@@ -26,7 +25,9 @@ one per slice, while how they share among the slices needs the refit itself (the
 of synthetic slices in tests/workflows/prediction/test_suggest.py put each slice's growth
 between 0.8 and 1.1). Counting only the new observation's own 1 - h_i instead would leave
 out the leverage it takes off the runs before it, and so cut the gain most where the run
-teaches the law most.
+teaches the law most. Whatever their source, ``predict`` scales the slices to the predicted
+hold-up, so each slice's half-width is then taken with the hold-up's interval in
+quadrature (:func:`~workflows.prediction.predict.held_in_total`), now and after the run.
 
 The rule is I-optimal: per quantity the mean over the region's points of the squared
 half-width, divided by the square of the quantity's target half-width
@@ -504,11 +505,15 @@ class Candidate:
     point: OperatingPoint
 
 
-def _with_total(half: np.ndarray, widths: dict[str, np.ndarray]) -> np.ndarray:
-    """A slice's half-width ``half`` with the hold-up's of ``widths`` in quadrature, as
+def _with_total(half: np.ndarray, total: np.ndarray | None) -> np.ndarray:
+    """A slice's half-width ``half`` with the hold-up's ``total`` in quadrature, as
     ``pbmdem predict`` gives it; alone without a hold-up interval."""
-    total = widths.get("holdup")
     return half if total is None else np.hypot(half, total)
+
+
+def _is_slice(key: str) -> bool:
+    head, _, tail = key.rpartition("_")
+    return head == "holdup_slice" and tail.isdigit()
 
 
 def rank(
@@ -560,13 +565,21 @@ def rank(
             ranked_after[q.key] = np.sqrt(pure * after[q.key] ** 2 + _t(line.dof + 1) ** 2 * bias[1])
     if profile is not None:
         # no bias term: the zone law's scatter is measured about a law that carries the
-        # bed from blender to blender, and chosen over the lines on runs left out. The
-        # slices are scaled to the predicted hold-up, its half-width in quadrature with
-        # theirs (predict.held_in_total)
+        # bed from blender to blender, and chosen over the lines on runs left out
         halves = profile_half_widths(profile, region_points, [c.point for c in candidates], pattern or None)
         for key, h_now, h_after in zip(zoned, *halves):
-            now[key], after[key] = _with_total(h_now, now), _with_total(h_after, after)
-            ranked_now[key], ranked_after[key] = _with_total(h_now, ranked_now), _with_total(h_after, ranked_after)
+            now[key] = ranked_now[key] = h_now
+            after[key] = ranked_after[key] = h_after
+    # whatever their source, the slices are scaled to the predicted hold-up, its interval's
+    # half-width in quadrature with theirs (predict.held_in_total): the hold-up's interval,
+    # not its bias term, which is the ranking's own
+    total_now, total_after = now.get("holdup"), after.get("holdup")
+    for key in [k for k in now if _is_slice(k)]:
+        now[key], ranked_now[key] = _with_total(now[key], total_now), _with_total(ranked_now[key], total_now)
+        after[key], ranked_after[key] = (
+            _with_total(after[key], total_after),
+            _with_total(ranked_after[key], total_after),
+        )
     gains = [()] * len(candidates)
     widest = max((q.usable() for q in quantities), key=lambda q: len(q.points))
     line = fit_correction(widest.points, widest.residuals, names, pattern)

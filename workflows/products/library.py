@@ -86,7 +86,7 @@ def library_fit(
         + "\n\n"
         + calibration.alternatives(model)
         + "\n\n"
-        + calibration.slice_sources(model)
+        + calibration.slice_sources(found)
         + "\n"
         + "".join(f"\n{table}\n" for table in [calibration.chain_sources(found)] if table),
         "library page",
@@ -279,7 +279,8 @@ def _suggest_markdown(ranked: list[Suggestion], base: str, mean: float, duration
         "target)^2, averaged over the targets (mean residence time 4 %, hold-up 4 %, RTD variance 15 %, each "
         "slice's hold-up 8 %), each squared half-width with t^2 times the line's expected squared bias under a "
         "curvature it cannot follow (from the spread beyond the seed scatter; `workflows/prediction/suggest.py`), "
-        "the slices' from the zone law of the bed where the library has one, without that bias; "
+        "the slices' from the zone law of the bed where the library has one, without that bias, each with the "
+        "hold-up's interval in quadrature (the slices are scaled to the predicted hold-up); "
         f"now {best.criterion_now:.3g}.",
         "",
         f"Suggested run: {best.speed:.4g} rpm, {best.length:.4g} m, {best.feed:.4g} particles/s"

@@ -29,6 +29,11 @@ HEADLINE = ("mean_residence_time_s", "rtd_variance_s2", "little_mean_residence_t
 SLICE = "holdup_slice_"
 
 
+def _floats(values) -> np.ndarray:
+    """``values`` as floats, a null (NaN written to JSON) as NaN."""
+    return np.array([math.nan if v is None else v for v in values], dtype=float)
+
+
 def _slices(record: Mapping[str, Any]) -> list[Mapping[str, Any]]:
     rows = [q for q in record["quantities"] if q["key"].startswith(SLICE)]
     return sorted(rows, key=lambda q: int(q["key"][len(SLICE) :]))
@@ -43,27 +48,34 @@ def plot_prediction(record: Mapping[str, Any], path: str | Path) -> Path:
     fig.subplots_adjust(left=0.05, right=0.99, bottom=0.13, top=0.92, wspace=0.22)
     left, right, step = fig.subplots(1, 3)
     rtd = record["rtd"]
-    t, e = np.asarray(rtd["times_s"]), rtd["density_per_s"]
-    left.fill_between(t, e["low"], e["high"], color="#9ecae1", label="at the ends of the mean's interval")
-    left.plot(t, e["value"], color="#08519c", lw=1.5, label="the library's law, corrected")
-    mean = next(q for q in record["quantities"] if q["key"] == "mean_residence_time_s")
-    left.axvspan(mean["low"], mean["high"], color="#fdae6b", alpha=0.4, label="mean: 95 % prediction interval")
-    left.axvline(mean["value"], color="#e6550d", lw=1)
+    t, e = _floats(rtd["times_s"]), rtd["density_per_s"]
+    left.fill_between(
+        t, _floats(e["low"]), _floats(e["high"]), color="#9ecae1", label="at the ends of the mean's interval"
+    )
+    left.plot(t, _floats(e["value"]), color="#08519c", lw=1.5, label="the library's law, corrected")
+    mean = _floats(
+        next(
+            ([q["value"], q["low"], q["high"]] for q in record["quantities"] if q["key"] == "mean_residence_time_s"), []
+        )
+    )
+    if mean.size and np.all(np.isfinite(mean)):
+        left.axvspan(mean[1], mean[2], color="#fdae6b", alpha=0.4, label="mean: 95 % prediction interval")
+        left.axvline(mean[0], color="#e6550d", lw=1)
     left.set(xlabel="residence time [s]", ylabel="E(t) [1/s]", title="Residence time distribution")
     left.legend(fontsize=8, loc="upper right")
     slices = _slices(record)
     x = np.arange(1, len(slices) + 1)
-    value = np.array([q["value"] for q in slices])
-    low, high = np.array([q["low"] for q in slices]), np.array([q["high"] for q in slices])
+    value = _floats(q["value"] for q in slices)
+    low, high = _floats(q["low"] for q in slices), _floats(q["high"] for q in slices)
     right.fill_between(x, low, high, color="#a1d99b", step="mid", label="95 % prediction interval")
     right.step(x, value, where="mid", color="#006d2c", lw=1.5, label="predicted")
     right.set(xlabel="axial slice (inlet to weir)", ylabel="steady hold-up [particles]", title="Hold-up profile")
     right.set_ylim(bottom=0)
     right.legend(fontsize=8, loc="lower right")
     dynamics = record["dynamics"]
-    t, ca = np.asarray(dynamics["step_times_s"]), dynamics["step_ca"]
-    step.fill_between(t, ca["low"], ca["high"], color="#bcbddc", label="95 % band")
-    step.plot(t, ca["value"], color="#54278f", lw=1.5, label="predicted")
+    t, ca = _floats(dynamics["step_times_s"]), dynamics["step_ca"]
+    step.fill_between(t, _floats(ca["low"]), _floats(ca["high"]), color="#bcbddc", label="95 % band")
+    step.plot(t, _floats(ca["value"]), color="#54278f", lw=1.5, label="predicted")
     step.set(
         xlabel="time after the step [s]",
         ylabel="outlet C_A",
@@ -110,11 +122,12 @@ def prediction_html(record: Mapping[str, Any], figure: str | None, files: dict[s
         )
     warning = ""
     if record["extrapolated"]:
-        widening = next(iter(record["interval_parts"].values()))["widening"]
+        widening = next((part.get("widening") for part in record["interval_parts"].values()), None)
+        widened = f"widened {widening:.2f}x" if isinstance(widening, (int, float)) else "widened"
         warning = (
             '<p class="warn"><b>Extrapolated:</b> '
             + html.escape("; ".join(record["outside_domain"]))
-            + f". The intervals are widened {widening:.2f}x, at least to a share of the "
+            + f". The intervals are {widened}, at least to a share of the "
             "errors of the library's end runs predicted without them.</p>"
         )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
@@ -139,10 +152,10 @@ From the library's law (no DEM run at this point): {html.escape(headline)}.</p>
 {image}
 <h2>Every quantity with its 95 % prediction interval</h2>
 <p>Each value is the library's law corrected by what it misses at the library's runs (a least-squares line
-over the operating point); each slice's hold-up comes from the zone law of the bed, scaled so that the
-slices hold the predicted hold-up. The interval is where a DEM run at this point would put its value, 95 % of the
-time: the scatter of the DEM about that line (seeds included) and the line's own uncertainty at this point,
-which grows away from the runs; checked on every library run left out (<code>calibration.md</code> beside
+over the operating point; each slice's hold-up from the zone law of the bed where the library has one),
+the slices scaled so that they hold the predicted hold-up. The interval is where a DEM run at this point
+would put its value, 95 % of the time: the scatter of the DEM about that line (seeds included) and the
+line's own uncertainty at this point, which grows away from the runs; checked on every library run left out (<code>calibration.md</code> beside
 the library). The VRR and the step's mean delay are those of the predicted chain, whose time scale alone
 is uncertain: their intervals are the chain stretched to the mean residence time's interval ends.</p>
 <table><tr><th>quantity</th><th>key</th><th>predicted</th><th>95 % interval</th><th>unit</th></tr>

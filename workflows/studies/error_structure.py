@@ -81,7 +81,8 @@ def error_table(model: LibraryModel) -> dict[str, dict]:
         by_run = {r.run: residual(key, r.dem, r.value) for r in result.rows if r.key == key}
         errors = np.array([by_run.get(run, math.nan) for run in runs])
         kriged = {(ell, ratio): _rms(kriged_errors(x, errors, ell, ratio)) for ell in LENGTHS for ratio in RATIOS}
-        best = min(kriged, key=kriged.get)
+        # the least defined one (NaN where the runs give no error to krige)
+        best = min(kriged, key=lambda k: (not math.isfinite(kriged[k]), kriged[k]))
         out[key] = {
             "rms": _rms(errors),
             "kriged": {f"{ell:g}/{ratio:g}": v for (ell, ratio), v in kriged.items()},
@@ -103,6 +104,10 @@ def slice_bias(model: LibraryModel, table: dict[str, dict]) -> dict[str, tuple[f
             other = [e for run, e in errors.items() if run not in baseline and math.isfinite(e)]
             out[key] = (float(np.mean(base)) if base else math.nan, float(np.mean(other)) if other else math.nan)
     return out
+
+
+def _percent(value: float) -> str:
+    return f"{100 * value:+.1f} %" if math.isfinite(value) else "-"
 
 
 def markdown(table: dict[str, dict], bias: dict[str, tuple[float, float]], library: str, runs: Sequence) -> str:
@@ -132,7 +137,7 @@ def markdown(table: dict[str, dict], bias: dict[str, tuple[float, float]], libra
         f"| slice | runs of {BASELINE_LENGTH_M:g} m | other lengths |",
         "| --- | --- | --- |",
     ]
-    lines += [f"| {key} | {100 * a:+.1f} % | {100 * b:+.1f} % |" for key, (a, b) in bias.items()]
+    lines += [f"| {key} | {_percent(a)} | {_percent(b)} |" for key, (a, b) in bias.items()]
     return "\n".join(lines) + "\n"
 
 

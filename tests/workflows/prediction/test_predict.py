@@ -308,14 +308,18 @@ def test_the_interval_score_is_the_width_plus_forty_times_a_miss():
 
 
 def test_the_shipped_librarys_slices_take_the_zone_law_that_beats_the_lines_left_out():
-    from workflows.prediction.calibration import slice_scores
+    from workflows.prediction.calibration import slice_scores, sources
     from workflows.prediction.library import load_model
     from workflows.shipped import LIBRARY_MODEL
 
     model = load_model(LIBRARY_MODEL)
+    found = sources(model)
     # a library of seven lengths: the zone law carries one blender's bed to another, the
-    # lines follow each slice alone, and every run left out scores the law far better
-    zone_law, lines = slice_scores(model)
+    # lines follow each slice alone, and every run left out scores the law far better; the
+    # lines are judged on the chain they would be shipped with, the chain as fitted
+    assert found.chosen is found.zone and found.lines.calibration.profile is None
+    assert not found.lines.calibration.timed
+    zone_law, lines = slice_scores(found.zone, found.lines)
     assert model.calibration.profile is not None and zone_law < 0.5 * lines
     held = predict(model, model.runs[0].point, model.blade_pattern).quantity("holdup_slice_3")
     assert held.correction is None and held.profile is model.calibration.profile
@@ -489,6 +493,15 @@ def test_slices_without_a_predicted_holdup_are_left_as_they_are():
     assert scaled[1].low == pytest.approx(20.0 * math.exp(-half)) and scaled[1].high == pytest.approx(
         20.0 * math.exp(half)
     )
+    # no hold-up to scale to: as they are; a hold-up without an interval: each its own width
+    assert held_in_total([q("holdup", 0.0), *slices]) == (q("holdup", 0.0), *slices)
+    bare = PredictedQuantity("holdup", 290.0, math.nan, math.nan, 290.0, 0.0, None, math.nan)
+    alone = held_in_total([bare, *slices])[1]
+    own = math.log(1.1 / 0.9) / 2
+    assert (alone.value, alone.low, alone.high) == pytest.approx((20.0, 20.0 * math.exp(-own), 20.0 * math.exp(own)))
+    # an empty slice stays empty
+    empty = held_in_total([q("holdup", 280.0), q("holdup_slice_1", 0.0), *slices[1:]])[1]
+    assert (empty.value, empty.low, empty.high) == (0.0, 0.0, 0.0)
 
 
 def test_a_twin_run_is_judged_as_the_laws_prediction_is_its_values_and_intervals_taken_as_the_prediction():
@@ -514,5 +527,7 @@ def test_the_shipped_librarys_replicates_pass_the_verdict_the_law_is_judged_by()
     result = check(load_model(LIBRARY_MODEL))
     judged = {r.run for r in result.twins}
     assert len(judged) == 2 * len(result.seed_pairs) == 4
-    # a second DEM run at the point meets the verdict the law's prediction is held to
+    # a second DEM run at the point, judged by the other pair's scatter (its own left out:
+    # with it, two pairs could not fail), meets the verdict the law's prediction is held to
     assert sum(r.inside_widened for r in result.twins) >= len(result.twins) - len(judged)
+    assert {r.seed_dof for r in result.twins} == {1}

@@ -428,3 +428,17 @@ def test_with_a_holdup_line_the_slices_carry_its_half_width_in_quadrature_as_pre
     assert by_key["holdup"].now == pytest.approx(np.median(total), rel=1e-10)
     for i in range(law.nx):
         assert by_key[slice_key(i)].now == pytest.approx(np.median(np.hypot(zone[:, i], total)), rel=1e-10)
+
+
+def test_without_a_zone_law_the_slices_lines_carry_the_holdups_half_width_too(zoned):
+    _law, points, _, shipped = zoned
+    region = [r.point for r in shipped.runs[9:]]
+    rng = np.random.default_rng(6)
+    holdup = Quantity("holdup", tuple(points), tuple(rng.normal(0.0, 0.02, len(points))))
+    first = Quantity(slice_key(0), tuple(points), tuple(rng.normal(0.0, 0.05, len(points))))
+    cands = [Candidate(0.0, 0.0, 0.0, shipped.runs[13].point)]
+    ranked = rank([holdup, first], ("speed",), SPAN, region, cands, pattern=shipped.blade_pattern)
+    lines = [fit_correction(q.points, q.residuals, ("speed",), shipped.blade_pattern) for q in (holdup, first)]
+    total, own = (np.array([line.at(p)[1] for p in region]) for line in lines)
+    by_key = {r.key: r for r in ranked[0].reductions}
+    assert by_key[slice_key(0)].now == pytest.approx(np.median(np.hypot(own, total)), rel=1e-10)
