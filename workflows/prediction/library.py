@@ -128,6 +128,15 @@ SCALAR_KEYS = (
 #: the quantities compared on an absolute scale (fractions near their bounds); every
 #: other one is positive and compared by the log of its ratio
 ABSOLUTE_KEYS = ("C_A", "lacey_outlet")
+
+
+def line_alone(key: str) -> float:
+    """The law's value of ``key`` where it is predicted by its correction's line alone
+    (``Calibration.direct``): 0 on an absolute scale, 1 on the log scale, so that the line
+    is fitted to the DEM's values themselves."""
+    return 0.0 if key in ABSOLUTE_KEYS else 1.0
+
+
 #: what the correction of the law's predictions may be a linear function of
 #: (:func:`correction_row`): the run covariates of :func:`run_covariates` and the squares
 #: of length and feed, and ``last`` (:func:`last_push`)
@@ -434,6 +443,9 @@ class Calibration:
     #: zone law (each slice's rates scaled so that it holds the zone law's hold-up:
     #: :func:`workflows.prediction.predict.timed`), not of the law's chain as fitted
     timed: bool = False
+    #: the quantities predicted by their correction's line alone: their values here are
+    #: :func:`line_alone`'s, and a prediction takes that, not the law's chain
+    direct: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.inside)
@@ -444,6 +456,9 @@ class Calibration:
         unknown = sorted(set(self.covariates) - set(CORRECTION_TERMS))
         if unknown:
             raise ValueError(f"correction covariates {unknown} unknown; valid: {', '.join(CORRECTION_TERMS)}")
+        stray = sorted(set(self.direct) - set(self.whole))
+        if stray:
+            raise ValueError(f"quantities {stray} predicted by their line alone have no calibration values")
         if self.profile is not None and len(self.profile_left_out) != n:
             raise ValueError(f"{len(self.profile_left_out)} slice zone laws left out for {n} runs")
 
@@ -473,6 +488,7 @@ class Calibration:
             "profile": None if self.profile is None else self.profile.record(),
             "profile_left_out": [law.record() for law in self.profile_left_out],
             "timed": self.timed,
+            "direct": list(self.direct),
         }
 
     @classmethod
@@ -490,6 +506,7 @@ class Calibration:
             None if record.get("profile") is None else ProfileLaw.from_record(record["profile"]),
             tuple(ProfileLaw.from_record(r) for r in record.get("profile_left_out") or ()),
             bool(record.get("timed", False)),
+            tuple(str(k) for k in record.get("direct") or ()),
         )
 
 

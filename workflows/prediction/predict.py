@@ -93,6 +93,7 @@ from workflows.prediction.library import (
     TransverseLaw,
     correction_row,
     covariate_columns,
+    line_alone,
     quantity_keys,
     slice_key,
 )
@@ -588,6 +589,9 @@ class PredictedQuantity:
     leverage: float
     widening: float = 1.0
     profile: ProfileLaw | None = None
+    #: predicted by the correction's line alone (``Calibration.direct``): ``law_value`` is
+    #: :func:`~workflows.prediction.library.line_alone`'s, not the law's
+    alone: bool = False
 
     def record(self) -> dict[str, Any]:
         return {"key": self.key, "value": self.value, "low": self.low, "high": self.high}
@@ -604,6 +608,7 @@ class PredictedQuantity:
                 "widening": self.widening,
             }
         return {
+            **({"source": "the correction's line alone, fitted to the DEM's values"} if self.alone else {}),
             "law_value": self.law_value,
             "correction": self.shift,
             "correction_covariates": list(self.correction.names),
@@ -770,8 +775,10 @@ def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolat
             f"the library's law cannot be evaluated at {point.impeller_rpm:g} rpm, {point.length_m:g} m, "
             f"{point.feed_rate_total_per_s:g} /s ({exc}): too far beyond its domain, {dom.describe()}"
         ) from None
+    values = {key: line_alone(key) if key in model.calibration.direct else v for key, v in values.items()}
     floor = floor_at(model, place)
     quantities = assembled(values, lines, model.calibration.profile, point, pattern, place.widening, floor)
+    quantities = tuple(replace(q, alone=True) if q.key in model.calibration.direct else q for q in quantities)
     by_key = {q.key: q for q in quantities}
     held = law.counts.sum(axis=(0, 2))
     slices = np.array([by_key[slice_key(i)].value if slice_key(i) in by_key else held[i] for i in range(held.size)])

@@ -88,7 +88,9 @@ def library_fit(
         + "\n\n"
         + calibration.slice_sources(found)
         + "\n"
-        + "".join(f"\n{table}\n" for table in [calibration.chain_sources(found)] if table),
+        + "".join(
+            f"\n{table}\n" for table in [calibration.chain_sources(found), calibration.alone_sources(found)] if table
+        ),
         "library page",
     )
     return LibraryFitOutput(model, check, files)

@@ -317,7 +317,8 @@ def test_the_shipped_librarys_slices_take_the_zone_law_that_beats_the_lines_left
     # a library of seven lengths: the zone law carries one blender's bed to another, the
     # lines follow each slice alone, and every run left out scores the law far better; the
     # lines are judged on the chain they would be shipped with, the chain as fitted
-    assert found.chosen is found.zone and found.lines.calibration.profile is None
+    assert found.chosen.calibration.profile is found.zone.calibration.profile is not None
+    assert found.lines.calibration.profile is None
     assert not found.lines.calibration.timed
     zone_law, lines = slice_scores(found.zone, found.lines)
     assert model.calibration.profile is not None and zone_law < 0.5 * lines
@@ -405,8 +406,8 @@ def test_the_shipped_library_recalibrated_times_its_chain_as_its_file_says():
     stored = load_model(LIBRARY_MODEL)
     found = sources(stored)
     cal = found.chosen.calibration
-    assert cal.timed and found.chosen is found.timed
-    for key in ("holdup", "mean_residence_time_s", "rtd_variance_s2", "holdup_slice_4"):
+    assert cal.timed and found.timed.calibration.timed and cal.direct == stored.calibration.direct
+    for key in ("holdup", "mean_residence_time_s", "rtd_variance_s2", "holdup_slice_4", "lacey_outlet"):
         assert np.allclose(cal.whole[key], stored.calibration.whole[key], rtol=1e-9)
         assert np.allclose(cal.left_out[key], stored.calibration.left_out[key], rtol=1e-9)
     by_timed, by_chain = chain_scores(found.timed, found.fitted)
@@ -531,3 +532,49 @@ def test_the_shipped_librarys_replicates_pass_the_verdict_the_law_is_judged_by()
     # with it, two pairs could not fail), meets the verdict the law's prediction is held to
     assert sum(r.inside_widened for r in result.twins) >= len(result.twins) - len(judged)
     assert {r.seed_dof for r in result.twins} == {1}
+
+
+def test_a_quantity_the_law_knows_nothing_of_is_taken_from_its_line_alone():
+    from dataclasses import replace
+
+    from workflows.prediction.calibration import line_alone_scores
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    cal, key, n = model.calibration, "rtd_variance_s2", len(model.runs)
+    dem = np.array([r.dem[key].value for r in model.runs])
+
+    def with_law(rows: np.ndarray):
+        whole, left = dict(cal.whole), dict(cal.left_out)
+        whole[key], left[key] = list(rows[0]), [list(row) for row in rows]
+        return replace(model, calibration=replace(cal, whole=whole, left_out=left, direct=()))
+
+    # a law 30 % off at random at every run: the line alone predicts better
+    scattered = dem * np.exp(np.random.default_rng(4).normal(0.0, 0.3, (n, n)))
+    law, alone = line_alone_scores(with_law(scattered), [key])[key]
+    assert alone < law
+    # a law exact at every run: nothing to correct, the law is kept
+    law, alone = line_alone_scores(with_law(np.tile(dem, (n, 1))), [key])[key]
+    assert law < alone
+
+
+def test_the_shipped_library_predicts_the_outlets_mixing_from_the_line_alone():
+    from workflows.prediction.library import Calibration, load_model
+    from workflows.prediction.predict import corrections
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    assert set(model.calibration.direct) == {"rsd_outlet", "lacey_outlet"}
+    point = model.runs[0].point.replace(impeller_rpm=275.0)
+    prediction = predict(model, point, model.blade_pattern)
+    lines = corrections(model)
+    lacey, rsd = prediction.quantity("lacey_outlet"), prediction.quantity("rsd_outlet")
+    assert lacey.value == pytest.approx(lines["lacey_outlet"].at(point)[0], rel=1e-12)
+    assert rsd.value == pytest.approx(math.exp(lines["rsd_outlet"].at(point)[0]), rel=1e-12)
+    assert lacey.alone and lacey.details()["source"].startswith("the correction's line alone")
+    assert not prediction.quantity("holdup").alone
+    record = model.calibration.record()
+    assert Calibration.from_record(record).direct == model.calibration.direct
+    with pytest.raises(ValueError, match="predicted by their line alone have no calibration values"):
+        Calibration.from_record({**record, "direct": ["no_such_quantity"]})
