@@ -188,19 +188,7 @@ def line_alone_scores(model: LibraryModel, keys: Sequence[str] = MIXING_KEYS) ->
     alone then predicts it better."""
     keys = [k for k in keys if k in model.calibration.whole and k not in model.calibration.direct]
     law, alone = check(model), check(lines_alone(model, keys))
-    out = {}
-    for key in keys:
-        by_law = {r.run: r for r in law.rows if r.key == key}
-        by_line = {r.run: r for r in alone.rows if r.key == key}
-        both = [
-            run
-            for run in by_law
-            if run in by_line
-            and math.isfinite(interval_score([by_law[run]]))
-            and math.isfinite(interval_score([by_line[run]]))
-        ]
-        out[key] = (interval_score([by_law[r] for r in both]), interval_score([by_line[r] for r in both]))
-    return out
+    return {key: _paired(law, alone, lambda k, key=key: k == key) for key in keys}
 
 
 def _chains(model: LibraryModel) -> tuple[list[PointValues], list[list[PointValues]]]:
@@ -268,11 +256,17 @@ def interval_score(rows: Sequence[CheckedQuantity]) -> float:
 
 def _scores(a: LibraryModel, b: LibraryModel, keep) -> tuple[float, float]:
     """The interval scores (:func:`interval_score`) of ``a`` and ``b``'s checks over the
-    rows of the quantities ``keep`` accepts, where both give an interval: a value neither
-    can bound says nothing of which is better."""
+    rows of the quantities ``keep`` accepts (:func:`_paired`)."""
+    return _paired(check(a), check(b), keep)
 
-    def rows(m: LibraryModel) -> dict[tuple[str, str], CheckedQuantity]:
-        return {(r.run, r.key): r for r in check(m).rows if keep(r.key)}
+
+def _paired(a: Check, b: Check, keep) -> tuple[float, float]:
+    """The interval scores of the checks ``a`` and ``b`` over the rows of the quantities
+    ``keep`` accepts, where both give an interval: a value neither can bound says nothing
+    of which is better."""
+
+    def rows(result: Check) -> dict[tuple[str, str], CheckedQuantity]:
+        return {(r.run, r.key): r for r in result.rows if keep(r.key)}
 
     first, second = rows(a), rows(b)
     both = [

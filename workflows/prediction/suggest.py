@@ -511,11 +511,6 @@ def _with_total(half: np.ndarray, total: np.ndarray | None) -> np.ndarray:
     return half if total is None else np.hypot(half, total)
 
 
-def _is_slice(key: str) -> bool:
-    head, _, tail = key.rpartition("_")
-    return head == "holdup_slice" and tail.isdigit()
-
-
 def rank(
     quantities: Sequence[Quantity],
     names: Sequence[str],
@@ -574,7 +569,7 @@ def rank(
     # half-width in quadrature with theirs (predict.held_in_total): the hold-up's interval,
     # not its bias term, which is the ranking's own
     total_now, total_after = now.get("holdup"), after.get("holdup")
-    for key in [k for k in now if _is_slice(k)]:
+    for key in [slice_key(i) for i in range(AXIAL_SLICES) if slice_key(i) in now]:
         now[key], ranked_now[key] = _with_total(now[key], total_now), _with_total(ranked_now[key], total_now)
         after[key], ranked_after[key] = (
             _with_total(after[key], total_after),
