@@ -58,7 +58,7 @@ from workflows.prediction.predict import (
     timed,
     timed_values,
 )
-from workflows.prediction.profile import ProfileLaw, fit_profile, refit
+from workflows.prediction.profile import ProfileLaw, fit_profile, refit, without_layouts
 
 #: the headline quantities and the half-widths the issue asks of them, as fractions of the
 #: value (slices: every slice)
@@ -96,13 +96,16 @@ class Sources:
     the zone law and its other quantities from the law's chain as fitted and timed by the
     zone law (both None where the library has no zone law or its slices keep the lines);
     ``zone`` and ``lines`` the two its slices were chosen between, the zone law on the
-    chosen chain and the lines on the chain as fitted (both None without a zone law)."""
+    chosen chain and the lines on the chain as fitted (both None without a zone law);
+    ``layouts`` the zone law with and without its misses at the layouts the library has
+    run, on the chain as fitted, which was chosen first (None where it has none)."""
 
     chosen: LibraryModel
     fitted: LibraryModel | None = None
     timed: LibraryModel | None = None
     zone: LibraryModel | None = None
     lines: LibraryModel | None = None
+    layouts: tuple[LibraryModel, LibraryModel] | None = None
     #: per quantity of :data:`MIXING_KEYS`, the interval scores of every run left out from
     #: the law corrected and from the correction's line alone (:func:`line_alone_scores`)
     alone: dict[str, tuple[float, float]] = field(default_factory=dict)
@@ -131,6 +134,11 @@ def sources(model: LibraryModel, covariates: Sequence[str] | None = None) -> Sou
     model = replace(model, calibration=replace(calibration, profile=profile, profile_left_out=profiles))
     if profile is None:
         return _with_lines_alone(Sources(model))
+    layouts = None
+    if profile.layouts is not None:
+        layouts = (model, _without_layouts(model))
+        by_layouts, alone = _scores(*layouts, lambda key: _slice_of(key, "holdup_slice"))
+        model = model if by_layouts < alone else layouts[1]
     timed_model = _timed_model(model, whole, left)
     by_timed, by_chain = chain_scores(timed_model, model)
     chain = timed_model if by_timed < by_chain else model
@@ -140,8 +148,22 @@ def sources(model: LibraryModel, covariates: Sequence[str] | None = None) -> Sou
     lines = without_profile(model)
     by_zone, by_lines = slice_scores(chain, lines)
     if not by_zone < by_lines:
-        return _with_lines_alone(Sources(lines, zone=chain, lines=lines))
-    return _with_lines_alone(Sources(chain, model, timed_model, chain, lines))
+        return _with_lines_alone(Sources(lines, zone=chain, lines=lines, layouts=layouts))
+    return _with_lines_alone(Sources(chain, model, timed_model, chain, lines, layouts))
+
+
+def _without_layouts(model: LibraryModel) -> LibraryModel:
+    """``model`` (calibrated, with the slices' zone law) with its zone laws alone, without
+    their misses at the layouts the library has run."""
+    cal = model.calibration
+    return replace(
+        model,
+        calibration=replace(
+            cal,
+            profile=without_layouts(cal.profile),
+            profile_left_out=tuple(without_layouts(law) for law in cal.profile_left_out),
+        ),
+    )
 
 
 def _with_lines_alone(found: Sources) -> Sources:
@@ -785,6 +807,28 @@ def slice_sources(found: Sources) -> str:
         "## The slices' hold-ups\n\nEvery run's slices predicted without it, from each source, scaled to the "
         "predicted hold-up; the predictions take the one of the lower interval score (the mean width of the 95 % "
         "intervals on the log scale plus 40 times any miss).\n\n" + "\n".join(rows)
+    )
+
+
+def layout_sources(found: Sources) -> str:
+    """A markdown table of the slices' hold-ups checked like :func:`check` from the zone law
+    with and without its misses at the layouts the library has run, and which the library's
+    predictions take; empty where the zone law has none."""
+    if found.layouts is None:
+        return ""
+    profile = found.chosen.calibration.profile
+    with_chosen = profile is not None and profile.layouts is not None
+    sources = [
+        ("the zone law with its layouts' misses of the shares", found.layouts[0], with_chosen),
+        ("the zone law alone", found.layouts[1], not with_chosen),
+    ]
+    rows = _source_rows("slices from", sources, lambda key: _slice_of(key, "holdup_slice"), ["holdup_slice"])
+    return (
+        "## The layouts the library has run\n\nEvery run's slices predicted without it by the zone law, on the "
+        "law's chain as fitted, with and without what the zone law misses of each slice's share at the layouts "
+        "(length and blade stations) the other runs share with it (`workflows/prediction/profile.py`, "
+        "`LayoutShares`; a run whose layout no other run has keeps the law alone); the predictions take the one "
+        "of the lower interval score.\n\n" + "\n".join(rows)
     )
 
 

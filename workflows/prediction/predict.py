@@ -592,6 +592,9 @@ class PredictedQuantity:
     #: predicted by the correction's line alone (``Calibration.direct``): ``law_value`` is
     #: :func:`~workflows.prediction.library.line_alone`'s, not the law's
     alone: bool = False
+    #: a slice's: the library's runs of the point's blade layout whose misses of the
+    #: shares it takes (:class:`~workflows.prediction.profile.LayoutShares`; 0: none)
+    layout_runs: int = 0
 
     def record(self) -> dict[str, Any]:
         return {"key": self.key, "value": self.value, "low": self.low, "high": self.high}
@@ -599,6 +602,16 @@ class PredictedQuantity:
     def details(self) -> dict[str, Any]:
         if self.correction is None:
             i = int(self.key.rpartition("_")[2]) - 1
+            if self.layout_runs:
+                return {
+                    "law_value": self.law_value,
+                    "correction": self.shift,
+                    "source": f"the slices' zone law (workflows.prediction.profile) with the misses of the shares "
+                    f"of the {self.layout_runs} library runs of this blade layout, scaled to the predicted hold-up",
+                    "residual_sd": float(self.profile.layouts.sd[i]),
+                    "degrees_of_freedom": float(self.profile.layouts.dof),
+                    "widening": self.widening,
+                }
             return {
                 "law_value": self.law_value,
                 "correction": self.shift,
@@ -646,12 +659,16 @@ def profiled(
     profile: ProfileLaw,
     widening: float = 1.0,
     floor: float = 0.0,
+    layout_runs: int = 0,
 ) -> PredictedQuantity:
-    """A slice's hold-up ``value`` from the zone law ``profile``, its half-width ``half`` on
-    the log scale, at least ``floor`` (an extrapolation's), times ``widening``."""
+    """A slice's hold-up ``value`` from the zone law ``profile`` (with the misses of its
+    layout's ``layout_runs`` runs), its half-width ``half`` on the log scale, at least
+    ``floor`` (an extrapolation's), times ``widening``."""
     low, high = bounds(key, value, max(half, floor) * widening)
     shift = residual(key, value, law_value)
-    return PredictedQuantity(key, value, low, high, law_value, shift, None, math.nan, widening, profile)
+    return PredictedQuantity(
+        key, value, low, high, law_value, shift, None, math.nan, widening, profile, layout_runs=layout_runs
+    )
 
 
 def assembled(
@@ -669,16 +686,17 @@ def assembled(
     ``floor``'s, times ``widening``. The slices are then scaled alike so that they hold the
     predicted hold-up (:func:`held_in_total`)."""
     floor = floor or {}
-    slices = {}
+    slices, layout_runs = {}, 0
     if profile is not None:
         values, halves = profile.at(point, pattern)
         slices = {slice_key(i): (float(v), float(h)) for i, (v, h) in enumerate(zip(values, halves))}
+        layout_runs = profile.layouts.runs_at(point) if profile.layouts is not None else 0
     out = []
     for key in quantity_keys():
         if key not in lines:
             continue
         if key in slices:
-            out.append(profiled(key, law[key], *slices[key], profile, widening, floor.get(key, 0.0)))
+            out.append(profiled(key, law[key], *slices[key], profile, widening, floor.get(key, 0.0), layout_runs))
         else:
             out.append(corrected(key, law[key], lines[key], point, widening, floor.get(key, 0.0), pattern))
     return held_in_total(tuple(out))

@@ -32,13 +32,27 @@ A slice's 95 % interval is its log hold-up +- t(0.975, nu_i) sqrt(s_i^2 + g_i' C
 the slice's scatter, g_i the gradient of its log hold-up in the coefficients, C their
 covariance (J'WJ)^-1, nu_i the slice's own degrees of freedom (its observations less their
 leverage: s_i is estimated from that slice's residuals alone).
+
+A blade layout the library has run (:class:`LayoutShares`: the same length and stations)
+shows what the zone law misses of it: the law's smooth terms must serve every layout, and
+a slice of one layout can hold a station where another's holds a gap (slice 8 of the
+baseline's 0.33 m, +5 % over its runs whatever the speed and the feed). Its runs' misses
+of each slice's share of the bed (the log of the DEM's share over the law's) are therefore
+a line of their own: the layout's mean miss, moved along slopes in :data:`LAYOUT_TERMS`
+that every layout with two runs or more shares. At such a layout the law's shares take
+that miss, its total unchanged; a slice's interval is then its share's, t(0.975, nu)
+s_i sqrt(1 + 1/n + (x - x_L)' (X'X)^+ (x - x_L)) (s_i the slice's scatter about the lines
+within the layouts, nu their degrees of freedom, n the layout's runs, x_L their mean
+covariates, X the runs' covariates less their layout's mean), the total's error left to
+the predicted hold-up the slices are scaled to. A layout the library has not run keeps
+the law as it is.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -71,6 +85,14 @@ LEVEL = 0.95
 #: Gauss-Newton's limits: iterations, and the relative fall of the misfit it stops under
 ITERATIONS = 60
 TOL = 1e-12
+#: the covariates (:func:`~workflows.prediction.covariates.run_covariates`) a layout's
+#: misses of the slices' shares follow (module docstring). Every run of the shipped
+#: library's 0.33-m layout left out, the shares are missed by 2.0 % (root mean square of
+#: the log error) with speed and feed, 1.4 % with speed^2 added, 1.7 % with feed^2 as well
+#: (``pbmdem study profile-forms``)
+LAYOUT_TERMS = ("speed", "feed", "speed2")
+#: two blade stations or lengths closer than this are the same [m]
+LAYOUT_TOL_M = 1e-6
 
 
 def n_coefficients(own_stations: Sequence[int]) -> int:
@@ -118,6 +140,13 @@ class _Design:
     step_m: float
 
 
+def _with_shares(log_held: np.ndarray, miss: np.ndarray) -> np.ndarray:
+    """The log hold-ups ``log_held`` with each slice's share moved by ``miss`` (log), their
+    total kept."""
+    moved = log_held + miss
+    return moved - np.logaddexp.reduce(moved) + np.logaddexp.reduce(log_held)
+
+
 def _design(point: OperatingPoint, pattern: str, half_width_m: float, own_stations: Sequence[int], nx: int) -> _Design:
     # the step nearest GRID_M that fills each slice with whole steps: a slice of 0.02475 m
     # on a 0.5-mm grid would hold 49 or 50 of them, 1 % off the slice it integrates
@@ -149,6 +178,130 @@ def _log_slices(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, 
     return np.log(held), weighted / held[:, None]
 
 
+def layout_of(point: OperatingPoint) -> tuple[float, ...]:
+    """``point``'s blade layout: its length and stations [m], rounded to :data:`LAYOUT_TOL_M`."""
+    digits = round(-math.log10(LAYOUT_TOL_M))
+    return (round(point.length_m, digits), *(round(x, digits) for x in point.blade_x_m))
+
+
+def _terms(point: OperatingPoint, terms: Sequence[str]) -> np.ndarray:
+    covariates = run_covariates(point)
+    return np.array([covariates[t] for t in terms], dtype=float)
+
+
+def _log_shares(held: np.ndarray) -> np.ndarray:
+    return np.log(held) - np.log(held.sum(axis=-1, keepdims=True))
+
+
+@dataclass(frozen=True, eq=False)
+class LayoutShares:
+    """What the zone law misses of the slices' shares at the blade layouts the library has
+    run (module docstring): per layout (``layouts``, :func:`layout_of`) its ``runs``, their
+    mean covariates ``centres`` (L, P) in ``terms`` and mean miss ``means`` (L, NX); the
+    ``slopes`` (P, NX) every layout shares, ``inverse`` (X'X)^+ of the runs' covariates less
+    their layout's mean, ``sd`` each slice's scatter about the lines and ``dof`` its degrees
+    of freedom."""
+
+    layouts: tuple[tuple[float, ...], ...]
+    runs: np.ndarray
+    centres: np.ndarray
+    means: np.ndarray
+    slopes: np.ndarray
+    inverse: np.ndarray
+    sd: np.ndarray
+    dof: int
+    terms: tuple[str, ...] = LAYOUT_TERMS
+
+    def runs_at(self, point: OperatingPoint) -> int:
+        """How many of the library's runs share ``point``'s layout."""
+        layout = layout_of(point)
+        return int(self.runs[self.layouts.index(layout)]) if layout in self.layouts else 0
+
+    def at(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the miss of each slice's log share at ``point``, the standard deviation of a run's
+        share about it), or None at a layout the library has not run."""
+        layout = layout_of(point)
+        if layout not in self.layouts:
+            return None
+        k = self.layouts.index(layout)
+        offset = _terms(point, self.terms) - self.centres[k]
+        leverage = 1.0 / self.runs[k] + float(offset @ self.inverse @ offset)
+        return self.means[k] + offset @ self.slopes, self.sd * math.sqrt(1.0 + leverage)
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "layouts": [list(layout) for layout in self.layouts],
+            "runs": self.runs.tolist(),
+            "centres": self.centres.tolist(),
+            "means": self.means.tolist(),
+            "slopes": self.slopes.tolist(),
+            "inverse": self.inverse.tolist(),
+            "sd": self.sd.tolist(),
+            "dof": self.dof,
+            "terms": list(self.terms),
+        }
+
+    @classmethod
+    def from_record(cls, record: dict) -> LayoutShares:
+        shares = cls(
+            tuple(tuple(float(x) for x in layout) for layout in record["layouts"]),
+            np.asarray(record["runs"], dtype=float),
+            np.asarray(record["centres"], dtype=float),
+            np.asarray(record["means"], dtype=float),
+            np.asarray(record["slopes"], dtype=float),
+            np.asarray(record["inverse"], dtype=float),
+            np.asarray(record["sd"], dtype=float),
+            int(record["dof"]),
+            tuple(str(t) for t in record["terms"]),
+        )
+        n_layouts, p, nx = len(shares.layouts), len(shares.terms), shares.sd.size
+        if (
+            shares.runs.shape != (n_layouts,)
+            or shares.centres.shape != (n_layouts, p)
+            or shares.means.shape != (n_layouts, nx)
+            or shares.slopes.shape != (p, nx)
+            or shares.inverse.shape != (p, p)
+            or shares.dof < 1
+        ):
+            raise ValueError(
+                f"layout shares of {n_layouts} layouts in {p} terms over {nx} slices: "
+                "one count, centre and mean miss per layout, one slope per term and slice, "
+                "and at least one degree of freedom"
+            )
+        return shares
+
+
+def fit_layouts(
+    law: ProfileLaw, points: Sequence[OperatingPoint], holdups: np.ndarray, terms: Sequence[str] = LAYOUT_TERMS
+) -> LayoutShares | None:
+    """The :class:`LayoutShares` of the runs at ``points`` whose slices held ``holdups``
+    (runs x slices; a run lacking a slice is left out), about ``law``'s shares; None when
+    the runs that share a layout give the lines no degree of freedom."""
+    holdups = np.asarray(holdups, dtype=float)
+    complete = [n for n in range(len(points)) if np.all(np.isfinite(holdups[n]) & (holdups[n] > 0))]
+    if not complete:
+        return None
+    misses = np.array([_log_shares(holdups[n]) - _log_shares(law.holdups(points[n])) for n in complete])
+    x = np.array([_terms(points[n], terms) for n in complete])
+    keys = [layout_of(points[n]) for n in complete]
+    layouts = tuple(dict.fromkeys(keys))
+    group = np.array([layouts.index(k) for k in keys])
+    runs = np.bincount(group, minlength=len(layouts)).astype(float)
+    centres = np.array([x[group == k].mean(axis=0) for k in range(len(layouts))])
+    means = np.array([misses[group == k].mean(axis=0) for k in range(len(layouts))])
+    within_x, within_miss = x - centres[group], misses - means[group]
+    rank = np.linalg.matrix_rank(within_x) if within_x.size else 0
+    dof = int(runs.sum() - len(layouts) - rank)
+    if dof < 1:
+        return None
+    slopes = np.linalg.lstsq(within_x, within_miss, rcond=None)[0]
+    scatter = within_miss - within_x @ slopes
+    sd = np.sqrt(np.maximum(np.sum(scatter**2, axis=0) / dof, 1e-12))
+    return LayoutShares(
+        layouts, runs, centres, means, slopes, np.linalg.pinv(within_x.T @ within_x), sd, dof, tuple(terms)
+    )
+
+
 @dataclass(frozen=True, eq=False)
 class ProfileLaw:
     """The zone law of the bed's density (module docstring): ``coefficients`` in the order
@@ -156,7 +309,8 @@ class ProfileLaw:
     :data:`ZONE_TERMS`, then :data:`SHARED_TERMS`; ``covariance`` theirs;
     ``slice_sd`` each slice's scatter about the law (log), estimated from its own residuals
     with ``slice_dof`` degrees of freedom; ``dof`` the slices observed less the
-    coefficients identified; ``pattern`` the library's blade pattern."""
+    coefficients identified; ``pattern`` the library's blade pattern; ``layouts`` what it
+    misses of the shares at the layouts the library has run (None: the law alone)."""
 
     half_width_m: float
     coefficients: np.ndarray
@@ -167,33 +321,45 @@ class ProfileLaw:
     #: each slice's degrees of freedom: its observations less their leverage
     slice_dof: np.ndarray
     own_stations: tuple[int, ...] = OWN_STATIONS
+    layouts: LayoutShares | None = None
 
     @property
     def nx(self) -> int:
         return int(self.slice_sd.size)
 
+    def _missed(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray] | None:
+        return self.layouts.at(point) if self.layouts is not None else None
+
     def log_slices(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(log hold-up of each slice at ``point``, the standard deviation of its prediction)."""
+        """(log hold-up of each slice at ``point``, the standard deviation of its prediction:
+        at a layout the library has run, of its share, module docstring)."""
         values, gradient = self.gradient(point, pattern)
+        missed = self._missed(point)
+        if missed is not None:
+            return _with_shares(values, missed[0]), missed[1]
         spread = np.einsum("ip,pq,iq->i", gradient, self.covariance, gradient)
         return values, np.sqrt(self.slice_sd**2 + np.maximum(spread, 0.0))
 
     def at(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(each slice's predicted hold-up, the half-width of its 95 % interval on the log
         scale) at ``point``: Student's t of each slice's own degrees of freedom, since its
-        scatter is estimated from its residuals alone."""
+        scatter is estimated from its residuals alone (at a layout the library has run, of
+        the layouts' lines)."""
         values, sd = self.log_slices(point, pattern)
-        t = stdtrit(np.maximum(self.slice_dof, 1e-3), 0.5 + LEVEL / 2)
-        return np.exp(values), t * sd
+        dof = self.layouts.dof if self._missed(point) is not None else np.maximum(self.slice_dof, 1e-3)
+        return np.exp(values), stdtrit(dof, 0.5 + LEVEL / 2) * sd
 
     def holdups(self, point: OperatingPoint, pattern: str | None = None) -> np.ndarray:
         """Each slice's predicted hold-up at ``point``: :meth:`at`'s values, without the
         gradient its interval needs (what ``design`` evaluates at every point it searches)."""
         design = _design(point, pattern or self.pattern, self.half_width_m, self.own_stations, self.nx)
-        return _held(design, self.coefficients)[1]
+        held = _held(design, self.coefficients)[1]
+        missed = self._missed(point)
+        return held if missed is None else np.exp(_with_shares(np.log(held), missed[0]))
 
     def gradient(self, point: OperatingPoint, pattern: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(log hold-up of each slice at ``point``, its gradient in the coefficients (NX, P))."""
+        """(log hold-up of each slice at ``point`` by the zone law alone, its gradient in the
+        coefficients (NX, P))."""
         design = _design(point, pattern or self.pattern, self.half_width_m, self.own_stations, self.nx)
         return _log_slices(design, self.coefficients)
 
@@ -221,6 +387,7 @@ class ProfileLaw:
             "pattern": self.pattern,
             "slice_dof": self.slice_dof.tolist(),
             "own_stations": list(self.own_stations),
+            "layouts": None if self.layouts is None else self.layouts.record(),
         }
 
     @classmethod
@@ -234,6 +401,7 @@ class ProfileLaw:
             str(record["pattern"]),
             np.asarray(record["slice_dof"], dtype=float),
             tuple(int(k) for k in record["own_stations"]),
+            None if record.get("layouts") is None else LayoutShares.from_record(record["layouts"]),
         )
         p = n_coefficients(law.own_stations)
         if (
@@ -241,6 +409,7 @@ class ProfileLaw:
             or law.covariance.shape != (p, p)
             or law.slice_sd.ndim != 1
             or law.slice_dof.shape != law.slice_sd.shape
+            or (law.layouts is not None and law.layouts.sd.shape != law.slice_sd.shape)
         ):
             raise ValueError(f"a profile law has {p} coefficients, their {p} x {p} covariance and one sd per slice")
         return law
@@ -332,12 +501,14 @@ def fit_profile(
     pattern: str,
     half_widths_m: Sequence[float] = HALF_WIDTHS_M,
     own_stations: Sequence[int] = OWN_STATIONS,
+    layouts: Sequence[str] | None = LAYOUT_TERMS,
 ) -> ProfileLaw:
     """The :class:`ProfileLaw` of the runs at ``points`` (their stations oriented by
     ``pattern``) whose slices held ``holdups`` (runs x slices; NaN or <= 0 where unknown),
     with swept zones of their own at ``own_stations``, at the swept half-width of
-    ``half_widths_m`` with the greatest likelihood. Raises ConfigError when the runs do not
-    give the law a degree of freedom."""
+    ``half_widths_m`` with the greatest likelihood, and its misses at the layouts run in
+    the terms ``layouts`` (:func:`fit_layouts`; None: the law alone). Raises ConfigError when the runs do not give the law
+    a degree of freedom."""
     holdups = np.asarray(holdups, dtype=float)
     if holdups.ndim != 2 or holdups.shape[0] != len(points) or holdups.shape[1] < 1:
         raise ConfigError(
@@ -353,11 +524,18 @@ def fit_profile(
         law, loglik = _fit(designs, observed, float(half), pattern, own)
         if best is None or loglik > best[1]:
             best = (law, loglik)
-    return best[0]
+    law = best[0]
+    return law if layouts is None else replace(law, layouts=fit_layouts(law, points, holdups, layouts))
 
 
 def refit(law: ProfileLaw, points: Sequence[OperatingPoint], holdups: np.ndarray) -> ProfileLaw:
-    """``law``'s form (its swept half-width and own stations) fitted to other runs: the fits
-    with one run left out keep the whole library's half-width, chosen once like the law's
-    covariates."""
-    return fit_profile(points, holdups, law.pattern, (law.half_width_m,), law.own_stations)
+    """``law``'s form (its swept half-width, own stations, and its layouts' terms) fitted
+    to other runs: the fits with one run left out keep the whole library's
+    half-width, chosen once like the law's covariates."""
+    terms = None if law.layouts is None else law.layouts.terms
+    return fit_profile(points, holdups, law.pattern, (law.half_width_m,), law.own_stations, terms)
+
+
+def without_layouts(law: ProfileLaw) -> ProfileLaw:
+    """``law`` alone, without its misses at the layouts the library has run."""
+    return replace(law, layouts=None)

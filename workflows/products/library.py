@@ -89,7 +89,13 @@ def library_fit(
         + calibration.slice_sources(found)
         + "\n"
         + "".join(
-            f"\n{table}\n" for table in [calibration.chain_sources(found), calibration.alone_sources(found)] if table
+            f"\n{table}\n"
+            for table in [
+                calibration.layout_sources(found),
+                calibration.chain_sources(found),
+                calibration.alone_sources(found),
+            ]
+            if table
         ),
         "library page",
     )

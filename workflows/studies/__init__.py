@@ -9,6 +9,9 @@ from coupling.errors import ConfigError
 from coupling.files import distinct_inputs
 from workflows.shipped import LIBRARY_MODEL, REDUCED_RUN, VALIDATION_DIR
 
+#: the baseline's blender length [m]: the blade layout most of a library's runs share
+BASELINE_LENGTH_M = 0.33
+
 
 def add_runs_arguments(parser: argparse.ArgumentParser, needs: str, out: str) -> None:
     """``--results`` (many results files; by default the shipped reduced run and the

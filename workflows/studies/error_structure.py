@@ -32,15 +32,13 @@ from workflows.prediction.calibration import check
 from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import LibraryModel, quantity_keys
 from workflows.prediction.predict import DOMAIN_AXES, residual
-from workflows.studies import add_library_arguments, calibrated_library
+from workflows.studies import BASELINE_LENGTH_M, add_library_arguments, calibrated_library
 
 HELP = "whether the law's errors, every run left out, follow the operating point (kriged from the other runs)"
 OUT = Path("results/error-structure")
 #: the kernel's length scales, in widths of the library's ranges, and signal-to-noise ratios
 LENGTHS = (0.1, 0.2, 0.3, 0.5, 1.0)
 RATIOS = (0.25, 1.0, 4.0, 16.0)
-#: the baseline's blender length [m]
-BASELINE_LENGTH_M = 0.33
 
 
 def scaled_points(model: LibraryModel) -> np.ndarray:

@@ -6,6 +6,7 @@ coverage of fresh draws), the record read back, and bad input refused naming it.
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -237,6 +238,7 @@ def test_the_record_written_and_read_back_gives_the_same_predictions(runs, exact
         for ours, theirs in zip(exact.at(point), back.at(point)):
             assert np.array_equal(ours, theirs)
     assert (back.half_width_m, back.dof, back.pattern) == (exact.half_width_m, exact.dof, exact.pattern)
+    assert back.layouts is not None and back.layouts.layouts == exact.layouts.layouts
 
 
 def test_a_record_of_another_coefficient_count_is_refused(exact):
@@ -276,3 +278,89 @@ def test_hold_ups_of_the_wrong_shape_are_refused_naming_it(runs, shape):
     points, _, _ = runs
     with pytest.raises(ConfigError, match=rf"shape \({shape[0]},.*one row per run \(14\)"):
         P.fit_profile(points, np.full(shape, 100.0), PATTERN, (HALF_WIDTH_M,))
+
+
+# ------------------------------------------------------------------ layouts run
+#: a miss of the shares the zone law cannot carry (log, inlet to weir): the baseline
+#: layout's at the baseline's covariates, and a slope in log speed every layout shares
+LAYOUT_MISS = np.array([0.01, -0.02, 0.0, 0.015, -0.01, 0.0, 0.02, 0.03, -0.025, -0.02])
+LAYOUT_SLOPE = np.array([0.02, 0.0, -0.01, 0.0, 0.01, 0.0, -0.02, 0.0, 0.01, 0.0])
+
+
+def _baseline(point) -> bool:
+    return math.isclose(point.length_m, 0.33)
+
+
+def _with_miss(law: P.ProfileLaw, point) -> np.ndarray:
+    """``law``'s slices at ``point`` with the planted share miss, the total kept."""
+    held = law.holdups(point)
+    speed = math.log(point.impeller_rpm / REFERENCE_RPM)
+    shares = held * np.exp(LAYOUT_MISS * _baseline(point) + LAYOUT_SLOPE * speed)
+    return shares * held.sum() / shares.sum()
+
+
+def test_a_layouts_miss_of_the_shares_is_carried_to_its_other_points(blender, runs):
+    """Runs whose shares lie off the zone law by a miss linear in log speed, and at the
+    0.33-m layout by a mean miss too: about the true law, the lines recover the slope, and
+    the law with them predicts the layouts run at speeds and feeds they never ran to 0.1 %,
+    its total the law's; a layout not run keeps the law alone."""
+    points, _, new = runs
+    truth = _law(TRUE)
+    held = np.array([_with_miss(truth, p) for p in points])
+    shares = P.fit_layouts(truth, points, held)
+    assert shares is not None and shares.layouts.count(P.layout_of(points[0])) == 1
+    k = shares.layouts.index(P.layout_of(points[0]))
+    assert shares.runs[k] == sum(_baseline(p) for p in points)
+    # shares are the same whatever constant every slice's miss shares
+    slope = shares.slopes[shares.terms.index("speed")]
+    assert slope - slope.mean() == pytest.approx(LAYOUT_SLOPE - LAYOUT_SLOPE.mean(), abs=1e-3)
+    known = replace(truth, layouts=shares)
+    for rpm, feed in [(180, 50.0), (320, 120.0), (260, 90.0)]:
+        point = design_point(*blender, rpm, 0.33, feed)
+        assert known.holdups(point) == pytest.approx(_with_miss(truth, point), rel=1e-3)
+        assert known.holdups(point).sum() == pytest.approx(truth.holdups(point).sum(), rel=1e-12)
+    for point in new:
+        if P.layout_of(point) not in shares.layouts:
+            assert np.array_equal(known.at(point)[0], truth.at(point)[0])
+
+
+def test_a_layouts_intervals_hold_for_known_noise(blender, runs):
+    """The runs with their layout's miss and a lognormal scatter of 1 % per slice, three
+    seeds each: at the layouts run, at speeds and feeds none of them ran, the intervals of
+    the shares hold at least 90 % of fresh draws, no wider than twice the true 1.96 sd."""
+    points, _, _ = runs
+    truth = _law(TRUE)
+    rng = np.random.default_rng(20261206)
+    sd = 0.01
+    clean = np.array([_with_miss(truth, p) for p in points] * 3)
+    law = P.fit_profile(points * 3, clean * np.exp(rng.normal(0.0, sd, clean.shape)), PATTERN, (HALF_WIDTH_M,))
+    assert law.layouts is not None
+    inside, halves = [], []
+    for rpm, length_m, feed in [(180, 0.33, 50.0), (320, 0.33, 120.0), (230, 0.2475, 60.0), (260, 0.495, 90.0)]:
+        point = design_point(*blender, rpm, length_m, feed)
+        assert P.layout_of(point) in law.layouts.layouts
+        value, half = law.at(point)
+        draws = _with_miss(truth, point) * np.exp(rng.normal(0.0, sd, (50, 10)))
+        share = np.log(draws / draws.sum(axis=1, keepdims=True)) - np.log(value / value.sum())
+        inside.append(np.abs(share) <= half)
+        halves.append(half)
+    assert np.mean(inside) >= 0.90
+    assert np.median(halves) < 2 * 1.96 * sd
+
+
+def test_runs_of_a_layout_each_give_the_lines_no_degree_of_freedom(runs):
+    """One run per layout says nothing of a layout's scatter: no lines, the law alone."""
+    points, held, _ = runs
+    single = {}
+    for n, p in enumerate(points):
+        single.setdefault(P.layout_of(p), n)
+    keep = sorted(single.values())
+    assert P.fit_layouts(_law(TRUE), [points[n] for n in keep], held[keep]) is None
+
+
+def test_a_layouts_record_of_another_slice_count_is_refused(exact):
+    record = exact.record()
+    assert record["layouts"] is not None
+    record["layouts"]["sd"] = record["layouts"]["sd"][:-1]
+    with pytest.raises(ValueError, match="layout shares of"):
+        P.ProfileLaw.from_record(record)
