@@ -28,6 +28,10 @@ out the leverage it takes off the runs before it, and so cut the gain most where
 teaches the law most. Whatever their source, ``predict`` scales the slices to the predicted
 hold-up, so each slice's half-width is then taken with the hold-up's interval in
 quadrature (:func:`~workflows.prediction.predict.held_in_total`), now and after the run.
+At a layout the library has run, the zone law takes its misses there
+(:class:`~workflows.prediction.profile.LayoutShares`) and a slice's interval is its
+layout's lines'; such a point keeps that interval whatever the candidate (one more run of
+the layout would add a degree of freedom to its lines, which this rule leaves out).
 
 The rule is I-optimal: per quantity the mean over the region's points of the squared
 half-width, divided by the square of the quantity's target half-width
@@ -352,7 +356,8 @@ def profile_half_widths(
     at the region's points, (NX, R) now and (NX, C, R) expected after one more run at each
     candidate (module docstring): t(slice_dof_i) sqrt(s_i^2 + g_i' C g_i), then with the
     candidate's information added to C (:meth:`ProfileLaw.covariance_after`) and one more
-    degree of freedom per slice."""
+    degree of freedom per slice. A point at a layout the library has run keeps its
+    layout's interval (:class:`~workflows.prediction.profile.LayoutShares`) now and after."""
     region = np.array([profile.gradient(p, pattern)[1] for p in region_points])  # (R, NX, P)
     grown = profile.covariance_after(np.array([profile.gradient(p, pattern)[1] for p in candidate_points]))
 
@@ -364,7 +369,14 @@ def profile_half_widths(
     s2 = (profile.slice_sd**2)[:, None]
     t_now = stdtrit(np.maximum(profile.slice_dof, 1e-3), 0.5 + LEVEL / 2)[:, None]
     t_after = stdtrit(profile.slice_dof + 1.0, 0.5 + LEVEL / 2)[:, None, None]
-    return t_now * np.sqrt(s2 + now), t_after * np.sqrt(s2[:, None] + after)
+    now, after = t_now * np.sqrt(s2 + now), t_after * np.sqrt(s2[:, None] + after)
+    if profile.layouts is not None:
+        for r, point in enumerate(region_points):
+            if profile.layouts.runs_at(point):
+                half = profile.at(point, pattern)[1]
+                now[:, r] = half
+                after[:, :, r] = half[:, None]
+    return now, after
 
 
 def potential_terms(terms: np.ndarray, reference: np.ndarray) -> np.ndarray:

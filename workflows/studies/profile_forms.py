@@ -42,12 +42,13 @@ LAYOUT_FORMS = (None, ("speed",), ("speed", "feed"), ("speed", "speed2"), ("spee
 
 @dataclass(frozen=True)
 class FormCheck:
-    """One form's runs left out: per group ("interpolated", "extrapolated"), the root mean
-    square log error, the coverage and the median relative half-width of the slices."""
+    """One form's runs left out: per group ("interpolated", "extrapolated", "baseline
+    layout"), the root mean square log error, the coverage and the median relative
+    half-width of the slices, and the root mean square log error of their shares of the bed."""
 
     own_stations: tuple[int, ...]
     half_width_m: float
-    groups: dict[str, tuple[float, float, float]]
+    groups: dict[str, tuple[float, float, float, float]]
     layouts: tuple[str, ...] | None = None
 
     def record(self) -> dict:
@@ -56,7 +57,8 @@ class FormCheck:
             "layouts": None if self.layouts is None else list(self.layouts),
             "half_width_m": self.half_width_m,
             "groups": {
-                k: dict(zip(("rms_log_error", "coverage", "median_half_width"), v)) for k, v in self.groups.items()
+                k: dict(zip(("rms_log_error", "coverage", "median_half_width", "rms_log_share_error"), v))
+                for k, v in self.groups.items()
             },
         }
 
@@ -67,23 +69,29 @@ def form_check(model: LibraryModel, own_stations: tuple[int, ...], layouts: tupl
     held = slice_holdups(model)
     points = [e.point for e in model.runs]
     whole = fit_profile(points, held, model.blade_pattern, own_stations=own_stations, layouts=layouts)
-    errors, covered, halves = [], [], []
+    errors, covered, halves, shares = [], [], [], []
     for n in range(len(points)):
         law = refit(whole, [p for m, p in enumerate(points) if m != n], np.delete(held, n, axis=0))
         values, half = law.at(points[n])
         error = np.log(held[n] / values)
         errors.append(error)
+        shares.append(error - np.log(np.nansum(held[n]) / np.sum(values[np.isfinite(held[n])])))
         covered.append(np.abs(error) <= half)
         halves.append(np.sinh(half))  # (high - low) / 2 / value on the log scale's bounds
-    errors, covered, halves = map(np.array, (errors, covered, halves))
+    errors, covered, halves, shares = map(np.array, (errors, covered, halves, shares))
     inside = np.array(model.calibration.inside)
     baseline = np.array([np.isclose(p.length_m, BASELINE_LENGTH_M) for p in points])
     groups = {}
     for name, rows in (("interpolated", inside), ("extrapolated", ~inside), ("baseline layout", baseline)):
         if rows.any():
-            e, c, h = errors[rows], covered[rows], halves[rows]
+            e, c, h, f = errors[rows], covered[rows], halves[rows], shares[rows]
             ok = np.isfinite(e)
-            groups[name] = (float(np.sqrt(np.mean(e[ok] ** 2))), float(np.mean(c[ok])), float(np.median(h[ok])))
+            groups[name] = (
+                float(np.sqrt(np.mean(e[ok] ** 2))),
+                float(np.mean(c[ok])),
+                float(np.median(h[ok])),
+                float(np.sqrt(np.mean(f[ok] ** 2))),
+            )
     return FormCheck(tuple(own_stations), whole.half_width_m, groups, layouts)
 
 
@@ -108,7 +116,7 @@ def markdown(rows: list[FormCheck], library: str) -> str:
 def _cells(row: FormCheck, groups: tuple[str, ...]) -> str:
     cells = []
     for group in groups:
-        rms, cov, half = row.groups.get(group, (np.nan, np.nan, np.nan))
+        rms, cov, half, _ = row.groups.get(group, (np.nan,) * 4)
         cells += [f"{rms:.4f}", f"{100 * cov:.0f} %", f"{100 * half:.1f}"]
     return " | ".join(cells) + " |"
 
@@ -122,16 +130,18 @@ def layout_markdown(rows: list[FormCheck]) -> str:
         f"The form of own stations {', '.join(map(str, rows[0].own_stations)) or 'none'} with what it misses of "
         "each slice's share at the blade layouts (length and stations) the other runs share with the run left out, "
         "a line per slice in the terms given (`LayoutShares`); a run whose layout no other run has keeps the law "
-        f"alone. Beside the two groups above, the runs of the baseline's {BASELINE_LENGTH_M} m layout.",
+        f"alone. Beside the two groups above, the runs of the baseline's {BASELINE_LENGTH_M:g} m layout. The misses "
+        "move the shares and keep the law's total, and a prediction scales the slices to the predicted hold-up: "
+        "so the root mean square log error of the slices' shares of the bed. Their intervals are checked as "
+        "`pbmdem predict` gives them, the total's error with them, in `law/calibration.md`.",
         "",
-        "| layouts' terms | "
-        + " | ".join(f"{g}: rms log error | coverage | median half-width [%]" for g in groups)
-        + " |",
-        "|" + " --- |" * (1 + 3 * len(groups)),
+        "| layouts' terms | " + " | ".join(f"{g}: rms log share error" for g in groups) + " |",
+        "|" + " --- |" * (1 + len(groups)),
     ]
     for r in rows:
         name = "without (the law alone)" if r.layouts is None else ", ".join(r.layouts)
-        lines.append(f"| {name} | " + _cells(r, groups))
+        cells = [f"{r.groups.get(g, (np.nan,) * 4)[3]:.4f}" for g in groups]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -22,7 +22,7 @@ from workflows.config import config_from_dict, load_config, load_preset
 from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model, slice_key
 from workflows.prediction.predict import fit_correction
-from workflows.prediction.profile import fit_profile, refit
+from workflows.prediction.profile import fit_profile, refit, without_layouts
 from workflows.prediction.suggest import (
     Candidate,
     Quantity,
@@ -347,7 +347,7 @@ def test_the_zone_laws_information_is_its_runs_gradients_weighted_by_each_slices
     runs = [law.gradient(p)[1] for p in points]
     info = _information(runs, law.slice_sd)
     assert law.information() == pytest.approx(info, rel=1e-8, abs=1e-8 * np.abs(info).max())
-    values, sd = law.log_slices(points[2])
+    values, sd = without_layouts(law).log_slices(points[2])
     assert law.gradient(points[2])[0] == pytest.approx(values, rel=1e-14)
     extra = law.gradient(points[0])[1]
     expected = np.linalg.pinv(info + extra.T @ np.diag(law.slice_sd**-2.0) @ extra)
@@ -386,10 +386,13 @@ def test_the_zone_laws_half_widths_now_are_its_intervals_and_a_run_far_from_the_
     assert now.shape == (law.nx, len(region)) and after.shape == (law.nx, 2, len(region))
     assert now == pytest.approx(np.array([law.at(p)[1] for p in region]).T, rel=1e-12)
     assert np.all(after <= now[:, None, :] * (1 + 1e-12))
-    # after the run: its information added, and one more degree of freedom per slice
-    g, grown = law.gradient(region[7])[1], law.covariance_after(law.gradient(far)[1])
+    # after the run, at a layout the law has not run: its information added, and one
+    # more degree of freedom per slice; at a layout run, its layout's interval stays
+    assert not law.layouts.runs_at(region[13]) and law.layouts.runs_at(region[7])
+    g, grown = law.gradient(region[13])[1], law.covariance_after(law.gradient(far)[1])
     by_hand = stats.t.ppf(0.975, law.slice_dof + 1) * np.sqrt(law.slice_sd**2 + np.einsum("ip,pq,iq->i", g, grown, g))
-    assert after[:, 0, 7] == pytest.approx(by_hand, rel=1e-10)
+    assert after[:, 0, 13] == pytest.approx(by_hand, rel=1e-10)
+    assert np.array_equal(after[:, 1, 7], now[:, 7])
     keys = [slice_key(i) for i in range(law.nx)]
     score = criterion(dict(zip(keys, after)))  # (candidates,)
     assert score[0] < score[1] < criterion(dict(zip(keys, now)))
