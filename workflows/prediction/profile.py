@@ -219,12 +219,16 @@ class LayoutShares:
 
     def at(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray] | None:
         """(the miss of each slice's log share at ``point``, the standard deviation of a run's
-        share about it), or None at a layout the library has not run."""
+        share about it), or None at a layout the library has not run, or away from its runs
+        along a term its layouts' runs never varied (the lines cannot tell that slope)."""
         layout = layout_of(point)
         if layout not in self.layouts:
             return None
         k = self.layouts.index(layout)
         offset = _terms(point, self.terms) - self.centres[k]
+        seen = self.inverse @ np.linalg.pinv(self.inverse) @ offset
+        if np.linalg.norm(offset - seen) > 1e-9 * (1.0 + np.linalg.norm(offset)):
+            return None
         leverage = 1.0 / self.runs[k] + float(offset @ self.inverse @ offset)
         return self.means[k] + offset @ self.slopes, self.sd * math.sqrt(1.0 + leverage)
 

@@ -364,3 +364,14 @@ def test_a_layouts_record_of_another_slice_count_is_refused(exact):
     record["layouts"]["sd"] = record["layouts"]["sd"][:-1]
     with pytest.raises(ValueError, match="layout shares of"):
         P.ProfileLaw.from_record(record)
+
+
+def test_a_layout_away_from_its_runs_along_a_term_they_never_varied_keeps_the_law_alone(blender):
+    """Runs of one layout at one feed say nothing of how its shares move with the feed: at
+    another feed the law alone, at another speed the layout's lines."""
+    truth = _law(TRUE)
+    points = [design_point(*blender, rpm, 0.33, 73.7) for rpm in (150, 200, 250, 300, 350)]
+    shares = P.fit_layouts(truth, points, np.array([_with_miss(truth, p) for p in points]), ("speed", "feed"))
+    assert shares is not None
+    assert shares.at(design_point(*blender, 275, 0.33, 73.7)) is not None
+    assert shares.at(design_point(*blender, 275, 0.33, 100.0)) is None
