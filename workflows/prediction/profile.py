@@ -87,9 +87,9 @@ ITERATIONS = 60
 TOL = 1e-12
 #: the covariates (:func:`~workflows.prediction.covariates.run_covariates`) a layout's
 #: misses of the slices' shares follow (module docstring). Every run of the shipped
-#: library's 0.33-m layout left out, the shares are missed by 2.0 % (root mean square of
-#: the log error) with speed and feed, 1.4 % with speed^2 added, 1.7 % with feed^2 as well
-#: (``pbmdem study profile-forms``)
+#: library's 0.33-m layout left out, the shares are missed by 2.7 % (root mean square of
+#: the log error) by the law alone, 2.1 % with speed and feed, 1.9 % with speed and
+#: speed^2, 1.4 % with all three (``pbmdem study profile-forms``, its second table)
 LAYOUT_TERMS = ("speed", "feed", "speed2")
 #: two blade stations or lengths closer than this are the same [m]
 LAYOUT_TOL_M = 1e-6
