@@ -816,11 +816,13 @@ def layout_sources(found: Sources) -> str:
     predictions take; empty where the zone law has none."""
     if found.layouts is None:
         return ""
-    profile = found.chosen.calibration.profile
-    with_chosen = profile is not None and profile.layouts is not None
+    # the zone law kept (or, where the slices took the lines, the one they were chosen over)
+    zone = found.zone if found.zone is not None else found.chosen
+    used = found.chosen.calibration.profile is not None
+    with_chosen = zone.calibration.profile is not None and zone.calibration.profile.layouts is not None
     sources = [
-        ("the zone law with its layouts' misses of the shares", found.layouts[0], with_chosen),
-        ("the zone law alone", found.layouts[1], not with_chosen),
+        ("the zone law with its layouts' misses of the shares", found.layouts[0], used and with_chosen),
+        ("the zone law alone", found.layouts[1], used and not with_chosen),
     ]
     rows = _source_rows("slices from", sources, lambda key: _slice_of(key, "holdup_slice"), ["holdup_slice"])
     return (

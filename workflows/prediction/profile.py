@@ -266,11 +266,13 @@ class LayoutShares:
             or shares.slopes.shape != (p, nx)
             or shares.inverse.shape != (p, p)
             or shares.dof < 1
+            or p < 1
+            or np.any(shares.runs < 1)
         ):
             raise ValueError(
                 f"layout shares of {n_layouts} layouts in {p} terms over {nx} slices: "
-                "one count, centre and mean miss per layout, one slope per term and slice, "
-                "and at least one degree of freedom"
+                "at least one term, one count (at least 1), centre and mean miss per layout, "
+                "one slope per term and slice, and at least one degree of freedom"
             )
         return shares
 
