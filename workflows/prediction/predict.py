@@ -691,8 +691,6 @@ def assembled(
         values, halves = profile.at(point, pattern)
         slices = {slice_key(i): (float(v), float(h)) for i, (v, h) in enumerate(zip(values, halves))}
         layout_runs = profile.layouts.runs_at(point) if profile.layouts is not None else 0
-        if layout_runs and profile.layouts.at(point) is None:
-            layout_runs = 0  # off its runs along a term they never varied: the law alone
     out = []
     for key in quantity_keys():
         if key not in lines:

@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -213,9 +214,14 @@ class LayoutShares:
     terms: tuple[str, ...] = LAYOUT_TERMS
 
     def runs_at(self, point: OperatingPoint) -> int:
-        """How many of the library's runs share ``point``'s layout."""
-        layout = layout_of(point)
-        return int(self.runs[self.layouts.index(layout)]) if layout in self.layouts else 0
+        """How many of the library's runs set ``point``'s shares: its layout's, where
+        :meth:`at` applies their lines; 0 where the law alone does."""
+        return 0 if self.at(point) is None else int(self.runs[self.layouts.index(layout_of(point))])
+
+    @cached_property
+    def _seen(self) -> np.ndarray:
+        """(P, P) the projection onto the covariates the layouts' runs varied."""
+        return self.inverse @ np.linalg.pinv(self.inverse)
 
     def at(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray] | None:
         """(the miss of each slice's log share at ``point``, the standard deviation of a run's
@@ -226,8 +232,7 @@ class LayoutShares:
             return None
         k = self.layouts.index(layout)
         offset = _terms(point, self.terms) - self.centres[k]
-        seen = self.inverse @ np.linalg.pinv(self.inverse) @ offset
-        if np.linalg.norm(offset - seen) > 1e-9 * (1.0 + np.linalg.norm(offset)):
+        if np.linalg.norm(offset - self._seen @ offset) > 1e-9 * (1.0 + np.linalg.norm(offset)):
             return None
         leverage = 1.0 / self.runs[k] + float(offset @ self.inverse @ offset)
         return self.means[k] + offset @ self.slopes, self.sd * math.sqrt(1.0 + leverage)

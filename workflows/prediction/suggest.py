@@ -372,7 +372,7 @@ def profile_half_widths(
     now, after = t_now * np.sqrt(s2 + now), t_after * np.sqrt(s2[:, None] + after)
     if profile.layouts is not None:
         for r, point in enumerate(region_points):
-            if profile.layouts.at(point) is not None:
+            if profile.layouts.runs_at(point):
                 half = profile.at(point, pattern)[1]
                 now[:, r] = half
                 after[:, :, r] = half[:, None]

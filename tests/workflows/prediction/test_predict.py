@@ -578,3 +578,25 @@ def test_the_shipped_library_predicts_the_outlets_mixing_from_the_line_alone():
     assert Calibration.from_record(record).direct == model.calibration.direct
     with pytest.raises(ValueError, match="predicted by their line alone have no calibration values"):
         Calibration.from_record({**record, "direct": ["no_such_quantity"]})
+
+
+def test_the_shipped_library_takes_its_layouts_misses_only_at_the_layouts_it_has_run():
+    """At the baseline's layout (ten runs) each slice takes the layout's lines and names
+    them; at a length no run has, the zone law alone; either way the slices hold the
+    predicted hold-up."""
+    from workflows.prediction.design import design_point, station_rule
+    from workflows.prediction.library import load_model, slice_key
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    baseline = next(r.point for r in model.runs if math.isclose(r.point.length_m, 0.33))
+    assert model.calibration.profile.layouts.runs_at(baseline) == 10
+    points = [r.point for r in model.runs]
+    unrun = design_point(points[0], station_rule(points), 250.0, 0.37, 73.7)
+    for point, runs in ((baseline.replace(impeller_rpm=275.0), 10), (unrun, 0)):
+        prediction = predict(model, point, model.blade_pattern)
+        first = prediction.quantity(slice_key(0))
+        assert first.layout_runs == runs
+        assert ("10 library runs of this blade layout" in first.details()["source"]) == bool(runs)
+        held = sum(prediction.quantity(slice_key(i)).value for i in range(10))
+        assert held == pytest.approx(prediction.quantity("holdup").value, rel=1e-9)

@@ -374,4 +374,6 @@ def test_a_layout_away_from_its_runs_along_a_term_they_never_varied_keeps_the_la
     shares = P.fit_layouts(truth, points, np.array([_with_miss(truth, p) for p in points]), ("speed", "feed"))
     assert shares is not None
     assert shares.at(design_point(*blender, 275, 0.33, 73.7)) is not None
+    assert shares.runs_at(design_point(*blender, 275, 0.33, 73.7)) == 5
     assert shares.at(design_point(*blender, 275, 0.33, 100.0)) is None
+    assert shares.runs_at(design_point(*blender, 275, 0.33, 100.0)) == 0
