@@ -28,6 +28,7 @@ STUDIES = (
     ("suggest", "workflows.studies.suggest"),
     ("profile-forms", "workflows.studies.profile_forms"),
     ("error-structure", "workflows.studies.error_structure"),
+    ("series", "workflows.studies.series"),
 )
 
 
