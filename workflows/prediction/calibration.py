@@ -673,9 +673,10 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
         )
     lines += [
         "",
-        "| quantity | coverage, interpolated | median half-width, interpolated [% of value] | coverage, extrapolated "
-        "| median half-width, extrapolated [%] | seed scatter sd |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| quantity | coverage, interpolated | median half-width, interpolated [% of value] | error, interpolated "
+        "(rms) | coverage, extrapolated | median half-width, extrapolated [%] | error, extrapolated (rms) | seed "
+        "scatter sd |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for key in keys:
         inside = [r for r in result.rows if r.key == key and r.interpolated]
@@ -683,8 +684,17 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
         seed = result.seed_sd.get(key, math.nan)
         scale = "" if key in ABSOLUTE_KEYS else " (log)"
         lines.append(
-            f"| {key} | {_share(inside)} | {_half(inside)} | {_share(outside)} | {_half(outside)} | {seed:.3g}{scale} |"
+            f"| {key} | {_share(inside)} | {_half(inside)} | {_rms_error(inside)} | {_share(outside)} | "
+            f"{_half(outside)} | {_rms_error(outside)} | {seed:.3g}{scale} |"
         )
+    slices = [r for r in result.rows if _slice_of(r.key, "holdup_slice")]
+    if slices:
+        lines += [
+            "",
+            "Every slice's error (root mean square of log DEM / prediction): "
+            f"{_rms_error([r for r in slices if r.interpolated])} interpolated, "
+            f"{_rms_error([r for r in slices if not r.interpolated])} extrapolated.",
+        ]
     if result.seed_pairs:
         n = len(result.seed_pairs)
         t = float(stdtrit(n, 0.5 + LEVEL / 2))
@@ -935,6 +945,16 @@ def _percent(value: float) -> str:
 def _share(rows: list[CheckedQuantity]) -> str:
     rows = [r for r in rows if math.isfinite(r.low)]
     return f"{sum(r.covered for r in rows)}/{len(rows)}" if rows else "-"
+
+
+def _rms_error(rows: list[CheckedQuantity]) -> str:
+    """The root mean square of the rows' errors on their scale: % for a log quantity."""
+    errors = [residual(r.key, r.dem, r.value) for r in rows]
+    errors = [e for e in errors if math.isfinite(e)]
+    if not errors:
+        return "-"
+    rms = math.sqrt(float(np.mean(np.square(errors))))
+    return f"{rms:.4f}" if rows[0].key in ABSOLUTE_KEYS else f"{100 * rms:.1f} %"
 
 
 def _half(rows: list[CheckedQuantity]) -> str:
