@@ -41,6 +41,7 @@ from workflows.prediction.library import (
     dem_quantities,
     file_digest,
     line_alone,
+    physics_of,
     quantity_keys,
     slice_key,
 )
@@ -600,7 +601,7 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
         results, config = load_results(path)
         point = run_operating_point(results.table, config)
         points[path.name] = point
-        prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
+        prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics_of(config.dem))
         dem = dem_quantities(results.summary)
         for entry in model.runs:
             if not point.differences(entry.point):

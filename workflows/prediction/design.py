@@ -80,9 +80,9 @@ from workflows.prediction.predict import (
     PredictedQuantity,
     corrected,
     corrections,
-    domain,
     entering,
     extrapolation_floor,
+    model_domain,
     placement,
     residual,
 )
@@ -250,7 +250,7 @@ def surrogate(model: LibraryModel, extrapolate: bool = False) -> Surrogate:
     for key in (MRT, HOLDUP):
         if key not in lines:
             raise ConfigError(f"the library model's calibration has no {key}: a design needs it")
-    dom = domain([r.point for r in model.runs], model.blade_pattern)
+    dom = model_domain(model)
     centre = {axis: sum(bounds) / 2 for axis, bounds in dom.ranges.items()}
     base = min(
         (r.point for r in model.runs),

@@ -52,7 +52,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
@@ -73,6 +73,9 @@ from workflows.prediction.covariates import (
     run_covariates,
 )
 from workflows.prediction.profile import ProfileLaw
+
+if TYPE_CHECKING:
+    from dem.config import DemConfig
 
 COVARIATES = (
     "speed",
@@ -153,6 +156,45 @@ CORRECTION_TERMS = ("speed", "speed2", "length", "length2", "feed", "feed2", "ga
 DEFAULT_CORRECTION = ("speed", "length", "gap", "feed", "last")
 #: the degrees of freedom a correction covariate must leave (:func:`workflows.prediction.predict.fit_correction`)
 CORRECTION_DOF = 2
+
+
+#: the fields of a DEM configuration that are not its physics, per section: the law's axes
+#: and what :data:`FIXED` and the blade layout already carry, the run's length, a feed step
+#: (the prediction is of the steady state before it), the simulation box and mesh, and
+#: what the deck never reads (the steel's density). Every other field (the particles'
+#: and steel's elastic constants, the contacts, the A share of the feed, the blades'
+#: shape and the weir, the feed zones) is the physics a point must share with the
+#: library's runs (:func:`physics_of`): a field added later is checked by default
+NOT_PHYSICS = {
+    "geometry": (
+        "length_m",
+        "diameter_m",
+        "blade_stations",
+        "first_blade_x_m",
+        "last_blade_x_m",
+        "blade_pattern",
+        "mesh_resolution_m",
+        "box_margin_m",
+        "inlet_margin_m",
+    ),
+    "particles": ("diameter_m", "diameter_sd_m", "size_classes"),
+    "steel": ("density_kg_m3",),
+    "operation": ("feed_rate_total_per_s", "impeller_rpm", "duration_s", "step_time_s", "step_factor_a"),
+    "numerics": None,
+    "run": None,
+    "tables": None,
+}
+
+
+def physics_of(dem: DemConfig) -> dict[str, Any]:
+    """The physics of a DEM configuration (:data:`NOT_PHYSICS`), as "section.field": value."""
+    out = {}
+    for section, values in dem.model_dump().items():
+        skipped = NOT_PHYSICS.get(section, ())
+        if skipped is None or not isinstance(values, dict):
+            continue
+        out.update({f"{section}.{k}": v for k, v in values.items() if k not in skipped})
+    return out
 
 
 def slice_key(i: int) -> str:
@@ -261,6 +303,8 @@ class LibraryRun:
     dem: dict[str, Estimate]
     entering: np.ndarray
     transverse: np.ndarray | None
+    #: its configuration's physics (:func:`physics_of`)
+    physics: dict[str, Any] = field(default_factory=dict)
 
     @property
     def holdup(self) -> Estimate:
@@ -324,6 +368,7 @@ def library_run(path: str | Path, names: Sequence[str], lag_s: float = PHASE_LAG
         dem,
         entering,
         transverse,
+        physics_of(config.dem),
     )
 
 
@@ -398,6 +443,9 @@ class LibraryEntry:
     blade_pattern: str
     seed: int | None
     dem: dict[str, Estimate]
+    #: its configuration's physics (:func:`physics_of`); empty
+    #: in a library made before they were kept
+    physics: dict[str, Any] = field(default_factory=dict)
 
     def record(self) -> dict[str, Any]:
         return {
@@ -407,6 +455,7 @@ class LibraryEntry:
             "blade_pattern": self.blade_pattern,
             "seed": self.seed,
             "dem": {key: e.record() for key, e in self.dem.items()},
+            "physics": dict(self.physics),
         }
 
     @classmethod
@@ -418,6 +467,7 @@ class LibraryEntry:
             str(record["blade_pattern"]),
             None if record.get("seed") is None else int(record["seed"]),
             {str(k): Estimate.from_record(v) for k, v in dict(record["dem"]).items()},
+            {str(k): v for k, v in dict(record.get("physics") or {}).items()},
         )
 
 
@@ -698,12 +748,24 @@ def cached_fit(
 
 
 def load_runs(paths: Sequence[str | Path], settings: FitSettings) -> list[LibraryRun]:
-    """The library's runs; raises ConfigError for fewer than 3 or for one file given twice
-    (by content: a copy would count one run's particles twice)."""
+    """The library's runs; raises ConfigError for fewer than 3, for one file given twice
+    (by content: a copy would count one run's particles twice), or for runs whose blade
+    patterns or physics (:func:`physics_of`) differ: the law varies neither."""
     runs = [library_run(p, settings.covariates) for p in paths]
     patterns = sorted({run.blade_pattern for run in runs})
     if len(patterns) > 1:
         raise ConfigError(f"the runs' blade patterns differ ({patterns}): one library needs one pattern")
+    for run in runs[1:]:
+        differ = sorted(
+            k for k in set(run.physics) | set(runs[0].physics) if run.physics.get(k) != runs[0].physics.get(k)
+        )
+        if differ:
+            first = differ[0]
+            raise ConfigError(
+                f"{run.path} has {first} = {run.physics.get(first)} where {runs[0].path} has "
+                f"{runs[0].physics.get(first)} ({len(differ)} setting(s) differ): the library's law does not vary "
+                "them, so one library holds runs of one physics"
+            )
     seen: dict[str, Path] = {}
     for run in runs:
         if run.digest in seen:
@@ -742,7 +804,7 @@ def fit_library(
     return LibraryModel(
         law,
         transverse,
-        tuple(LibraryEntry(r.path.name, r.digest, r.point, r.blade_pattern, r.seed, r.dem) for r in runs),
+        tuple(LibraryEntry(r.path.name, r.digest, r.point, r.blade_pattern, r.seed, r.dem, r.physics) for r in runs),
         tuple(left),
         transverse_left,
         float(runs[0].law_run.data.interval_s),

@@ -60,7 +60,7 @@ all of it (:class:`Placement`). Only the ranges refuse.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -314,15 +314,20 @@ class Domain:
     fixed: dict[str, Any]
     vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), compare=False)
     end_distance: float = 1.0
+    #: the physics every run shares (:func:`shared_physics`): materials, contacts, blades,
+    #: weir, feed zones and the feed's A share
+    physics: dict[str, Any] = field(default_factory=dict)
 
     def describe(self) -> str:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
         slice_m = [REFERENCE_SLICE_M * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
         feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in self.ranges["feed"]]
+        shared = f", and the {len(self.physics)} settings of materials, contacts, blades, weir and feed its runs share"
         return (
             f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m, "
             f"total feed {feed[0]:.4g}-{feed[1]:.4g} particles/s, "
             + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
+            + (shared if self.physics else "")
         )
 
     def _scaled(self, point: OperatingPoint) -> np.ndarray:
@@ -356,11 +361,29 @@ def _fixed(point: OperatingPoint, pattern: str) -> dict[str, Any]:
     return {**{name: getattr(point, name) for name in FIXED}, "blade_pattern": pattern}
 
 
-def domain(points: Sequence[OperatingPoint], pattern: str) -> Domain:
-    """The :class:`Domain` of a library's operating points, its stations oriented by ``pattern``."""
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-15)
+    return a == b
+
+
+def shared_physics(physics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """What every one of ``physics`` (:func:`~workflows.prediction.library.physics_of`) holds alike: the physics a point
+    must share with them. Empty when one of them is unknown (a library made before its
+    runs' physics were kept checks none)."""
+    if not physics or any(not p for p in physics):
+        return {}
+    first = physics[0]
+    return {k: v for k, v in first.items() if all(k in p and _same(p[k], v) for p in physics[1:])}
+
+
+def domain(points: Sequence[OperatingPoint], pattern: str, physics: Sequence[Mapping[str, Any]] = ()) -> Domain:
+    """The :class:`Domain` of a library's operating points, its stations oriented by
+    ``pattern``, its runs' physics ``physics`` (:func:`~workflows.prediction.library.physics_of`, one per point; none:
+    unchecked)."""
     values = [run_covariates(p) for p in points]
     ranges = {axis: (min(v[axis] for v in values), max(v[axis] for v in values)) for axis in DOMAIN_AXES}
-    box = Domain(ranges, _fixed(points[0], pattern))
+    box = Domain(ranges, _fixed(points[0], pattern), physics=shared_physics(physics))
     vertices = np.array([box._scaled(p) for p in points])
     ends = [hull_distance(np.delete(vertices, n, axis=0), vertices[n]) for n in range(len(points))]
     ends = [d for d in ends if d > 0]
@@ -394,8 +417,9 @@ class Placement:
         return self.issues
 
 
-def placement(dom: Domain, point: OperatingPoint, pattern: str) -> Placement:
-    """The :class:`Placement` of ``point`` (its stations oriented by ``pattern``) in ``dom``."""
+def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping[str, Any] | None = None) -> Placement:
+    """The :class:`Placement` of ``point`` (its stations oriented by ``pattern``, its
+    configuration's physics ``physics``, :func:`physics_of`; None: not checked) in ``dom``."""
     issues, distance = [], 0.0
     values = run_covariates(point)
     for axis in DOMAIN_AXES:
@@ -409,6 +433,11 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str) -> Placement:
         library = dom.fixed[name]
         if not (value == library or (isinstance(value, float) and math.isclose(value, library, rel_tol=1e-9))):
             issues.append(f"{name} = {value} (the library's is {library})")
+            distance += 1.0
+    for name, library in dom.physics.items() if physics is not None else ():
+        value = physics.get(name)
+        if not _same(value, library):
+            issues.append(f"{name} = {value} (the library's runs have {library})")
             distance += 1.0
     beyond = dom.beyond(point)
     share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))
@@ -769,13 +798,26 @@ def stretched(curve: np.ndarray, times: np.ndarray, factor: float) -> np.ndarray
     return np.interp(times / factor, times, curve, right=0.0) / factor
 
 
-def predict(model: LibraryModel, point: OperatingPoint, pattern: str, extrapolate: bool = False) -> Prediction:
-    """The prediction of ``point``, its blade stations oriented by ``pattern``, from
-    ``model`` (module docstring). Raises ConfigError when the model has no calibration, or
-    the point lies outside the library's domain and ``extrapolate`` is False."""
+def model_domain(model: LibraryModel) -> Domain:
+    """The :class:`Domain` of a library model's runs."""
+    return domain([r.point for r in model.runs], model.blade_pattern, [r.physics for r in model.runs])
+
+
+def predict(
+    model: LibraryModel,
+    point: OperatingPoint,
+    pattern: str,
+    extrapolate: bool = False,
+    physics: Mapping[str, Any] | None = None,
+) -> Prediction:
+    """The prediction of ``point``, its blade stations oriented by ``pattern``, its
+    configuration's physics ``physics`` (:func:`~workflows.prediction.library.physics_of`; None: taken as the library's),
+    from ``model`` (module docstring). Raises ConfigError when the model has no
+    calibration, or the point lies outside the library's domain and ``extrapolate`` is
+    False."""
     lines = corrections(model)
-    dom = domain([r.point for r in model.runs], model.blade_pattern)
-    place = placement(dom, point, pattern)
+    dom = model_domain(model)
+    place = placement(dom, point, pattern, physics)
     if place.issues and not extrapolate:
         raise ConfigError(
             f"the point lies outside the library's domain ({'; '.join(place.issues)}); the domain is "

@@ -81,14 +81,21 @@ from dem.operating import operating_point
 from workflows.config import Config, config_from_dict
 from workflows.prediction.calibration import USEFUL_HALF_WIDTH, seed_scatter
 from workflows.prediction.covariates import AXIAL_SLICES, REFERENCE_FEED_PER_S, REFERENCE_RPM, REFERENCE_SLICE_M
-from workflows.prediction.library import CORRECTION_TERMS, LibraryModel, correction_row, quantity_keys, slice_key
+from workflows.prediction.library import (
+    CORRECTION_TERMS,
+    LibraryModel,
+    correction_row,
+    physics_of,
+    quantity_keys,
+    slice_key,
+)
 from workflows.prediction.predict import (
     LEVEL,
     Correction,
     Domain,
     correction_data,
-    domain,
     fit_correction,
+    model_domain,
     placement,
 )
 from workflows.prediction.profile import ProfileLaw
@@ -653,12 +660,12 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
     the criterion over ``region`` (:func:`parse_region`, within the candidates' span;
     default the library's domain, not widened)."""
     points = [r.point for r in model.runs]
-    library_domain = domain(points, model.blade_pattern)
+    library_domain = model_domain(model)
     dom = domain_region(library_domain)
     gap = least_gap(points)
     # the base moved to a point of the domain: only what the law does not vary is left to differ
     inside = point_at(base, dom.speed[0], dom.length[0], dom.feed[0], gap)
-    fixed = placement(library_domain, inside, base.dem.geometry.blade_pattern).issues
+    fixed = placement(library_domain, inside, base.dem.geometry.blade_pattern, physics_of(base.dem)).issues
     if fixed:
         raise ConfigError(
             f"the base configuration differs from the library's runs in what its law does not vary: "

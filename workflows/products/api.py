@@ -7,7 +7,7 @@ from pathlib import Path
 
 from dem.operating import operating_point
 from workflows.config import Config, load_config
-from workflows.prediction.library import load_model
+from workflows.prediction.library import load_model, physics_of
 from workflows.prediction.predict import Prediction
 from workflows.prediction.predict import predict as predict_point
 from workflows.shipped import LIBRARY_MODEL
@@ -31,4 +31,5 @@ def predict(config: Config | str | Path, library: str | Path | None = None, extr
     if not isinstance(config, Config):
         config = load_config(config)
     model = load_model(LIBRARY_MODEL if library is None else library)
-    return predict_point(model, operating_point(config.dem), config.dem.geometry.blade_pattern, extrapolate)
+    point = operating_point(config.dem)
+    return predict_point(model, point, config.dem.geometry.blade_pattern, extrapolate, physics_of(config.dem))

@@ -47,6 +47,7 @@ from workflows.prediction.library import (
     library_run,
     load_model,
     load_runs,
+    physics_of,
     save_model,
 )
 from workflows.prediction.predict import predict
@@ -244,7 +245,13 @@ def library_suggest(
     else:
         base_config, base_name = load_config(base), str(base)
         base_mean = (
-            predict(model, operating_point(base_config.dem), base_config.dem.geometry.blade_pattern, extrapolate=True)
+            predict(
+                model,
+                operating_point(base_config.dem),
+                base_config.dem.geometry.blade_pattern,
+                extrapolate=True,
+                physics=physics_of(base_config.dem),
+            )
             .quantity("mean_residence_time_s")
             .value
         )

@@ -25,7 +25,7 @@ from coupling.tables import write_table
 from dem.operating import operating_point
 from workflows.config import load_config
 from workflows.prediction.design import Dynamics, Noise, point_dynamics, surrogate
-from workflows.prediction.library import load_model
+from workflows.prediction.library import load_model, physics_of
 from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
 from workflows.report import PREDICTION_FIGURES
 from workflows.shipped import LIBRARY_MODEL
@@ -85,7 +85,7 @@ def run_predict(
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
     point = operating_point(config.dem)
-    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate)
+    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics_of(config.dem))
     dynamics = point_dynamics(surrogate(model, extrapolate), point, NOISE)
     folder = writable_directory(out, "--out")
     record = prediction_record(prediction, dynamics, config.name or str(config_path), library_path)

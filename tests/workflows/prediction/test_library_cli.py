@@ -157,3 +157,27 @@ def test_another_correction_refits_no_law_and_is_recorded(library, tmp_path):
     model = load_model(out)
     assert model.calibration.covariates == () and model.settings["correction"] == []
     assert main([*args[:-1], "speed,volume"]) == 2  # refused in one line, before any fit
+
+
+def test_library_fit_refuses_runs_of_another_physics(monkeypatch):
+    """Runs whose friction differs are not one library: its law does not vary friction."""
+    from dataclasses import replace
+
+    import workflows.prediction.library as lib
+    from coupling.errors import ConfigError
+
+    real = lib.library_run
+
+    def with_other_friction(path, names, *args, **kwargs):
+        run = real(path, names, *args, **kwargs)
+        if path == SPEEDS[1]:
+            run = replace(run, physics={**run.physics, "contact.friction_particle_particle": 0.3})
+        return run
+
+    monkeypatch.setattr(lib, "library_run", with_other_friction)
+    with pytest.raises(
+        ConfigError, match=r"contact\.friction_particle_particle = 0\.3 where .* has 0\.5 .*one physics"
+    ):
+        lib.load_runs(SPEEDS, lib.FitSettings())
+    monkeypatch.setattr(lib, "library_run", real)
+    assert len(lib.load_runs(SPEEDS, lib.FitSettings())) == 3

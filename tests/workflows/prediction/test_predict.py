@@ -3,6 +3,7 @@ quantities, the interval's coverage of errors drawn from a known law, the domain
 PBM's table agreeing with the prediction it was written from."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -600,3 +601,50 @@ def test_the_shipped_library_takes_its_layouts_misses_only_at_the_layouts_it_has
         assert ("10 library runs of this blade layout" in first.details()["source"]) == bool(runs)
         held = sum(prediction.quantity(slice_key(i)).value for i in range(10))
         assert held == pytest.approx(prediction.quantity("holdup").value, rel=1e-9)
+
+
+def test_a_configuration_whose_physics_the_library_never_ran_is_refused_naming_the_setting():
+    """The A share of the feed, a friction, the weir: what the law does not vary must be the
+    library's runs'; the seed, the run's length and the numerics may differ."""
+    from workflows.prediction.library import physics_of
+
+    base = load_preset("validation")
+    model = _model()
+    runs = tuple(replace(r, physics=physics_of(base.dem)) for r in model.runs)
+    model = replace(model, runs=runs)
+    point = BASE.replace(impeller_rpm=275.0)
+
+    def changed(section: str, **values):
+        dem = base.dem.model_copy(update={section: getattr(base.dem, section).model_copy(update=values)})
+        return physics_of(dem)
+
+    for physics, name in (
+        (changed("operation", feed_fraction_a=0.3), "operation.feed_fraction_a = 0.3"),
+        (changed("contact", friction_particle_particle=0.3), "contact.friction_particle_particle = 0.3"),
+        (changed("geometry", weir_height_m=0.03), "geometry.weir_height_m = 0.03"),
+    ):
+        with pytest.raises(ConfigError, match=f"outside the library's domain \\({name} \\(the library's runs have"):
+            predict(model, point, "FB", physics=physics)
+        labelled = predict(model, point, "FB", extrapolate=True, physics=physics)
+        assert labelled.extrapolated and labelled.quantity("holdup").widening == pytest.approx(2.0)
+    for physics in (
+        changed("numerics", seed=7),
+        changed("run", np=1),
+        changed("operation", duration_s=999.0),
+        changed("geometry", mesh_resolution_m=0.01),
+        physics_of(base.dem),
+    ):
+        assert not predict(model, point, "FB", physics=physics).extrapolated
+
+
+def test_a_library_without_its_runs_physics_checks_none_and_the_shipped_one_has_them():
+    from workflows.prediction.library import load_model
+    from workflows.prediction.predict import model_domain, shared_physics
+    from workflows.shipped import LIBRARY_MODEL
+
+    assert shared_physics([{"a": 1.0}, {}]) == {} and shared_physics([]) == {}
+    assert shared_physics([{"a": 1.0, "b": 2}, {"a": 1.0 + 1e-12, "b": 3}]) == {"a": 1.0}
+    shipped = model_domain(load_model(LIBRARY_MODEL))
+    assert shipped.physics["operation.feed_fraction_a"] == 0.5
+    assert shipped.physics["contact.friction_particle_particle"] == 0.5
+    assert "numerics.seed" not in shipped.physics and "operation.impeller_rpm" not in shipped.physics
