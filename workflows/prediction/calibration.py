@@ -41,6 +41,7 @@ from workflows.prediction.library import (
     dem_quantities,
     file_digest,
     line_alone,
+    physics_differences,
     physics_of,
     quantity_keys,
     slice_key,
@@ -601,10 +602,15 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
         results, config = load_results(path)
         point = run_operating_point(results.table, config)
         points[path.name] = point
-        prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics_of(config.dem))
+        physics = physics_of(config.dem)
+        prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics)
         dem = dem_quantities(results.summary)
         for entry in model.runs:
-            if not point.differences(entry.point):
+            # a replicate: the same point and physics (a library made before its runs'
+            # physics were kept has none to compare)
+            if not point.differences(entry.point) and not (
+                entry.physics and physics_differences(physics, entry.physics)
+            ):
                 twins += twin_rows(path.name, dem, entry.file, entry.dem, seeds)
         for q in prediction.quantities:
             if q.key in dem:

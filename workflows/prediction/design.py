@@ -51,7 +51,7 @@ were built so.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal, NamedTuple
 
@@ -395,10 +395,13 @@ def _composition_margin(spec: DesignSpec, point: OperatingPoint, sd: np.ndarray)
     return out
 
 
-def evaluate(s: Surrogate, spec: DesignSpec, point: OperatingPoint) -> PointDesign:
-    """The quantities the spec needs at ``point``, their margins and P(spec met) (module
+def evaluate(
+    s: Surrogate, spec: DesignSpec, point: OperatingPoint, physics: Mapping[str, Any] | None = None
+) -> PointDesign:
+    """The quantities the spec needs at ``point`` (its configuration's physics ``physics``:
+    :func:`~workflows.prediction.predict.placement`), their margins and P(spec met) (module
     docstring). Raises ConfigError outside the library's domain unless ``s.extrapolate``."""
-    return evaluate_many(s, spec, [point])[0]
+    return evaluate_many(s, spec, [point], physics)[0]
 
 
 def law_generators(law: PhaseLaw, covariates: np.ndarray) -> np.ndarray:
@@ -541,9 +544,11 @@ def predicted_system(s: Surrogate, design: PointDesign) -> StationarySystem:
     return predicted_systems(s, [design.point], chains, [design.mrt], [design.holdup]).system(0)
 
 
-def evaluate_many(s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoint]) -> list[PointDesign]:
+def evaluate_many(
+    s: Surrogate, spec: DesignSpec, points: Sequence[OperatingPoint], physics: Mapping[str, Any] | None = None
+) -> list[PointDesign]:
     """:func:`evaluate` of every point of ``points``, their chains solved together."""
-    rows = [placement(s.domain, p, s.pattern) for p in points]
+    rows = [placement(s.domain, p, s.pattern, physics) for p in points]
     outside = [p for p, place in zip(points, rows) if place.issues]
     if outside and not s.extrapolate:
         p = outside[0]
@@ -827,16 +832,19 @@ def dynamics(s: Surrogate, noise: Noise, design: PointDesign) -> Dynamics:
     return Dynamics(vrr, STEP_FACTOR_A, levels, times, step, delay)
 
 
-def point_dynamics(s: Surrogate, point: OperatingPoint, noise: Noise | None = None) -> Dynamics:
+def point_dynamics(
+    s: Surrogate, point: OperatingPoint, noise: Noise | None = None, physics: Mapping[str, Any] | None = None
+) -> Dynamics:
     """The feeder-noise VRR and the step response, with their intervals, of any predicted
-    point (what ``pbmdem predict`` predicts there): the design of a spec with no
-    composition criterion, its noise ``noise`` (default :class:`Noise`'s: feeder A's white
-    noise). Raises ConfigError outside the library's domain unless ``s.extrapolate``."""
+    point (what ``pbmdem predict`` predicts there; its configuration's physics ``physics``):
+    the design of a spec with no composition criterion, its noise ``noise`` (default
+    :class:`Noise`'s: feeder A's white noise). Raises ConfigError outside the library's
+    domain unless ``s.extrapolate``."""
     noise = noise or Noise()
     spec = design_spec(
         mrt_min_s=1e-300, noise_tau_s=noise.tau_s, noise_band_hz=noise.band_hz, noise_feeder=noise.feeder
     )
-    return dynamics(s, noise, evaluate(s, spec, point))
+    return dynamics(s, noise, evaluate(s, spec, point, physics))
 
 
 # ------------------------------------------------------------------ the search

@@ -159,21 +159,21 @@ CORRECTION_DOF = 2
 
 
 #: the fields of a DEM configuration that are not its physics, per section: the law's axes
-#: and what :data:`FIXED` and the blade layout already carry, the run's length, a feed step
-#: (the prediction is of the steady state before it), the simulation box and mesh, and
-#: what the deck never reads (the steel's density). Every other field (the particles'
-#: and steel's elastic constants, the contacts, the A share of the feed, the blades'
-#: shape and the weir, the feed zones) is the physics a point must share with the
-#: library's runs (:func:`physics_of`): a field added later is checked by default
+#: (the length, and with it the stations' count and the last one's place) and what
+#: :data:`~workflows.prediction.predict.FIXED` already carries, the run's length, a feed
+#: step (the prediction is of the steady state before it), the simulation box, the
+#: numerics, and what the deck never reads (the steel's density). Every other field (the
+#: particles' and steel's elastic constants, the contacts, the A share of the feed, the
+#: first station, the blades' shape, the barrel's facets, the weir, the outlet and the feed
+#: zones), and the stations' spacing, is the physics a point must share with the library's
+#: runs (:func:`physics_of`): a field added later is checked by default
 NOT_PHYSICS = {
     "geometry": (
         "length_m",
         "diameter_m",
         "blade_stations",
-        "first_blade_x_m",
         "last_blade_x_m",
         "blade_pattern",
-        "mesh_resolution_m",
         "box_margin_m",
         "inlet_margin_m",
     ),
@@ -186,15 +186,37 @@ NOT_PHYSICS = {
 }
 
 
+#: two settings of the physics within this relative difference are the same (a station
+#: typed to 0.1 mm moves the spacing by a few 1e-4)
+PHYSICS_RTOL = 1e-3
+
+
 def physics_of(dem: DemConfig) -> dict[str, Any]:
-    """The physics of a DEM configuration (:data:`NOT_PHYSICS`), as "section.field": value."""
+    """The physics of a DEM configuration (:data:`NOT_PHYSICS`), as "section.field": value,
+    and ``geometry.blade_spacing_m``, the mean distance between neighbouring stations."""
     out = {}
     for section, values in dem.model_dump().items():
         skipped = NOT_PHYSICS.get(section, ())
         if skipped is None or not isinstance(values, dict):
             continue
         out.update({f"{section}.{k}": v for k, v in values.items() if k not in skipped})
+    g = dem.geometry
+    if g.blade_stations > 1:
+        out["geometry.blade_spacing_m"] = (g.last_blade_x_m - g.first_blade_x_m) / (g.blade_stations - 1)
     return out
+
+
+def same_setting(a: Any, b: Any) -> bool:
+    """Two settings of the physics are the same: numbers within :data:`PHYSICS_RTOL`."""
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+        return math.isclose(float(a), float(b), rel_tol=PHYSICS_RTOL, abs_tol=1e-12)
+    return a == b
+
+
+def physics_differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
+    """The settings in which the physics ``a`` and ``b`` differ (one lacking it included)."""
+    return sorted(k for k in set(a) | set(b) if k not in a or k not in b or not same_setting(a[k], b[k]))
 
 
 def slice_key(i: int) -> str:
@@ -756,14 +778,12 @@ def load_runs(paths: Sequence[str | Path], settings: FitSettings) -> list[Librar
     if len(patterns) > 1:
         raise ConfigError(f"the runs' blade patterns differ ({patterns}): one library needs one pattern")
     for run in runs[1:]:
-        differ = sorted(
-            k for k in set(run.physics) | set(runs[0].physics) if run.physics.get(k) != runs[0].physics.get(k)
-        )
+        differ = physics_differences(run.physics, runs[0].physics)
         if differ:
-            first = differ[0]
+            settings = ", ".join(f"{k} = {run.physics.get(k)}" for k in differ)
+            first = ", ".join(f"{runs[0].physics.get(k)}" for k in differ)
             raise ConfigError(
-                f"{run.path} has {first} = {run.physics.get(first)} where {runs[0].path} has "
-                f"{runs[0].physics.get(first)} ({len(differ)} setting(s) differ): the library's law does not vary "
+                f"{run.path} has {settings} where {runs[0].path} has {first}: the library's law does not vary "
                 "them, so one library holds runs of one physics"
             )
     seen: dict[str, Path] = {}

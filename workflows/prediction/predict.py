@@ -95,6 +95,7 @@ from workflows.prediction.library import (
     covariate_columns,
     line_alone,
     quantity_keys,
+    same_setting,
     slice_key,
 )
 from workflows.prediction.profile import ProfileLaw
@@ -361,10 +362,8 @@ def _fixed(point: OperatingPoint, pattern: str) -> dict[str, Any]:
     return {**{name: getattr(point, name) for name in FIXED}, "blade_pattern": pattern}
 
 
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
-        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-15)
-    return a == b
+def _setting(value: Any) -> str:
+    return f"{value:.6g}" if isinstance(value, float) else str(value)
 
 
 def shared_physics(physics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -374,7 +373,7 @@ def shared_physics(physics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     if not physics or any(not p for p in physics):
         return {}
     first = physics[0]
-    return {k: v for k, v in first.items() if all(k in p and _same(p[k], v) for p in physics[1:])}
+    return {k: v for k, v in first.items() if all(k in p and same_setting(p[k], v) for p in physics[1:])}
 
 
 def domain(points: Sequence[OperatingPoint], pattern: str, physics: Sequence[Mapping[str, Any]] = ()) -> Domain:
@@ -436,8 +435,8 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
             distance += 1.0
     for name, library in dom.physics.items() if physics is not None else ():
         value = physics.get(name)
-        if not _same(value, library):
-            issues.append(f"{name} = {value} (the library's runs have {library})")
+        if not same_setting(value, library):
+            issues.append(f"{name} = {_setting(value)} (the library's runs have {_setting(library)})")
             distance += 1.0
     beyond = dom.beyond(point)
     share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))

@@ -85,8 +85,9 @@ def run_predict(
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
     point = operating_point(config.dem)
-    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics_of(config.dem))
-    dynamics = point_dynamics(surrogate(model, extrapolate), point, NOISE)
+    physics = physics_of(config.dem)
+    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics)
+    dynamics = point_dynamics(surrogate(model, extrapolate), point, NOISE, physics)
     folder = writable_directory(out, "--out")
     record = prediction_record(prediction, dynamics, config.name or str(config_path), library_path)
     if figures:

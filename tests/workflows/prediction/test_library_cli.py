@@ -176,7 +176,7 @@ def test_library_fit_refuses_runs_of_another_physics(monkeypatch):
 
     monkeypatch.setattr(lib, "library_run", with_other_friction)
     with pytest.raises(
-        ConfigError, match=r"contact\.friction_particle_particle = 0\.3 where .* has 0\.5 .*one physics"
+        ConfigError, match=r"contact\.friction_particle_particle = 0\.3 where .* has 0\.5: .*one physics"
     ):
         lib.load_runs(SPEEDS, lib.FitSettings())
     monkeypatch.setattr(lib, "library_run", real)

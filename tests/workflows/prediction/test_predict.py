@@ -604,8 +604,9 @@ def test_the_shipped_library_takes_its_layouts_misses_only_at_the_layouts_it_has
 
 
 def test_a_configuration_whose_physics_the_library_never_ran_is_refused_naming_the_setting():
-    """The A share of the feed, a friction, the weir: what the law does not vary must be the
-    library's runs'; the seed, the run's length and the numerics may differ."""
+    """The A share of the feed, a friction, the weir, the barrel's facets, the stations'
+    spacing: what the law does not vary must be the library's runs'; the seed, the run's
+    length, the box and the numerics may differ."""
     from workflows.prediction.library import physics_of
 
     base = load_preset("validation")
@@ -622,6 +623,9 @@ def test_a_configuration_whose_physics_the_library_never_ran_is_refused_naming_t
         (changed("operation", feed_fraction_a=0.3), "operation.feed_fraction_a = 0.3"),
         (changed("contact", friction_particle_particle=0.3), "contact.friction_particle_particle = 0.3"),
         (changed("geometry", weir_height_m=0.03), "geometry.weir_height_m = 0.03"),
+        (changed("geometry", mesh_resolution_m=0.01), "geometry.mesh_resolution_m = 0.01"),
+        # twice the stations on the same barrel: the spacing no run had
+        (changed("geometry", blade_stations=19), "geometry.blade_spacing_m = 0.0141667"),
     ):
         with pytest.raises(ConfigError, match=f"outside the library's domain \\({name} \\(the library's runs have"):
             predict(model, point, "FB", physics=physics)
@@ -631,7 +635,9 @@ def test_a_configuration_whose_physics_the_library_never_ran_is_refused_naming_t
         changed("numerics", seed=7),
         changed("run", np=1),
         changed("operation", duration_s=999.0),
-        changed("geometry", mesh_resolution_m=0.01),
+        changed("geometry", box_margin_m=0.01),
+        # a station typed to 0.1 mm: the same spacing
+        changed("geometry", last_blade_x_m=0.3001),
         physics_of(base.dem),
     ):
         assert not predict(model, point, "FB", physics=physics).extrapolated
@@ -643,7 +649,7 @@ def test_a_library_without_its_runs_physics_checks_none_and_the_shipped_one_has_
     from workflows.shipped import LIBRARY_MODEL
 
     assert shared_physics([{"a": 1.0}, {}]) == {} and shared_physics([]) == {}
-    assert shared_physics([{"a": 1.0, "b": 2}, {"a": 1.0 + 1e-12, "b": 3}]) == {"a": 1.0}
+    assert shared_physics([{"a": 1.0, "b": 2}, {"a": 1.0 + 1e-5, "b": 3}]) == {"a": 1.0}
     shipped = model_domain(load_model(LIBRARY_MODEL))
     assert shipped.physics["operation.feed_fraction_a"] == 0.5
     assert shipped.physics["contact.friction_particle_particle"] == 0.5
