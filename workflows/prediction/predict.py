@@ -328,7 +328,7 @@ class Domain:
             f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m, "
             f"total feed {feed[0]:.4g}-{feed[1]:.4g} particles/s, "
             + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
-            + (shared if self.physics else "")
+            + (shared if self.physics else ", its runs' physics unknown (a library fitted before they were kept)")
         )
 
     def _scaled(self, point: OperatingPoint) -> np.ndarray:
