@@ -34,6 +34,19 @@ def add_library_arguments(parser: argparse.ArgumentParser, out: Path) -> None:
     parser.add_argument("--out", default=str(out), help=f"output folder (default: {out})")
 
 
+def write_page(out: str | Path, stem: str, text: str, record: dict) -> None:
+    """Print a study's page ``text`` and write it, with its ``record``, as ``stem``.md and
+    ``stem``.json in the folder ``out`` (``--out``)."""
+    from coupling.files import writable_directory
+    from coupling.jsonable import write_json
+
+    print(text)
+    folder = writable_directory(out, "--out")
+    (folder / f"{stem}.md").write_text(text)
+    written = write_json(folder / f"{stem}.json", record)
+    print(f"wrote {folder / f'{stem}.md'} and {written}")
+
+
 def calibrated_library(path: str | Path):
     """The library model at ``path``, refused (ConfigError naming it) without the
     calibration every study of its law reads."""

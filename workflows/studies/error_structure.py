@@ -26,13 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from coupling.files import writable_directory
-from coupling.jsonable import write_json
 from workflows.prediction.calibration import check
 from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import LibraryModel, quantity_keys
 from workflows.prediction.predict import DOMAIN_AXES, residual
-from workflows.studies import BASELINE_LENGTH_M, add_library_arguments, calibrated_library
+from workflows.studies import BASELINE_LENGTH_M, add_library_arguments, calibrated_library, write_page
 
 HELP = "whether the law's errors, every run left out, follow the operating point (kriged from the other runs)"
 OUT = Path("results/error-structure")
@@ -148,9 +146,5 @@ def run(args: argparse.Namespace) -> int:
     table = error_table(model)
     bias = slice_bias(model, table)
     text = markdown(table, bias, os.path.relpath(args.library), model.runs)
-    print(text)
-    out = writable_directory(args.out, "--out")
-    (out / "error-structure.md").write_text(text)
-    written = write_json(out / "error-structure.json", {"quantities": table, "slice_bias": bias})
-    print(f"wrote {out / 'error-structure.md'} and {written}")
+    write_page(args.out, "error-structure", text, {"quantities": table, "slice_bias": bias})
     return 0

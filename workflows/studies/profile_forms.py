@@ -25,12 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from coupling.files import writable_directory
-from coupling.jsonable import write_json
 from workflows.prediction.calibration import slice_holdups
 from workflows.prediction.library import LibraryModel
 from workflows.prediction.profile import OWN_STATIONS, fit_profile, refit
-from workflows.studies import BASELINE_LENGTH_M, add_library_arguments, calibrated_library
+from workflows.studies import BASELINE_LENGTH_M, add_library_arguments, calibrated_library, write_page
 
 HELP = "the slices' zone law with swept zones of their own at other stations, every run left out"
 OUT = Path("results/profile-forms")
@@ -155,12 +153,6 @@ def run(args: argparse.Namespace) -> int:
     own = model.calibration.profile.own_stations if model.calibration.profile is not None else OWN_STATIONS
     layout_rows = [form_check(model, own, terms) for terms in LAYOUT_FORMS]
     text = markdown(rows, os.path.relpath(args.library)) + "\n" + layout_markdown(layout_rows)
-    print(text)
-    out = writable_directory(args.out, "--out")
-    (out / "profile-forms.md").write_text(text)
-    written = write_json(
-        out / "profile-forms.json",
-        {"forms": [r.record() for r in rows], "layouts": [r.record() for r in layout_rows]},
-    )
-    print(f"wrote {out / 'profile-forms.md'} and {written}")
+    record = {"forms": [r.record() for r in rows], "layouts": [r.record() for r in layout_rows]}
+    write_page(args.out, "profile-forms", text, record)
     return 0

@@ -37,13 +37,11 @@ from pathlib import Path
 import numpy as np
 
 from coupling.errors import ConfigError
-from coupling.files import writable_directory
-from coupling.jsonable import write_json
 from workflows.prediction.calibration import HEADLINE, Check, CheckedQuantity, check
 from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import ABSOLUTE_KEYS, LibraryModel
 from workflows.prediction.predict import DOMAIN_AXES
-from workflows.studies import add_library_arguments, calibrated_library
+from workflows.studies import add_library_arguments, calibrated_library, write_page
 
 HELP = "how near a smooth curve of one change, through the DEM's other runs of it, comes to each run left out"
 OUT = Path("results/series")
@@ -240,10 +238,5 @@ def run(args: argparse.Namespace) -> int:
     law = check(model)
     rows = table(model, law, curve_checks(model, law))
     text = markdown(rows, os.path.relpath(args.library), len(model.runs))
-    print(text)
-    out = writable_directory(args.out, "--out")
-    (out / "series.md").write_text(text)
-    records = [{k: v for k, v in row.items() if k != "cells"} for row in rows]
-    written = write_json(out / "series.json", {"runs": records})
-    print(f"wrote {out / 'series.md'} and {written}")
+    write_page(args.out, "series", text, {"runs": [{k: v for k, v in row.items() if k != "cells"} for row in rows]})
     return 0
