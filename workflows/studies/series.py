@@ -33,6 +33,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -56,9 +57,20 @@ BOUND = "nearest of the three (picked after seeing the DEM)"
 TOL = 1e-9
 
 
+class Series(NamedTuple):
+    """The library's runs of one series, and each one's log ratio u to the baseline's."""
+
+    runs: list[int]
+    u: np.ndarray
+
+
+def _covariates(model: LibraryModel) -> np.ndarray:
+    return np.array([[run_covariates(r.point)[a] for a in DOMAIN_AXES] for r in model.runs])
+
+
 def baseline_of(model: LibraryModel) -> np.ndarray:
     """The library's baseline (module docstring): its covariates on :data:`DOMAIN_AXES`."""
-    x = np.array([[run_covariates(r.point)[a] for a in DOMAIN_AXES] for r in model.runs])
+    x = _covariates(model)
     points = np.unique(np.round(x, 9), axis=0)
 
     def reach(p: np.ndarray) -> tuple[int, int]:
@@ -68,29 +80,23 @@ def baseline_of(model: LibraryModel) -> np.ndarray:
     return max(points, key=reach)
 
 
-def series_of(model: LibraryModel) -> dict[str, list[int]]:
-    """Per axis of :data:`DOMAIN_AXES`, the library's runs whose other two covariates are the
-    baseline's (the baseline's runs in each), those of at least three distinct values.
-    Raises ConfigError when no axis has one: the study needs a star."""
-    x = np.array([[run_covariates(r.point)[a] for a in DOMAIN_AXES] for r in model.runs]) - baseline_of(model)
+def series_of(model: LibraryModel) -> dict[str, Series]:
+    """Per axis of :data:`DOMAIN_AXES`, the :class:`Series` of the library's runs whose other
+    two covariates are the baseline's (the baseline's runs in each), those of at least three
+    distinct values. Raises ConfigError when no axis has one: the study needs a star."""
+    x = _covariates(model) - baseline_of(model)
     out = {}
     for k, axis in enumerate(DOMAIN_AXES):
         others = np.delete(x, k, axis=1)
         runs = [n for n in range(len(model.runs)) if np.all(np.abs(others[n]) < TOL)]
         if len(np.unique(np.round(x[runs, k], 9))) >= 3:
-            out[axis] = runs
+            out[axis] = Series(runs, x[runs, k])
     if not out:
         raise ConfigError(
             f"the library's {len(model.runs)} runs hold no series: a series needs three values of one of "
             f"{', '.join(DOMAIN_AXES)} with the other two at the baseline's"
         )
     return out
-
-
-def _u(model: LibraryModel, runs: Sequence[int], axis: str) -> np.ndarray:
-    """The runs' log ratio of ``axis`` to the baseline's."""
-    base = baseline_of(model)[DOMAIN_AXES.index(axis)]
-    return np.array([run_covariates(model.runs[n].point)[axis] - base for n in runs])
 
 
 def curve_prediction(u: np.ndarray, y: np.ndarray, at: float, form: str) -> float:
@@ -118,16 +124,14 @@ def curve_checks(model: LibraryModel, law: Check) -> dict[str, dict[str, Check]]
     DEM's intervals and seed scatter it judges by) with the curve's value; no row where the
     curve predicts nothing."""
     out: dict[str, dict[str, Check]] = {}
-    for axis, runs in series_of(model).items():
-        u = _u(model, runs, axis)
+    for axis, (runs, u) in series_of(model).items():
         by_form: dict[str, list[CheckedQuantity]] = {form: [] for form in (*FORMS, BOUND)}
         for i, n in enumerate(runs):
-            others = [m for j, m in enumerate(runs) if j != i]
             for row in law.of_run(model.runs[n].file):
                 known = [(u[j], model.runs[m].dem.get(row.key)) for j, m in enumerate(runs) if j != i]
                 pairs = [(v, _scale(row.key, e.value)) for v, e in known if e is not None]
                 pairs = [(v, y) for v, y in pairs if math.isfinite(y)]
-                if not others or not pairs:
+                if not pairs:
                     continue
                 uu, yy = np.array([v for v, _ in pairs]), np.array([y for _, y in pairs])
                 values = {form: _unscale(row.key, curve_prediction(uu, yy, u[i], form)) for form in FORMS}
@@ -164,9 +168,9 @@ def table(model: LibraryModel, law: Check, curves: dict[str, dict[str, Check]]) 
     predictor the quantities inside the DEM's interval widened by the seed scatter, those
     missed, the values and the verdict."""
     rows = []
+    series = series_of(model)
     for axis, forms in curves.items():
-        runs = series_of(model)[axis]
-        u = _u(model, runs, axis)
+        runs, u = series[axis]
         for n, value in zip(runs, u):
             run = model.runs[n].file
             of = len(law.of_run(run))

@@ -654,3 +654,23 @@ def test_a_library_without_its_runs_physics_checks_none_and_the_shipped_one_has_
     assert shipped.physics["operation.feed_fraction_a"] == 0.5
     assert shipped.physics["contact.friction_particle_particle"] == 0.5
     assert "numerics.seed" not in shipped.physics and "operation.impeller_rpm" not in shipped.physics
+
+
+def test_the_check_page_prints_each_quantitys_root_mean_square_error_on_its_scale():
+    """Known misses of 1 and 7 % (interpolated: 5.0 % rms, 4 % mean) and 10 % (extrapolated), and of
+    0.02 in C_A: the page prints them on each quantity's scale."""
+    from workflows.prediction.calibration import Check, CheckedQuantity, markdown
+
+    model = _model()
+    misses = {"run1.h5": (0.01, True), "run2.h5": (-0.07, True), "run0.h5": (0.10, False)}
+    rows = []
+    for run, (miss, inside) in misses.items():
+        rows.append(
+            CheckedQuantity(run, "holdup", 1000.0, 990.0, 1010.0, 1000.0 * math.exp(-miss), 0, 2e3, 0.0, inside)
+        )
+        rows.append(CheckedQuantity(run, "C_A", 0.5, 0.49, 0.51, 0.5 - miss / abs(miss) * 0.02, 0, 1, 0.0, inside))
+    page = markdown(model, Check(tuple(rows), {}, ()))
+    holdup = next(line for line in page.splitlines() if line.startswith("| holdup |")).split(" | ")
+    c_a = next(line for line in page.splitlines() if line.startswith("| C_A |")).split(" | ")
+    assert holdup[3] == f"{100 * math.sqrt((0.01**2 + 0.07**2) / 2):.1f} %" and holdup[6] == "10.0 %"
+    assert c_a[3] == "0.0200" and c_a[6] == "0.0200"

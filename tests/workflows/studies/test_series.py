@@ -54,9 +54,10 @@ def test_the_shipped_librarys_series_are_its_three_arms_through_the_baseline(shi
     model, _, _ = shipped
     series = series_of(model)
     assert set(series) == {"speed", "length", "feed"}
-    baseline = set(series["speed"]) & set(series["length"]) & set(series["feed"])
+    baseline = set(series["speed"].runs) & set(series["length"].runs) & set(series["feed"].runs)
     assert len(baseline) == 2  # the baseline and its replicate
-    assert sum(len(runs) for runs in series.values()) - 2 * len(baseline) == len(model.runs)
+    assert sum(len(s.runs) for s in series.values()) - 2 * len(baseline) == len(model.runs)
+    assert all(abs(series["speed"].u[series["speed"].runs.index(n)]) < 1e-12 for n in baseline)
 
 
 def test_the_bound_holds_every_value_some_form_holds(shipped):
