@@ -45,6 +45,8 @@ def _run(args: argparse.Namespace, drawer) -> int:
     prediction = output.prediction
     if prediction.extrapolated:
         print(f"EXTRAPOLATED: {'; '.join(prediction.outside)}")
+    if prediction.new_layout:
+        print("a blade layout no library run has: each interval at least the library's error at such a layout")
     print(f"{'quantity':32s} {'predicted':>11s}  95 % prediction interval")
     for q in prediction.quantities:
         interval = "-" if not math.isfinite(q.low) else f"[{q.low:.4g}, {q.high:.4g}]"

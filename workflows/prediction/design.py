@@ -77,11 +77,12 @@ from workflows.prediction.predict import (
     LEVEL,
     Correction,
     Domain,
+    Floors,
     PredictedQuantity,
     corrected,
     corrections,
     entering,
-    extrapolation_floor,
+    floors,
     model_domain,
     placement,
     residual,
@@ -207,8 +208,8 @@ class Surrogate:
     """What a design evaluates points with: the library model, its correction lines, the
     correlation of the hold-up's and the residence time's residuals at the runs, the
     domain, the point every searched point is made from and the runs' blade stations
-    (:func:`design_point`, :func:`station_rule`), and the extrapolation floor of the
-    intervals beyond the runs (:func:`~workflows.prediction.predict.floor_at`)."""
+    (:func:`design_point`, :func:`station_rule`), and the least half-widths beyond the
+    runs and at a blade layout no run has (:class:`~workflows.prediction.predict.Floors`)."""
 
     model: LibraryModel
     lines: dict[str, Correction]
@@ -217,7 +218,7 @@ class Surrogate:
     base: OperatingPoint
     rule: tuple[float, float, float]
     extrapolate: bool = False
-    floor: dict[str, float] = field(default_factory=dict)
+    floors: Floors = field(default_factory=lambda: Floors({}, {}))
 
     @property
     def pattern(self) -> str:
@@ -256,10 +257,9 @@ def surrogate(model: LibraryModel, extrapolate: bool = False) -> Surrogate:
         (r.point for r in model.runs),
         key=lambda p: sum((run_covariates(p)[axis] - centre[axis]) ** 2 for axis in centre),
     )
-    floor = extrapolation_floor(model)
     rule = station_rule([r.point for r in model.runs])
     correlation = residual_correlation(model, lines, MRT, HOLDUP)
-    return Surrogate(model, lines, correlation, dom, base, rule, extrapolate, floor)
+    return Surrogate(model, lines, correlation, dom, base, rule, extrapolate, floors(model))
 
 
 def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float]:
@@ -564,9 +564,9 @@ def evaluate_many(
     for n, (p, place) in enumerate(zip(points, rows)):
         widen = place.widening if place.extrapolated else 1.0
         held = float(held_by[n].sum())
+        least = s.floors.at(place)
         for key, value, into in ((HOLDUP, held, holdups), (MRT, held / chains.totals[n], mrts)):
-            bottom = s.floor.get(key, 0.0) * place.floor_share if place.extrapolated else 0.0
-            into.append(corrected(key, float(value), s.lines[key], p, widen, bottom))
+            into.append(corrected(key, float(value), s.lines[key], p, widen, least.get(key, 0.0)))
     judged = list(range(len(points)))
     if spec.composition:
         # where the residence time or the hold-up alone fails for certain, so does the

@@ -55,6 +55,14 @@ interval of 5 %). A point beyond the runs' convex hull is labelled, its interval
 by 1 + its distance from the hull and kept at least a share of the floor: the distance
 over the median distance of the library's own end runs from the others' hull, at most
 all of it (:class:`Placement`). Only the ranges refuse.
+
+A blender of a length no run has puts its blade stations where no run had them (its
+slices take the zone law alone, its gap to the weir and last station the line's terms
+from the few runs that differ in them), and the library's runs of a layout no other run
+has miss by more, left out, than the line's interval says. At such a layout the half-width
+is therefore at least the layout floor: t times the root mean square error of those runs
+inside the others' hull, each predicted without it (:func:`layout_floor`). It is a floor,
+not a widening: the point is inside the domain.
 """
 
 from __future__ import annotations
@@ -98,7 +106,7 @@ from workflows.prediction.library import (
     same_setting,
     slice_key,
 )
-from workflows.prediction.profile import ProfileLaw
+from workflows.prediction.profile import ProfileLaw, layout_of
 
 #: binomial draws of the predicted outlet RSD and Lacey index (fixed seed: the law at the
 #: library's runs and at the point is sampled alike, so the correction compares laws, not
@@ -318,6 +326,8 @@ class Domain:
     #: the physics every run shares (:func:`shared_physics`): materials, contacts, blades,
     #: weir, feed zones and the feed's A share
     physics: dict[str, Any] = field(default_factory=dict)
+    #: the runs' blade layouts (:func:`~workflows.prediction.profile.layout_of`)
+    layouts: frozenset[tuple[float, ...]] = frozenset()
 
     def describe(self) -> str:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
@@ -382,7 +392,9 @@ def domain(points: Sequence[OperatingPoint], pattern: str, physics: Sequence[Map
     unchecked)."""
     values = [run_covariates(p) for p in points]
     ranges = {axis: (min(v[axis] for v in values), max(v[axis] for v in values)) for axis in DOMAIN_AXES}
-    box = Domain(ranges, _fixed(points[0], pattern), physics=shared_physics(physics))
+    box = Domain(
+        ranges, _fixed(points[0], pattern), physics=shared_physics(physics), layouts=frozenset(map(layout_of, points))
+    )
     vertices = np.array([box._scaled(p) for p in points])
     ends = [hull_distance(np.delete(vertices, n, axis=0), vertices[n]) for n in range(len(points))]
     ends = [d for d in ends if d > 0]
@@ -398,12 +410,15 @@ class Placement:
     of one change at a time, two changes at once leave it); ``widening`` the interval's
     factor, 1 + the distance outside the ranges + ``beyond`` (+1 per fixed property);
     ``floor_share`` the share of the extrapolation floor the interval keeps: all of it
-    outside the ranges, else ``beyond`` over the library's own extrapolations' reach."""
+    outside the ranges, else ``beyond`` over the library's own extrapolations' reach;
+    ``new_layout`` whether no run has the point's blade layout (its length and stations),
+    where the interval keeps the layout floor (:func:`layout_floor`)."""
 
     issues: tuple[str, ...]
     beyond: float
     widening: float
     floor_share: float
+    new_layout: bool = False
 
     @property
     def extrapolated(self) -> bool:
@@ -440,7 +455,8 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
             distance += 1.0
     beyond = dom.beyond(point)
     share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))
-    return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share)
+    new_layout = bool(dom.layouts) and layout_of(point) not in dom.layouts
+    return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share, new_layout)
 
 
 # ------------------------------------------------------------------ the prediction
@@ -574,29 +590,66 @@ def left_out_errors(model: LibraryModel, runs: Sequence[int]) -> dict[str, list[
     return out
 
 
-def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
-    """Per quantity, the least half-width of an extrapolation: t(0.975, m) times the root
-    mean square error of the m runs beyond the other runs' hull (the ends of the library's
-    ranges, and its corners off a star of one change at a time), each predicted
-    without it (:func:`left_out_errors`; ``leave`` not among them). The line's own interval
-    knows nothing of how the law bends beyond its runs; these errors do. Zero without such
-    a run."""
-    ends = [n for n, inside in enumerate(model.calibration.inside) if not inside and n != leave]
+def _floor(model: LibraryModel, runs: Sequence[int]) -> dict[str, float]:
+    """Per quantity, t(0.975, m) times the root mean square error of the m runs ``runs``,
+    each predicted without it (:func:`left_out_errors`); none without such a run."""
     out = {}
-    for key, errors in left_out_errors(model, ends).items():
+    for key, errors in left_out_errors(model, runs).items():
         errors = [e for e in errors if math.isfinite(e)]
         if errors:
             out[key] = float(stdtrit(len(errors), 0.5 + LEVEL / 2)) * math.sqrt(float(np.mean(np.square(errors))))
     return out
 
 
+def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
+    """Per quantity, the least half-width of an extrapolation (:func:`_floor`) from the runs
+    beyond the other runs' hull (the ends of the library's ranges, and its corners off a
+    star of one change at a time; ``leave`` not among them). The line's own interval knows
+    nothing of how the law bends beyond its runs; these errors do."""
+    return _floor(model, [n for n, inside in enumerate(model.calibration.inside) if not inside and n != leave])
+
+
+def layout_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
+    """Per quantity, the least half-width at a blade layout no run has (:func:`_floor`) from
+    the runs inside the others' hull whose layout no other run has (``leave`` neither among
+    them nor counted as another): left out, each was predicted at a layout the law had not
+    seen, as such a point is. Inside the hull only, since an end's error is the
+    extrapolation floor's."""
+    layouts = [layout_of(r.point) for r in model.runs]
+    kept = [n for n in range(len(layouts)) if n != leave]
+    alone = [n for n in kept if model.calibration.inside[n] and sum(layouts[m] == layouts[n] for m in kept) == 1]
+    return _floor(model, alone)
+
+
+@dataclass(frozen=True)
+class Floors:
+    """The least half-widths, per quantity, that a library's own runs left out set: beyond
+    its runs' hull (``ends``, :func:`extrapolation_floor`) and at a blade layout no run has
+    (``layout``, :func:`layout_floor`)."""
+
+    ends: dict[str, float]
+    layout: dict[str, float]
+
+    def at(self, place: Placement) -> dict[str, float]:
+        """Per quantity, the least half-width at a point placed as ``place`` says: the
+        extrapolation floor times the point's share of it beyond the hull, the layout floor
+        at a layout no run has, the larger of the two; none inside the hull at a layout run."""
+        ends = {k: v * place.floor_share for k, v in self.ends.items()} if place.extrapolated else {}
+        layout = self.layout if place.new_layout else {}
+        return {k: max(ends.get(k, 0.0), layout.get(k, 0.0)) for k in ends.keys() | layout.keys()}
+
+
+def floors(model: LibraryModel, leave: int | None = None) -> Floors:
+    """The :class:`Floors` of ``model`` (calibrated), ``leave`` not among their runs."""
+    return Floors(extrapolation_floor(model, leave), layout_floor(model, leave))
+
+
 def floor_at(model: LibraryModel, place: Placement, leave: int | None = None) -> dict[str, float]:
-    """Per quantity, the least half-width at a point placed as ``place`` says: the
-    extrapolation floor (:func:`extrapolation_floor`, ``leave`` not among its runs) times
-    the point's share of it; none inside the runs' hull."""
-    if not place.extrapolated:
+    """Per quantity, the least half-width at a point placed as ``place`` says
+    (:meth:`Floors.at`), ``leave`` not among the floors' runs."""
+    if not (place.extrapolated or place.new_layout):
         return {}
-    return {key: value * place.floor_share for key, value in extrapolation_floor(model, leave).items()}
+    return floors(model, leave).at(place)
 
 
 @dataclass(frozen=True)
@@ -775,6 +828,8 @@ class Prediction:
     values: PointValues
     rtd_times_s: np.ndarray
     rtd: np.ndarray  # (3, T): E(t) at the predicted mean residence time, and at its interval's ends
+    #: no library run has the point's blade layout: its intervals keep the layout floor
+    new_layout: bool = False
 
     @property
     def extrapolated(self) -> bool:
@@ -854,4 +909,5 @@ def predict(
         ends = [q.value, q.low, q.high]
     curves = np.array([stretched(curve, times, end / mean) if math.isfinite(end) else curve for end in ends])
     rtd = np.vstack([curves[0], curves.min(axis=0), curves.max(axis=0)])
-    return Prediction(point, quantities, place.labels() if place.extrapolated else (), dom, values, times, rtd)
+    outside = place.labels() if place.extrapolated else ()
+    return Prediction(point, quantities, outside, dom, values, times, rtd, place.new_layout)

@@ -51,6 +51,8 @@ def prediction_record(prediction: Prediction, dynamics: Dynamics, config_name: s
         "point": prediction.point.record(),
         "extrapolated": prediction.extrapolated,
         "outside_domain": list(prediction.outside),
+        # no library run has its blade layout: each interval at least the layout floor
+        "new_layout": prediction.new_layout,
         "domain": prediction.domain.describe(),
         "level": LEVEL,
         # the library's grid: the slices of holdup_slice_<i>, whatever grid the configuration's DEM would bin on

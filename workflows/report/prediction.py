@@ -130,6 +130,12 @@ def prediction_html(record: Mapping[str, Any], figure: str | None, files: dict[s
             + f". The intervals are {widened}, at least to a share of the "
             "errors of the library's end runs predicted without them.</p>"
         )
+    if record.get("new_layout"):
+        warning += (
+            '<p class="warn"><b>A blade layout no library run has</b> (this length puts its stations and its gap '
+            "to the weir where no run had them): each interval is at least the error of the library's runs that "
+            "were alone at their layouts, each predicted without it. A DEM run of this layout narrows them.</p>"
+        )
     links = " · ".join(f'<a href="{html.escape(name)}">{html.escape(what)}</a>' for what, name in files.items())
     image = (
         f'<img src="{html.escape(figure)}" alt="Predicted residence-time distribution, steady hold-up per axial '

@@ -94,7 +94,16 @@ def test_a_point_outside_the_domain_is_refused_in_one_line_and_labelled_when_ext
         main(["predict", "--config", str(config), "--library", str(library), "--out", str(out), "--extrapolate"]) == 0
     )
     assert "EXTRAPOLATED" in capsys.readouterr().out
-    assert json.loads((out / "prediction.json").read_text())["extrapolated"] is True
+    record = json.loads((out / "prediction.json").read_text())
+    assert record["extrapolated"] is True and record["new_layout"] is False
+    assert "blade layout no library run has" not in (out / "report.html").read_text()
+    # another length: its stations are a layout no run of the library has, said on the page
+    longer = tmp_path / "longer"
+    config = "workflows/reference/unseen/225rpm-x1.125.toml"
+    assert main(["predict", "--config", config, "--library", str(library), "--out", str(longer), "--extrapolate"]) == 0
+    assert "a blade layout no library run has" in capsys.readouterr().out
+    assert json.loads((longer / "prediction.json").read_text())["new_layout"] is True
+    assert "A blade layout no library run has" in (longer / "report.html").read_text()
 
 
 def test_library_fit_refuses_a_run_given_twice(tmp_path, capsys):

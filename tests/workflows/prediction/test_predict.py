@@ -674,3 +674,72 @@ def test_the_check_page_prints_each_quantitys_root_mean_square_error_on_its_scal
     c_a = next(line for line in page.splitlines() if line.startswith("| C_A |")).split(" | ")
     assert holdup[3] == f"{100 * math.sqrt((0.01**2 + 0.07**2) / 2):.1f} %" and holdup[6] == "10.0 %"
     assert c_a[3] == "0.0200" and c_a[6] == "0.0200"
+
+
+def _stations(length_m: float) -> tuple[float, ...]:
+    """The baseline's stations continued at its spacing, as many as leave 25 mm before the weir."""
+    first, spacing = BASE.blade_x_m[0], BASE.blade_x_m[1] - BASE.blade_x_m[0]
+    return tuple(first + k * spacing for k in range(math.floor((length_m - 0.025 - first) / spacing) + 1))
+
+
+def _layouts_model(layout_miss: float, second_x125: bool = False) -> LibraryModel:
+    """The baseline's blender at 200, 250 and 300 rpm and four other lengths at 250 rpm, each
+    its own layout; the DEM misses the law by a line in speed plus, at the four other
+    layouts, +-``layout_miss`` in turn: what no line in speed and length can follow."""
+    moves = [(200.0, 1.0), (250.0, 1.0), (300.0, 1.0), (250.0, 0.75), (250.0, 0.875), (250.0, 1.25), (250.0, 1.5)]
+    if second_x125:
+        moves.append((300.0, 1.25))
+    points = [
+        BASE.replace(impeller_rpm=rpm, length_m=BASE.length_m * f, blade_x_m=_stations(BASE.length_m * f))
+        for rpm, f in moves
+    ]
+    sign = {0.75: 1.0, 0.875: -1.0, 1.25: 1.0, 1.5: -1.0}
+    runs = []
+    for n, ((_, f), p) in enumerate(zip(moves, points)):
+        law = point_values(_law(), _transverse(), p, "FB", 0.1).values["holdup"]
+        miss = _miss(p) + sign.get(f, 0.0) * layout_miss
+        runs.append(
+            LibraryEntry(f"run{n}.h5", str(n), p, "FB", 15485863, {"holdup": Estimate(law * math.exp(miss), 0.0, 1e9)})
+        )
+    model = LibraryModel(_law(), _transverse(), tuple(runs), (_law(),) * len(runs), (_transverse(),) * len(runs), 0.1)
+    return calibrated(model, ("speed", "length"))
+
+
+def _half(q) -> float:
+    return math.log(q.high / q.value)
+
+
+def test_a_blade_layout_no_run_has_keeps_the_error_of_the_runs_that_were_alone_at_theirs():
+    from scipy.special import stdtrit
+
+    from workflows.prediction.predict import layout_floor, left_out_errors
+
+    at_x1125 = BASE.replace(length_m=BASE.length_m * 1.125, blade_x_m=_stations(BASE.length_m * 1.125))
+    at_275 = BASE.replace(impeller_rpm=275.0)
+    # where the line follows every layout, the floor is nothing and the line's interval stands
+    exact = _layouts_model(0.0)
+    assert layout_floor(exact)["holdup"] < 1e-9
+    prediction = predict(exact, at_x1125, "FB")
+    assert prediction.new_layout and _half(prediction.quantity("holdup")) < 1e-6
+    # a miss of each layout of its own: the floor is t(0.975, m) times the root mean square
+    # error, left out, of the m runs inside the others' hull alone at their layouts (x0.875
+    # and x1.25; x0.75 and x1.5 are ends), and it grows with the miss
+    model = _layouts_model(0.03)
+    errors = left_out_errors(model, [4, 5])["holdup"]
+    floor = layout_floor(model)["holdup"]
+    assert floor == pytest.approx(stdtrit(2, 0.975) * math.sqrt(np.mean(np.square(errors))), rel=1e-9)
+    assert layout_floor(_layouts_model(0.06))["holdup"] == pytest.approx(2 * floor, rel=0.05)
+    q = predict(model, at_x1125, "FB").quantity("holdup")
+    assert _half(q) >= floor - 1e-12
+    # the baseline's layout, which three runs share, keeps the line's interval
+    baseline = predict(model, at_275, "FB")
+    assert not baseline.new_layout and _half(baseline.quantity("holdup")) < floor
+    # left out, a run alone at its layout is judged by the floor of the other such run alone
+    assert layout_floor(model, leave=4)["holdup"] == pytest.approx(stdtrit(1, 0.975) * abs(errors[1]), rel=1e-9)
+    row = next(r for r in check(model).rows if r.run == "run4.h5" and r.key == "holdup")
+    assert math.log(row.high / row.value) >= layout_floor(model, leave=4)["holdup"] - 1e-12
+    # a second run of the x1.25 layout: x0.875 alone sets the floor
+    shared = _layouts_model(0.03, second_x125=True)
+    assert layout_floor(shared)["holdup"] == pytest.approx(
+        stdtrit(1, 0.975) * abs(left_out_errors(shared, [4])["holdup"][0]), rel=1e-9
+    )
