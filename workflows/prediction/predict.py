@@ -106,7 +106,7 @@ from workflows.prediction.library import (
     same_setting,
     slice_key,
 )
-from workflows.prediction.profile import ProfileLaw, layout_of
+from workflows.prediction.profile import ProfileLaw, layout_index, layout_of
 
 #: binomial draws of the predicted outlet RSD and Lacey index (fixed seed: the law at the
 #: library's runs and at the point is sampled alike, so the correction compares laws, not
@@ -327,7 +327,7 @@ class Domain:
     #: weir, feed zones and the feed's A share
     physics: dict[str, Any] = field(default_factory=dict)
     #: the runs' blade layouts (:func:`~workflows.prediction.profile.layout_of`)
-    layouts: frozenset[tuple[float, ...]] = frozenset()
+    layouts: tuple[tuple[float, ...], ...] = ()
 
     def describe(self) -> str:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
@@ -393,7 +393,10 @@ def domain(points: Sequence[OperatingPoint], pattern: str, physics: Sequence[Map
     values = [run_covariates(p) for p in points]
     ranges = {axis: (min(v[axis] for v in values), max(v[axis] for v in values)) for axis in DOMAIN_AXES}
     box = Domain(
-        ranges, _fixed(points[0], pattern), physics=shared_physics(physics), layouts=frozenset(map(layout_of, points))
+        ranges,
+        _fixed(points[0], pattern),
+        physics=shared_physics(physics),
+        layouts=tuple(dict.fromkeys(map(layout_of, points))),
     )
     vertices = np.array([box._scaled(p) for p in points])
     ends = [hull_distance(np.delete(vertices, n, axis=0), vertices[n]) for n in range(len(points))]
@@ -455,7 +458,7 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
             distance += 1.0
     beyond = dom.beyond(point)
     share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))
-    new_layout = bool(dom.layouts) and layout_of(point) not in dom.layouts
+    new_layout = bool(dom.layouts) and layout_index(dom.layouts, layout_of(point)) is None
     return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share, new_layout)
 
 
@@ -617,7 +620,11 @@ def layout_floor(model: LibraryModel, leave: int | None = None) -> dict[str, flo
     extrapolation floor's."""
     layouts = [layout_of(r.point) for r in model.runs]
     kept = [n for n in range(len(layouts)) if n != leave]
-    alone = [n for n in kept if model.calibration.inside[n] and sum(layouts[m] == layouts[n] for m in kept) == 1]
+    alone = [
+        n
+        for n in kept
+        if model.calibration.inside[n] and sum(layout_index([layouts[m]], layouts[n]) == 0 for m in kept) == 1
+    ]
     return _floor(model, alone)
 
 

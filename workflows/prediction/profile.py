@@ -92,8 +92,9 @@ TOL = 1e-12
 #: the log error) by the law alone, 2.1 % with speed and feed, 1.9 % with speed and
 #: speed^2, 1.4 % with all three (``pbmdem study profile-forms``, its second table)
 LAYOUT_TERMS = ("speed", "feed", "speed2")
-#: two blade stations or lengths closer than this are the same [m]
-LAYOUT_TOL_M = 1e-6
+#: two blade stations or lengths closer than this are the same [m]: a station typed to a
+#: tenth of a millimetre is the station the library ran (its physics is compared alike)
+LAYOUT_TOL_M = 1e-4
 
 
 def n_coefficients(own_stations: Sequence[int]) -> int:
@@ -180,9 +181,17 @@ def _log_slices(design: _Design, coefficients: np.ndarray) -> tuple[np.ndarray, 
 
 
 def layout_of(point: OperatingPoint) -> tuple[float, ...]:
-    """``point``'s blade layout: its length and stations [m], rounded to :data:`LAYOUT_TOL_M`."""
-    digits = round(-math.log10(LAYOUT_TOL_M))
-    return (round(point.length_m, digits), *(round(x, digits) for x in point.blade_x_m))
+    """``point``'s blade layout: its length and stations [m], to the micrometre."""
+    return (round(point.length_m, 6), *(round(x, 6) for x in point.blade_x_m))
+
+
+def layout_index(layouts: Sequence[tuple[float, ...]], layout: tuple[float, ...]) -> int | None:
+    """The index of the first of ``layouts`` that is ``layout`` (as many stations, each and
+    the length within :data:`LAYOUT_TOL_M`), None when none is."""
+    for k, other in enumerate(layouts):
+        if len(other) == len(layout) and all(abs(a - b) <= LAYOUT_TOL_M for a, b in zip(other, layout)):
+            return k
+    return None
 
 
 def _terms(point: OperatingPoint, terms: Sequence[str]) -> np.ndarray:
@@ -216,7 +225,7 @@ class LayoutShares:
     def runs_at(self, point: OperatingPoint) -> int:
         """How many of the library's runs set ``point``'s shares: its layout's, where
         :meth:`at` applies their lines; 0 where the law alone does."""
-        return 0 if self.at(point) is None else int(self.runs[self.layouts.index(layout_of(point))])
+        return 0 if self.at(point) is None else int(self.runs[layout_index(self.layouts, layout_of(point))])
 
     @cached_property
     def _seen(self) -> np.ndarray:
@@ -227,10 +236,9 @@ class LayoutShares:
         """(the miss of each slice's log share at ``point``, the standard deviation of a run's
         share about it), or None at a layout the library has not run, or away from its runs
         along a term its layouts' runs never varied (the lines cannot tell that slope)."""
-        layout = layout_of(point)
-        if layout not in self.layouts:
+        k = layout_index(self.layouts, layout_of(point))
+        if k is None:
             return None
-        k = self.layouts.index(layout)
         offset = _terms(point, self.terms) - self.centres[k]
         if np.linalg.norm(offset - self._seen @ offset) > 1e-9 * (1.0 + np.linalg.norm(offset)):
             return None
@@ -294,9 +302,12 @@ def fit_layouts(
         return None
     misses = np.array([_log_shares(holdups[n]) - _log_shares(law.holdups(points[n])) for n in complete])
     x = np.array([_terms(points[n], terms) for n in complete])
-    keys = [layout_of(points[n]) for n in complete]
-    layouts = tuple(dict.fromkeys(keys))
-    group = np.array([layouts.index(k) for k in keys])
+    layouts: list[tuple[float, ...]] = []
+    for n in complete:
+        if layout_index(layouts, layout_of(points[n])) is None:
+            layouts.append(layout_of(points[n]))
+    group = np.array([layout_index(layouts, layout_of(points[n])) for n in complete])
+    layouts = tuple(layouts)
     runs = np.bincount(group, minlength=len(layouts)).astype(float)
     centres = np.array([x[group == k].mean(axis=0) for k in range(len(layouts))])
     means = np.array([misses[group == k].mean(axis=0) for k in range(len(layouts))])

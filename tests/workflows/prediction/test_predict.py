@@ -734,6 +734,11 @@ def test_a_blade_layout_no_run_has_keeps_the_error_of_the_runs_that_were_alone_a
     # the baseline's layout, which three runs share, keeps the line's interval
     baseline = predict(model, at_275, "FB")
     assert not baseline.new_layout and _half(baseline.quantity("holdup")) < floor
+    # a station typed to a tenth of a millimetre is the station run; a millimetre off is not
+    x125 = model.runs[5].point
+    for moved, new in ((5e-5, False), (1e-3, True)):
+        stations = (*x125.blade_x_m[:-1], x125.blade_x_m[-1] + moved)
+        assert predict(model, x125.replace(blade_x_m=stations), "FB").new_layout is new
     # left out, a run alone at its layout is judged by the floor of the other such run alone
     assert layout_floor(model, leave=4)["holdup"] == pytest.approx(stdtrit(1, 0.975) * abs(errors[1]), rel=1e-9)
     row = next(r for r in check(model).rows if r.run == "run4.h5" and r.key == "holdup")
