@@ -51,8 +51,12 @@ from workflows.prediction.predict import (
     Placement,
     PointValues,
     domain,
+    end_runs,
+    extrapolation_floor,
     floor_at,
     held_out,
+    layout_floor,
+    lone_layout_runs,
     placement,
     point_values,
     predict,
@@ -702,6 +706,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
             f"{_rms_error([r for r in slices if r.interpolated])} interpolated, "
             f"{_rms_error([r for r in slices if not r.interpolated])} extrapolated.",
         ]
+    lines += ["", _floors(model, keys)]
     if result.seed_pairs:
         n = len(result.seed_pairs)
         t = float(stdtrit(n, 0.5 + LEVEL / 2))
@@ -712,6 +717,35 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
             f"measured from {n} pair{'s' if n > 1 else ''}." + _twin_verdicts(result),
         ]
     return "\n".join(lines)
+
+
+def _floors(model: LibraryModel, keys: Sequence[str]) -> str:
+    """The least half-widths of :func:`~workflows.prediction.predict.floors`, as the
+    library's predictions take them, with the runs they come from."""
+    parts = []
+    for what, runs, floor in (
+        ("beyond the runs' hull", end_runs(model), extrapolation_floor(model)),
+        ("at a blade layout no run has", lone_layout_runs(model), layout_floor(model)),
+    ):
+        if not floor:
+            parts.append(f"{what}, none (no such run)")
+            continue
+        m = len(runs)
+        names = ", ".join(model.runs[n].file for n in runs)
+        shown = [k for k in keys if k in floor and not _slice_of(k, "holdup_slice")]
+        slices = [100 * floor[k] for k in keys if k in floor and _slice_of(k, "holdup_slice")]
+        values = ", ".join(f"{k} {_floor_value(k, floor[k])}" for k in shown)
+        if slices:
+            values += f", a slice {min(slices):.1f}-{max(slices):.1f} %"
+        parts.append(f"{what}, t(0.975, {m}) = {stdtrit(m, 0.5 + LEVEL / 2):.2f} times that of {names}: {values}")
+    return (
+        "The least half-widths a prediction keeps, each the root mean square error of the runs named, each predicted "
+        "without it (`workflows.prediction.predict.floors`): " + "; ".join(parts) + "."
+    )
+
+
+def _floor_value(key: str, half: float) -> str:
+    return f"{half:.3g}" if key in ABSOLUTE_KEYS else f"{100 * half:.1f} %"
 
 
 def _twin_verdicts(result: Check) -> str:

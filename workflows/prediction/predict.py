@@ -604,28 +604,38 @@ def _floor(model: LibraryModel, runs: Sequence[int]) -> dict[str, float]:
     return out
 
 
-def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
-    """Per quantity, the least half-width of an extrapolation (:func:`_floor`) from the runs
-    beyond the other runs' hull (the ends of the library's ranges, and its corners off a
-    star of one change at a time; ``leave`` not among them). The line's own interval knows
-    nothing of how the law bends beyond its runs; these errors do."""
-    return _floor(model, [n for n, inside in enumerate(model.calibration.inside) if not inside and n != leave])
+def end_runs(model: LibraryModel, leave: int | None = None) -> list[int]:
+    """The runs beyond the other runs' hull (the ends of the library's ranges, and its
+    corners off a star of one change at a time), ``leave`` not among them."""
+    return [n for n, inside in enumerate(model.calibration.inside) if not inside and n != leave]
 
 
-def layout_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
-    """Per quantity, the least half-width at a blade layout no run has (:func:`_floor`) from
-    the runs inside the others' hull whose layout no other run has (``leave`` neither among
-    them nor counted as another): left out, each was predicted at a layout the law had not
-    seen, as such a point is. Inside the hull only, since an end's error is the
-    extrapolation floor's."""
+def lone_layout_runs(model: LibraryModel, leave: int | None = None) -> list[int]:
+    """The runs inside the others' hull whose blade layout no other run has (``leave``
+    neither among them nor counted as another): left out, each was predicted at a layout
+    the law had not seen."""
     layouts = [layout_of(r.point) for r in model.runs]
     kept = [n for n in range(len(layouts)) if n != leave]
-    alone = [
+    return [
         n
         for n in kept
         if model.calibration.inside[n] and sum(layout_index([layouts[m]], layouts[n]) == 0 for m in kept) == 1
     ]
-    return _floor(model, alone)
+
+
+def extrapolation_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
+    """Per quantity, the least half-width of an extrapolation (:func:`_floor`) from the end
+    runs (:func:`end_runs`). The line's own interval knows nothing of how the law bends
+    beyond its runs; these errors do."""
+    return _floor(model, end_runs(model, leave))
+
+
+def layout_floor(model: LibraryModel, leave: int | None = None) -> dict[str, float]:
+    """Per quantity, the least half-width at a blade layout no run has (:func:`_floor`) from
+    the runs alone at their layouts inside the hull (:func:`lone_layout_runs`), each
+    predicted without it as such a point is. Inside the hull only, since an end's error is
+    the extrapolation floor's."""
+    return _floor(model, lone_layout_runs(model, leave))
 
 
 @dataclass(frozen=True)

@@ -743,6 +743,14 @@ def test_a_blade_layout_no_run_has_keeps_the_error_of_the_runs_that_were_alone_a
     assert layout_floor(model, leave=4)["holdup"] == pytest.approx(stdtrit(1, 0.975) * abs(errors[1]), rel=1e-9)
     row = next(r for r in check(model).rows if r.run == "run4.h5" and r.key == "holdup")
     assert math.log(row.high / row.value) >= layout_floor(model, leave=4)["holdup"] - 1e-12
+    # the check page names the floor and the runs it comes from
+    from workflows.prediction.calibration import markdown
+
+    page = markdown(model, check(model))
+    assert (
+        f"at a blade layout no run has, t(0.975, 2) = 4.30 times that of run4.h5, run5.h5: holdup {100 * floor:.1f} %"
+        in page
+    )
     # a second run of the x1.25 layout: x0.875 alone sets the floor
     shared = _layouts_model(0.03, second_x125=True)
     assert layout_floor(shared)["holdup"] == pytest.approx(
