@@ -106,7 +106,7 @@ from workflows.prediction.library import (
     same_setting,
     slice_key,
 )
-from workflows.prediction.profile import ProfileLaw, layout_index, layout_of
+from workflows.prediction.profile import ProfileLaw, layout_index, layout_of, same_layout
 
 #: binomial draws of the predicted outlet RSD and Lacey index (fixed seed: the law at the
 #: library's runs and at the point is sampled alike, so the correction compares laws, not
@@ -617,9 +617,7 @@ def lone_layout_runs(model: LibraryModel, leave: int | None = None) -> list[int]
     layouts = [layout_of(r.point) for r in model.runs]
     kept = [n for n in range(len(layouts)) if n != leave]
     return [
-        n
-        for n in kept
-        if model.calibration.inside[n] and sum(layout_index([layouts[m]], layouts[n]) == 0 for m in kept) == 1
+        n for n in kept if model.calibration.inside[n] and sum(same_layout(layouts[m], layouts[n]) for m in kept) == 1
     ]
 
 
@@ -880,10 +878,12 @@ def predict(
     pattern: str,
     extrapolate: bool = False,
     physics: Mapping[str, Any] | None = None,
+    least: Floors | None = None,
 ) -> Prediction:
     """The prediction of ``point``, its blade stations oriented by ``pattern``, its
     configuration's physics ``physics`` (:func:`~workflows.prediction.library.physics_of`; None: taken as the library's),
-    from ``model`` (module docstring). Raises ConfigError when the model has no
+    from ``model`` (module docstring); ``least`` the model's :func:`floors`, when the caller
+    has them already (made here when needed). Raises ConfigError when the model has no
     calibration, or the point lies outside the library's domain and ``extrapolate`` is
     False."""
     lines = corrections(model)
@@ -908,7 +908,7 @@ def predict(
             f"{point.feed_rate_total_per_s:g} /s ({exc}): too far beyond its domain, {dom.describe()}"
         ) from None
     values = {key: line_alone(key) if key in model.calibration.direct else v for key, v in values.items()}
-    floor = floor_at(model, place)
+    floor = least.at(place) if least is not None else floor_at(model, place)
     quantities = assembled(values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     quantities = tuple(replace(q, alone=True) if q.key in model.calibration.direct else q for q in quantities)
     by_key = {q.key: q for q in quantities}

@@ -185,13 +185,16 @@ def layout_of(point: OperatingPoint) -> tuple[float, ...]:
     return (round(point.length_m, 6), *(round(x, 6) for x in point.blade_x_m))
 
 
+def same_layout(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+    """Whether layouts ``a`` and ``b`` are one: as many stations, each and the length within
+    :data:`LAYOUT_TOL_M`."""
+    return len(a) == len(b) and all(abs(x - y) <= LAYOUT_TOL_M for x, y in zip(a, b))
+
+
 def layout_index(layouts: Sequence[tuple[float, ...]], layout: tuple[float, ...]) -> int | None:
-    """The index of the first of ``layouts`` that is ``layout`` (as many stations, each and
-    the length within :data:`LAYOUT_TOL_M`), None when none is."""
-    for k, other in enumerate(layouts):
-        if len(other) == len(layout) and all(abs(a - b) <= LAYOUT_TOL_M for a, b in zip(other, layout)):
-            return k
-    return None
+    """The index of the first of ``layouts`` that is ``layout`` (:func:`same_layout`), None
+    when none is."""
+    return next((k for k, other in enumerate(layouts) if same_layout(other, layout)), None)
 
 
 def _terms(point: OperatingPoint, terms: Sequence[str]) -> np.ndarray:

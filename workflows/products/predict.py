@@ -88,8 +88,10 @@ def run_predict(
     model = load_model(library_path)
     point = operating_point(config.dem)
     physics = physics_of(config.dem)
-    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics)
-    dynamics = point_dynamics(surrogate(model, extrapolate), point, NOISE, physics)
+    # the design's surrogate holds the floors the prediction keeps: made once
+    design = surrogate(model, extrapolate)
+    prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics, design.floors)
+    dynamics = point_dynamics(design, point, NOISE, physics)
     folder = writable_directory(out, "--out")
     record = prediction_record(prediction, dynamics, config.name or str(config_path), library_path)
     if figures:

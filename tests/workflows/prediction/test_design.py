@@ -45,6 +45,9 @@ def test_the_quantities_are_predicts(shipped):
     point = _point(shipped, 275.0, 0.37, 90.0)
     ours = D.evaluate(shipped, D.design_spec(mrt_max_s=30.0), point)
     theirs = predict(shipped.model, point, shipped.pattern)
+    assert theirs.new_layout  # 0.37 m: both keep the layout floor
+    reused = predict(shipped.model, point, shipped.pattern, least=shipped.floors)
+    assert [q.record() for q in reused.quantities] == [q.record() for q in theirs.quantities]
     for q in (ours.mrt, ours.holdup):
         other = theirs.quantity(q.key)
         assert (q.value, q.low, q.high) == pytest.approx((other.value, other.low, other.high), rel=1e-9)
