@@ -25,7 +25,7 @@ from workflows.bench.design import fresh
 
 OUT = Path("results/bench/predict.json")
 #: the README's example point
-EXAMPLE = "workflows/reference/unseen/300rpm-x1.125-feed0.75.toml"
+EXAMPLE = "workflows/reference/unseen/275rpm-x1.3125.toml"
 TARGET_S = 2.0
 
 
