@@ -21,14 +21,14 @@ that the slice holds the zone law's hold-up. Particles go where the law sends th
 as long as the bed says.
 
 The law is fitted to the particles' moves, not to the quantities: at the library's own runs
-its chain, timed, misses the DEM's hold-up by -3.1 to +3.3 % (as fitted by up to 6 %),
+its chain, timed, misses the DEM's hold-up by -4.1 to +3.6 % (as fitted by up to 6 %),
 smoothly over the operating point, while the DEM's own scatter between seeds is 0.4-1 %. What it misses there is carried to the point (:func:`predict`): on each
 quantity's scale (the log of the value, or the value itself for
 :data:`~workflows.prediction.library.ABSOLUTE_KEYS`) the residuals DEM less law at the
 library's runs are fitted by least squares as a line in the correction covariates x
-(:data:`~workflows.prediction.library.DEFAULT_CORRECTION`: log speed, its square, log
-slice length, the log gap from the last blade to the weir, log feed; :func:`fit_correction`
-keeps those the runs identify). The prediction is the law's value moved by the line at
+(:data:`~workflows.prediction.library.DEFAULT_CORRECTION`: log speed, log slice length,
+the log gap from the last blade to the weir, log feed and the last station's orientation;
+:func:`fit_correction` keeps those the runs identify). The prediction is the law's value moved by the line at
 the point, and its 95 % interval the line's prediction interval,
 +- t(0.975, n - p) s sqrt(1 + x'(A'A)^-1 x), n the runs, p the line's coefficients, s the
 residuals' standard deviation about it (the DEM's scatter between seeds and what the line
