@@ -1,6 +1,8 @@
-"""``pbmdem predict --config C.toml [--library FILE] [--out DIR] [--extrapolate]``: an
-operating point predicted from a DEM library's law, without a DEM run, every quantity with
-its 95 % prediction interval (:mod:`workflows.products.predict`)."""
+"""``pbmdem predict [--config C.toml] [--set PATH=VALUE ...] [--library FILE] [--out DIR]
+[--extrapolate]``: an operating point predicted from a DEM library's law, without a DEM run,
+every quantity with its 95 % prediction interval (:mod:`workflows.products.predict`). Without
+``--config`` the point is the validation preset, the shipped library's baseline, so a point
+one setting away from it is ``--set dem.operation.impeller_rpm=225``."""
 
 from __future__ import annotations
 
@@ -11,7 +13,20 @@ HELP = "predict an operating point from the DEM library's law, no DEM run, with 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True, help="the configuration (TOML) of the point to predict")
+    parser.add_argument(
+        "--config",
+        default=None,
+        help="the configuration (TOML) of the point to predict (default: the validation preset, the shipped library's "
+        "baseline)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        default=[],
+        metavar="PATH=VALUE",
+        help="change one setting of the configuration, e.g. dem.operation.impeller_rpm=225 (repeatable)",
+    )
     parser.add_argument(
         "--library",
         default=None,
@@ -39,9 +54,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, drawer) -> int:
+    from workflows.config import preset_path
     from workflows.products.predict import run_predict
 
-    output = run_predict(args.config, args.library, args.out, args.extrapolate, not args.no_figures, drawer)
+    config = args.config if args.config is not None else preset_path("validation")
+    output = run_predict(
+        config, args.library, args.out, args.extrapolate, not args.no_figures, drawer, settings=args.settings
+    )
     prediction = output.prediction
     if prediction.extrapolated:
         print(f"EXTRAPOLATED: {'; '.join(prediction.outside)}")

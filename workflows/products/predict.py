@@ -14,6 +14,7 @@ predicted E(t) with its band), ``table.h5`` (the PBM's table at the point: ``pbm
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ from coupling.forked import Prepared
 from coupling.jsonable import write_json
 from coupling.tables import write_table
 from dem.operating import operating_point
-from workflows.config import load_config
+from workflows.config import load_config, override
 from workflows.prediction.design import Dynamics, Noise, point_dynamics, surrogate
 from workflows.prediction.library import load_model, physics_of
 from workflows.prediction.predict import LEVEL, Prediction, point_table, predict
@@ -76,14 +77,16 @@ def run_predict(
     extrapolate: bool = False,
     figures: bool = True,
     drawer: Prepared | None = None,
+    settings: Sequence[str] = (),
 ) -> PredictOutput:
-    """Predict the configuration at ``config_path`` from the library model ``library``
+    """Predict the configuration at ``config_path``, with ``settings`` (``PATH=VALUE``,
+    :func:`workflows.config.override`) applied, from the library model ``library``
     (default the shipped one) and write the files of the module docstring. ``drawer``: a
     process of :data:`workflows.report.PREDICTION_FIGURES` forked by the caller before its
     own imports, which draws the figure and makes the page while this process writes the
     rest; else they are made here."""
     started = time.perf_counter()
-    config = load_config(config_path)
+    config = override(load_config(config_path), *settings) if settings else load_config(config_path)
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
     point = operating_point(config.dem)
@@ -93,7 +96,10 @@ def run_predict(
     prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics, design.floors)
     dynamics = point_dynamics(design, point, NOISE, physics)
     folder = writable_directory(out, "--out")
-    record = prediction_record(prediction, dynamics, config.name or str(config_path), library_path)
+    name = config.name or str(config_path)
+    record = prediction_record(
+        prediction, dynamics, f"{name} with {', '.join(settings)}" if settings else name, library_path
+    )
     if figures:
         drawer = drawer or Prepared(PREDICTION_FIGURES, fork=False)
         links = {"prediction.json": "prediction.json", "PBM table (HDF5)": "table.h5"}

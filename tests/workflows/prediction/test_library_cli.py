@@ -70,6 +70,26 @@ def test_predict_writes_every_quantity_a_table_and_a_page(library, tmp_path, cap
     assert draw(record, tmp_path / "again.png", links).replace("again.png", "prediction.png") == page
 
 
+def test_predict_without_a_config_is_the_validation_baseline_and_set_changes_one_setting(library, tmp_path, capsys):
+    base, changed, by_file = tmp_path / "base", tmp_path / "changed", tmp_path / "file"
+    run = ["predict", "--library", str(library), "--no-figures", "--out"]
+    assert main([*run, str(base)]) == 0
+    assert main([*run, str(changed), "--set", "dem.operation.impeller_rpm=200"]) == 0
+    config = tmp_path / "rpm200.toml"
+    config.write_text(Path(VALIDATION).read_text().replace("[dem.operation]\n", "[dem.operation]\nimpeller_rpm = 200\n"))
+    assert main([*run, str(by_file), "--config", str(config)]) == 0
+    records = [json.loads((folder / "prediction.json").read_text()) for folder in (base, changed, by_file)]
+    assert records[0]["point"]["impeller_rpm"] == 250 and records[1]["point"]["impeller_rpm"] == 200
+    assert records[1]["quantities"] == records[2]["quantities"]  # --set is the file with that one line
+    assert records[1]["config"] == "validation with dem.operation.impeller_rpm=200"
+    assert records[0]["quantities"] != records[1]["quantities"]
+    capsys.readouterr()
+    assert main([*run, str(tmp_path / "bad"), "--set", "dem.operation.rpm=200"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "dem.operation.rpm" in err and "impeller_rpm" in err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_the_predict_page_draws_without_the_prediction_code():
     """The process ``predict`` forks to draw its page imports matplotlib alone, so it is
     ready before the prediction is."""
