@@ -76,7 +76,9 @@ def test_predict_without_a_config_is_the_validation_baseline_and_set_changes_one
     assert main([*run, str(base)]) == 0
     assert main([*run, str(changed), "--set", "dem.operation.impeller_rpm=200"]) == 0
     config = tmp_path / "rpm200.toml"
-    config.write_text(Path(VALIDATION).read_text().replace("[dem.operation]\n", "[dem.operation]\nimpeller_rpm = 200\n"))
+    config.write_text(
+        Path(VALIDATION).read_text().replace("[dem.operation]\n", "[dem.operation]\nimpeller_rpm = 200\n")
+    )
     assert main([*run, str(by_file), "--config", str(config)]) == 0
     records = [json.loads((folder / "prediction.json").read_text()) for folder in (base, changed, by_file)]
     assert records[0]["point"]["impeller_rpm"] == 250 and records[1]["point"]["impeller_rpm"] == 200
