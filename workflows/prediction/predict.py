@@ -28,8 +28,8 @@ quantity's scale (the log of the value, or the value itself for
 library's runs are fitted by least squares as a line in the correction covariates x
 (:data:`~workflows.prediction.library.DEFAULT_CORRECTION`: log speed, log slice length,
 the log gap from the last blade to the weir, log feed and the last station's orientation;
-:func:`fit_correction` keeps those the runs identify). The prediction is the law's value moved by the line at
-the point, and its 95 % interval the line's prediction interval,
+:func:`fit_correction` keeps those the runs identify). The prediction is the law's value
+moved by the line at the point, and its 95 % interval the line's prediction interval,
 +- t(0.975, n - p) s sqrt(1 + x'(A'A)^-1 x), n the runs, p the line's coefficients, s the
 residuals' standard deviation about it (the DEM's scatter between seeds and what the line
 cannot follow) and A the runs' covariates: it widens away from the runs, where the line's

@@ -86,7 +86,9 @@ def run_predict(
     own imports, which draws the figure and makes the page while this process writes the
     rest; else they are made here."""
     started = time.perf_counter()
-    config = override(load_config(config_path), *settings) if settings else load_config(config_path)
+    config = load_config(config_path)
+    if settings:
+        config = override(config, *settings)
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
     point = operating_point(config.dem)
