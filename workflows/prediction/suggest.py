@@ -57,6 +57,16 @@ a law of the whole bed, and the law was chosen over the lines by the intervals o
 left out (:func:`~workflows.prediction.calibration.calibrated`): what it misses from one
 blender to another was scored there.
 
+Last, each half-width is taken as ``pbmdem predict`` gives it
+(:func:`~workflows.prediction.predict.corrected`): at least the library's floors (the
+errors of its end runs left out, beyond the runs' hull; of its runs alone at their blade
+layout, at a layout no run has) and widened by 1 + the point's distance from the hull
+(:func:`least_bounds`). A library of one change at a time spans a star, so most of the
+box of its ranges lies beyond the hull and most lengths at a layout no run has: there the
+floors, not the line, set the intervals, and a run that brings a stretch of the box inside
+the hull narrows them most. Over the shipped library's domain the median half-widths so
+taken are about twice the line's alone (``pbmdem library suggest``'s page).
+
 The region is the library's domain (each of speed, length and feed between its runs'
 least and greatest) or a part of it (:func:`parse_region`); the candidates a grid over the
 domain, optionally widened beyond its edges (:func:`widened`). A candidate of another
@@ -93,12 +103,15 @@ from workflows.prediction.predict import (
     LEVEL,
     Correction,
     Domain,
+    Floors,
     correction_data,
+    domain,
     fit_correction,
+    floors,
     model_domain,
     placement,
 )
-from workflows.prediction.profile import ProfileLaw
+from workflows.prediction.profile import ProfileLaw, layout_of, same_layout
 
 #: the region's axes, as the command line names them, and their units
 AXES = {"speed": "rpm", "length": "m", "feed": "particles/s"}
@@ -524,6 +537,108 @@ class Candidate:
     point: OperatingPoint
 
 
+@dataclass(frozen=True)
+class Least:
+    """What bounds a prediction's interval from below and widens it, as ``pbmdem predict``
+    applies it (:meth:`~workflows.prediction.predict.Floors.at`): the library's ``floors``
+    and its ``runs``, whose hull and blade layouts place a point against them, their
+    stations oriented by ``pattern``."""
+
+    floors: Floors
+    runs: tuple[OperatingPoint, ...]
+    pattern: str = ""
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Per quantity, the least half-width at each region point (``floor``, key -> (..., R))
+    and each point's widening (``widening``, (..., R)): now, or after each candidate's run
+    (a leading candidate axis)."""
+
+    floor: dict[str, np.ndarray]
+    widening: np.ndarray
+
+    def applied(self, key: str, half: np.ndarray) -> np.ndarray:
+        """``half`` at least the floor, times the widening (:func:`~workflows.prediction.predict.corrected`)."""
+        return np.maximum(half, self.floor.get(key, 0.0)) * self.widening
+
+
+def _beyond_others(points: Sequence[OperatingPoint], n: int, pattern: str) -> bool:
+    """Whether ``points[n]`` lies beyond the other points' hull or ranges: left out, an end
+    run (:func:`~workflows.prediction.predict.end_runs`)."""
+    others = [p for m, p in enumerate(points) if m != n]
+    return placement(domain(others, pattern), points[n], pattern).extrapolated
+
+
+def _lone(points: Sequence[OperatingPoint], ends: set[int]) -> int:
+    """How many of ``points`` lie inside the others' hull (not in ``ends``) at a blade
+    layout no other point has (:func:`~workflows.prediction.predict.lone_layout_runs`)."""
+    layouts = [layout_of(p) for p in points]
+    return sum(n not in ends and sum(same_layout(a, layouts[n]) for a in layouts) == 1 for n in range(len(points)))
+
+
+def _t_ratio(now: int, after: int) -> float:
+    """How a floor of t(0.975, m) times a root mean square error moves when its m errors
+    become ``after`` (the mean square expected to stay); 0 once none is left."""
+    if now < 1 or after < 1:
+        return 0.0 if after < 1 else 1.0
+    return float(stdtrit(after, 0.5 + LEVEL / 2) / stdtrit(now, 0.5 + LEVEL / 2))
+
+
+def _placed(
+    dom: Domain, ends: dict[str, float], layout: dict[str, float], points, pattern: str, every_layout_new: bool
+) -> Bounds:
+    """The :class:`Bounds` at ``points`` in ``dom``, the floors ``ends`` and ``layout``;
+    every point at a layout no run has if ``every_layout_new``."""
+    places = [placement(dom, p, pattern) for p in points]
+    if every_layout_new:
+        places = [replace(q, new_layout=True) for q in places]
+    at = Floors(ends, layout)
+    keys = ends.keys() | layout.keys()
+    floor = {k: np.array([at.at(q).get(k, 0.0) for q in places]) for k in keys}
+    return Bounds(floor, np.array([q.widening for q in places]))
+
+
+def least_bounds(
+    least: Least, region: Region, region_points: Sequence[OperatingPoint], candidates: Sequence[OperatingPoint]
+) -> tuple[Bounds, Bounds]:
+    """The :class:`Bounds` at the region's points now and expected after one more run at
+    each candidate. The run joins the hull: a point it brings inside loses the extrapolation
+    floor's share and the widening beyond the hull. Each floor's mean square error is
+    expected to stay, its count of runs to change as the run changes which runs are ends
+    and which are alone at their layout (t(0.975, m) of the new count). A blade layout is
+    a length to the micrometre, so over a region of lengths almost every point is at a
+    layout no run has: each keeps the layout floor, and a run's own length does not take
+    it off the region's points that happen to share it (an accident of the grids); a
+    region of one length is placed as it is."""
+    runs, pattern = list(least.runs), least.pattern
+    continuous = region.length[1] > region.length[0]
+    ends_now = {n for n in range(len(runs)) if _beyond_others(runs, n, pattern)}
+    lone_now = _lone(runs, ends_now)
+    now_domain = domain(runs, pattern)
+    now = _placed(now_domain, least.floors.ends, least.floors.layout, region_points, pattern, continuous)
+    floor_after = {k: np.zeros((len(candidates), len(region_points))) for k in now.floor}
+    widening_after = np.ones((len(candidates), len(region_points)))
+    for c, point in enumerate(candidates):
+        grown = [*runs, point]
+        ends = {e for e in ends_now if _beyond_others(grown, e, pattern)}
+        if placement(now_domain, point, pattern).extrapolated:
+            ends.add(len(runs))
+        ratio_ends, ratio_layout = _t_ratio(len(ends_now), len(ends)), _t_ratio(lone_now, _lone(grown, ends))
+        after = _placed(
+            domain(grown, pattern),
+            {k: v * ratio_ends for k, v in least.floors.ends.items()},
+            {k: v * ratio_layout for k, v in least.floors.layout.items()},
+            region_points,
+            pattern,
+            continuous,
+        )
+        for key, values in after.floor.items():
+            floor_after[key][c] = values
+        widening_after[c] = after.widening
+    return now, Bounds(floor_after, widening_after)
+
+
 def _with_total(half: np.ndarray, total: np.ndarray | None) -> np.ndarray:
     """A slice's half-width ``half`` with the hold-up's ``total`` in quadrature, as
     ``pbmdem predict`` gives it; alone without a hold-up interval."""
@@ -540,6 +655,7 @@ def rank(
     pure_sd: dict[str, float] | None = None,
     pattern: str = "",
     profile: ProfileLaw | None = None,
+    least: Least | None = None,
 ) -> list[Suggestion]:
     """Every candidate as a :class:`Suggestion`, the one that lowers the criterion over
     ``region_points`` most first (module docstring); ``names`` the correction's form,
@@ -547,7 +663,9 @@ def rank(
     the DEM's scatter between seeds on its scale (:func:`_bias`; None: the line's
     intervals alone); ``pattern`` the blade pattern of every point's stations (needed by a
     form with ``last``); ``profile`` the slices' zone law, which then judges the slices
-    in place of their lines (:func:`profile_half_widths`)."""
+    in place of their lines (:func:`profile_half_widths`); ``least`` the library's floors
+    and runs, which bound every interval from below and widen it beyond the runs' hull
+    (:func:`least_bounds`; None: neither)."""
     if not candidates or not region_points:
         raise ConfigError("no candidate or no region point to rank")
     region_terms = covariate_terms(region_points, pattern)
@@ -584,6 +702,12 @@ def rank(
         for key, h_now, h_after in zip(zoned, *halves):
             now[key] = ranked_now[key] = h_now
             after[key] = ranked_after[key] = h_after
+    if least is not None:
+        bounds_now, bounds_after = least_bounds(least, region, region_points, [c.point for c in candidates])
+        for key in list(now):
+            now[key], ranked_now[key] = bounds_now.applied(key, now[key]), bounds_now.applied(key, ranked_now[key])
+            after[key] = bounds_after.applied(key, after[key])
+            ranked_after[key] = bounds_after.applied(key, ranked_after[key])
     # whatever their source, the slices are scaled to the predicted hold-up, its interval's
     # half-width in quadrature with theirs (predict.held_in_total): the hold-up's interval,
     # not its bias term, which is the ranking's own
@@ -683,6 +807,16 @@ def suggest(model: LibraryModel, base: Config, region: str | None = None, extend
             raise
         raise ConfigError(f"--extend {extend:g} reaches candidates no blender can run: {exc}") from None
     profile = model.calibration.profile if model.calibration is not None else None
+    least = Least(floors(model), tuple(points), model.blade_pattern)
     return rank(
-        library_quantities(model), names, chosen, region_points, candidates, dom, scatter, model.blade_pattern, profile
+        library_quantities(model),
+        names,
+        chosen,
+        region_points,
+        candidates,
+        dom,
+        scatter,
+        model.blade_pattern,
+        profile,
+        least,
     )

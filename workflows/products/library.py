@@ -295,7 +295,9 @@ def _suggest_markdown(ranked: list[Suggestion], base: str, mean: float, duration
         "slice's hold-up 8 %), each squared half-width with t^2 times the line's expected squared bias under a "
         "curvature it cannot follow (from the spread beyond the seed scatter; `workflows/prediction/suggest.py`), "
         "the slices' from the zone law of the bed where the library has one, without that bias, each with the "
-        "hold-up's interval in quadrature (the slices are scaled to the predicted hold-up); "
+        "hold-up's interval in quadrature (the slices are scaled to the predicted hold-up), and each, as "
+        "`pbmdem predict` gives it, at least the library's floors (beyond the runs' hull, at a blade layout no "
+        "run has) and widened beyond the hull; "
         f"now {best.criterion_now:.3g}.",
         "",
         f"Suggested run: {best.speed:.4g} rpm, {best.length:.4g} m, {best.feed:.4g} particles/s"

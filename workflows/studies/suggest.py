@@ -19,7 +19,9 @@ the targets are out of reach of the line); the shipped runs' own misfits corresp
 phi of about 0.6 for the hold-up and 1.1-1.3 for the mean residence time and the slices.
 A design is judged at 200 random held-out points of the domain: the expected coverage of
 a new DEM value there (the truth plus seed noise; the probability computed, not drawn)
-pooled over the quantities and points, and each target's median half-width.
+pooled over the quantities and points, and each target's median half-width. A synthetic
+library has no laws left out, hence no floors: the rule and the judge take the line's
+intervals with the bias term.
 
 Compared, each from the same truths: the rule (a 7-run star, the domain's centre and the
 two ends of each axis, then one suggested run at a time from the 7^3 candidate grid, the
@@ -30,7 +32,8 @@ size of the smallest one that meets them.
 
 (b) The shipped runs, by leave-out. From a random 3-run start, the remaining shipped runs
 are added one at a time, either the one the rule ranks best among them (criterion over the
-library's whole domain) or in a random order. After each addition the library of those
+library's whole domain, the intervals with the floors of the runs held so far, as the
+product ranks them) or in a random order. After each addition the library of those
 runs is checked as ``pbmdem library fit`` checks it (:func:`workflows.prediction.calibration.check`
 of :func:`~workflows.prediction.calibration.restricted`): each run predicted by the law
 fitted without it, corrected by the line of its misses on the others; no law is refitted
@@ -77,11 +80,12 @@ from coupling.jsonable import write_json
 from workflows.config import load_preset
 from workflows.prediction import calibration
 from workflows.prediction.library import DEFAULT_CORRECTION, LibraryModel, load_model
-from workflows.prediction.predict import corrections, domain, fit_correction
+from workflows.prediction.predict import corrections, domain, fit_correction, floors
 from workflows.prediction.suggest import (
     CANDIDATE_LEVELS,
     REGION_LEVELS,
     Candidate,
+    Least,
     Quantity,
     Region,
     candidates_over,
@@ -394,8 +398,17 @@ def shipped_orders(model: LibraryModel, starts: int, randoms: int, seed: int = 0
             if by_rule:
                 sub = calibration.restricted(model, held)
                 cands = [Candidate(0.0, 0.0, 0.0, model.runs[n].point) for n in rest]
+                least = Least(floors(sub), tuple(model.runs[n].point for n in held), model.blade_pattern)
                 ranked = rank(
-                    library_quantities(sub), names, span, region_points, cands, None, scatter, model.blade_pattern
+                    library_quantities(sub),
+                    names,
+                    span,
+                    region_points,
+                    cands,
+                    None,
+                    scatter,
+                    model.blade_pattern,
+                    least=least,
                 )
                 chosen = rest[next(i for i, c in enumerate(cands) if c.point is ranked[0].point)]
             else:

@@ -21,15 +21,18 @@ from workflows.cli.main import main
 from workflows.config import config_from_dict, load_config, load_preset
 from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import CORRECTION_DOF, correction_row, load_model, slice_key
-from workflows.prediction.predict import fit_correction
+from workflows.prediction.predict import Floors, domain, fit_correction, floors, placement
 from workflows.prediction.profile import fit_profile, refit, without_layouts
 from workflows.prediction.suggest import (
     Candidate,
+    Least,
     Quantity,
     Region,
     config_at,
     criterion,
     half_widths,
+    least_bounds,
+    library_quantities,
     parse_region,
     profile_half_widths,
     rank,
@@ -445,3 +448,72 @@ def test_without_a_zone_law_the_slices_lines_carry_the_holdups_half_width_too(zo
     total, own = (np.array([line.at(p)[1] for p in region]) for line in lines)
     by_key = {r.key: r for r in ranked[0].reductions}
     assert by_key[slice_key(0)].now == pytest.approx(np.median(np.hypot(own, total)), rel=1e-10)
+
+
+# ------------------------------------------------------------------ the floors in the rule
+def _star():
+    """A star in speed and feed at the baseline's layout: its four ends lie beyond the
+    others' hull, the centre inside."""
+    return (_at(250.0), _at(150.0), _at(350.0), _at(250.0, 36.85), _at(250.0, 147.4))
+
+
+def test_a_run_at_a_corner_takes_the_widening_and_the_end_floor_off_that_corner():
+    """Predict's rule at a corner of a star (beyond the runs' hull): at least the end floor
+    times its share, times 1 + the distance from the hull; after a run there, neither."""
+    runs = _star()
+    least = Least(Floors({"holdup": 0.05}, {}), runs, BASE.dem.geometry.blade_pattern)
+    corner, centre = _at(350.0, 147.4), _at(250.0)
+    region = Region((150.0, 350.0), (0.33, 0.33), (36.85, 147.4))
+    now, after = least_bounds(least, region, [corner, centre], [corner, _at(200.0)])
+    place = placement(domain(list(runs), least.pattern), corner, least.pattern)
+    assert place.beyond > 0
+    assert now.widening[0] == pytest.approx(place.widening) and now.widening[1] == 1.0
+    assert now.floor["holdup"][0] == pytest.approx(0.05 * place.floor_share) and now.floor["holdup"][1] == 0.0
+    # the corner's own run: the corner joins the hull; the run is a fifth end, so a point
+    # still beyond it would keep t(5) / t(4) of the floor
+    assert after.widening[0, 0] == 1.0 and after.floor["holdup"][0, 0] == 0.0
+    # a run inside the hull leaves the corner's distance; its share of the floor is over
+    # the ends' reach, which the run shortens (150 rpm is nearer 200 than 250)
+    assert after.widening[1, 0] == pytest.approx(place.widening)
+    grown = placement(domain([*runs, _at(200.0)], least.pattern), corner, least.pattern)
+    assert grown.floor_share > place.floor_share
+    assert after.floor["holdup"][1, 0] == pytest.approx(0.05 * grown.floor_share)
+    half = np.array([0.01, 0.01])
+    assert now.applied("holdup", half) == pytest.approx([0.05 * place.floor_share * place.widening, 0.01])
+
+
+def test_an_end_run_more_moves_the_end_floor_by_student_t_of_its_count():
+    runs = _star()
+    least = Least(Floors({"holdup": 0.05}, {}), runs, BASE.dem.geometry.blade_pattern)
+    region = Region((150.0, 400.0), (0.33, 0.33), (36.85, 147.4))
+    far = _at(400.0)  # beyond the speed range: keeps all of the floor
+    now, after = least_bounds(least, region, [far], [_at(150.0, 147.4)])
+    ratio = stats.t.ppf(0.975, 5) / stats.t.ppf(0.975, 4)
+    assert now.floor["holdup"][0] == pytest.approx(0.05)
+    assert after.floor["holdup"][0, 0] == pytest.approx(0.05 * ratio)
+
+
+def test_over_a_range_of_lengths_every_point_keeps_the_layout_floor_and_at_one_length_it_is_placed():
+    runs = _star()
+    least = Least(Floors({}, {"holdup": 0.03}), runs, BASE.dem.geometry.blade_pattern)
+    inside = _at(250.0)  # the runs' layout
+    lengths = Region((150.0, 350.0), (0.2475, 0.495), (36.85, 147.4))
+    now, _ = least_bounds(least, lengths, [inside], [_at(200.0)])
+    assert now.floor["holdup"][0] == pytest.approx(0.03)
+    now, _ = least_bounds(least, SPAN, [inside], [_at(200.0)])
+    assert now.floor["holdup"][0] == 0.0
+
+
+def test_the_shipped_library_ranks_by_the_intervals_predict_gives():
+    """Over the shipped library's domain, the rule's half-widths now are at least the
+    line's: the floors and the widening beyond the hull only add."""
+    model = load_model(LIBRARY_DIR / "law")
+    region = Region(*(tuple(r) for r in (SPAN.speed, (0.33, 0.33), SPAN.feed)))
+    points = [_at(s, f) for s, _, f in region.grid(3)]
+    quantities = library_quantities(model)
+    names = model.calibration.covariates
+    plain = rank(quantities, names, region, points, _candidates([200.0]), pattern=model.blade_pattern)[0]
+    least = Least(floors(model), tuple(r.point for r in model.runs), model.blade_pattern)
+    held = rank(quantities, names, region, points, _candidates([200.0]), pattern=model.blade_pattern, least=least)[0]
+    assert held.criterion_now > plain.criterion_now
+    assert all(h.now >= p.now - 1e-12 for h, p in zip(held.reductions, plain.reductions))
