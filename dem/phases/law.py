@@ -52,6 +52,11 @@ from dem.phases.chain import initial_distribution
 from dem.phases.data import PhaseData
 from dem.phases.kernels import forward_backward
 
+#: the log of the fastest rate a law's chain holds: beyond :data:`coupling.phases.MAX_RATE_PER_S`
+#: a move is instantaneous at any dump interval, and a family's linear predictor, fitted
+#: where a phase moves and extrapolated where it hardly does, may pass it at a run's
+#: extreme covariates; its rate is held there instead of making the chain invalid
+LOG_MAX_RATE = math.log(phase_model.MAX_RATE_PER_S) - 1e-9  # exp() of it within the bound
 #: damped Newton steps of one M-step: the regression is concave and starts from the last
 #: M-step's answer, so a few steps reach its maximum to far below the EM's tolerance
 NEWTON_STEPS = 10
@@ -196,7 +201,7 @@ def law_chain(
     values = {}
     for name, (_src, _dst, comp) in phase_model.transitions(nx, ny, n_phases).items():
         if name in coefficients:
-            values[name] = np.exp(x[comp] @ coefficients[name])
+            values[name] = np.exp(np.minimum(x[comp] @ coefficients[name], LOG_MAX_RATE))
         elif comp.size:
             raise ConfigError(
                 f"the law has no rate for the moves {name!r} of a {nx}x{ny} grid: it was fitted on runs without "
@@ -249,7 +254,7 @@ def poisson_regression(beta: np.ndarray, x: np.ndarray, jumps: np.ndarray, dwell
     :data:`MAX_NEWTON_STEP`)."""
     beta = np.array(beta, dtype=float)
     for _ in range(NEWTON_STEPS):
-        mu = dwell * np.exp(np.minimum(x @ beta, 50.0))
+        mu = dwell * np.exp(np.minimum(x @ beta, LOG_MAX_RATE))
         gradient = x.T @ (jumps - mu)
         information = (x * mu[:, None]).T @ x + NEWTON_RIDGE * np.eye(beta.size)
         step = np.linalg.solve(information, gradient)

@@ -6,6 +6,7 @@ import pytest
 from scipy.linalg import expm
 
 from coupling.errors import ConfigError
+from coupling.phases import MAX_RATE_PER_S
 from dem.phases.chain import initial_distribution
 from dem.phases.data import prepare, simulate_sequences
 from dem.phases.kernels import forward_backward
@@ -104,3 +105,16 @@ def test_a_grid_with_moves_the_law_never_saw_is_refused(library):
     _runs, law = library
     with pytest.raises(ConfigError, match="no rate for the moves 'y_pos/0'"):
         law.chain(np.column_stack([np.ones(8), np.zeros(8), np.zeros(8)]), 4, 2, INTERVAL_S)
+
+
+def test_a_rate_the_law_extrapolates_past_the_bound_is_held_at_it():
+    """A family's linear predictor beyond log(MAX_RATE_PER_S) at a run's covariates (a
+    phase extrapolated where it hardly moves) gives a valid chain, that rate at the bound
+    and every other rate as the law says."""
+    wild = {**TRUE, "x_neg/1": np.array([np.log(0.2), 40.0, 0.0])}
+    model = law_chain(wild, ENTRY, covariates(350, 6), 6, 1, K, INTERVAL_S)
+    tame = law_chain(TRUE, ENTRY, covariates(350, 6), 6, 1, K, INTERVAL_S)
+    # the first slice has no backward move
+    assert np.all(model.phase_rates(1)["x_neg"][1:] == pytest.approx(MAX_RATE_PER_S))
+    assert np.allclose(model.phase_rates(0)["x_neg"], tame.phase_rates(0)["x_neg"])
+    assert np.allclose(model.phase_rates(1)["x_pos"], tame.phase_rates(1)["x_pos"])
