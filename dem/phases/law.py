@@ -53,9 +53,11 @@ from dem.phases.data import PhaseData
 from dem.phases.kernels import forward_backward
 
 #: the log of the fastest rate a law's chain holds: beyond :data:`coupling.phases.MAX_RATE_PER_S`
-#: a move is instantaneous at any dump interval, and a family's linear predictor, fitted
-#: where a phase moves and extrapolated where it hardly does, may pass it at a run's
-#: extreme covariates; its rate is held there instead of making the chain invalid
+#: a move is instantaneous at any dump interval. A family whose moves are all but never
+#: seen (the slowest phase's backward moves) drifts towards rate 0 with coefficients that
+#: grow without bound (hundreds), so its predictor is a steep quadratic in position whose
+#: peak another run's covariates can lift past the bound; the rate is held there instead
+#: of making the chain invalid
 LOG_MAX_RATE = math.log(phase_model.MAX_RATE_PER_S) - 1e-9  # exp() of it within the bound
 #: damped Newton steps of one M-step: the regression is concave and starts from the last
 #: M-step's answer, so a few steps reach its maximum to far below the EM's tolerance
