@@ -266,3 +266,19 @@ def test_the_composition_is_judged_on_the_residence_times_t_law(shipped):
         got = D.evaluate(shipped, D.design_spec(ca_tolerance=tolerance, noise_sigma=0.1, noise_tau_s=5.0), point)
         assert got.probability == pytest.approx(expected, abs=tol)
         assert got.margins[0].probability == pytest.approx(got.probability, abs=1e-12)
+
+
+def test_designs_generators_hold_a_rate_at_the_laws_bound_as_the_law_does(shipped):
+    """A family whose predictor passes the bound at a point (the slowest phase's backward
+    moves, steep in position) gives the law's chain there, not an overflowing generator."""
+    law = shipped.model.law
+    family = "x_neg/0"
+    wild = dict(law.coefficients)
+    wild[family] = wild[family].copy()
+    wild[family][0] += 60.0  # the constant lifted far past log(MAX_RATE_PER_S)
+    law = replace(law, coefficients=wild)
+    point = _point(shipped, 275.0, 0.37, 90.0)
+    x = D.covariate_columns(point, D.AXIAL_SLICES, law.covariate_names[1:], shipped.pattern)
+    chain = law.chain(x, D.AXIAL_SLICES, 1, shipped.model.interval_s)
+    assert chain.rates[0, 1, 1:].max() == pytest.approx(math.exp(D.LOG_MAX_RATE))
+    assert np.allclose(D.law_generators(law, x[None])[0], chain.generator(), rtol=1e-12, atol=0)
