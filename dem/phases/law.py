@@ -59,6 +59,16 @@ from dem.phases.kernels import forward_backward
 #: peak another run's covariates can lift past the bound; the rate is held there instead
 #: of making the chain invalid
 LOG_MAX_RATE = math.log(phase_model.MAX_RATE_PER_S) - 1e-9  # exp() of it within the bound
+#: that rate [/s]
+MAX_LAW_RATE = math.exp(LOG_MAX_RATE)
+
+
+def law_rates(predictor: np.ndarray) -> np.ndarray:
+    """exp(``predictor``), the rates of a family's linear predictor x . beta, held at
+    :data:`MAX_LAW_RATE`."""
+    return np.exp(np.minimum(predictor, LOG_MAX_RATE))
+
+
 #: damped Newton steps of one M-step: the regression is concave and starts from the last
 #: M-step's answer, so a few steps reach its maximum to far below the EM's tolerance
 NEWTON_STEPS = 10
@@ -203,7 +213,7 @@ def law_chain(
     values = {}
     for name, (_src, _dst, comp) in phase_model.transitions(nx, ny, n_phases).items():
         if name in coefficients:
-            values[name] = np.exp(np.minimum(x[comp] @ coefficients[name], LOG_MAX_RATE))
+            values[name] = law_rates(x[comp] @ coefficients[name])
         elif comp.size:
             raise ConfigError(
                 f"the law has no rate for the moves {name!r} of a {nx}x{ny} grid: it was fitted on runs without "
@@ -256,7 +266,7 @@ def poisson_regression(beta: np.ndarray, x: np.ndarray, jumps: np.ndarray, dwell
     :data:`MAX_NEWTON_STEP`)."""
     beta = np.array(beta, dtype=float)
     for _ in range(NEWTON_STEPS):
-        mu = dwell * np.exp(np.minimum(x @ beta, LOG_MAX_RATE))
+        mu = dwell * law_rates(x @ beta)
         gradient = x.T @ (jumps - mu)
         information = (x * mu[:, None]).T @ x + NEWTON_RIDGE * np.eye(beta.size)
         step = np.linalg.solve(information, gradient)

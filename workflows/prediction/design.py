@@ -62,7 +62,7 @@ from scipy.special import stdtr, stdtrit
 from coupling.errors import ConfigError
 from coupling.operating import OperatingPoint
 from coupling.phases import transitions
-from dem.phases.law import LOG_MAX_RATE, PhaseLaw
+from dem.phases.law import PhaseLaw, law_rates
 from pbm.frequency import StationarySystem, noise_frequencies, noise_spectrum, system_response, vrr_spectrum
 from workflows.pipeline.results import VALIDATED_RATES
 from workflows.prediction.covariates import (
@@ -414,7 +414,7 @@ def law_generators(law: PhaseLaw, covariates: np.ndarray) -> np.ndarray:
     q = np.zeros((b, n, n))
     for name, (src, dst, comp) in transitions(nx, 1, law.n_phases).items():
         if comp.size:
-            q[:, src, dst] += np.exp(np.minimum(covariates[:, comp, :] @ law.coefficients[name], LOG_MAX_RATE))
+            q[:, src, dst] += law_rates(covariates[:, comp, :] @ law.coefficients[name])
     diagonal = np.arange(n)
     q[:, diagonal, diagonal] = -q.sum(axis=2)
     return q

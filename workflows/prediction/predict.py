@@ -85,7 +85,7 @@ from coupling.phases import PhaseTransport
 from coupling.tables import VelocityTable, make_table
 from dem.phases.assembly import axial_part, with_transverse
 from dem.phases.chain import steady_occupancy
-from dem.phases.law import LOG_MAX_RATE, PhaseLaw
+from dem.phases.law import MAX_LAW_RATE, PhaseLaw
 from pbm.feed import feed_at
 from workflows.prediction.covariates import (
     AXIAL_SLICES,
@@ -857,14 +857,13 @@ class Prediction:
 def rescaled(model: PhaseTransport, factors: np.ndarray) -> PhaseTransport:
     """``model`` with every rate out of slice i (moves, switching, discharge) multiplied by
     ``factors[i]``: the jump chain is the same, so are the steady flows, and slice i holds
-    1/factors[i] as many particles (module docstring). A rate the law holds at the bound
-    (:data:`dem.phases.law.LOG_MAX_RATE`), instantaneous at any interval, stays there."""
+    1/factors[i] as many particles (module docstring). A rate the law holds at its bound
+    (:data:`dem.phases.law.MAX_LAW_RATE`), instantaneous at any interval, stays there."""
     scale = np.asarray(factors, dtype=float)[None, None, :, None]
-    bound = math.exp(LOG_MAX_RATE)
     return replace(
         model,
-        rates=np.minimum(model.rates * scale, bound),
-        switching=np.minimum(model.switching * scale, bound),
+        rates=np.minimum(model.rates * scale, MAX_LAW_RATE),
+        switching=np.minimum(model.switching * scale, MAX_LAW_RATE),
     )
 
 

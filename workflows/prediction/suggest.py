@@ -593,9 +593,8 @@ def _placed(
     places = [placement(dom, p, pattern) for p in points]
     if every_layout_new:
         places = [replace(q, new_layout=True) for q in places]
-    at = Floors(ends, layout)
-    keys = ends.keys() | layout.keys()
-    floor = {k: np.array([at.at(q).get(k, 0.0) for q in places]) for k in keys}
+    least = [Floors(ends, layout).at(q) for q in places]
+    floor = {k: np.array([at.get(k, 0.0) for at in least]) for k in ends.keys() | layout.keys()}
     return Bounds(floor, np.array([q.widening for q in places]))
 
 

@@ -12,6 +12,7 @@ from scipy.integrate import quad
 from scipy.special import stdtr, stdtrit
 
 from coupling.errors import ConfigError
+from dem.phases.law import MAX_LAW_RATE
 from pbm.frequency import StationarySystem
 from workflows.prediction import design as D
 from workflows.prediction.library import load_model
@@ -280,5 +281,5 @@ def test_designs_generators_hold_a_rate_at_the_laws_bound_as_the_law_does(shippe
     point = _point(shipped, 275.0, 0.37, 90.0)
     x = D.covariate_columns(point, D.AXIAL_SLICES, law.covariate_names[1:], shipped.pattern)
     chain = law.chain(x, D.AXIAL_SLICES, 1, shipped.model.interval_s)
-    assert chain.rates[0, 1, 1:].max() == pytest.approx(math.exp(D.LOG_MAX_RATE))
+    assert chain.rates[0, 1, 1:].max() == pytest.approx(MAX_LAW_RATE)
     assert np.allclose(D.law_generators(law, x[None])[0], chain.generator(), rtol=1e-12, atol=0)

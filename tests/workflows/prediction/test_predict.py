@@ -11,7 +11,7 @@ import pytest
 from coupling.errors import ConfigError
 from coupling.phases import PhaseTransport
 from dem.operating import operating_point
-from dem.phases.law import LOG_MAX_RATE, PhaseLaw
+from dem.phases.law import MAX_LAW_RATE, PhaseLaw
 from dem.summary import Estimate
 from pbm.config import PbmConfig
 from pbm.simulate import simulate
@@ -761,6 +761,6 @@ def test_a_blade_layout_no_run_has_keeps_the_error_of_the_runs_that_were_alone_a
 def test_a_rate_at_the_laws_bound_stays_there_when_its_slice_is_rescaled():
     """A slice's time scale multiplies its rates; one the law holds at the bound (an
     instantaneous move) stays a valid chain's, the others scale."""
-    bound = math.exp(LOG_MAX_RATE)
+    bound = MAX_LAW_RATE
     model = rescaled(_chain([0.5, bound, 0.2]), np.array([2.0, 3.0, 0.5]))
     assert model.phase_rates(0)["x_pos"][:, 0] == pytest.approx([1.0, bound, 0.1])
