@@ -57,6 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"the correction line's covariates, comma-separated, from {', '.join(CORRECTION_TERMS)}; "
         "'none' for the law's mean error alone (default: %(default)s)",
     )
+    fit.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="processes for the fits with one run left out, each as long as a few EM minutes; "
+        "up to the cores free (default: %(default)s)",
+    )
     fit.set_defaults(func=fit_command)
 
     check = sub.add_parser("check", help="predict DEM runs the library does not hold and judge each against its DEM")
@@ -136,6 +143,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="results/library",
         help="the library's folder, made by `library fit` (default: %(default)s)",
     )
+    add.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="processes for the fits with one run left out, each as long as a few EM minutes; "
+        "up to the cores free (default: %(default)s)",
+    )
     add.set_defaults(func=add_command)
 
 
@@ -148,7 +162,7 @@ def fit_command(args: argparse.Namespace) -> int:
     names = tuple(n.strip() for n in args.covariates.split(",") if n.strip())
     correction = tuple(n.strip() for n in args.correction.split(",") if n.strip() and n.strip() != "none")
     settings = FitSettings(args.phases, names, args.iterations, args.left_out_iterations, correction=correction)
-    output = library_fit(list(args.results or library_runs()), args.out, settings)
+    output = library_fit(list(args.results or library_runs()), args.out, settings, jobs=args.jobs)
     print(calibration.markdown(output.model, output.check))
     for what, path in output.files.items():
         print(f"wrote {what}: {path}")
@@ -209,7 +223,7 @@ def add_command(args: argparse.Namespace) -> int:
     from workflows.prediction import calibration
     from workflows.products.library import library_add
 
-    output = library_add(args.results, args.library)
+    output = library_add(args.results, args.library, jobs=args.jobs)
     print(calibration.markdown(output.model, output.check))
     print(f"added {len(output.added)} run(s): {', '.join(p.name for p in output.added)}")
     for what, path in output.files.items():

@@ -49,7 +49,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import multiprocessing
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -796,22 +798,54 @@ def load_runs(paths: Sequence[str | Path], settings: FitSettings) -> list[Librar
     return runs
 
 
+# The runs, settings, cache and whole law of a library fit's left-out fits, set in each
+# worker process once rather than pickled with every task: the runs carry every particle's
+# sequence.
+_LEFT_OUT: tuple[Sequence[LibraryRun], FitSettings, Path | None, PhaseLaw] | None = None
+
+
+def _left_out_setup(runs: Sequence[LibraryRun], settings: FitSettings, cache: Path | None, law: PhaseLaw) -> None:
+    global _LEFT_OUT
+    _LEFT_OUT = (runs, settings, cache, law)
+
+
+def _left_out_fit(n: int) -> PhaseLaw:
+    assert _LEFT_OUT is not None, "_left_out_setup runs first in each worker"
+    runs, settings, cache, law = _LEFT_OUT
+    rest = [r for m, r in enumerate(runs) if m != n]
+    return cached_fit(rest, settings, settings.left_out_iterations, cache, start=law)
+
+
 def fit_library(
     runs: Sequence[LibraryRun],
     settings: FitSettings = FitSettings(),
     cache: Path | None = None,
     log: Log = stderr_log,
+    jobs: int = 1,
 ) -> LibraryModel:
     """The law of every run, and of every run but one for each (module docstring); the
-    model without its calibration (:func:`workflows.prediction.calibration.calibrated`)."""
+    model without its calibration (:func:`workflows.prediction.calibration.calibrated`).
+    The fits left out, independent of each other once the whole law is there, run in
+    ``jobs`` processes; each is cached as it lands, so the result is the same for any
+    ``jobs``."""
     log(f"law of {len(runs)} runs, {settings.iterations} EM iterations")
     law = cached_fit(runs, settings, settings.iterations, cache)
-    left, scores = [], []
-    for n, run in enumerate(runs):
-        log(f"law without {run.name}")
-        rest = [r for m, r in enumerate(runs) if m != n]
-        left.append(cached_fit(rest, settings, settings.left_out_iterations, cache, start=law))
-        scores.append(left[-1].score(run.law_run) / max(run.law_run.data.n_steps, 1))
+    _left_out_setup(runs, settings, cache, law)
+    if jobs == 1:
+        left = []
+        for n, run in enumerate(runs):
+            log(f"law without {run.name}")
+            left.append(_left_out_fit(n))
+    else:
+        log(f"{len(runs)} laws, each without one run, in {jobs} processes")
+        # fork: the workers inherit the runs instead of unpickling a copy each
+        context = multiprocessing.get_context("fork")
+        with ProcessPoolExecutor(jobs, context, _left_out_setup, (runs, settings, cache, law)) as pool:
+            futures = [pool.submit(_left_out_fit, n) for n in range(len(runs))]
+            for future in as_completed(futures):
+                log(f"law without {runs[futures.index(future)].name}")
+            left = [f.result() for f in futures]
+    scores = [law_left.score(run.law_run) / max(run.law_run.data.n_steps, 1) for law_left, run in zip(left, runs)]
     ck = []
     for run in runs:
         data = run.law_run.data

@@ -66,14 +66,20 @@ class LibraryFitOutput:
 
 
 def library_fit(
-    paths: list[str], out: str | Path, settings: FitSettings | None = None, log: Log = stderr_log
+    paths: list[str],
+    out: str | Path,
+    settings: FitSettings | None = None,
+    log: Log = stderr_log,
+    jobs: int = 1,
 ) -> LibraryFitOutput:
     """Fit, calibrate and check the library of ``paths`` into the folder ``out``
-    (``settings`` default :class:`FitSettings`)."""
+    (``settings`` default :class:`FitSettings`; ``jobs`` processes for the fits left out)."""
     settings = settings or FitSettings()
+    if jobs < 1:
+        raise ConfigError(f"--jobs {jobs}: a library fit needs at least 1 process")
     folder = writable_directory(out, "--out")
     runs = load_runs(paths, settings)
-    found = calibration.sources(fit_library(runs, settings, folder / "fits", log))
+    found = calibration.sources(fit_library(runs, settings, folder / "fits", log, jobs))
     model = found.chosen
     check = calibration.check(model)
     files = {"runs": _write_runs(folder, {r.digest: r.path for r in runs})}
@@ -173,7 +179,7 @@ class LibraryAddOutput:
     files: dict[str, Path]
 
 
-def library_add(paths: list[str], library: str | Path, log: Log = stderr_log) -> LibraryAddOutput:
+def library_add(paths: list[str], library: str | Path, log: Log = stderr_log, jobs: int = 1) -> LibraryAddOutput:
     """The library in the folder ``library`` refitted with the DEM results ``paths`` added
     (its own settings; the fits it made before reused from its cache). Refused before any
     fit (ConfigError) when a file is missing, unreadable as a library run, or a run the
@@ -197,7 +203,7 @@ def library_add(paths: list[str], library: str | Path, log: Log = stderr_log) ->
                 f"{path}: blade pattern {run.blade_pattern!r}, the library's is {model.blade_pattern!r}: "
                 "one library needs one pattern"
             )
-    output = library_fit([*map(str, held), *map(str, added)], folder, settings, log)
+    output = library_fit([*map(str, held), *map(str, added)], folder, settings, log, jobs)
     return LibraryAddOutput(output.model, output.check, tuple(added), output.files)
 
 

@@ -134,6 +134,14 @@ def test_library_fit_refuses_a_run_given_twice(tmp_path, capsys):
     assert "is the same run as" in capsys.readouterr().err
 
 
+def test_library_fit_refuses_no_process_before_writing(tmp_path, capsys):
+    out = tmp_path / "lib"
+    assert main(["library", "fit", "--results", *map(str, SPEEDS), "--out", str(out), "--jobs", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--jobs 0" in err
+    assert not out.exists()
+
+
 def test_a_library_file_that_is_not_one_is_refused_naming_it(tmp_path, capsys):
     bad = tmp_path / "library.json"
     bad.write_text(json.dumps({"format": "something else"}))

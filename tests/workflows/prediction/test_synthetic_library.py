@@ -115,3 +115,18 @@ def test_intervals_from_runs_left_out_hold_at_points_the_library_never_ran(model
     assert covered / checked >= 0.9, (covered, checked)
     # and they are not vacuous: the median half-width is a few % of the value
     assert np.median(widths) < 0.15
+
+
+def test_fits_left_out_in_processes_are_the_fits_in_turn(tmp_path):
+    rng = np.random.default_rng(13)
+    runs = [_run(rpm, feed, rng, f"lib-{rpm:g}-{feed:g}") for rpm, feed in LIBRARY[:4]]
+    settings = FitSettings(K, NAMES, iterations=20, left_out_iterations=10, tol=1e-8)
+    in_turn = fit_library(runs, settings, None, log=lambda _m: None)
+    cache = tmp_path / "fits"
+    in_processes = fit_library(runs, settings, cache, log=lambda _m: None, jobs=2)
+    assert len(in_processes.left_out) == len(runs)
+    for a, b in zip(in_turn.left_out, in_processes.left_out):
+        np.testing.assert_array_equal(a.record()["coefficients"], b.record()["coefficients"])
+    assert in_turn.left_out_scores == in_processes.left_out_scores
+    # each worker cached its fit: the whole law and one per run left out
+    assert len(list(cache.glob("law-*.json"))) == len(runs) + 1
