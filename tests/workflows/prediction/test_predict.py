@@ -359,12 +359,12 @@ def test_the_shipped_librarys_chain_is_timed_by_the_zone_law_which_the_x1_25_ble
     n = next(n for n, r in enumerate(model.runs) if r.point.length_m == pytest.approx(0.4125))
     entry, cal = model.runs[n], model.calibration
     dem = entry.dem["holdup"].value
-    # left out, the law's chain keeps a slow phase the bed does not have: 80 % too many
+    # left out, the law's chain keeps a slow phase the bed does not have: a third too many
     # particles; timed by the zone law left out, it misses by the bed's few per cent
     fitted = point_values(
         model.left_out[n], model.transverse_left_out[n], entry.point, model.blade_pattern, model.interval_s
     )
-    assert fitted.values["holdup"] / dem - 1 > 0.5
+    assert fitted.values["holdup"] / dem - 1 > 0.25
     assert abs(cal.left_out["holdup"][n][n] / dem - 1) < 0.06
     again = timed(fitted, cal.profile_left_out[n], entry.point, model.blade_pattern)
     assert again.values["holdup"] == pytest.approx(cal.left_out["holdup"][n][n], rel=1e-9)
@@ -582,23 +582,24 @@ def test_the_shipped_library_predicts_the_outlets_mixing_from_the_line_alone():
 
 
 def test_the_shipped_library_takes_its_layouts_misses_only_at_the_layouts_it_has_run():
-    """At the baseline's layout (ten runs) each slice takes the layout's lines and names
-    them; at a length no run has, the zone law alone; either way the slices hold the
-    predicted hold-up."""
+    """At the baseline's layout (the runs 0.33 m long) each slice takes the layout's lines
+    and names them; at a length no run has, the zone law alone; either way the slices hold
+    the predicted hold-up."""
     from workflows.prediction.design import design_point, station_rule
     from workflows.prediction.library import load_model, slice_key
     from workflows.shipped import LIBRARY_MODEL
 
     model = load_model(LIBRARY_MODEL)
-    baseline = next(r.point for r in model.runs if math.isclose(r.point.length_m, 0.33))
-    assert model.calibration.profile.layouts.runs_at(baseline) == 10
+    at_baseline = [r.point for r in model.runs if math.isclose(r.point.length_m, 0.33)]
+    assert len(at_baseline) >= 3
+    assert model.calibration.profile.layouts.runs_at(at_baseline[0]) == len(at_baseline)
     points = [r.point for r in model.runs]
     unrun = design_point(points[0], station_rule(points), 250.0, 0.37, 73.7)
-    for point, runs in ((baseline.replace(impeller_rpm=275.0), 10), (unrun, 0)):
+    for point, runs in ((at_baseline[0].replace(impeller_rpm=275.0), len(at_baseline)), (unrun, 0)):
         prediction = predict(model, point, model.blade_pattern)
         first = prediction.quantity(slice_key(0))
         assert first.layout_runs == runs
-        assert ("10 library runs of this blade layout" in first.details()["source"]) == bool(runs)
+        assert (f"{len(at_baseline)} library runs of this blade layout" in first.details()["source"]) == bool(runs)
         held = sum(prediction.quantity(slice_key(i)).value for i in range(10))
         assert held == pytest.approx(prediction.quantity("holdup").value, rel=1e-9)
 
