@@ -1,4 +1,3 @@
-
 """``pbmdem study series``: each curve recovers the shape it is, refuses what its points
 cannot fix, a run left out never informs its own prediction, the baseline is the star's
 centre wherever it lies, and on the shipped library the bound is never beaten by a form it
