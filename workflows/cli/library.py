@@ -57,13 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"the correction line's covariates, comma-separated, from {', '.join(CORRECTION_TERMS)}; "
         "'none' for the law's mean error alone (default: %(default)s)",
     )
-    fit.add_argument(
-        "--jobs",
-        type=int,
-        default=1,
-        help="processes for the fits with one run left out, each as long as a few EM minutes; "
-        "up to the cores free (default: %(default)s)",
-    )
+    _jobs_argument(fit)
     fit.set_defaults(func=fit_command)
 
     check = sub.add_parser("check", help="predict DEM runs the library does not hold and judge each against its DEM")
@@ -143,14 +137,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="results/library",
         help="the library's folder, made by `library fit` (default: %(default)s)",
     )
-    add.add_argument(
+    _jobs_argument(add)
+    add.set_defaults(func=add_command)
+
+
+def _jobs_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
         help="processes for the fits with one run left out, each as long as a few EM minutes; "
         "up to the cores free (default: %(default)s)",
     )
-    add.set_defaults(func=add_command)
 
 
 def fit_command(args: argparse.Namespace) -> int:

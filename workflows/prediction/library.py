@@ -798,22 +798,27 @@ def load_runs(paths: Sequence[str | Path], settings: FitSettings) -> list[Librar
     return runs
 
 
-# The runs, settings, cache and whole law of a library fit's left-out fits, set in each
-# worker process once rather than pickled with every task: the runs carry every particle's
-# sequence.
-_LEFT_OUT: tuple[Sequence[LibraryRun], FitSettings, Path | None, PhaseLaw] | None = None
-
-
-def _left_out_setup(runs: Sequence[LibraryRun], settings: FitSettings, cache: Path | None, law: PhaseLaw) -> None:
-    global _LEFT_OUT
-    _LEFT_OUT = (runs, settings, cache, law)
-
-
-def _left_out_fit(n: int) -> PhaseLaw:
-    assert _LEFT_OUT is not None, "_left_out_setup runs first in each worker"
-    runs, settings, cache, law = _LEFT_OUT
+def _left_out_fit(
+    runs: Sequence[LibraryRun], settings: FitSettings, cache: Path | None, law: PhaseLaw, n: int
+) -> PhaseLaw:
+    """The law of ``runs`` but the ``n``-th, started from the whole library's ``law``."""
     rest = [r for m, r in enumerate(runs) if m != n]
     return cached_fit(rest, settings, settings.left_out_iterations, cache, start=law)
+
+
+# A worker's runs, settings, cache and whole law, set once per process by its initializer
+# rather than pickled with every task: the runs carry every particle's sequence.
+_WORKER: tuple[Sequence[LibraryRun], FitSettings, Path | None, PhaseLaw] | None = None
+
+
+def _worker_setup(*fit: Any) -> None:
+    global _WORKER
+    _WORKER = fit
+
+
+def _worker_fit(n: int) -> PhaseLaw:
+    assert _WORKER is not None, "_worker_setup runs first in each worker"
+    return _left_out_fit(*_WORKER, n)
 
 
 def fit_library(
@@ -830,21 +835,20 @@ def fit_library(
     ``jobs``."""
     log(f"law of {len(runs)} runs, {settings.iterations} EM iterations")
     law = cached_fit(runs, settings, settings.iterations, cache)
-    _left_out_setup(runs, settings, cache, law)
     if jobs == 1:
         left = []
         for n, run in enumerate(runs):
             log(f"law without {run.name}")
-            left.append(_left_out_fit(n))
+            left.append(_left_out_fit(runs, settings, cache, law, n))
     else:
         log(f"{len(runs)} laws, each without one run, in {jobs} processes")
         # fork: the workers inherit the runs instead of unpickling a copy each
         context = multiprocessing.get_context("fork")
-        with ProcessPoolExecutor(jobs, context, _left_out_setup, (runs, settings, cache, law)) as pool:
-            futures = [pool.submit(_left_out_fit, n) for n in range(len(runs))]
+        with ProcessPoolExecutor(jobs, context, _worker_setup, (runs, settings, cache, law)) as pool:
+            futures = {pool.submit(_worker_fit, n): n for n in range(len(runs))}
             for future in as_completed(futures):
-                log(f"law without {runs[futures.index(future)].name}")
-            left = [f.result() for f in futures]
+                log(f"law without {runs[futures[future]].name}")
+            left = [future.result() for future in futures]
     scores = [law_left.score(run.law_run) / max(run.law_run.data.n_steps, 1) for law_left, run in zip(left, runs)]
     ck = []
     for run in runs:
