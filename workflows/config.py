@@ -242,7 +242,11 @@ def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
             problems.append(f"'{key}' = {_shown(value)} ({_type_name(value)}): {_TYPE_ERRORS[err['type']]}")
         else:
             msg = err["msg"].removeprefix("Value error, ")
-            problems.append(f"'{key}' = {err.get('input')!r}: {msg}")
+            value = err.get("input")
+            # a check across a section's fields names the fields in its message: the whole
+            # section shown beside it would bury them
+            shown = "" if isinstance(value, dict) else f" = {value!r}"
+            problems.append(f"'{key}'{shown}: {msg}")
     if len(problems) == 1:  # one problem, one line (the CLI prints it as it is)
         return f"invalid {source}: {problems[0]}"
     return f"invalid {source}:\n  " + "\n  ".join(problems)

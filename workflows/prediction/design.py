@@ -86,8 +86,8 @@ from workflows.prediction.predict import (
     model_domain,
     placement,
     residual,
+    stations_for,
 )
-from workflows.prediction.suggest import least_gap
 
 MRT = "mean_residence_time_s"
 HOLDUP = "holdup"
@@ -208,7 +208,7 @@ class Surrogate:
     """What a design evaluates points with: the library model, its correction lines, the
     correlation of the hold-up's and the residence time's residuals at the runs, the
     domain, the point every searched point is made from and the runs' blade stations
-    (:func:`design_point`, :func:`station_rule`), and the least half-widths beyond the
+    (:func:`design_point`, :func:`~workflows.prediction.predict.station_rule`), and the least half-widths beyond the
     runs and at a blade layout no run has (:class:`~workflows.prediction.predict.Floors`)."""
 
     model: LibraryModel
@@ -257,17 +257,11 @@ def surrogate(model: LibraryModel, extrapolate: bool = False) -> Surrogate:
         (r.point for r in model.runs),
         key=lambda p: sum((run_covariates(p)[axis] - centre[axis]) ** 2 for axis in centre),
     )
-    rule = station_rule([r.point for r in model.runs])
+    rule = dom.stations
+    if rule is None:
+        raise ConfigError("the library's runs have no two blade stations: a design has no spacing to keep")
     correlation = residual_correlation(model, lines, MRT, HOLDUP)
     return Surrogate(model, lines, correlation, dom, base, rule, extrapolate, floors(model))
-
-
-def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float]:
-    """(first station [m], spacing [m], least gap from the last station to the weir [m]) of
-    the library's runs."""
-    first = points[0].blade_x_m[0]
-    spacing = min(float(np.mean(np.diff(p.blade_x_m))) for p in points if len(p.blade_x_m) > 1)
-    return first, spacing, least_gap(points)
 
 
 def design_point(
@@ -275,10 +269,10 @@ def design_point(
 ) -> OperatingPoint:
     """``base`` at ``rpm``, ``length_m`` and a total feed of ``feed_per_s`` (its A share
     kept), its blade stations at ``rule``'s spacing from the first, as many as leave at
-    least ``rule``'s gap before the weir (:func:`station_rule`). Raises ConfigError for a
+    least ``rule``'s gap before the weir (:func:`~workflows.prediction.predict.station_rule`). Raises ConfigError for a
     blender too short for one station."""
     first, spacing, gap = rule
-    count = math.floor((length_m - gap - first) / spacing + 1e-9) + 1
+    count = stations_for(rule, length_m)
     if count < 1:
         raise ConfigError(
             f"a {length_m:g}-m blender is too short for a blade station at {first:g} m and a {gap:g}-m gap to the weir"
@@ -549,6 +543,13 @@ def evaluate_many(
 ) -> list[PointDesign]:
     """:func:`evaluate` of every point of ``points``, their chains solved together."""
     rows = [placement(s.domain, p, s.pattern, physics) for p in points]
+    far = [(p, place) for p, place in zip(points, rows) if place.out_of_reach]
+    if far:
+        p, place = far[0]
+        raise ConfigError(
+            f"{p.impeller_rpm:g} rpm, {p.length_m:g} m, {p.feed_rate_total_per_s:g} /s lies too far beyond the "
+            f"library's domain to extrapolate ({'; '.join(place.out_of_reach)}); the domain is {s.domain.describe()}"
+        )
     outside = [p for p, place in zip(points, rows) if place.issues]
     if outside and not s.extrapolate:
         p = outside[0]
@@ -874,11 +875,18 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
                 f"{given} {getattr(spec, given):g} lies beyond the library's domain, whose end {end:g} {unit} is the "
                 f"default {default}: give {default} too (and --extrapolate to search outside the domain)"
             )
+    corners = [placement(s.domain, design_point(s.base, s.rule, *(o[k] for o in out)), s.pattern) for k in (0, 1)]
+    far = [i for c in corners for i in c.out_of_reach]
+    if far:
+        raise ConfigError(
+            f"the design space {out[0][0]:g}-{out[0][1]:g} rpm, {out[1][0]:g}-{out[1][1]:g} m, "
+            f"{out[2][0]:g}-{out[2][1]:g} /s reaches too far beyond the library's domain ({'; '.join(far)}); "
+            f"the domain is {s.domain.describe()}"
+        )
     if not s.extrapolate:
         issues = []
-        for k in (0, 1):
-            corner = design_point(s.base, s.rule, out[0][k], out[1][k], out[2][k])
-            issues += [i for i in placement(s.domain, corner, s.pattern).issues if i not in issues]
+        for c in corners:
+            issues += [i for i in c.issues if i not in issues]
         if issues:
             raise ConfigError(
                 f"the design space {out[0][0]:g}-{out[0][1]:g} rpm, {out[1][0]:g}-{out[1][1]:g} m, "

@@ -118,6 +118,13 @@ LEVEL = 0.95
 #: weir: at the baseline's station spacing every length has its own (25-54 mm), and a gap
 #: beyond the library's widens the correction's interval through its leverage instead
 DOMAIN_AXES = ("speed", "length", "feed")
+#: how far ``--extrapolate`` reaches beyond each axis' range, in widths of that range: a
+#: feed 27 times the library's greatest, or a speed a third of its least, is no
+#: extrapolation of its runs but a guess (its hold-up can exceed what the barrel holds)
+EXTRAPOLATION_REACH = 1.0
+#: the packing fraction no bed exceeds (random close packing of spheres): a predicted
+#: hold-up beyond it in the barrel's volume is refused
+CLOSE_PACKING = 0.64
 #: properties of a point the law does not vary: a point must share them with the library
 FIXED = ("diameter_m", "particle_diameter_m", "particle_diameter_sd_m", "size_classes")
 #: the times of the predicted RTD curve, as multiples of the mean residence time
@@ -328,14 +335,28 @@ class Domain:
     physics: dict[str, Any] = field(default_factory=dict)
     #: the runs' blade layouts (:func:`~workflows.prediction.profile.layout_of`)
     layouts: tuple[tuple[float, ...], ...] = ()
+    #: how the runs place their stations (:func:`station_rule`): a point's last station
+    #: lies between the least gap before the weir and one spacing more, or the point has a
+    #: bladeless stretch (or a blade at the weir) no run has
+    stations: tuple[float, float, float] | None = None
+
+    @property
+    def gaps_m(self) -> tuple[float, float] | None:
+        """The gaps from the last blade station to the weir the runs' layouts allow [m]."""
+        if self.stations is None:
+            return None
+        _, spacing, least = self.stations
+        return least, least + spacing
 
     def describe(self) -> str:
         rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
         slice_m = [REFERENCE_SLICE_M * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
         feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in self.ranges["feed"]]
         shared = f", and the {len(self.physics)} settings of materials, contacts, blades, weir and feed its runs share"
+        gaps = self.gaps_m
+        gap = f", the last blade station {gaps[0] * 1e3:.4g}-{gaps[1] * 1e3:.4g} mm before the weir" if gaps else ""
         return (
-            f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m, "
+            f"{rpm[0]:.4g}-{rpm[1]:.4g} rpm, length {slice_m[0]:.4g}-{slice_m[1]:.4g} m{gap}, "
             f"total feed {feed[0]:.4g}-{feed[1]:.4g} particles/s, "
             + ", ".join(f"{k} {v}" for k, v in self.fixed.items())
             + (shared if self.physics else ", its runs' physics unknown (a library fitted before they were kept)")
@@ -386,6 +407,27 @@ def shared_physics(physics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return {k: v for k, v in first.items() if all(k in p and same_setting(p[k], v) for p in physics[1:])}
 
 
+def least_gap(points: Sequence[OperatingPoint]) -> float:
+    """The least gap from the last blade station to the weir over ``points`` [m]."""
+    return min(p.length_m - max(p.blade_x_m, default=0.0) for p in points)
+
+
+def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float] | None:
+    """(first station [m], spacing [m], least gap from the last station to the weir [m]) of
+    the runs ``points``; None when no run has two stations (no spacing to keep)."""
+    spacings = [float(np.mean(np.diff(p.blade_x_m))) for p in points if len(p.blade_x_m) > 1]
+    if not spacings:
+        return None
+    return points[0].blade_x_m[0], min(spacings), least_gap(points)
+
+
+def stations_for(rule: tuple[float, float, float], length_m: float) -> int:
+    """How many stations a ``length_m`` blender holds at ``rule``'s first station and spacing,
+    leaving at least its gap before the weir (:func:`station_rule`)."""
+    first, spacing, gap = rule
+    return math.floor((length_m - gap - first) / spacing + 1e-9) + 1
+
+
 def domain(points: Sequence[OperatingPoint], pattern: str, physics: Sequence[Mapping[str, Any]] = ()) -> Domain:
     """The :class:`Domain` of a library's operating points, its stations oriented by
     ``pattern``, its runs' physics ``physics`` (:func:`~workflows.prediction.library.physics_of`, one per point; none:
@@ -397,6 +439,7 @@ def domain(points: Sequence[OperatingPoint], pattern: str, physics: Sequence[Map
         _fixed(points[0], pattern),
         physics=shared_physics(physics),
         layouts=tuple(dict.fromkeys(map(layout_of, points))),
+        stations=station_rule(points),
     )
     vertices = np.array([box._scaled(p) for p in points])
     ends = [hull_distance(np.delete(vertices, n, axis=0), vertices[n]) for n in range(len(points))]
@@ -422,6 +465,9 @@ class Placement:
     widening: float
     floor_share: float
     new_layout: bool = False
+    #: the axes beyond :data:`EXTRAPOLATION_REACH` of their ranges, each named with its
+    #: distance and how far the reach goes (empty inside it)
+    out_of_reach: tuple[str, ...] = ()
 
     @property
     def extrapolated(self) -> bool:
@@ -437,7 +483,7 @@ class Placement:
 def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping[str, Any] | None = None) -> Placement:
     """The :class:`Placement` of ``point`` (its stations oriented by ``pattern``, its
     configuration's physics ``physics``, :func:`physics_of`; None: not checked) in ``dom``."""
-    issues, distance = [], 0.0
+    issues, distance, reach = [], 0.0, []
     values = run_covariates(point)
     for axis in DOMAIN_AXES:
         low, high = dom.ranges[axis]
@@ -445,7 +491,10 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
         if excess > 1e-9:
             issues.append(f"{axis} outside the library's range")
             # an axis the library never varied counts like a fixed property it does not vary
-            distance += excess / (high - low) if high - low > 1e-9 else 1.0
+            widths = excess / (high - low) if high - low > 1e-9 else 1.0
+            distance += widths
+            if high - low > 1e-9 and widths > EXTRAPOLATION_REACH + 1e-9:
+                reach.append(f"{axis} {widths:.2f} widths of its range beyond it ({_axis_reach(axis, low, high)})")
     for name, value in _fixed(point, pattern).items():
         library = dom.fixed[name]
         if not (value == library or (isinstance(value, float) and math.isclose(value, library, rel_tol=1e-9))):
@@ -456,10 +505,59 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
         if not same_setting(value, library):
             issues.append(f"{name} = {_setting(value)} (the library's runs have {_setting(library)})")
             distance += 1.0
+    if physics is not None and dom.gaps_m is not None:
+        issue, excess = _gap_issue(dom, point)
+        if issue:
+            issues.append(issue)
+            distance += excess
     beyond = dom.beyond(point)
     share = 1.0 if issues else min(1.0, beyond / max(dom.end_distance, 1e-9))
     new_layout = bool(dom.layouts) and layout_index(dom.layouts, layout_of(point)) is None
-    return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share, new_layout)
+    return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share, new_layout, tuple(reach))
+
+
+def _axis_reach(axis: str, low: float, high: float) -> str:
+    """The values of ``axis`` that ``--extrapolate`` reaches, in the units a user gives."""
+    reference, unit = {
+        "speed": (REFERENCE_RPM, "rpm"),
+        "length": (REFERENCE_SLICE_M * AXIAL_SLICES, "m"),
+        "feed": (REFERENCE_FEED_PER_S, "particles/s"),
+    }[axis]
+    width = (high - low) * EXTRAPOLATION_REACH
+    return (
+        f"--extrapolate reaches {reference * math.exp(low - width):.4g}-{reference * math.exp(high + width):.4g} {unit}"
+    )
+
+
+def barrel_capacity(point: OperatingPoint) -> float:
+    """The most particles the barrel of ``point`` holds: its volume at close packing over
+    one particle's (the shaft and blades, a few % of it, left in: an upper bound)."""
+    volume = math.pi / 4 * point.diameter_m**2 * point.length_m
+    return CLOSE_PACKING * volume / (math.pi / 6 * point.particle_diameter_m**3)
+
+
+def _gap_issue(dom: Domain, point: OperatingPoint) -> tuple[str, float]:
+    """What is wrong with ``point``'s gap from its last blade station to the weir against
+    ``dom``'s layouts (empty when nothing), and how far beyond them it lies in spacings.
+    Checked with the physics only: the library's own runs, left out, keep the gap as a
+    correction covariate, whose leverage widens their intervals."""
+    low, high = dom.gaps_m
+    first, spacing, _ = dom.stations
+    gap = point.length_m - max(point.blade_x_m, default=0.0)
+    excess = max(low - gap, gap - high, 0.0)
+    if excess <= 1e-9:
+        return "", 0.0
+    n = stations_for(dom.stations, point.length_m)
+    fit = (
+        f"; at {point.length_m:g} m the library's layout has {n} stations, the last at {first + (n - 1) * spacing:.4g} m"
+        if n >= 1
+        else ""
+    )
+    return (
+        f"the last blade station {gap * 1e3:.4g} mm before the weir (the library's layouts leave "
+        f"{low * 1e3:.4g}-{high * 1e3:.4g} mm{fit})",
+        excess / spacing,
+    )
 
 
 # ------------------------------------------------------------------ the prediction
@@ -899,6 +997,11 @@ def predict(
             f"the point lies outside the library's domain ({'; '.join(place.issues)}); the domain is "
             f"{dom.describe()}. Add a DEM run there, or pass --extrapolate for a labelled, widened prediction"
         )
+    if place.out_of_reach:
+        raise ConfigError(
+            f"the point lies too far beyond the library's domain to extrapolate ({'; '.join(place.out_of_reach)}); "
+            f"the domain is {dom.describe()}. Add a DEM run nearer it to the library"
+        )
     try:
         law = point_values(model.law, model.transverse, point, pattern, model.interval_s)
         values = law.values
@@ -917,6 +1020,12 @@ def predict(
     quantities = assembled(values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     quantities = tuple(replace(q, alone=True) if q.key in model.calibration.direct else q for q in quantities)
     by_key = {q.key: q for q in quantities}
+    if "holdup" in by_key and by_key["holdup"].value > barrel_capacity(point):
+        raise ConfigError(
+            f"the predicted hold-up, {by_key['holdup'].value:.0f} particles, exceeds the {barrel_capacity(point):.0f} "
+            f"the barrel holds at close packing: {point.impeller_rpm:g} rpm, {point.feed_rate_total_per_s:g} /s and "
+            f"{point.length_m:g} m lie beyond what the library's law can say; the domain is {dom.describe()}"
+        )
     held = law.counts.sum(axis=(0, 2))
     slices = np.array([by_key[slice_key(i)].value if slice_key(i) in by_key else held[i] for i in range(held.size)])
     if "holdup" in by_key:

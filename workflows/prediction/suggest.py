@@ -108,6 +108,7 @@ from workflows.prediction.predict import (
     domain,
     fit_correction,
     floors,
+    least_gap,
     model_domain,
     placement,
 )
@@ -238,11 +239,6 @@ def parse_region(text: str | None, span: Region) -> Region:
 
 
 # ------------------------------------------------------------------ a candidate's run
-def least_gap(points: Sequence[OperatingPoint]) -> float:
-    """The least gap from the last blade station to the weir over ``points`` [m]."""
-    return min(p.length_m - max(p.blade_x_m, default=0.0) for p in points)
-
-
 def config_at(
     base: Config, speed: float, length: float, feed: float, gap_m: float, duration_s: float | None = None
 ) -> Config:

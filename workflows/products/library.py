@@ -50,8 +50,8 @@ from workflows.prediction.library import (
     physics_of,
     save_model,
 )
-from workflows.prediction.predict import predict
-from workflows.prediction.suggest import Suggestion, config_at, least_gap, scaled_duration, suggest
+from workflows.prediction.predict import least_gap, predict
+from workflows.prediction.suggest import Suggestion, config_at, scaled_duration, suggest
 from workflows.shipped import LIBRARY_DIR, LIBRARY_MODEL, VALIDATION_DIR, library_runs
 
 #: beside ``library.json``: the paths of the runs (module docstring)

@@ -81,7 +81,7 @@ from coupling.jsonable import write_json
 from workflows.config import load_preset
 from workflows.prediction import calibration
 from workflows.prediction.library import DEFAULT_CORRECTION, LibraryModel, load_model
-from workflows.prediction.predict import corrections, domain, fit_correction, floors
+from workflows.prediction.predict import corrections, domain, fit_correction, floors, least_gap
 from workflows.prediction.suggest import (
     CANDIDATE_LEVELS,
     REGION_LEVELS,
@@ -93,7 +93,6 @@ from workflows.prediction.suggest import (
     covariate_terms,
     domain_region,
     half_widths,
-    least_gap,
     library_quantities,
     point_at,
     rank,

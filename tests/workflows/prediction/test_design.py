@@ -15,6 +15,7 @@ from coupling.errors import ConfigError
 from dem.phases.law import MAX_LAW_RATE
 from pbm.frequency import StationarySystem
 from workflows.prediction import design as D
+from workflows.prediction import predict as P
 from workflows.prediction.library import load_model
 from workflows.prediction.predict import entering, predict, rtd_moments
 from workflows.shipped import LIBRARY_MODEL
@@ -30,7 +31,7 @@ def _point(s, rpm=250.0, length=0.33, feed=73.7):
 
 
 def test_the_library_lengths_get_their_own_blade_stations(shipped):
-    rule = D.station_rule([r.point for r in shipped.model.runs])
+    rule = P.station_rule([r.point for r in shipped.model.runs])
     for run in shipped.model.runs:
         p = run.point
         made = D.design_point(shipped.base, rule, p.impeller_rpm, p.length_m, p.feed_rate_total_per_s)
@@ -218,6 +219,14 @@ def test_one_bound_beyond_the_domains_other_end_is_refused_not_overridden(shippe
     with pytest.raises(ConfigError, match=r"^length_min_m 0.6 lies beyond .* 0.495 m is the default length_max_m"):
         D.box(wide, D.design_spec(mrt_max_s=25.0, length_min_m=0.6))
     assert D.box(wide, D.design_spec(mrt_max_s=25.0, rpm_min=80.0, rpm_max=100.0))[0] == (80.0, 100.0)
+
+
+def test_a_box_reaching_past_the_extrapolations_reach_is_refused_naming_it(shipped):
+    wide = replace(shipped, extrapolate=True)
+    with pytest.raises(
+        ConfigError, match=r"reaches too far beyond .*feed 4.53 widths .*reaches 4.146-1228 particles/s"
+    ):
+        D.box(wide, D.design_spec(mrt_max_s=20.0, feed_max_per_s=1e6))
 
 
 def test_the_search_answers_within_its_box(shipped):

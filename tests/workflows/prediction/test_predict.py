@@ -20,6 +20,7 @@ from workflows.prediction.calibration import calibrated, check
 from workflows.prediction.covariates import run_covariates
 from workflows.prediction.library import LibraryEntry, LibraryModel, TransverseLaw, correction_row, quantity_keys
 from workflows.prediction.predict import (
+    barrel_capacity,
     chain_values,
     corrected,
     fit_correction,
@@ -170,6 +171,41 @@ def test_a_point_outside_the_domain_is_refused_naming_it_unless_extrapolated():
         predict(model, other_size, "FB")
     with pytest.raises(ConfigError, match="blade_pattern = FFB .the library's is FB"):
         predict(model, BASE, "FFB")
+
+
+def test_a_barrel_with_stations_left_out_is_refused_naming_the_stations_it_would_hold():
+    """Stations taken off the end leave a bladeless stretch before the weir no run has:
+    outside the domain, with the stations that would fill it; the library's own runs, left
+    out (no physics given), keep the gap as the correction's covariate."""
+    from workflows.prediction.library import physics_of
+
+    model = _model()
+    physics = physics_of(load_preset("validation").dem)
+    bare = BASE.replace(blade_x_m=BASE.blade_x_m[:7])  # the last at 0.215 m: 115 mm to the weir
+    with pytest.raises(
+        ConfigError,
+        match=r"the last blade station 115 mm before the weir .the library's layouts leave 30-58.33 mm; "
+        r"at 0.33 m the library's layout has 10 stations, the last at 0.3 m",
+    ):
+        predict(model, bare, "FB", physics=physics)
+    labelled = predict(model, bare, "FB", extrapolate=True, physics=physics)
+    assert labelled.extrapolated
+    assert labelled.quantity("holdup").widening == pytest.approx(1 + (0.115 - 0.0583333) / 0.0283333, rel=1e-4)
+    assert not predict(model, bare, "FB").extrapolated
+    assert not predict(model, BASE, "FB", physics=physics).extrapolated
+
+
+def test_extrapolation_reaches_one_range_width_and_no_hold_up_beyond_the_barrels():
+    model = _model()
+    reach = BASE.replace(impeller_rpm=350.0 * (350 / 150) * 0.99)
+    assert predict(model, reach, "FB", extrapolate=True).extrapolated
+    with pytest.raises(ConfigError, match=r"too far beyond .*speed 1.24 widths .*reaches 64.29-816.7 rpm"):
+        predict(model, BASE.replace(impeller_rpm=1000.0), "FB", extrapolate=True)
+    # the barrel at close packing: 0.64 of its volume over a sphere's
+    assert barrel_capacity(BASE) == pytest.approx(0.64 * 1.5 * 0.1**2 * 0.33 / 0.006**3)
+    narrow = BASE.replace(diameter_m=0.02)  # holds 587: the law's bed does not fit
+    with pytest.raises(ConfigError, match=r"exceeds the 587 the barrel holds at close packing"):
+        predict(model, narrow, "FB", extrapolate=True)
 
 
 def test_a_slice_whose_rates_are_scaled_holds_inversely_as_many_and_the_flows_stay():
@@ -585,8 +621,9 @@ def test_the_shipped_library_takes_its_layouts_misses_only_at_the_layouts_it_has
     """At the baseline's layout (the runs 0.33 m long) each slice takes the layout's lines
     and names them; at a length no run has, the zone law alone; either way the slices hold
     the predicted hold-up."""
-    from workflows.prediction.design import design_point, station_rule
+    from workflows.prediction.design import design_point
     from workflows.prediction.library import load_model, slice_key
+    from workflows.prediction.predict import station_rule
     from workflows.shipped import LIBRARY_MODEL
 
     model = load_model(LIBRARY_MODEL)

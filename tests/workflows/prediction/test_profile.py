@@ -15,8 +15,9 @@ from coupling.errors import ConfigError
 from coupling.jsonable import write_json
 from workflows.prediction import profile as P
 from workflows.prediction.covariates import REFERENCE_FEED_PER_S, REFERENCE_RPM
-from workflows.prediction.design import design_point, station_rule
+from workflows.prediction.design import design_point
 from workflows.prediction.library import load_model
+from workflows.prediction.predict import station_rule
 from workflows.shipped import LIBRARY_MODEL
 
 PATTERN = "FB"
