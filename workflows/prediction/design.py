@@ -51,7 +51,7 @@ were built so.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal, NamedTuple
 
@@ -993,6 +993,28 @@ def _rank_feed(p: PointDesign) -> tuple[float, float, float]:
     return (-p.feed_per_s, p.length_m, -p.probability)
 
 
+def band_tops(rule: tuple[float, float, float], low: float, high: float) -> np.ndarray:
+    """The longest length in [``low``, ``high``] of each count of stations ``rule`` places
+    (:func:`design_point`): the next station comes just past it. Within a count the
+    bladeless stretch before the weir, and the bed with it, grows with the length, so the
+    residence time is not monotone in the length but a sawtooth whose teeth end there."""
+    first, spacing, gap = rule
+    n = np.arange(1, stations_for(rule, high) + 1)
+    tops = first + gap + n * spacing - 1e-6
+    return tops[(tops >= low) & (tops <= high)]
+
+
+def _tied(
+    good: Sequence[PointDesign],
+    answer: PointDesign,
+    along: Callable[[PointDesign], float],
+    column: Callable[[PointDesign], tuple[float, float]],
+) -> list[tuple[float, float]]:
+    """The columns (the other two axes' values, ``column``) of the points of ``good`` whose
+    value ``along`` the answer's axis ties ``answer``'s, each once."""
+    return list(dict.fromkeys(column(p) for p in good if math.isclose(along(p), along(answer), rel_tol=1e-12)))
+
+
 def _axis(low: float, high: float, n: int, geometric: bool = False) -> np.ndarray:
     if not high > low:
         return np.array([low])
@@ -1023,17 +1045,26 @@ def design(
     notes = []
     shortest = largest = None
     if good:
+        # each answer refined in every column of the space where it could improve: the
+        # columns whose own best on the grid ties the answer's (the others fail before it)
         shortest = min(good, key=_rank_shortest)
-        shorter = fine_lengths[fine_lengths < shortest.length_m]
-        if shorter.size:  # between the region's next shorter length and the answer
+        searched = np.union1d(lengths, fine_lengths)
+        shorter = searched[searched < shortest.length_m * (1 - 1e-12)]
+        if shorter.size:  # between the next shorter length searched and the answer
             trial = np.linspace(shorter[-1], shortest.length_m, REFINE_POINTS + 2)[1:-1]
-            found = evaluate_many(s, spec, [at(shortest.point.impeller_rpm, v, shortest.feed_per_s) for v in trial])
+            columns = _tied(good, shortest, lambda p: p.length_m, lambda p: (p.point.impeller_rpm, p.feed_per_s))
+            found = evaluate_many(s, spec, [at(r, v, f) for r, f in columns for v in trial])
+            shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
+        tops = band_tops(s.rule, l0, shortest.length_m * (1 - 1e-12))
+        if tops.size:  # a blender one station short of a shorter band's next can beat a longer one
+            found = evaluate_many(s, spec, [at(r, v, f) for r in speeds for f in feeds for v in tops])
             shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
         largest = min(good, key=_rank_feed)
         higher = feeds[feeds > largest.feed_per_s * (1 + 1e-12)]
         if higher.size:
             trial = np.geomspace(largest.feed_per_s, higher[0], REFINE_POINTS + 2)[1:-1]
-            found = evaluate_many(s, spec, [at(largest.point.impeller_rpm, largest.length_m, v) for v in trial])
+            columns = _tied(good, largest, lambda p: p.feed_per_s, lambda p: (p.point.impeller_rpm, p.length_m))
+            found = evaluate_many(s, spec, [at(r, length, v) for r, length in columns for v in trial])
             largest = min([largest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_feed)
         if math.isclose(shortest.length_m, l0):
             notes.append(f"the shortest blender searched ({l0:g} m) already meets the spec: a shorter one may too")

@@ -229,6 +229,34 @@ def test_a_box_reaching_past_the_extrapolations_reach_is_refused_naming_it(shipp
         D.box(wide, D.design_spec(mrt_max_s=20.0, feed_max_per_s=1e6))
 
 
+def test_no_column_of_the_grid_holds_a_larger_feed_than_the_answer(shipped):
+    """Every (speed, length) of the grid walked along the feed finely: none meets the spec at
+    a feed beyond the answer's by more than the refinement's step."""
+    spec = D.design_spec(mrt_min_s=20.0)
+    result = D.design(shipped, spec, grid=(3, 3, 4))
+    (_, _), (_, _), (f0, f1) = D.box(shipped, spec)
+    trial = np.geomspace(f0, f1, 40)
+    points = [
+        D.design_point(shipped.base, shipped.rule, r, x, f)
+        for r in result.speeds
+        for x in result.lengths
+        for f in trial
+    ]
+    met = [p.feed_per_s for p in D.evaluate_many(shipped, spec, points) if p.probability >= spec.confidence]
+    step = (f1 / f0) ** (1 / 3 / (D.REFINE_POINTS + 1))
+    assert max(met) <= result.largest_feed.feed_per_s * step * (1 + 1e-9)
+
+
+def test_each_band_of_stations_ends_just_before_the_next_station():
+    rule = (0.045, 0.255 / 9, 0.025)
+    tops = D.band_tops(rule, 0.2475, 0.495)
+    assert tops.size == 9  # 7 to 15 stations end inside the range; 16 reach past 0.495 m
+    for top in tops:
+        n = P.stations_for(rule, top)
+        assert P.stations_for(rule, top + 2e-6) == n + 1
+        assert top - (0.045 + (n - 1) * rule[1]) == pytest.approx(0.025 + rule[1], abs=2e-6)
+
+
 def test_the_search_answers_within_its_box(shipped):
     spec = D.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
     result = D.design(shipped, spec, grid=(3, 4, 3))
