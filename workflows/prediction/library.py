@@ -61,7 +61,7 @@ import numpy as np
 
 from coupling.errors import ConfigError
 from coupling.files import regular_file, stored_digest
-from coupling.jsonable import write_json
+from coupling.jsonable import json_ready, write_json
 from coupling.operating import OperatingPoint
 from dem.phases.data import first_compartments, prepare, steady_window
 from dem.phases.diagnostics import chapman_kolmogorov
@@ -116,8 +116,8 @@ FIT_TOL = 1e-7
 CK_LAGS_S = (1.0, 2.0, 5.0, 10.0)
 #: what a library file says it is
 FORMAT = "pbmdem-library"
-#: 3: the calibration holds the slices' zone law
-VERSION = 3
+#: 3: the calibration holds the slices' zone law; 4: the record carries its digest (:data:`DIGEST_KEY`)
+VERSION = 4
 #: the agreement table's quantities a prediction gives (the keys of ``summary.json``),
 #: the slices' hold-ups after them as ``holdup_slice_<i>``
 SCALAR_KEYS = (
@@ -662,7 +662,7 @@ class LibraryModel:
                 tuple(float(v) for v in record.get("left_out_scores") or ()),
                 tuple((float(a), float(b)) for a, b in record.get("ck") or ()),
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:
             raise ConfigError(
                 f"{source}: library model field missing or malformed ({type(exc).__name__}: {exc})"
             ) from None
@@ -671,8 +671,22 @@ class LibraryModel:
         return model
 
 
+#: the key of a library model's integrity digest: the SHA-256 of the rest of its record
+DIGEST_KEY = "sha256"
+
+
+def record_digest(record: dict[str, Any]) -> str:
+    """The SHA-256 of a library model's record (:func:`~coupling.jsonable.json_ready`
+    values) without its digest, over its canonical JSON: a file whose content was edited or
+    damaged but still parses no longer matches it."""
+    rest = {k: v for k, v in record.items() if k != DIGEST_KEY}
+    text = json.dumps(rest, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def save_model(model: LibraryModel, path: str | Path) -> Path:
-    return write_json(path, model.record())
+    record = json_ready(model.record())
+    return write_json(path, {**record, DIGEST_KEY: record_digest(record)})
 
 
 def load_model(path: str | Path) -> LibraryModel:
@@ -686,6 +700,13 @@ def load_model(path: str | Path) -> LibraryModel:
         record = json.loads(path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{path}: not a library model (not JSON: {exc})") from None
+    if isinstance(record, dict) and record.get("format") == FORMAT and record.get("version") == VERSION:
+        if record.get(DIGEST_KEY) != record_digest(record):
+            raise ConfigError(
+                f"{path}: its content does not match its {DIGEST_KEY} digest (edited or damaged after "
+                "`pbmdem library fit` wrote it); refit it with `pbmdem library fit --out DIR` (its fits' cache "
+                "makes that quick)"
+            )
     return LibraryModel.from_record(record, str(path))
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from coupling.errors import ConfigError
 from coupling.tables import read_table
 from tests.workflows.prediction.small_library import SPEEDS
 from workflows.cli.main import main
@@ -148,6 +149,39 @@ def test_a_library_file_that_is_not_one_is_refused_naming_it(tmp_path, capsys):
     assert main(["predict", "--config", VALIDATION, "--library", str(bad), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert str(bad) in err and "not a library model" in err
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda r: r["calibration"].update(direct=None),  # parses, and would change the outlet's RSD
+        lambda r: r.update(calibration="x"),
+        lambda r: r["runs"][0]["dem"].update(C_A=None),
+        lambda r: r.update(interval_s=-1.0),
+        lambda r: r.pop("sha256"),
+    ],
+)
+def test_a_library_file_edited_after_its_fit_is_refused_naming_it(tmp_path, capsys, edit):
+    from workflows.shipped import LIBRARY_MODEL
+
+    record = json.loads(Path(LIBRARY_MODEL).read_text())
+    edit(record)
+    bad = tmp_path / "library.json"
+    bad.write_text(json.dumps(record))
+    assert main(["predict", "--config", VALIDATION, "--library", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(bad) in err and "does not match its sha256 digest" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_library_record_of_the_wrong_shape_is_refused_in_one_line(tmp_path):
+    from workflows.prediction.library import LibraryModel
+    from workflows.shipped import LIBRARY_MODEL
+
+    record = json.loads(Path(LIBRARY_MODEL).read_text())
+    record["calibration"] = "x"
+    with pytest.raises(ConfigError, match="here.json: library model field missing or malformed"):
+        LibraryModel.from_record(record, "here.json")
 
 
 def test_a_truncated_results_file_is_refused_naming_it(tmp_path, capsys):
