@@ -150,7 +150,10 @@ def input_directory(path: str | os.PathLike, what: str, error: type[Exception] =
 def output_directory_path(path: str | os.PathLike, what: str, error: type[Exception] = OutputError) -> Path:
     """``path`` for a directory that will be created if missing (``--runs-dir``,
     ``--out``): refused when it, or any parent on the way, is a symlink loop or exists as
-    something other than a directory. Nothing is created here."""
+    something other than a directory, or empty (the current directory, which a command's
+    files would litter). Nothing is created here."""
+    if not str(path).strip():
+        raise error(f"{what} is empty: give a directory")
     path = Path(path)
     resolved(path, what, error)  # loops anywhere on the way
     probe = path

@@ -607,7 +607,10 @@ def judge_results(model: LibraryModel, paths: Sequence[str | Path], extrapolate:
         point = run_operating_point(results.table, config)
         points[path.name] = point
         physics = physics_of(config.dem)
-        prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics)
+        try:
+            prediction = predict(model, point, config.dem.geometry.blade_pattern, extrapolate, physics)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
         dem = dem_quantities(results.summary)
         for entry in model.runs:
             # a replicate: the same point and physics (a library made before its runs'

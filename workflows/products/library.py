@@ -31,7 +31,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from coupling.errors import ConfigError
-from coupling.files import distinct_inputs, input_directory, regular_file, replace_file, writable_directory
+from coupling.files import (
+    distinct_inputs,
+    input_directory,
+    output_directory_path,
+    refuse_output_over_inputs,
+    regular_file,
+    replace_file,
+    writable_directory,
+)
 from coupling.jsonable import write_json
 from dem.operating import operating_point
 from workflows.config import Config, config_from_dict, dump_toml, load_config
@@ -350,13 +358,19 @@ def library_check(
     ``check.json`` and ``check.md``."""
     library_path = Path(library) if library is not None else LIBRARY_MODEL
     model = load_model(library_path)
-    check = calibration.judge_results(model, paths, extrapolate)
+    runs = distinct_inputs(paths, "--results")
+    if out is not None:  # before the runs are judged, nothing created: a bad output is refused at once
+        for name in ("check.json", "check.md"):
+            refuse_output_over_inputs(
+                output_directory_path(out, "--out", ConfigError) / name, [*runs, library_path], "--out", ConfigError
+            )
+    check = calibration.judge_results(model, runs, extrapolate)
     text = calibration.markdown(model, check, calibration.NOT_HELD)
     files: dict[str, Path] = {}
     if out is not None:
         folder = writable_directory(out, "--out")
         files["check"] = write_json(folder / "check.json", check.record())
-        files["page"] = folder / "check.md"
         shown = library if library is not None else "the shipped library (workflows/reference/library/law)"
-        files["page"].write_text(f"# DEM runs the library does not hold, predicted by {shown}\n\n{text}\n")
+        page = f"# DEM runs the library does not hold, predicted by {shown}\n\n{text}\n"
+        files["page"] = replace_file(folder / "check.md", page, "page")
     return LibraryCheckOutput(check, text, files)

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from coupling.files import writable_directory
+from coupling.errors import ConfigError
+from coupling.files import refuse_output_over_inputs, replace_file, writable_directory
 from coupling.forked import Prepared
 from coupling.jsonable import write_json
 from coupling.tables import write_table
@@ -90,6 +91,8 @@ def run_predict(
     if settings:
         config = override(config, *settings)
     library_path = Path(library) if library is not None else LIBRARY_MODEL
+    for written in ("prediction.json", "table.h5", "prediction.png", "report.html"):
+        refuse_output_over_inputs(Path(out) / written, [config_path, library_path], "--out", ConfigError)
     model = load_model(library_path)
     point = operating_point(config.dem)
     physics = physics_of(config.dem)
@@ -115,5 +118,5 @@ def run_predict(
         page = drawer.result()
         files["figure"] = folder / "prediction.png"
         files["report"] = folder / "report.html"
-        files["report"].write_text(page)
+        replace_file(files["report"], page, "page")
     return PredictOutput(prediction, dynamics, files, time.perf_counter() - started)

@@ -206,6 +206,34 @@ def test_library_check_judges_a_run_the_library_does_not_hold_and_refuses_one_it
     assert "is the library's run" in capsys.readouterr().err
 
 
+def test_library_check_refuses_a_run_twice_an_output_over_a_run_and_names_a_run_outside(library, tmp_path, capsys):
+    seed2 = LIBRARY_DIR / "dem-4b9d0082c53c03af.h5"  # the baseline with another seed: inside the small library
+    copy = tmp_path / "copy.h5"
+    shutil.copy(seed2, copy)
+    base = ["library", "check", "--library", str(library), "--results"]
+    assert main([*base, str(seed2), str(copy)]) == 2
+    assert "is a copy of" in capsys.readouterr().err
+    # a results file named like the check's record: the check would write over it
+    named = tmp_path / "in" / "check.json"
+    named.parent.mkdir()
+    shutil.copy(seed2, named)
+    before = named.read_bytes()
+    assert main([*base, str(named), "--out", str(named.parent)]) == 2
+    assert "is one of this command's inputs" in capsys.readouterr().err
+    assert named.read_bytes() == before and not (named.parent / "check.md").exists()
+    longer = LIBRARY_DIR / "dem-12a6e9730151e9f1.h5"  # the x1.5 blender: beyond the small library's lengths
+    assert main([*base, str(seed2), str(longer)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{longer}: the point lies outside the library's domain" in err
+
+
+def test_an_empty_output_directory_is_refused(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["predict", "--out", "", "--no-figures"]) == 2
+    assert "--out is empty" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_corrupt_cached_fit_is_refitted_and_replaced_not_trusted(library, tmp_path):
     import shutil
 
