@@ -181,6 +181,12 @@ def _with_lines_alone(found: Sources) -> Sources:
     return replace(found, chosen=lines_alone(found.chosen, keys), alone=scores)
 
 
+def _score(value: float | None) -> str:
+    """A held-out log-likelihood in a table: "-" for a run no law was fitted without (one the
+    library does not hold)."""
+    return "-" if value is None or not math.isfinite(value) else f"{value:.4f}"
+
+
 def lines_alone(model: LibraryModel, keys: Sequence[str]) -> LibraryModel:
     """``model`` (calibrated) with the quantities ``keys`` predicted by their correction's
     line alone: their law values at every run replaced by
@@ -191,9 +197,10 @@ def lines_alone(model: LibraryModel, keys: Sequence[str]) -> LibraryModel:
     cal = model.calibration
     n = len(cal.inside)
     whole, left = dict(cal.whole), dict(cal.left_out)
+    alone = {key: [line_alone(key, r.point) for r in model.runs] for key in keys}
     for key in keys:
-        whole[key] = [line_alone(key)] * n
-        left[key] = [[line_alone(key)] * n for _ in range(n)]
+        whole[key] = alone[key]
+        left[key] = [list(alone[key]) for _ in range(n)]
     direct = tuple(dict.fromkeys([*cal.direct, *keys]))
     return replace(model, calibration=replace(cal, whole=whole, left_out=left, direct=direct))
 
@@ -681,7 +688,7 @@ def markdown(model: LibraryModel, result: Check, intro: str | None = None) -> st
         how = "interpolated" if rows[0].interpolated else "extrapolated"
         lines.append(
             f"| {run} | {p.impeller_rpm:g} | {p.feed_rate_total_per_s:g} | {p.length_m:g} | {how} | "
-            f"{scores.get(run, math.nan):.4f} | {_ck(ck.get(run))} | {sum(r.covered for r in rows)} | "
+            f"{_score(scores.get(run))} | {_ck(ck.get(run))} | {sum(r.covered for r in rows)} | "
             f"{sum(r.inside_widened for r in rows)} | "
             f"{verdict} |"
         )

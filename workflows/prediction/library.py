@@ -135,11 +135,19 @@ SCALAR_KEYS = (
 ABSOLUTE_KEYS = ("C_A", "lacey_outlet")
 
 
-def line_alone(key: str) -> float:
+def line_alone(key: str, point: OperatingPoint | None = None) -> float:
     """The law's value of ``key`` where it is predicted by its correction's line alone
     (``Calibration.direct``): 0 on an absolute scale, 1 on the log scale, so that the line
-    is fitted to the DEM's values themselves."""
-    return 0.0 if key in ABSOLUTE_KEYS else 1.0
+    is fitted to the DEM's values themselves. The outlet's RSD is a spread relative to the
+    A fraction p of the feed at ``point``: a well-mixed sample of n particles has an RSD of
+    sqrt((1 - p) / (p n)), so its line is fitted to the DEM's values over sqrt((1 - p) / p)
+    (1 at half and half, as every shipped run) and a point at another share follows it."""
+    if key in ABSOLUTE_KEYS:
+        return 0.0
+    if key == "rsd_outlet" and point is not None:
+        share = point.feed_rate_a_per_s / point.feed_rate_total_per_s
+        return math.sqrt((1.0 - share) / share) if 0.0 < share < 1.0 else 1.0
+    return 1.0
 
 
 #: what the correction of the law's predictions may be a linear function of

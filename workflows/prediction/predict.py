@@ -1015,7 +1015,7 @@ def predict(
             f"the library's law cannot be evaluated at {point.impeller_rpm:g} rpm, {point.length_m:g} m, "
             f"{point.feed_rate_total_per_s:g} /s ({exc}): too far beyond its domain, {dom.describe()}"
         ) from None
-    values = {key: line_alone(key) if key in model.calibration.direct else v for key, v in values.items()}
+    values = {key: line_alone(key, point) if key in model.calibration.direct else v for key, v in values.items()}
     floor = least.at(place) if least is not None else floor_at(model, place)
     quantities = assembled(values, lines, model.calibration.profile, point, pattern, place.widening, floor)
     quantities = tuple(replace(q, alone=True) if q.key in model.calibration.direct else q for q in quantities)

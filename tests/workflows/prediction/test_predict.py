@@ -208,6 +208,25 @@ def test_extrapolation_reaches_one_range_width_and_no_hold_up_beyond_the_barrels
         predict(model, narrow, "FB", extrapolate=True)
 
 
+def test_the_outlets_rsd_follows_the_a_share_as_a_well_mixed_sample_does():
+    """At an A share p the outlet's RSD, predicted by its line alone, is the half-and-half
+    library's times sqrt((1 - p) / p), interval and all; the composition follows the feed."""
+    from workflows.prediction.library import load_model
+    from workflows.shipped import LIBRARY_MODEL
+
+    model = load_model(LIBRARY_MODEL)
+    total = BASE.feed_rate_total_per_s
+    half = predict(model, BASE, "FB")
+    for share in (0.3, 0.9):
+        other = predict(
+            model, BASE.replace(feed_rate_a_per_s=share * total, feed_rate_b_per_s=(1 - share) * total), "FB"
+        )
+        factor = math.sqrt((1 - share) / share)
+        a, b = half.quantity("rsd_outlet"), other.quantity("rsd_outlet")
+        assert (b.value, b.low, b.high) == pytest.approx((a.value * factor, a.low * factor, a.high * factor), rel=1e-9)
+        assert other.quantity("C_A").value == pytest.approx(share, abs=0.01)
+
+
 def test_a_slice_whose_rates_are_scaled_holds_inversely_as_many_and_the_flows_stay():
     point = BASE.replace(impeller_rpm=200.0)
     law = point_values(_law(), _transverse(), point, "FB", 0.1)
