@@ -65,31 +65,37 @@ def run(args: argparse.Namespace) -> int:
         return _run(args, figures)
 
 
+#: each field of the design spec and the argument that gives it
+FIELDS = {
+    "ca_tolerance": "ca_within",
+    "coverage_sigmas": "coverage",
+    "rsd_max": "rsd_max",
+    "mrt_min_s": "mrt_min",
+    "mrt_max_s": "mrt_max",
+    "holdup_min": "holdup_min",
+    "holdup_max": "holdup_max",
+    "confidence": "confidence",
+    "noise_sigma": "noise_sigma",
+    "noise_tau_s": "noise_tau",
+    "noise_band_hz": "noise_band",
+    "noise_feeder": "noise_feeder",
+    "rpm_min": "rpm_min",
+    "rpm_max": "rpm_max",
+    "length_min_m": "length_min",
+    "length_max_m": "length_max",
+    "feed_min_per_s": "feed_min",
+    "feed_max_per_s": "feed_max",
+}
+#: the spec's fields as a user gave them (a refusal names the flag, not the field)
+FLAGS = {name: "--" + dest.replace("_", "-") for name, dest in FIELDS.items()}
+
+
 def _run(args: argparse.Namespace, figures) -> int:
     from workflows.prediction.design import design_spec
     from workflows.products.design import answer_lines, run_design
 
-    given = {
-        "ca_tolerance": args.ca_within,
-        "coverage_sigmas": args.coverage,
-        "rsd_max": args.rsd_max,
-        "mrt_min_s": args.mrt_min,
-        "mrt_max_s": args.mrt_max,
-        "holdup_min": args.holdup_min,
-        "holdup_max": args.holdup_max,
-        "confidence": args.confidence,
-        "noise_sigma": args.noise_sigma,
-        "noise_tau_s": args.noise_tau,
-        "noise_band_hz": args.noise_band,
-        "noise_feeder": args.noise_feeder,
-        "rpm_min": args.rpm_min,
-        "rpm_max": args.rpm_max,
-        "length_min_m": args.length_min,
-        "length_max_m": args.length_max,
-        "feed_min_per_s": args.feed_min,
-        "feed_max_per_s": args.feed_max,
-    }
-    spec = design_spec(**{k: v for k, v in given.items() if v is not None})
+    given = {name: getattr(args, dest) for name, dest in FIELDS.items()}
+    spec = design_spec(FLAGS, **{k: v for k, v in given.items() if v is not None})
     output = run_design(spec, args.out, args.library, args.extrapolate, figures=figures)
     print("\n".join(answer_lines(output.result)))
     # no wall time: the output is compared between commits (`pbmdem bench same-numbers`)

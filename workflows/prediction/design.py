@@ -51,6 +51,7 @@ were built so.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal, NamedTuple
@@ -190,15 +191,18 @@ class DesignSpec(BaseModel):
         return tuple(name for name in names if getattr(self, name) is not None)
 
 
-def design_spec(**values: Any) -> DesignSpec:
-    """A validated :class:`DesignSpec`; ConfigError names the bad value."""
+def design_spec(names: Mapping[str, str] | None = None, **values: Any) -> DesignSpec:
+    """A validated :class:`DesignSpec`; ConfigError names the bad value, each field by its
+    name in ``names`` (the command line's flags) where it has one."""
     try:
         return DesignSpec(**values)
     except ValidationError as exc:
         problems = "; ".join(
-            f"{'.'.join(map(str, e['loc']))} = {e['input']!r}: {e['msg']}" if e["loc"] else f"spec: {e['msg']}"
+            f"{'.'.join(map(str, e['loc']))} = {e['input']!r}: {e['msg']}" if e["loc"] else e["msg"]
             for e in exc.errors()
-        )
+        ).replace("Value error, ", "")
+        for field_name, shown in (names or {}).items():
+            problems = re.sub(rf"\b{field_name}\b", shown, problems)
         raise ConfigError(f"design spec: {problems}") from None
 
 

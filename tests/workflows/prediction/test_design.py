@@ -284,6 +284,16 @@ def test_the_spec_names_a_bad_value():
         D.design_spec(mrt_max_s=25.0, confidence=2.0)
 
 
+def test_the_command_line_refuses_a_spec_naming_its_flags(capsys):
+    from workflows.cli.main import main
+
+    assert main(["design", "--ca-within", "0.04"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "(--ca-within, --rsd-max) needs the feeder noise: --noise-sigma > 0" in err
+    assert main(["design", "--mrt-min", "30", "--mrt-max", "20"]) == 2
+    assert "--mrt-min (30.0) must be <= --mrt-max (20.0)" in capsys.readouterr().err
+
+
 def test_any_predicted_point_has_its_noise_and_step(shipped):
     """A point's noise and step alone are those of the design that found it."""
     spec = D.design_spec(ca_tolerance=0.04, noise_sigma=0.1, noise_tau_s=5.0, mrt_max_s=25.0)
