@@ -81,10 +81,15 @@ def load_config(path: str | Path) -> Config:
     path = Path(path)
     if path.is_dir():
         raise ConfigError(f"configuration path {path} is a directory; give a TOML file")
+    if path.exists() and not path.is_file():
+        raise ConfigError(
+            f"configuration path {path} is not a regular file (a device, pipe or socket); give a TOML file"
+        )
     if not path.is_file():
         raise ConfigError(f"configuration file {path} does not exist")
     try:
-        text = path.read_bytes().decode("utf-8")
+        # an editor's byte-order mark is no TOML: read past it
+        text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise ConfigError(
             f"{path} is not a UTF-8 text file (undecodable byte at offset {exc.start}); "

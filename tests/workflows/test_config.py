@@ -147,6 +147,14 @@ def test_binary_config_file_is_a_one_line_error(tmp_path):
     assert "\n" not in message and str(path) in message and "not a UTF-8 text file" in message
 
 
+def test_a_byte_order_mark_is_read_past_and_a_device_is_no_config(tmp_path):
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + dump_toml(load_preset("validation")).encode())
+    assert load_config(path) == load_preset("validation")
+    with pytest.raises(ConfigError, match="/dev/null is not a regular file"):
+        load_config("/dev/null")
+
+
 def test_config_path_that_is_a_directory(tmp_path):
     with pytest.raises(ConfigError, match="is a directory"):
         load_config(tmp_path)
