@@ -237,9 +237,16 @@ def _explain(exc: ValidationError, data: dict[str, Any], source: str) -> str:
         if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
             valid = _field_names(_model_at(Config, loc[:-1]))
             hint = difflib.get_close_matches(loc[-1], valid, n=1)
+            home = _sections_with(loc[-1])
             problems.append(
                 f"unknown key '{key}'"
-                + (f" (did you mean '{hint[0]}'?)" if hint else "")
+                + (
+                    f" (it belongs in {' or '.join(f'[{h}]' for h in home)})"
+                    if home
+                    else f" (did you mean '{hint[0]}'?)"
+                    if hint
+                    else ""
+                )
                 + (f"; valid keys here: {', '.join(valid)}" if valid else "")
             )
         elif err["type"] in _TYPE_ERRORS:
@@ -297,6 +304,18 @@ def _fields(model: type | None) -> dict[str, type]:
     if model is not None and dataclasses.is_dataclass(model):
         return {f.name: f.type for f in dataclasses.fields(model)}
     return {}
+
+
+def _sections_with(name: str, model: type = Config, path: tuple[str, ...] = ()) -> list[str]:
+    """The sections (dotted) of the configuration that have a key ``name``: where a key
+    written under the wrong table belongs."""
+    found = []
+    for field, annotation in _fields(model).items():
+        if _fields(annotation):
+            found += _sections_with(name, annotation, (*path, field))
+        elif field == name and path:
+            found.append(".".join(path))
+    return found
 
 
 def _field_names(model: type | None) -> list[str]:

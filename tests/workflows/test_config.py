@@ -155,6 +155,15 @@ def test_a_byte_order_mark_is_read_past_and_a_device_is_no_config(tmp_path):
         load_config("/dev/null")
 
 
+def test_a_key_under_the_wrong_table_is_told_where_it_belongs(tmp_path):
+    path = tmp_path / "wrong.toml"
+    path.write_text("[dem.geometry]\nimpeller_rpm = 300.0\nseed = 3\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert "'dem.geometry.impeller_rpm' (it belongs in [dem.operation])" in str(err.value)
+    assert "'dem.geometry.seed' (it belongs in [dem.numerics] or [pbm])" in str(err.value)
+
+
 def test_config_path_that_is_a_directory(tmp_path):
     with pytest.raises(ConfigError, match="is a directory"):
         load_config(tmp_path)
