@@ -946,6 +946,8 @@ class DesignResult:
     domain: str
     notes: tuple[str, ...]
     library_points: tuple[tuple[float, float, float], ...]
+    #: the operating points the search evaluated
+    evaluated: int = 0
 
     @property
     def probability(self) -> np.ndarray:
@@ -1038,13 +1040,18 @@ def design(
     def at(rpm: float, length: float, feed: float) -> OperatingPoint:
         return design_point(s.base, s.rule, rpm, length, feed)
 
-    points = tuple(evaluate_many(s, spec, [at(r, length, f) for r in speeds for length in lengths for f in feeds]))
+    evaluated = 0
+
+    def judged(points: list[OperatingPoint]) -> list[PointDesign]:
+        nonlocal evaluated
+        evaluated += len(points)
+        return evaluate_many(s, spec, points)
+
+    points = tuple(judged([at(r, length, f) for r in speeds for length in lengths for f in feeds]))
     good = [p for p in points if p.probability >= spec.confidence]
     shown = min(good, key=_rank_shortest) if good else max(points, key=lambda p: p.probability)
     fine_speeds, fine_lengths = _axis(r0, r1, region[0]), _axis(l0, l1, region[1])
-    fine = tuple(
-        evaluate_many(s, spec, [at(r, length, shown.feed_per_s) for r in fine_speeds for length in fine_lengths])
-    )
+    fine = tuple(judged([at(r, length, shown.feed_per_s) for r in fine_speeds for length in fine_lengths]))
     good += [p for p in fine if p.probability >= spec.confidence]
     notes = []
     shortest = largest = None
@@ -1057,18 +1064,18 @@ def design(
         if shorter.size:  # between the next shorter length searched and the answer
             trial = np.linspace(shorter[-1], shortest.length_m, REFINE_POINTS + 2)[1:-1]
             columns = _tied(good, shortest, lambda p: p.length_m, lambda p: (p.point.impeller_rpm, p.feed_per_s))
-            found = evaluate_many(s, spec, [at(r, v, f) for r, f in columns for v in trial])
+            found = judged([at(r, v, f) for r, f in columns for v in trial])
             shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
         tops = band_tops(s.rule, l0, shortest.length_m * (1 - 1e-12))
         if tops.size:  # a blender one station short of a shorter band's next can beat a longer one
-            found = evaluate_many(s, spec, [at(r, v, f) for r in speeds for f in feeds for v in tops])
+            found = judged([at(r, v, f) for r in speeds for f in feeds for v in tops])
             shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
         largest = min(good, key=_rank_feed)
         higher = feeds[feeds > largest.feed_per_s * (1 + 1e-12)]
         if higher.size:
             trial = np.geomspace(largest.feed_per_s, higher[0], REFINE_POINTS + 2)[1:-1]
             columns = _tied(good, largest, lambda p: p.feed_per_s, lambda p: (p.point.impeller_rpm, p.length_m))
-            found = evaluate_many(s, spec, [at(r, length, v) for r, length in columns for v in trial])
+            found = judged([at(r, length, v) for r, length in columns for v in trial])
             largest = min([largest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_feed)
         if math.isclose(shortest.length_m, l0):
             notes.append(f"the shortest blender searched ({l0:g} m) already meets the spec: a shorter one may too")
@@ -1102,4 +1109,5 @@ def design(
         s.domain.describe(),
         tuple(notes),
         library,
+        evaluated,
     )
