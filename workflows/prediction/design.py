@@ -68,9 +68,6 @@ from pbm.frequency import StationarySystem, noise_frequencies, noise_spectrum, s
 from workflows.pipeline.results import VALIDATED_RATES
 from workflows.prediction.covariates import (
     AXIAL_SLICES,
-    REFERENCE_FEED_PER_S,
-    REFERENCE_RPM,
-    REFERENCE_SLICE_M,
     run_covariates,
 )
 from workflows.prediction.library import LibraryModel, covariate_columns, slice_key
@@ -857,10 +854,7 @@ def box(s: Surrogate, spec: DesignSpec) -> tuple[tuple[float, float], tuple[floa
     """The (rpm, length [m], total feed [particles/s]) ranges searched: the spec's, each
     default the library's domain. Raises ConfigError, in one line naming the domain, when
     they leave it and ``s.extrapolate`` is False."""
-    r = s.domain.ranges
-    rpm = [REFERENCE_RPM * math.exp(v) for v in r["speed"]]
-    length = [REFERENCE_SLICE_M * AXIAL_SLICES * math.exp(v) for v in r["length"]]
-    feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in r["feed"]]
+    rpm, length, feed = (s.domain.span(axis) for axis in ("speed", "length", "feed"))
     out = (
         (spec.rpm_min or rpm[0], spec.rpm_max or rpm[1]),
         (spec.length_min_m or length[0], spec.length_max_m or length[1]),
@@ -1047,12 +1041,15 @@ def design(
         evaluated += len(points)
         return evaluate_many(s, spec, points)
 
+    def met(found: Sequence[PointDesign]) -> list[PointDesign]:
+        return [p for p in found if p.probability >= spec.confidence]
+
     points = tuple(judged([at(r, length, f) for r in speeds for length in lengths for f in feeds]))
-    good = [p for p in points if p.probability >= spec.confidence]
+    good = met(points)
     shown = min(good, key=_rank_shortest) if good else max(points, key=lambda p: p.probability)
     fine_speeds, fine_lengths = _axis(r0, r1, region[0]), _axis(l0, l1, region[1])
     fine = tuple(judged([at(r, length, shown.feed_per_s) for r in fine_speeds for length in fine_lengths]))
-    good += [p for p in fine if p.probability >= spec.confidence]
+    good += met(fine)
     notes = []
     shortest = largest = None
     if good:
@@ -1065,18 +1062,18 @@ def design(
             trial = np.linspace(shorter[-1], shortest.length_m, REFINE_POINTS + 2)[1:-1]
             columns = _tied(good, shortest, lambda p: p.length_m, lambda p: (p.point.impeller_rpm, p.feed_per_s))
             found = judged([at(r, v, f) for r, f in columns for v in trial])
-            shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
+            shortest = min([shortest, *met(found)], key=_rank_shortest)
         tops = band_tops(s.rule, l0, shortest.length_m * (1 - 1e-12))
         if tops.size:  # a blender one station short of a shorter band's next can beat a longer one
             found = judged([at(r, v, f) for r in speeds for f in feeds for v in tops])
-            shortest = min([shortest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_shortest)
+            shortest = min([shortest, *met(found)], key=_rank_shortest)
         largest = min(good, key=_rank_feed)
         higher = feeds[feeds > largest.feed_per_s * (1 + 1e-12)]
         if higher.size:
             trial = np.geomspace(largest.feed_per_s, higher[0], REFINE_POINTS + 2)[1:-1]
             columns = _tied(good, largest, lambda p: p.feed_per_s, lambda p: (p.point.impeller_rpm, p.length_m))
             found = judged([at(r, length, v) for r, length in columns for v in trial])
-            largest = min([largest, *(p for p in found if p.probability >= spec.confidence)], key=_rank_feed)
+            largest = min([largest, *met(found)], key=_rank_feed)
         if math.isclose(shortest.length_m, l0):
             notes.append(f"the shortest blender searched ({l0:g} m) already meets the spec: a shorter one may too")
         if math.isclose(largest.feed_per_s, f1):

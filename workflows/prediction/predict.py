@@ -87,13 +87,7 @@ from dem.phases.assembly import axial_part, with_transverse
 from dem.phases.chain import steady_occupancy
 from dem.phases.law import MAX_LAW_RATE, PhaseLaw
 from pbm.feed import feed_at
-from workflows.prediction.covariates import (
-    AXIAL_SLICES,
-    REFERENCE_FEED_PER_S,
-    REFERENCE_RPM,
-    REFERENCE_SLICE_M,
-    run_covariates,
-)
+from workflows.prediction.covariates import AXIAL_SLICES, AXIS_REFERENCES, axis_value, run_covariates, weir_gap_m
 from workflows.prediction.library import (
     ABSOLUTE_KEYS,
     CORRECTION_DOF,
@@ -115,8 +109,8 @@ SAMPLING_DRAWS = 2000
 #: the interval's coverage
 LEVEL = 0.95
 #: the operating-point covariates whose range spans the library's domain. Not the gap to the
-#: weir: at the baseline's station spacing every length has its own (25-54 mm), and a gap
-#: beyond the library's widens the correction's interval through its leverage instead
+#: weir: at the baseline's station spacing every length has its own (25-54 mm); a
+#: configuration's gap is checked against the stations' rule instead (:func:`_gap_issue`)
 DOMAIN_AXES = ("speed", "length", "feed")
 #: how far ``--extrapolate`` reaches beyond each axis' range, in widths of that range: a
 #: feed 27 times the library's greatest, or a speed a third of its least, is no
@@ -348,10 +342,15 @@ class Domain:
         _, spacing, least = self.stations
         return least, least + spacing
 
+    def span(self, axis: str, reach: float = 0.0) -> tuple[float, float]:
+        """The range of ``axis`` in the units a user gives it (:data:`AXIS_REFERENCES`),
+        each end moved out by ``reach`` of its width."""
+        low, high = self.ranges[axis]
+        width = (high - low) * reach
+        return axis_value(axis, low - width), axis_value(axis, high + width)
+
     def describe(self) -> str:
-        rpm = [REFERENCE_RPM * math.exp(v) for v in self.ranges["speed"]]
-        slice_m = [REFERENCE_SLICE_M * math.exp(v) * AXIAL_SLICES for v in self.ranges["length"]]
-        feed = [REFERENCE_FEED_PER_S * math.exp(v) for v in self.ranges["feed"]]
+        rpm, slice_m, feed = (self.span(axis) for axis in ("speed", "length", "feed"))
         shared = f", and the {len(self.physics)} settings of materials, contacts, blades, weir and feed its runs share"
         gaps = self.gaps_m
         gap = f", the last blade station {gaps[0] * 1e3:.4g}-{gaps[1] * 1e3:.4g} mm before the weir" if gaps else ""
@@ -409,7 +408,7 @@ def shared_physics(physics: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 
 def least_gap(points: Sequence[OperatingPoint]) -> float:
     """The least gap from the last blade station to the weir over ``points`` [m]."""
-    return min(p.length_m - max(p.blade_x_m, default=0.0) for p in points)
+    return min(weir_gap_m(p) for p in points)
 
 
 def station_rule(points: Sequence[OperatingPoint]) -> tuple[float, float, float] | None:
@@ -494,7 +493,11 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
             widths = excess / (high - low) if high - low > 1e-9 else 1.0
             distance += widths
             if high - low > 1e-9 and widths > EXTRAPOLATION_REACH + 1e-9:
-                reach.append(f"{axis} {widths:.2f} widths of its range beyond it ({_axis_reach(axis, low, high)})")
+                ends = dom.span(axis, EXTRAPOLATION_REACH)
+                reach.append(
+                    f"{axis} {widths:.2f} widths of its range beyond it (--extrapolate reaches "
+                    f"{ends[0]:.4g}-{ends[1]:.4g} {AXIS_REFERENCES[axis][1]})"
+                )
     for name, value in _fixed(point, pattern).items():
         library = dom.fixed[name]
         if not (value == library or (isinstance(value, float) and math.isclose(value, library, rel_tol=1e-9))):
@@ -516,19 +519,6 @@ def placement(dom: Domain, point: OperatingPoint, pattern: str, physics: Mapping
     return Placement(tuple(issues), beyond, 1.0 + distance + beyond, share, new_layout, tuple(reach))
 
 
-def _axis_reach(axis: str, low: float, high: float) -> str:
-    """The values of ``axis`` that ``--extrapolate`` reaches, in the units a user gives."""
-    reference, unit = {
-        "speed": (REFERENCE_RPM, "rpm"),
-        "length": (REFERENCE_SLICE_M * AXIAL_SLICES, "m"),
-        "feed": (REFERENCE_FEED_PER_S, "particles/s"),
-    }[axis]
-    width = (high - low) * EXTRAPOLATION_REACH
-    return (
-        f"--extrapolate reaches {reference * math.exp(low - width):.4g}-{reference * math.exp(high + width):.4g} {unit}"
-    )
-
-
 def barrel_capacity(point: OperatingPoint) -> float:
     """The most particles the barrel of ``point`` holds: its volume at close packing over
     one particle's (the shaft and blades, a few % of it, left in: an upper bound)."""
@@ -543,7 +533,7 @@ def _gap_issue(dom: Domain, point: OperatingPoint) -> tuple[str, float]:
     correction covariate, whose leverage widens their intervals."""
     low, high = dom.gaps_m
     first, spacing, _ = dom.stations
-    gap = point.length_m - max(point.blade_x_m, default=0.0)
+    gap = weir_gap_m(point)
     excess = max(low - gap, gap - high, 0.0)
     if excess <= 1e-9:
         return "", 0.0

@@ -90,7 +90,7 @@ from coupling.operating import OperatingPoint
 from dem.operating import operating_point
 from workflows.config import Config, config_from_dict
 from workflows.prediction.calibration import USEFUL_HALF_WIDTH, seed_scatter
-from workflows.prediction.covariates import AXIAL_SLICES, REFERENCE_FEED_PER_S, REFERENCE_RPM, REFERENCE_SLICE_M
+from workflows.prediction.covariates import AXIAL_SLICES
 from workflows.prediction.library import (
     CORRECTION_TERMS,
     LibraryModel,
@@ -177,12 +177,7 @@ def _round(value: float) -> float:
 
 def domain_region(dom: Domain) -> Region:
     """The :class:`Region` of a library's :class:`~workflows.prediction.predict.Domain`."""
-    speed, length, feed = (dom.ranges[axis] for axis in ("speed", "length", "feed"))
-    return Region(
-        tuple(REFERENCE_RPM * math.exp(v) for v in speed),
-        tuple(REFERENCE_SLICE_M * AXIAL_SLICES * math.exp(v) for v in length),
-        tuple(REFERENCE_FEED_PER_S * math.exp(v) for v in feed),
-    )
+    return Region(*(dom.span(axis) for axis in ("speed", "length", "feed")))
 
 
 def widened(region: Region, fraction: float) -> Region:

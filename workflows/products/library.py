@@ -360,10 +360,9 @@ def library_check(
     model = load_model(library_path)
     runs = distinct_inputs(paths, "--results")
     if out is not None:  # before the runs are judged, nothing created: a bad output is refused at once
+        planned = output_directory_path(out, "--out", ConfigError)
         for name in ("check.json", "check.md"):
-            refuse_output_over_inputs(
-                output_directory_path(out, "--out", ConfigError) / name, [*runs, library_path], "--out", ConfigError
-            )
+            refuse_output_over_inputs(planned / name, [*runs, library_path], "--out", ConfigError)
     check = calibration.judge_results(model, runs, extrapolate)
     text = calibration.markdown(model, check, calibration.NOT_HELD)
     files: dict[str, Path] = {}

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from coupling.errors import ConfigError
-from coupling.files import refuse_output_over_inputs, replace_file, writable_directory
+from coupling.files import output_directory_path, refuse_output_over_inputs, replace_file, writable_directory
 from coupling.forked import Prepared
 from coupling.jsonable import write_json
 from coupling.tables import write_table
@@ -91,8 +91,10 @@ def run_predict(
     if settings:
         config = override(config, *settings)
     library_path = Path(library) if library is not None else LIBRARY_MODEL
+    # before any work, nothing created: an output over an input, or no directory, is refused at once
+    planned = output_directory_path(out, "--out", ConfigError)
     for written in ("prediction.json", "table.h5", "prediction.png", "report.html"):
-        refuse_output_over_inputs(Path(out) / written, [config_path, library_path], "--out", ConfigError)
+        refuse_output_over_inputs(planned / written, [config_path, library_path], "--out", ConfigError)
     model = load_model(library_path)
     point = operating_point(config.dem)
     physics = physics_of(config.dem)

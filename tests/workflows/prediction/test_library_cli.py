@@ -200,7 +200,9 @@ def test_library_check_judges_a_run_the_library_does_not_hold_and_refuses_one_it
     record = json.loads((tmp_path / "check.json").read_text())
     rows = [r for r in record["rows"] if r["run"] == seed2.name]
     assert len(rows) == len(quantity_keys()) and all(r["interpolated"] for r in rows)
-    assert seed2.name in (tmp_path / "check.md").read_text()
+    page = (tmp_path / "check.md").read_text()
+    row = next(line for line in page.splitlines() if line.startswith(f"| {seed2.name} |"))
+    assert "nan" not in row and " | - | " in row  # no held-out likelihood for a run it does not hold
     capsys.readouterr()
     assert main(["library", "check", "--library", str(library), "--results", str(SPEEDS[0])]) == 2
     assert "is the library's run" in capsys.readouterr().err
@@ -225,6 +227,16 @@ def test_library_check_refuses_a_run_twice_an_output_over_a_run_and_names_a_run_
     assert main([*base, str(seed2), str(longer)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{longer}: the point lies outside the library's domain" in err
+
+
+def test_predict_refuses_to_write_over_its_configuration_before_any_work(tmp_path, capsys):
+    config = tmp_path / "prediction.json"  # a TOML file a user named like the prediction's record
+    shutil.copy(VALIDATION, config)
+    before = config.read_bytes()
+    assert main(["predict", "--config", str(config), "--out", str(tmp_path), "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is one of this command's inputs" in err
+    assert config.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["prediction.json"]
 
 
 def test_an_empty_output_directory_is_refused(tmp_path, capsys, monkeypatch):
